@@ -1,0 +1,191 @@
+"""Bernstein/Bézier primitives of degree 9, vectorised over times and segments.
+
+Everything the planner states as a constraint is a linear map of control
+points, and control points are a linear map of the two end jets (method.md,
+"the key reparametrisation"). The matrices here are those maps.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from math import comb, factorial
+
+import numpy as np
+
+from planner_core.problem import DEGREE, JET_ORDER, FloatArray, Trajectory
+
+N = DEGREE
+
+
+@lru_cache(maxsize=None)
+def _difference_matrix(k: int, n: int = N) -> FloatArray:
+    """(n-k+1, n+1) matrix of the k-th forward difference Δ^k P^i."""
+    out = np.zeros((n - k + 1, n + 1))
+    for i in range(n - k + 1):
+        for l in range(k + 1):
+            out[i, i + l] = (-1) ** (k - l) * comb(k, l)
+    out.setflags(write=False)
+    return out
+
+
+def falling(n: int, k: int) -> float:
+    """n! / (n-k)!"""
+    return float(factorial(n) // factorial(n - k))
+
+
+def hodograph_matrix(k: int, duration: float, n: int = N) -> FloatArray:
+    """(n-k+1, n+1) map from control points to the order-k hodograph's control points."""
+    return _difference_matrix(k, n) * (falling(n, k) / duration**k)
+
+
+def hodograph(ctrl: FloatArray, k: int, duration: float) -> FloatArray:
+    """Control points of the k-th time derivative of one segment, shape (10-k, 3)."""
+    n = ctrl.shape[-2] - 1
+    return hodograph_matrix(k, duration, n) @ ctrl
+
+
+def hodographs(ctrl: FloatArray, k: int, durations: FloatArray) -> FloatArray:
+    """Order-k hodograph control points of many segments: (s, 10, 3) -> (s, 10-k, 3)."""
+    n = ctrl.shape[-2] - 1
+    scale = falling(n, k) / np.asarray(durations, dtype=float) ** k
+    return np.einsum("ij,sjd->sid", _difference_matrix(k, n), ctrl) * scale[:, None, None]
+
+
+def bernstein_basis(n: int, u: FloatArray) -> FloatArray:
+    """Bernstein basis of degree n at parameters u: shape (len(u), n+1)."""
+    u = np.atleast_1d(np.asarray(u, dtype=float))[:, None]
+    i = np.arange(n + 1)[None, :]
+    coeffs = np.array([comb(n, j) for j in range(n + 1)], dtype=float)[None, :]
+    return np.asarray(coeffs * u**i * (1.0 - u) ** (n - i))
+
+
+def evaluate_segment(ctrl: FloatArray, duration: float, u: FloatArray, order: int = 0) -> FloatArray:
+    """Derivative `order` of one segment at parameters u in [0, 1]: shape (len(u), 3)."""
+    n = ctrl.shape[0] - 1
+    if order > n:
+        return np.zeros((np.atleast_1d(u).shape[0], ctrl.shape[1]))
+    pts = ctrl if order == 0 else hodograph(ctrl, order, duration)
+    return bernstein_basis(n - order, u) @ pts
+
+
+# --- jet <-> control points -------------------------------------------------
+
+
+@lru_cache(maxsize=4096)
+def _start_map_cached(duration: float) -> FloatArray:
+    m = np.zeros((JET_ORDER, JET_ORDER))
+    for k in range(JET_ORDER):
+        for l in range(k + 1):
+            m[k, l] = comb(k, l) * duration**l / falling(N, l)
+    m.setflags(write=False)
+    return m
+
+
+@lru_cache(maxsize=4096)
+def _end_map_cached(duration: float) -> FloatArray:
+    m = np.zeros((JET_ORDER, JET_ORDER))
+    for k in range(JET_ORDER):
+        row = JET_ORDER - 1 - k  # control point P^{9-k}, stored in order P^5..P^9
+        for l in range(k + 1):
+            m[row, l] = (-1) ** l * comb(k, l) * duration**l / falling(N, l)
+    m.setflags(write=False)
+    return m
+
+
+def start_map(duration: float) -> FloatArray:
+    """5x5 map: jet at u=0 -> control points P^0..P^4."""
+    return _start_map_cached(float(duration))
+
+
+def end_map(duration: float) -> FloatArray:
+    """5x5 map: jet at u=1 -> control points P^5..P^9."""
+    return _end_map_cached(float(duration))
+
+
+def segment_from_jets(jet0: FloatArray, jet1: FloatArray, duration: float) -> FloatArray:
+    """The unique degree-9 segment with the given end jets, shape (10, 3)."""
+    return np.concatenate([start_map(duration) @ jet0, end_map(duration) @ jet1])
+
+
+def segments_from_jets(jets: FloatArray, durations: FloatArray) -> FloatArray:
+    """All segments of a trajectory from its waypoint jets (m, 5, 3): (m-1, 10, 3)."""
+    d = np.asarray(durations, dtype=float)
+    p = np.arange(JET_ORDER)
+    k = p[:, None]
+    l_ = p[None, :]
+    binom = np.array([[comb(a, b) for b in range(JET_ORDER)] for a in range(JET_ORDER)], dtype=float)
+    fall = np.array([falling(N, i) for i in range(JET_ORDER)])
+    scale = d[:, None] ** p[None, :] / fall[None, :]  # (s, 5)
+    start = binom[None, :, :] * scale[:, None, :] * (l_ <= k)[None]
+    sign = (-1.0) ** p
+    end_rows = binom[None, :, :] * (sign * 1.0)[None, None, :] * scale[:, None, :] * (l_ <= k)[None]
+    end = end_rows[:, ::-1, :]  # row order P^5..P^9
+    first = np.einsum("skl,sld->skd", start, jets[:-1])
+    last = np.einsum("skl,sld->skd", end, jets[1:])
+    return np.concatenate([first, last], axis=1)
+
+
+def start_jet(ctrl: FloatArray, duration: float) -> FloatArray:
+    """Jet at u=0 of a segment, shape (5, 3)."""
+    return np.stack(
+        [ctrl[0]] + [hodograph(ctrl, k, duration)[0] for k in range(1, JET_ORDER)]
+    )
+
+
+def end_jet(ctrl: FloatArray, duration: float) -> FloatArray:
+    """Jet at u=1 of a segment, shape (5, 3)."""
+    return np.stack(
+        [ctrl[-1]] + [hodograph(ctrl, k, duration)[-1] for k in range(1, JET_ORDER)]
+    )
+
+
+# --- subdivision ------------------------------------------------------------
+
+
+def split_segment(ctrl: FloatArray, u: float) -> tuple[FloatArray, FloatArray]:
+    """de Casteljau split at u: the two pieces' control points (exact curve)."""
+    n = ctrl.shape[0] - 1
+    work = np.array(ctrl, dtype=float)
+    left = np.empty_like(work)
+    right = np.empty_like(work)
+    left[0] = work[0]
+    right[n] = work[n]
+    for r in range(1, n + 1):
+        work = (1.0 - u) * work[:-1] + u * work[1:]
+        left[r] = work[0]
+        right[n - r] = work[-1]
+    return left, right
+
+
+# --- trajectory evaluation --------------------------------------------------
+
+
+def locate(times: FloatArray, t: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Segment index and local parameter u for times t (clamped to the span)."""
+    t = np.clip(np.atleast_1d(np.asarray(t, dtype=float)), times[0], times[-1])
+    seg = np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 2)
+    u = (t - times[seg]) / (times[seg + 1] - times[seg])
+    return seg, np.clip(u, 0.0, 1.0)
+
+
+def evaluate_trajectory(traj: Trajectory, t: FloatArray, order: int = 0) -> FloatArray:
+    """Derivative `order` of a trajectory at times t: shape (len(t), 3) (or (3,) for scalar t)."""
+    scalar = np.ndim(t) == 0
+    seg, u = locate(traj.times, t)
+    n = traj.control_points.shape[1] - 1
+    if order > n:
+        out = np.zeros((seg.shape[0], 3))
+        return out[0] if scalar else out
+    durations = np.diff(traj.times)
+    if order == 0:
+        pts = traj.control_points[seg]
+    else:
+        pts = hodographs(traj.control_points[seg], order, durations[seg])
+    basis = bernstein_basis(n - order, u)  # (T, n-order+1)
+    out = np.einsum("ti,tid->td", basis, pts)
+    return out[0] if scalar else out
+
+
+def trajectory_jet(traj: Trajectory, t: float) -> FloatArray:
+    """Jet (position .. snap) at time t, shape (5, 3)."""
+    return np.stack([evaluate_trajectory(traj, np.float64(t), k) for k in range(JET_ORDER)])
