@@ -1,0 +1,253 @@
+"""Service configuration: a frozen dataclass tree loaded from TOML.
+
+Every option has a default, so an empty file is a valid configuration. Unknown
+keys are rejected with their dotted name because a typo in a safety option
+(say `auto_arm`) must not silently fall back to the default.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from dataclasses import dataclass, field, fields
+from pathlib import Path
+from typing import Any, get_type_hints
+
+
+class ConfigError(ValueError):
+    """Bad configuration; `key` is the dotted key at fault."""
+
+    def __init__(self, key: str, reason: str) -> None:
+        super().__init__(f"{key}: {reason}")
+        self.key = key
+        self.reason = reason
+
+
+@dataclass(frozen=True)
+class VehicleConfig:
+    id: str = "drone1"
+    # MAVLink system id of the autopilot; the companion shares it (same system).
+    sysid: int = 1
+    autopilot_component: int = 1
+    # MAV_COMP_ID_ONBOARD_COMPUTER
+    component: int = 191
+
+
+@dataclass(frozen=True)
+class ZenohConfig:
+    prefix: str = "bezier"
+    mode: str = "peer"
+    listen: tuple[str, ...] = ()
+    connect: tuple[str, ...] = ()
+    multicast_scouting: bool = True
+    # A full Zenoh JSON5 configuration (TLS, user/password, access control).
+    # When set, it is the base and the options above are applied over it only
+    # where they differ from their defaults.
+    config_file: str = ""
+
+
+@dataclass(frozen=True)
+class MavlinkConfig:
+    url: str = "udpout:127.0.0.1:14540"
+    heartbeat_hz: float = 1.0
+    # No heartbeat from the autopilot for this long means the link is lost.
+    link_timeout: float = 1.5
+    command_timeout: float = 2.0
+
+
+@dataclass(frozen=True)
+class SetpointConfig:
+    rate_hz: float = 50.0
+    yaw_mode: str = "fixed"  # "fixed" | "velocity"
+    yaw: float = 0.0  # rad, NED heading used in fixed mode
+    # Below this speed the along-velocity heading is ill-defined; keep the last one.
+    yaw_min_speed: float = 0.3
+
+
+@dataclass(frozen=True)
+class BoundsConfig:
+    velocity: float = 3.0
+    acceleration: float = 3.0
+    jerk: float = 10.0
+    snap: float = 50.0
+
+
+@dataclass(frozen=True)
+class PlannerConfig:
+    method: str = "iterative"  # "iterative" | "global"
+    window: int = 3
+    vehicle_radius: float = 0.3
+    bounds: BoundsConfig = field(default_factory=BoundsConfig)
+    # How far ahead of "now" an in-flight replan splits the trajectory: the
+    # planning latency budget plus a margin, so the piece flown never changes.
+    split_ahead: float = 0.15
+    # Planner threads; one keeps planning serialised and the setpoint loop's GIL share high.
+    workers: int = 1
+
+
+@dataclass(frozen=True)
+class GeofenceConfig:
+    # NED box; z is down, so the ceiling is the most negative z.
+    min: tuple[float, float, float] = (-100.0, -100.0, -50.0)
+    max: tuple[float, float, float] = (100.0, 100.0, 0.5)
+
+
+@dataclass(frozen=True)
+class LimitsConfig:
+    max_message_bytes: int = 1048576
+    max_waypoints: int = 5000
+    max_obstacles: int = 1000
+
+
+@dataclass(frozen=True)
+class SafetyConfig:
+    auto_arm: bool = False
+    takeoff_altitude: float = 2.0
+    # A mission's first waypoint or takeoff within this distance counts as reached.
+    arrival_tolerance: float = 0.2
+    # Hold position instead of flying when tracking error exceeds this (m).
+    max_tracking_error: float = 3.0
+
+
+@dataclass(frozen=True)
+class Config:
+    vehicle: VehicleConfig = field(default_factory=VehicleConfig)
+    zenoh: ZenohConfig = field(default_factory=ZenohConfig)
+    mavlink: MavlinkConfig = field(default_factory=MavlinkConfig)
+    setpoints: SetpointConfig = field(default_factory=SetpointConfig)
+    planner: PlannerConfig = field(default_factory=PlannerConfig)
+    geofence: GeofenceConfig = field(default_factory=GeofenceConfig)
+    limits: LimitsConfig = field(default_factory=LimitsConfig)
+    safety: SafetyConfig = field(default_factory=SafetyConfig)
+
+    def key(self, topic: str) -> str:
+        return f"{self.zenoh.prefix}/{self.vehicle.id}/{topic}"
+
+
+_CHOICES: dict[str, tuple[str, ...]] = {
+    "zenoh.mode": ("peer", "client", "router"),
+    "setpoints.yaw_mode": ("fixed", "velocity"),
+    "planner.method": ("iterative", "global"),
+}
+_POSITIVE = {
+    "mavlink.heartbeat_hz",
+    "mavlink.link_timeout",
+    "mavlink.command_timeout",
+    "setpoints.rate_hz",
+    "planner.bounds.velocity",
+    "planner.bounds.acceleration",
+    "planner.bounds.jerk",
+    "planner.bounds.snap",
+    "planner.split_ahead",
+    "planner.window",
+    "planner.workers",
+    "limits.max_message_bytes",
+    "limits.max_waypoints",
+    "limits.max_obstacles",
+    "safety.takeoff_altitude",
+    "safety.arrival_tolerance",
+    "safety.max_tracking_error",
+}
+
+
+def _convert(key: str, hint: Any, value: Any, default: Any) -> Any:
+    if dataclasses.is_dataclass(default):
+        if not isinstance(value, dict):
+            raise ConfigError(key, f"expected a table, got {type(value).__name__}")
+        return _build(type(default), value, key + ".")
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(key, f"expected true/false, got {value!r}")
+        return value
+    if hint is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(key, f"expected an integer, got {value!r}")
+        return value
+    if hint is float:
+        if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+            raise ConfigError(key, f"expected a finite number, got {value!r}")
+        return float(value)
+    if hint is str:
+        if not isinstance(value, str):
+            raise ConfigError(key, f"expected a string, got {value!r}")
+        return value
+    if isinstance(default, tuple):
+        if not isinstance(value, list):
+            raise ConfigError(key, f"expected an array, got {value!r}")
+        if default and isinstance(default[0], float):
+            if len(value) != len(default):
+                raise ConfigError(key, f"expected {len(default)} numbers, got {len(value)}")
+            return tuple(_convert(f"{key}[{i}]", float, v, 0.0) for i, v in enumerate(value))
+        return tuple(_convert(f"{key}[{i}]", str, v, "") for i, v in enumerate(value))
+    raise ConfigError(key, "unsupported option type")  # pragma: no cover
+
+
+def _build(cls: type, table: dict[str, Any], prefix: str = "") -> Any:
+    hints = get_type_hints(cls)
+    defaults = cls()
+    names = {f.name for f in fields(cls)}
+    for k in table:
+        if k not in names:
+            raise ConfigError(prefix + k, f"unknown key (allowed: {', '.join(sorted(names))})")
+    kwargs: dict[str, Any] = {}
+    for f in fields(cls):
+        if f.name not in table:
+            continue
+        key = prefix + f.name
+        value = _convert(key, hints[f.name], table[f.name], getattr(defaults, f.name))
+        if key in _CHOICES and value not in _CHOICES[key]:
+            raise ConfigError(key, f"must be one of {', '.join(_CHOICES[key])}, got {value!r}")
+        if key in _POSITIVE and value <= 0:
+            raise ConfigError(key, f"must be > 0, got {value!r}")
+        kwargs[f.name] = value
+    return cls(**kwargs)
+
+
+def config_from_dict(table: dict[str, Any]) -> Config:
+    cfg: Config = _build(Config, table)
+    lo, hi = cfg.geofence.min, cfg.geofence.max
+    for i in range(3):
+        if lo[i] >= hi[i]:
+            raise ConfigError(f"geofence.min[{i}]", f"must be below geofence.max[{i}]")
+    return cfg
+
+
+def load_config(path: str | Path) -> Config:
+    try:
+        with open(path, "rb") as fh:
+            table = tomllib.load(fh)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(str(path), f"invalid TOML: {exc}") from exc
+    return config_from_dict(table)
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int | float):
+        return repr(value)
+    if isinstance(value, str):
+        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(value, tuple):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    raise TypeError(type(value))  # pragma: no cover
+
+
+def _dump_table(obj: Any, name: str, out: list[str]) -> None:
+    scalars = [f for f in fields(obj) if not dataclasses.is_dataclass(getattr(obj, f.name))]
+    tables = [f for f in fields(obj) if dataclasses.is_dataclass(getattr(obj, f.name))]
+    if name and scalars:
+        out.append(f"[{name}]")
+    for f in scalars:
+        out.append(f"{f.name} = {_toml_value(getattr(obj, f.name))}")
+    if name and scalars:
+        out.append("")
+    for f in tables:
+        _dump_table(getattr(obj, f.name), f"{name}.{f.name}" if name else f.name, out)
+
+
+def config_to_toml(cfg: Config | None = None) -> str:
+    out: list[str] = []
+    _dump_table(cfg or Config(), "", out)
+    return "\n".join(out).rstrip() + "\n"

@@ -1,0 +1,649 @@
+"""`python -m companion demo`: the whole chain on this machine, no hardware.
+
+Starts the mock autopilot (sitl_mock) and the companion service as subprocesses on free loopback
+ports, joins their Zenoh network as a peer, and flies the paper's two scenarios in real time:
+scenario 1, then scenario 2 with a pop-up obstacle published mid-flight and a waypoint moved out
+of its way. It prints live progress and a summary table, writes figures to out/demo/, and exits
+non-zero if a mission was not flown as planned.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import queue
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from companion import demo_report as rep
+from companion.config import (
+    Config,
+    GeofenceConfig,
+    MavlinkConfig,
+    SafetyConfig,
+    VehicleConfig,
+    ZenohConfig,
+    config_to_toml,
+)
+from companion.frames import swap_points
+from planner_core.problem import Trajectory
+
+ROOT = Path(__file__).resolve().parents[1]
+EXAMPLES = ROOT / "examples"
+VEHICLE = "demo"
+UP = np.array([0.0, 0.0, 1.0])  # ENU
+LIFT = 2.0  # m: the paper's scenarios touch z = 0; fly them this much higher (ENU, up)
+MAX_TRACKING_ERROR = 1.0  # m: beyond this the flight is not "as planned"
+
+
+# --- processes and ports ---------------------------------------------------------------------
+
+
+def free_port(kind: int = socket.SOCK_STREAM) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class Child:
+    """A subprocess with its output in a log file; stopped politely, then firmly."""
+
+    def __init__(self, name: str, argv: list[str], log: Path) -> None:
+        self.name = name
+        self.log = log
+        self._fh = open(log, "wb")  # noqa: SIM115 (closed in stop())
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        self.proc = subprocess.Popen(argv, stdout=self._fh, stderr=subprocess.STDOUT, cwd=ROOT, env=env)
+
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def tail(self, n: int = 15) -> str:
+        try:
+            lines = self.log.read_text(errors="replace").splitlines()
+        except OSError:
+            return ""
+        return "\n".join(f"    {self.name}| {line}" for line in lines[-n:])
+
+    def stop(self, timeout: float = 5.0) -> int | None:
+        if self.alive():
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.terminate()
+                try:
+                    self.proc.wait(2.0)
+                except subprocess.TimeoutExpired:
+                    self.proc.kill()
+                    self.proc.wait()
+        self._fh.close()
+        return self.proc.returncode
+
+
+# --- the Zenoh side --------------------------------------------------------------------------
+
+
+@dataclass
+class Sample:
+    topic: str
+    mono: float
+    data: Any
+
+
+class Peer:
+    """Our Zenoh peer: publishes inputs, records every output with its arrival time."""
+
+    def __init__(self, endpoint: str, vehicle: str, prefix: str = "bezier") -> None:
+        import zenoh
+
+        conf = zenoh.Config()
+        conf.insert_json5("mode", json.dumps("peer"))
+        conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+        conf.insert_json5("listen/endpoints", json.dumps([]))
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        self.base = f"{prefix}/{vehicle}"
+        self.session = zenoh.open(conf)
+        self.samples: queue.Queue[Sample] = queue.Queue()
+        self.latest: dict[str, Sample] = {}
+        # arrival times of every trajectory message, kept apart from the queue for benchmarks
+        self.trajectory_log: list[float] = []
+        self._lock = threading.Lock()
+        self._subs = [
+            self.session.declare_subscriber(f"{self.base}/{topic}", self._record(topic))
+            for topic in ("status", "telemetry", "trajectory", "events")
+        ]
+
+    def _record(self, topic: str) -> Callable[[Any], None]:
+        def callback(sample: Any) -> None:
+            mono = time.monotonic()
+            try:
+                data = json.loads(sample.payload.to_bytes())
+            except ValueError:
+                return
+            s = Sample(topic, mono, data)
+            with self._lock:
+                self.latest[topic] = s
+                if topic == "trajectory":
+                    self.trajectory_log.append(mono)
+            self.samples.put(s)
+
+        return callback
+
+    def put(self, topic: str, obj: Any) -> float:
+        """Publish; returns the monotonic time just before the put."""
+        payload = json.dumps(obj).encode()
+        t = time.monotonic()
+        self.session.put(f"{self.base}/{topic}", payload)
+        return t
+
+    def query(self, topic: str, timeout: float = 2.0) -> Any | None:
+        for reply in self.session.get(f"{self.base}/{topic}", timeout=timeout):
+            if reply.ok is not None:
+                return json.loads(reply.ok.payload.to_bytes())
+        return None
+
+    def close(self) -> None:
+        for s in self._subs:
+            with contextlib.suppress(Exception):
+                s.undeclare()
+        self.session.close()
+
+
+# --- rig: mock + companion + peer ------------------------------------------------------------
+
+
+@dataclass
+class Rig:
+    out: Path
+    autopilot: str
+    mock: Child
+    companion: Child
+    peer: Peer
+    flight_log: Path
+    control_port: int
+    config: Config
+    events: list[Sample] = field(default_factory=list)
+
+    def check_alive(self) -> str | None:
+        for child in (self.mock, self.companion):
+            if not child.alive():
+                return f"{child.name} exited with code {child.proc.returncode}\n{child.tail()}"
+        return None
+
+
+def demo_config(zenoh_port: int, mav_port: int, rate_hz: float = 50.0) -> Config:
+    from companion.config import SetpointConfig
+
+    return Config(
+        vehicle=VehicleConfig(id=VEHICLE),
+        zenoh=ZenohConfig(listen=(f"tcp/127.0.0.1:{zenoh_port}",), multicast_scouting=False),
+        mavlink=MavlinkConfig(url=f"udpout:127.0.0.1:{mav_port}"),
+        setpoints=SetpointConfig(rate_hz=rate_hz),
+        geofence=GeofenceConfig(min=(-60.0, -60.0, -20.0), max=(60.0, 60.0, 0.5)),
+        safety=SafetyConfig(auto_arm=True, takeoff_altitude=LIFT),
+    )
+
+
+@contextlib.contextmanager
+def rig(out: Path, autopilot: str, rate_hz: float = 50.0, mock_args: tuple[str, ...] = (),
+        mav_port: int | None = None, companion_mav_port: int | None = None) -> Iterator[Rig]:
+    """Mock + companion + our peer. `companion_mav_port` lets a relay sit between the two."""
+    out.mkdir(parents=True, exist_ok=True)
+    mav_port = mav_port or free_port(socket.SOCK_DGRAM)
+    control_port, zenoh_port = free_port(), free_port()
+    flight_log = out / "flight.jsonl"
+    cfg = demo_config(zenoh_port, companion_mav_port or mav_port, rate_hz)
+    cfg_path = out / "companion.toml"
+    cfg_path.write_text(config_to_toml(cfg))
+    py = sys.executable
+    mock = Child("mock", [py, "-m", "sitl_mock", "--autopilot", autopilot,
+                          "--endpoint", f"udpin:127.0.0.1:{mav_port}", "--log", str(flight_log),
+                          "--control", f"127.0.0.1:{control_port}", *mock_args], out / "mock.log")
+    companion = Child("companion", [py, "-m", "companion", "run", "--config", str(cfg_path)],
+                      out / "companion.log")
+    peer: Peer | None = None
+    try:
+        peer = _connect_peer(f"tcp/127.0.0.1:{zenoh_port}", companion)
+        yield Rig(out, autopilot, mock, companion, peer, flight_log, control_port, cfg)
+    finally:
+        if peer is not None:
+            peer.close()
+        companion.stop()
+        mock.stop()
+
+
+def _connect_peer(endpoint: str, companion: Child, timeout: float = 30.0) -> Peer:
+    """The companion needs a moment to import and open its Zenoh listener."""
+    deadline = time.monotonic() + timeout
+    while True:
+        if not companion.alive():
+            raise RuntimeError(f"companion exited early\n{companion.tail()}")
+        peer = Peer(endpoint, VEHICLE)
+        if peer.query("status", timeout=1.0) is not None:
+            return peer
+        peer.close()
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"companion did not answer on {endpoint} within {timeout:.0f} s\n{companion.tail()}")
+        time.sleep(0.3)
+
+
+# --- scenarios -------------------------------------------------------------------------------
+
+
+def load_example(name: str) -> dict[str, Any]:
+    obj: dict[str, Any] = json.loads((EXAMPLES / name).read_text())
+    obj.pop("description", None)
+    return obj
+
+
+def lift_region(region: dict[str, Any], dz: float) -> dict[str, Any]:
+    """An obstacle/corridor translated up by dz (ENU): A(x - d) <= b  ->  b' = b + A d."""
+    out = dict(region)
+    if "vertices" in region:
+        out["vertices"] = (np.asarray(region["vertices"], dtype=float) + dz * UP).tolist()
+    if "A" in region:
+        A = np.asarray(region["A"], dtype=float)
+        out["b"] = (np.asarray(region["b"], dtype=float) + A @ (dz * UP)).tolist()
+    return out
+
+
+def lifted_mission(scenario: dict[str, Any], mission_id: str, dz: float = LIFT) -> dict[str, Any]:
+    if scenario.get("frame", "enu") != "enu":
+        raise ValueError("demo scenarios are written in ENU (z up)")
+    m = {k: v for k, v in scenario.items() if k not in ("corridors",)}
+    m["id"] = mission_id
+    m["frame"] = "enu"
+    m["waypoints"] = (np.asarray(scenario["waypoints"], dtype=float) + dz * UP).tolist()
+    m["obstacles"] = [lift_region(o, dz) for o in scenario.get("obstacles", [])]
+    if "map" in scenario:
+        lo = np.asarray(scenario["map"]["min"], dtype=float) + dz * UP
+        hi = np.asarray(scenario["map"]["max"], dtype=float) + dz * UP
+        # The vehicle takes off at the origin and flies in from there: keep that inside the map.
+        lo = np.minimum(lo, [-1.0, -1.0, lo[2]])
+        m["map"] = {"min": lo.tolist(), "max": hi.tolist()}
+    m["start"] = "current"
+    return m
+
+
+def lifted_obstacles(popup: dict[str, Any], dz: float = LIFT) -> dict[str, Any]:
+    return {
+        "frame": "enu",
+        "add": [{"id": f"popup-{i}", **lift_region(o, dz)} for i, o in enumerate(popup["obstacles"])],
+    }
+
+
+def lifted_change(change: dict[str, Any], dz: float = LIFT) -> dict[str, Any]:
+    out = {k: v for k, v in change.items() if k != "description"}
+    out["frame"] = "enu"
+    for key in ("move_waypoint", "insert_waypoint"):
+        if key in out:
+            out[key] = {**out[key], "position": (np.asarray(out[key]["position"]) + dz * UP).tolist()}
+    return out
+
+
+# --- flying ----------------------------------------------------------------------------------
+
+
+Trigger = Callable[[float, np.ndarray | None], bool]
+
+
+@dataclass
+class Action:
+    """Something to publish mid-flight, once `when(seconds streaming, position ENU)` holds."""
+
+    when: Trigger
+    topic: str
+    payload: dict[str, Any]
+    label: str
+    sent: float | None = None
+
+
+def after(seconds: float) -> Trigger:
+    return lambda t, pos: t >= seconds
+
+
+def past(x: float, y: float, radius: float) -> Trigger:
+    """Once the vehicle is within `radius` of (x, y) (ENU)."""
+    return lambda t, pos: pos is not None and float(np.hypot(pos[0] - x, pos[1] - y)) <= radius
+
+
+@dataclass
+class FlightOutcome:
+    ok: bool
+    reason: str
+    t_put: float
+    trajectories: list[Sample]  # the mission's trajectory, then every replan
+    t_stream: float | None
+    t_done: float | None
+    actions: list[Action]
+    events: list[Sample]
+
+
+class Progress:
+    def __init__(self) -> None:
+        self.tty = sys.stdout.isatty()
+        self._last = 0.0
+
+    def show(self, text: str, force: bool = False) -> None:
+        now = time.monotonic()
+        if self.tty:
+            sys.stdout.write("\r\033[K" + text)
+            sys.stdout.flush()
+        elif force or now - self._last >= 2.0:
+            print("  " + text, flush=True)
+            self._last = now
+
+    def done(self) -> None:
+        if self.tty:
+            sys.stdout.write("\n")
+            sys.stdout.flush()
+
+
+def _status_line(name: str, status: Any, pos: np.ndarray | None, elapsed: float) -> str:
+    st = status if isinstance(status, dict) else {}
+    where = "" if pos is None else f"  ENU [{pos[0]:6.2f} {pos[1]:6.2f} {pos[2]:5.2f}] m"
+    progress = st.get("progress")
+    prog = f" {100 * progress:3.0f}%" if isinstance(progress, int | float) else ""
+    err = st.get("tracking_error")
+    track = f"  err {err:.2f} m" if isinstance(err, int | float) else ""
+    return f"[{name}] t={elapsed:5.1f}s {st.get('state', '?'):<9}{prog}{where}{track}"
+
+
+FAIL_EVENTS = {"rejected", "refused", "braking", "aborted"}
+AIRBORNE = {"READY", "HOLDING", "STREAMING", "BRAKING"}
+
+
+def fly(r: Rig, mission: dict[str, Any], actions: list[Action], timeout: float, progress: Progress) -> FlightOutcome:
+    """Publish a mission (and `start` when on the ground), run the actions, wait for completion."""
+    _drain(r.peer)
+    status = r.peer.query("status") or {}
+    t_put = r.peer.put("mission", mission)
+    need_start = status.get("state") not in AIRBORNE
+    trajectories: list[Sample] = []
+    events: list[Sample] = []
+    t_stream: float | None = None
+    t_done: float | None = None
+    reason = ""
+    deadline = t_put + timeout
+    name = mission["id"]
+    while time.monotonic() < deadline and not reason and t_done is None:
+        dead = r.check_alive()
+        if dead:
+            reason = dead
+            break
+        try:
+            s: Sample | None = r.peer.samples.get(timeout=0.05)
+        except queue.Empty:
+            s = None
+        if s is not None and s.topic == "trajectory" and t_stream is not None:
+            trajectories.append(s)
+        elif s is not None and s.topic == "events":
+            events.append(s)
+            ev = s.data if isinstance(s.data, dict) else {}
+            kind = str(ev.get("type", ""))
+            if kind == "accepted" and ev.get("key") == "mission" and need_start:
+                need_start = False
+                r.peer.put("command", {"command": "start"})
+                progress.show(f"[{name}] mission loaded; sent 'start' (arm, take off, fly)", force=True)
+                progress.done()
+            elif kind == "state" and ev.get("to") == "STREAMING" and t_stream is None:
+                t_stream = s.mono
+                # the mission's trajectory is published just before the state change
+                latest = r.peer.latest.get("trajectory")
+                if latest is not None:
+                    trajectories.append(latest)
+            elif kind == "mission_complete" and ev.get("mission") in (name, None):
+                t_done = s.mono
+            elif kind in FAIL_EVENTS or (kind == "state" and ev.get("to") in ("FAILSAFE", "PILOT", "IDLE")):
+                reason = f"{kind}: {ev.get('message', '')}"
+        now = time.monotonic()
+        tel = r.peer.latest.get("telemetry")
+        pos = _enu_position(tel.data if tel else None)
+        if t_stream is not None:
+            for a in actions:
+                if a.sent is None and a.when(now - t_stream, pos):
+                    a.sent = r.peer.put(a.topic, a.payload)
+                    progress.show(f"[{name}] published {a.label}", force=True)
+                    progress.done()
+        st = r.peer.latest.get("status")
+        progress.show(_status_line(name, st.data if st else None, pos, now - t_put))
+    progress.done()
+    if not reason and t_done is None:
+        reason = f"timeout after {timeout:.0f} s"
+    return FlightOutcome(not reason, reason, t_put, trajectories, t_stream, t_done, actions, events)
+
+
+def _enu_position(telemetry: Any) -> np.ndarray | None:
+    if isinstance(telemetry, dict) and isinstance(telemetry.get("position"), list):
+        with contextlib.suppress(ValueError, TypeError):
+            return swap_points(np.asarray(telemetry["position"], dtype=float))
+    return None
+
+
+def _drain(peer: Peer) -> None:
+    with contextlib.suppress(queue.Empty):
+        while True:
+            peer.samples.get_nowait()
+
+
+# --- analysis --------------------------------------------------------------------------------
+
+
+def read_flown(log: Path) -> tuple[rep.Flown, np.ndarray, np.ndarray]:
+    """States (t, pos, vel) and applied setpoints (t, pos) from the mock's flight log (NED)."""
+    st_t, st_p, st_v, sp_t, sp_p = [], [], [], [], []
+    with open(log, encoding="utf-8") as fh:
+        for line in fh:
+            if not line.strip():
+                continue
+            rec = json.loads(line)
+            if rec.get("type") == "state":
+                st_t.append(rec["t"])
+                st_p.append(rec["pos"])
+                st_v.append(rec["vel"])
+            elif rec.get("type") == "setpoint" and rec.get("applied") and _full(rec.get("pos")):
+                sp_t.append(rec["t"])
+                sp_p.append(rec["pos"])
+    flown = rep.Flown(np.asarray(st_t, float), np.asarray(st_p, float).reshape(-1, 3),
+                      np.asarray(st_v, float).reshape(-1, 3))
+    return flown, np.asarray(sp_t, float), np.asarray(sp_p, float).reshape(-1, 3)
+
+
+def _full(vec: Any) -> bool:
+    return isinstance(vec, list) and len(vec) == 3 and all(v is not None for v in vec)
+
+
+def trajectory_of(sample: Sample) -> Trajectory:
+    from planner_core.io import trajectory_from_dict
+
+    data = sample.data
+    body = data.get("trajectory", data) if isinstance(data, dict) else data
+    keep = {k: body[k] for k in ("format", "frame", "degree", "segments", "stats") if k in body}
+    return trajectory_from_dict(keep)
+
+
+def analyse(name: str, mission: dict[str, Any], outcome: FlightOutcome, r: Rig,
+            mono_to_sim: Callable[[float], float]) -> rep.MissionResult:
+    result = rep.MissionResult(name=name, ok=outcome.ok, reason=outcome.reason)
+    result.bounds = rep.bounds_matrix(mission.get("bounds"), "enu")
+    if outcome.trajectories:
+        result.plan_latency = outcome.trajectories[0].mono - outcome.t_put
+        result.trajectories = [trajectory_of(s) for s in outcome.trajectories]
+        result.stats = dict(result.trajectories[0].stats)
+    for a in outcome.actions:
+        if a.sent is None:
+            continue
+        later = [s for s in outcome.trajectories if s.mono > a.sent]
+        if later:
+            result.replan_latencies[a.label] = later[0].mono - a.sent
+        elif result.ok:
+            result.ok, result.reason = False, f"no new trajectory after the {a.label}"
+    if outcome.t_stream is not None and outcome.t_done is not None:
+        result.flight_time = outcome.t_done - outcome.t_stream
+    if not result.trajectories:
+        if result.ok:
+            result.ok, result.reason = False, "no trajectory received"
+        return result
+    final = result.trajectories[-1]
+    result.peaks_planned = rep.planned_peaks(final)
+    time.sleep(0.7)  # the mock flushes its log every 0.5 s
+    flown, sp_t, sp_p = read_flown(r.flight_log)
+    if len(sp_t) < 10 or len(flown.t) < 10:
+        result.ok, result.reason = False, "the mock logged no applied setpoints"
+        return result
+    t0 = outcome.t_stream if outcome.t_stream is not None else outcome.t_put
+    guess = mono_to_sim(t0) - final.t0
+    window = (sp_t >= guess + final.t0) & (sp_t <= guess + final.t_end + 1.0)
+    offset = rep.align_offset(final, sp_t[window] if window.sum() > 10 else sp_t, sp_p[window] if window.sum() > 10 else sp_p, guess)
+    result.tracking = rep.tracking_error(final, flown, offset)
+    result.peaks_flown = rep.flown_peaks(flown, offset + final.t0, offset + final.t_end)
+    if result.ok and not result.stats.get("verified", True):
+        result.ok, result.reason = False, "trajectory not verified"
+    if result.ok and not (result.tracking.max <= MAX_TRACKING_ERROR):
+        result.ok, result.reason = False, f"tracking error {result.tracking.max:.2f} m > {MAX_TRACKING_ERROR} m"
+    return result
+
+
+def sim_clock(r: Rig) -> Callable[[float], float]:
+    """Map this process's monotonic clock to the mock's simulated clock (speed 1)."""
+    from sitl_mock.control import ControlClient
+
+    best: tuple[float, float] | None = None
+    with contextlib.closing(ControlClient("127.0.0.1", r.control_port)) as client:
+        for _ in range(5):
+            a = time.monotonic()
+            state = client.state()
+            b = time.monotonic()
+            if best is None or b - a < best[0]:
+                best = (b - a, float(state["t"]) - (a + b) / 2)
+    assert best is not None
+    offset = best[1]
+    return lambda mono: mono + offset
+
+
+def figures(name: str, title: str, mission: dict[str, Any], result: rep.MissionResult, r: Rig,
+            popup: dict[str, Any] | None = None, change: dict[str, Any] | None = None) -> list[Path]:
+    if not result.trajectories:
+        return []
+    scene = rep.Scene(waypoints=np.asarray(mission["waypoints"], dtype=float))
+    scene.obstacles = [rep.region_vertices_enu(o, "enu") for o in mission.get("obstacles", [])]
+    if popup is not None:
+        scene.popups = [rep.region_vertices_enu(o, "enu") for o in popup["add"]]
+    final = result.trajectories[-1]
+    if final.corridors is not None:
+        scene.corridors = [rep.polytope_vertices(c.A, c.b) for c in final.corridors if c is not None]
+        scene.corridors = [swap_points(v) for v in scene.corridors if len(v)]
+    if change is not None and "move_waypoint" in change:
+        mv = change["move_waypoint"]
+        scene.moved = [(scene.waypoints[mv["index"]], np.asarray(mv["position"], dtype=float))]
+    planned = [("planned", final)]
+    if len(result.trajectories) > 1:
+        planned = [("first plan", result.trajectories[0]), ("after replans", final)]
+    flown_enu = flown_tau = None
+    flown_t = None
+    with contextlib.suppress(OSError, ValueError):
+        flown, _, _ = read_flown(r.flight_log)
+        if result.tracking is not None:
+            off = result.tracking.offset
+            mask = (flown.t >= off + final.t0 - 0.5) & (flown.t <= off + final.t_end + 0.5)
+            flown_enu = swap_points(flown.pos[mask])
+            flown_tau = flown.t[mask] - off
+            flown_t = flown
+    path_png = r.out / f"{name}_path.png"
+    rep.plot_path(path_png, title, scene, planned, flown_enu, flown_tau)
+    deriv_png = r.out / f"{name}_derivatives.png"
+    rep.plot_derivatives(deriv_png, f"{title}: derivatives against bounds", final, result.bounds,
+                         flown_t, None if result.tracking is None else result.tracking.offset)
+    return [path_png, deriv_png]
+
+
+# --- main ------------------------------------------------------------------------------------
+
+
+def _quick_mission() -> dict[str, Any]:
+    return {
+        "id": "quick",
+        "frame": "enu",
+        "start": "current",
+        "waypoints": [[2.0, 1.0, LIFT + 0.5], [4.0, 3.0, LIFT + 1.0]],
+        "durations": [3.0],
+        "bounds": {"velocity": 3, "acceleration": 3, "jerk": 10, "snap": 50},
+    }
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m companion demo", description=__doc__.splitlines()[0])
+    p.add_argument("--autopilot", choices=["px4", "ardupilot"], default="px4")
+    p.add_argument("--out", type=Path, default=Path("out/demo"))
+    p.add_argument("--quick", action="store_true", help="one short mission only (smoke test)")
+    p.add_argument("--timeout", type=float, default=120.0, help="per mission, seconds")
+    p.add_argument("--no-plots", action="store_true")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    out: Path = args.out
+    progress = Progress()
+    results: list[rep.MissionResult] = []
+    pngs: list[Path] = []
+    print(f"bezier-companion demo: mock {args.autopilot} autopilot + companion service + Zenoh peer")
+    try:
+        with rig(out, args.autopilot) as r:
+            print(f"  companion pid {r.companion.pid}, mock pid {r.mock.pid}, logs in {out}/")
+            to_sim = sim_clock(r)
+            plans: list[tuple[str, str, dict[str, Any], list[Action], dict[str, Any] | None, dict[str, Any] | None]] = []
+            if args.quick:
+                plans.append(("quick", "Quick mission", _quick_mission(), [], None, None))
+            else:
+                s1 = lifted_mission(load_example("scenario1.json"), "scenario1")
+                s2 = lifted_mission(load_example("scenario2.json"), "scenario2")
+                popup = lifted_obstacles(load_example("scenario2_popup.json"))
+                change = lifted_change(load_example("scenario2_move.json"))
+                acts = [Action(7.0, "change", change, "waypoint move"),
+                        Action(7.0, "obstacles", popup, "pop-up obstacle")]
+                plans.append(("scenario1", "Scenario 1 (paper), lifted 2 m", s1, [], None, None))
+                plans.append(("scenario2", "Scenario 2 (paper) with pop-up obstacle and moved waypoint",
+                              s2, acts, popup, change))
+            for name, title, mission, actions, popup_msg, change_msg in plans:
+                print(f"- {title}: {len(mission['waypoints'])} waypoints")
+                outcome = fly(r, mission, actions, args.timeout, progress)
+                result = analyse(name, mission, outcome, r, to_sim)
+                results.append(result)
+                if not args.no_plots:
+                    pngs += figures(name, title, mission, result, r, popup_msg, change_msg)
+                print(f"  {name}: {'OK' if result.ok else 'FAILED: ' + result.reason}")
+                if not result.ok and not outcome.trajectories:
+                    break
+    except (RuntimeError, OSError) as exc:
+        print(f"demo failed: {exc}", file=sys.stderr)
+        return 1
+    print()
+    print(rep.format_table(results))
+    if pngs:
+        print("\nfigures: " + ", ".join(str(p) for p in pngs))
+    summary = {"ok": bool(results) and all(x.ok for x in results),
+               "missions": [dict(rep.summary_rows(x)) for x in results]}
+    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    return 0 if summary["ok"] else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

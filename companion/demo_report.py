@@ -1,0 +1,363 @@
+"""Numbers and figures for `python -m companion demo`: tracking, peaks, tables, plots.
+
+Pure functions over arrays (no Zenoh, no processes) so they can be checked on their own.
+Frames: the flight log and the trajectories are NED; figures are drawn in ENU (z up) like the
+paper's scenarios.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from companion.frames import swap_halfspaces, swap_points
+from planner_core.problem import FloatArray, Trajectory
+
+ORDER_LABELS = ("velocity [m/s]", "acceleration [m/s²]", "jerk [m/s³]", "snap [m/s⁴]")
+AXES = ("x", "y", "z")
+
+
+@dataclass
+class Flown:
+    """Vehicle states from the mock's flight log on the mock's clock (NED)."""
+
+    t: FloatArray
+    pos: FloatArray
+    vel: FloatArray
+
+
+@dataclass
+class Tracking:
+    offset: float  # mock clock time of trajectory time 0
+    rms: float
+    max: float
+    n: int
+
+
+@dataclass
+class MissionResult:
+    name: str
+    ok: bool = False
+    reason: str = ""
+    plan_latency: float | None = None  # mission put -> first trajectory received (s)
+    replan_latencies: dict[str, float] = field(default_factory=dict)
+    stats: dict[str, Any] = field(default_factory=dict)
+    flight_time: float | None = None
+    tracking: Tracking | None = None
+    peaks_planned: FloatArray | None = None  # (4, 3) max |derivative| per axis
+    peaks_flown: FloatArray | None = None  # (2, 3) velocity, acceleration
+    bounds: FloatArray | None = None  # (4, 3) symmetric magnitude per axis (NED)
+    trajectories: list[Trajectory] = field(default_factory=list)
+
+
+# --- geometry --------------------------------------------------------------------------------
+
+
+def polytope_vertices(A: FloatArray, b: FloatArray, tol: float = 1e-7) -> FloatArray:
+    """Vertices of a bounded {x : A x <= b} by enumerating plane triples (small polytopes)."""
+    A = np.asarray(A, dtype=float)
+    b = np.asarray(b, dtype=float)
+    triples = np.array(list(itertools.combinations(range(len(b)), 3)))
+    if len(triples) == 0:
+        return np.zeros((0, 3))
+    mats = A[triples]
+    ok = np.abs(np.linalg.det(mats)) > 1e-12
+    pts = np.linalg.solve(mats[ok], b[triples[ok]][..., None])[..., 0]
+    inside = np.all(pts @ A.T <= b + tol * (1 + np.abs(b)), axis=1)
+    return np.unique(np.round(pts[inside], 9), axis=0)
+
+
+def hull2d(points: FloatArray) -> FloatArray:
+    """Convex hull of 2-D points, counter-clockwise (Andrew's monotone chain)."""
+    pts = sorted(set(map(tuple, np.round(np.asarray(points, dtype=float), 9))))
+    if len(pts) < 3:
+        return np.array(pts, dtype=float).reshape(-1, 2)
+
+    def half(seq: Sequence[tuple[float, float]]) -> list[tuple[float, float]]:
+        out: list[tuple[float, float]] = []
+        for p in seq:
+            while len(out) >= 2 and (
+                (out[-1][0] - out[-2][0]) * (p[1] - out[-2][1])
+                - (out[-1][1] - out[-2][1]) * (p[0] - out[-2][0])
+            ) <= 0:
+                out.pop()
+            out.append(p)
+        return out
+
+    lower, upper = half(pts), half(pts[::-1])
+    return np.array(lower[:-1] + upper[:-1], dtype=float)
+
+
+def region_vertices_enu(region: dict[str, Any], frame: str) -> FloatArray:
+    """Vertices (ENU) of an obstacle/corridor given as {"vertices"} or {"A","b"}."""
+    if "vertices" in region:
+        pts = np.asarray(region["vertices"], dtype=float)
+        return pts if frame == "enu" else swap_points(pts)
+    A = np.asarray(region["A"], dtype=float)
+    if frame != "enu":
+        A = swap_halfspaces(A)
+    return polytope_vertices(A, np.asarray(region["b"], dtype=float))
+
+
+# --- tracking and peaks ----------------------------------------------------------------------
+
+
+def align_offset(traj: Trajectory, t: FloatArray, pos: FloatArray, guess: float) -> float:
+    """Mock-clock time of trajectory time 0 that best matches the commanded positions.
+
+    The setpoints the mock logged are samples of the trajectory, so the right offset makes them
+    coincide; a coarse scan around the guess then a golden-section refine finds it without
+    trusting the two processes to share an epoch.
+    """
+
+    def cost(off: float) -> float:
+        d = traj.evaluate(t - off) - pos
+        return float(np.mean(np.sum(d * d, axis=1)))
+
+    span = traj.t_end - traj.t0
+    grid = guess + np.linspace(-min(span, 5.0), min(span, 5.0), 201)
+    best = float(grid[int(np.argmin([cost(g) for g in grid]))])
+    step = float(grid[1] - grid[0])
+    lo, hi = best - step, best + step
+    ratio = (np.sqrt(5) - 1) / 2
+    for _ in range(40):
+        a, c = hi - ratio * (hi - lo), lo + ratio * (hi - lo)
+        if cost(a) < cost(c):
+            hi = c
+        else:
+            lo = a
+    return (lo + hi) / 2
+
+
+def tracking_error(traj: Trajectory, flown: Flown, offset: float) -> Tracking:
+    """Flown position vs the planned one over the trajectory's span (m)."""
+    tau = flown.t - offset
+    mask = (tau >= traj.t0) & (tau <= traj.t_end)
+    if not mask.any():
+        return Tracking(offset, float("nan"), float("nan"), 0)
+    err = np.linalg.norm(flown.pos[mask] - traj.evaluate(tau[mask]), axis=1)
+    return Tracking(offset, float(np.sqrt(np.mean(err**2))), float(err.max()), int(mask.sum()))
+
+
+def planned_peaks(traj: Trajectory, samples_per_segment: int = 400) -> FloatArray:
+    """Max |d^k/dt^k| per axis for k = 1..4, sampled densely, shape (4, 3)."""
+    t = _sample_times(traj, samples_per_segment)
+    return np.array([np.abs(traj.evaluate(t, k)).max(axis=0) for k in range(1, 5)])
+
+
+def flown_peaks(flown: Flown, t0: float, t1: float) -> FloatArray:
+    """Max |velocity| and |acceleration| per axis of the flown states in [t0, t1], shape (2, 3)."""
+    mask = (flown.t >= t0) & (flown.t <= t1)
+    if mask.sum() < 3:
+        return np.full((2, 3), np.nan)
+    t, vel = flown.t[mask], flown.vel[mask]
+    acc = np.gradient(vel, t, axis=0)
+    return np.array([np.abs(vel).max(axis=0), np.abs(acc).max(axis=0)])
+
+
+def _sample_times(traj: Trajectory, per_segment: int) -> FloatArray:
+    u = np.linspace(0.0, 1.0, per_segment)
+    return np.unique(np.concatenate([t0 + u * (t1 - t0) for t0, t1 in itertools.pairwise(traj.times)]))
+
+
+def bounds_matrix(bounds: dict[str, Any] | None, frame: str) -> FloatArray | None:
+    """Symmetric per-axis magnitude (4, 3) in NED from a scenario "bounds" object."""
+    if not bounds:
+        return None
+    rows = []
+    for name in ("velocity", "acceleration", "jerk", "snap"):
+        value = bounds.get(name)
+        if value is None:
+            rows.append(np.full(3, np.inf))
+        elif isinstance(value, int | float):
+            rows.append(np.full(3, float(value)))
+        elif len(value) == 2 and all(isinstance(v, int | float) for v in value):
+            rows.append(np.full(3, max(abs(value[0]), abs(value[1]))))
+        else:
+            per_axis = np.array([max(abs(lo), abs(hi)) for lo, hi in value])
+            rows.append(per_axis[[1, 0, 2]] if frame == "enu" else per_axis)
+    return np.array(rows)
+
+
+# --- table -----------------------------------------------------------------------------------
+
+
+def _ms(x: float | None) -> str:
+    return "-" if x is None else f"{1e3 * x:.1f} ms"
+
+
+def _peak(peaks: FloatArray | None, bounds: FloatArray | None, row: int) -> str:
+    if peaks is None:
+        return "-"
+    value = float(np.nanmax(peaks[row]))
+    if bounds is None or not np.isfinite(bounds[row]).any():
+        return f"{value:.2f}"
+    return f"{value:.2f} / {float(np.min(bounds[row])):.2f}"
+
+
+def summary_rows(result: MissionResult) -> list[tuple[str, str]]:
+    st = result.stats
+    rows = [
+        ("result", "OK" if result.ok else f"FAILED: {result.reason}"),
+        ("plan latency (put -> trajectory)", _ms(result.plan_latency)),
+        ("planner time (plan + verify)", _ms(_num(st.get("time_total")))),
+        ("QPs solved / median QP", f"{st.get('n_qp', '-')} / {_ms(_num(st.get('step_time_median')))}"),
+        ("verified", str(st.get("verified", "-"))),
+    ]
+    for what, latency in result.replan_latencies.items():
+        rows.append((f"replan latency ({what})", _ms(latency)))
+    rows.append(("flight time", "-" if result.flight_time is None else f"{result.flight_time:.1f} s"))
+    if result.tracking is not None:
+        rows.append(("tracking error RMS / max", f"{result.tracking.rms:.3f} / {result.tracking.max:.3f} m"))
+    b = result.bounds
+    rows += [
+        ("peak |v| planned / bound", _peak(result.peaks_planned, b, 0)),
+        ("peak |a| planned / bound", _peak(result.peaks_planned, b, 1)),
+        ("peak |j| planned / bound", _peak(result.peaks_planned, b, 2)),
+        ("peak |s| planned / bound", _peak(result.peaks_planned, b, 3)),
+        ("peak |v| flown / bound", _peak(result.peaks_flown, b, 0)),
+        ("peak |a| flown / bound", _peak(result.peaks_flown, b, 1)),
+    ]
+    return rows
+
+
+def _num(x: Any) -> float | None:
+    return float(x) if isinstance(x, int | float) else None
+
+
+def format_table(results: Sequence[MissionResult]) -> str:
+    names = [r.name for r in results]
+    per = [dict(summary_rows(r)) for r in results]
+    keys: list[str] = []
+    for r in results:
+        keys += [k for k, _ in summary_rows(r) if k not in keys]
+    cols = [[k, *[p.get(k, "") for p in per]] for k in keys]
+    head = ["", *names]
+    widths = [max(len(head[i]), *(len(c[i]) for c in cols)) for i in range(len(head))]
+    line = "-+-".join("-" * w for w in widths)
+    fmt = " | ".join(f"{{:{'<' if i == 0 else '>'}{w}}}" for i, w in enumerate(widths))
+    return "\n".join([fmt.format(*head), line, *(fmt.format(*c) for c in cols)])
+
+
+# --- figures ---------------------------------------------------------------------------------
+
+
+@dataclass
+class Scene:
+    """What a path figure draws, all in ENU."""
+
+    waypoints: FloatArray
+    obstacles: list[FloatArray] = field(default_factory=list)
+    popups: list[FloatArray] = field(default_factory=list)
+    corridors: list[FloatArray] = field(default_factory=list)
+    moved: list[tuple[FloatArray, FloatArray]] = field(default_factory=list)
+
+
+def plot_path(
+    path: Path,
+    title: str,
+    scene: Scene,
+    planned: Sequence[tuple[str, Trajectory]],
+    flown_enu: FloatArray | None,
+    flown_tau: FloatArray | None = None,
+) -> None:
+    """Top view with obstacles and corridors, and altitude against trajectory time."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (top, side) = plt.subplots(1, 2, figsize=(14, 5.6), gridspec_kw={"width_ratios": [1.4, 1]})
+    for verts in scene.corridors:
+        if len(verts) >= 3:
+            h = hull2d(verts[:, :2])
+            top.fill(h[:, 0], h[:, 1], facecolor="tab:green", alpha=0.05, edgecolor="tab:green",
+                     lw=0.7, label="corridors")
+    for verts, color, name in [(v, "0.4", "obstacle") for v in scene.obstacles] + [
+        (v, "tab:red", "pop-up obstacle") for v in scene.popups
+    ]:
+        if len(verts) >= 3:
+            h = hull2d(verts[:, :2])
+            top.fill(h[:, 0], h[:, 1], facecolor=color, alpha=0.6, edgecolor=color, label=name)
+    colors = ["tab:blue", "tab:purple"]
+    for k, (label, traj) in enumerate(planned):
+        last = k == len(planned) - 1
+        t = _sample_times(traj, 200)
+        pts = swap_points(traj.evaluate(t))
+        style = {"color": colors[min(k, 1)], "lw": 2.2 if last else 1.3, "alpha": 1.0 if last else 0.55,
+                 "ls": "-" if last else "-.", "label": label}
+        top.plot(pts[:, 0], pts[:, 1], **style)
+        side.plot(t, pts[:, 2], **style)
+    if flown_enu is not None and len(flown_enu):
+        top.plot(flown_enu[:, 0], flown_enu[:, 1], "--", color="tab:orange", lw=1.5, label="flown (mock log)")
+        if flown_tau is not None:
+            side.plot(flown_tau, flown_enu[:, 2], "--", color="tab:orange", lw=1.5, label="flown (mock log)")
+    wp = scene.waypoints
+    top.plot(wp[:, 0], wp[:, 1], "o", ms=6, mfc="white", mec="k", label="waypoints", zorder=5)
+    for i, p in enumerate(wp):
+        top.annotate(str(i), (p[0], p[1]), textcoords="offset points", xytext=(5, 5), fontsize=8)
+    for old, new in scene.moved:
+        top.annotate("", xy=(new[0], new[1]), xytext=(old[0], old[1]),
+                     arrowprops={"arrowstyle": "->", "color": "tab:red", "lw": 1.5})
+        top.plot([new[0]], [new[1]], "s", color="tab:red", ms=6, label="moved waypoint", zorder=5)
+    top.set_xlabel("east x [m]")
+    top.set_ylabel("north y [m]")
+    top.set_aspect("equal", adjustable="box")
+    top.grid(True, alpha=0.3)
+    top.set_title("top view")
+    side.set_xlabel("trajectory time [s]")
+    side.set_ylabel("altitude z (up) [m]")
+    side.grid(True, alpha=0.3)
+    side.set_title("altitude")
+    handles, names = top.get_legend_handles_labels()
+    unique = dict(zip(names, handles, strict=True))
+    fig.legend(unique.values(), unique.keys(), loc="lower center", ncol=min(len(unique), 8), frameon=False)
+    fig.suptitle(title)
+    fig.tight_layout(rect=(0, 0.07, 1, 0.96))
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_derivatives(
+    path: Path,
+    title: str,
+    traj: Trajectory,
+    bounds: FloatArray | None,
+    flown: Flown | None,
+    offset: float | None,
+) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = _sample_times(traj, 300)
+    fig, axes = plt.subplots(4, 1, figsize=(11, 9), sharex=True)
+    colors = ("tab:blue", "tab:orange", "tab:green")
+    for k, ax in enumerate(axes, start=1):
+        values = swap_points(traj.evaluate(t, k))
+        for a in range(3):
+            ax.plot(t, values[:, a], color=colors[a], lw=1.3, label=f"planned {AXES[a]} (ENU)")
+        if bounds is not None and np.isfinite(bounds[k - 1]).any():
+            b = float(np.min(bounds[k - 1]))
+            for s in (-1, 1):
+                ax.axhline(s * b, color="k", ls="--", lw=1.0, label="bound" if s > 0 else None)
+        if k == 1 and flown is not None and offset is not None:
+            mask = (flown.t - offset >= traj.t0) & (flown.t - offset <= traj.t_end)
+            vel = swap_points(flown.vel[mask])
+            for a in range(3):
+                ax.plot(flown.t[mask] - offset, vel[:, a], ":", color=colors[a], lw=1.2,
+                        label=f"flown {AXES[a]}")
+        ax.set_ylabel(ORDER_LABELS[k - 1])
+        ax.grid(True, alpha=0.3)
+    axes[0].legend(loc="upper right", ncol=4, fontsize=8)
+    axes[-1].set_xlabel("trajectory time [s]")
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

@@ -1,0 +1,140 @@
+"""Inbound Zenoh payloads: size, JSON, JSON Schema, then semantic checks.
+
+A bad message raises `MessageError` naming the field (a JSON path such as
+`waypoints[3][1]`) and the reason; the caller turns that into a `rejected`
+event and leaves the flight untouched.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from functools import cache
+from importlib import resources
+from typing import Any
+
+import jsonschema
+import numpy as np
+
+KINDS = ("mission", "obstacles", "change", "command")
+
+
+class MessageError(ValueError):
+    """A rejected message; `field` is a JSON path ('' for the whole payload)."""
+
+    def __init__(self, field: str, reason: str) -> None:
+        super().__init__(f"{field or 'payload'}: {reason}")
+        self.field = field
+        self.reason = reason
+
+
+@cache
+def schema(kind: str) -> dict[str, Any]:
+    text = resources.files("companion.schemas").joinpath(f"{kind}.json").read_text("utf-8")
+    doc: dict[str, Any] = json.loads(text)
+    return doc
+
+
+@cache
+def _validator(kind: str) -> jsonschema.protocols.Validator:
+    doc = schema(kind)
+    cls = jsonschema.validators.validator_for(doc)
+    cls.check_schema(doc)
+    return cls(doc)  # type: ignore[no-any-return]
+
+
+def json_path(parts: Any) -> str:
+    out = ""
+    for p in parts:
+        out += f"[{p}]" if isinstance(p, int) else (f".{p}" if out else str(p))
+    return out
+
+
+def parse_json(payload: bytes, max_bytes: int) -> Any:
+    if len(payload) > max_bytes:
+        raise MessageError("", f"payload of {len(payload)} bytes exceeds the limit of {max_bytes}")
+    try:
+        text = payload.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise MessageError("", f"not UTF-8: {exc.reason} at byte {exc.start}") from None
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise MessageError("", f"malformed JSON: {exc.msg} at line {exc.lineno} column {exc.colno}") from None
+
+
+def _check_finite(obj: Any, path: list[Any]) -> None:
+    """NaN, Infinity and overflowing literals (1e999) parse to floats; name where."""
+    if isinstance(obj, float) and not math.isfinite(obj):
+        raise MessageError(json_path(path), f"non-finite number {obj} is not allowed")
+    if isinstance(obj, list):
+        for i, v in enumerate(obj):
+            _check_finite(v, [*path, i])
+    elif isinstance(obj, dict):
+        for k, v in obj.items():
+            _check_finite(v, [*path, k])
+
+
+def validate(kind: str, obj: Any) -> dict[str, Any]:
+    _check_finite(obj, [])
+    errors = list(_validator(kind).iter_errors(obj))
+    if errors:
+        err = jsonschema.exceptions.best_match(errors)
+        assert err is not None
+        # oneOf errors are vague at the top; the deepest context names the field.
+        while err.context:
+            err = jsonschema.exceptions.best_match(err.context)
+            assert err is not None
+        raise MessageError(json_path(err.absolute_path), err.message)
+    assert isinstance(obj, dict)
+    return obj
+
+
+def _check_lengths(obj: dict[str, Any]) -> None:
+    m = len(obj["waypoints"])
+    for key in ("times", "durations"):
+        if key in obj:
+            want = m if key == "times" else m - 1
+            if len(obj[key]) != want:
+                raise MessageError(key, f"expected {want} entries for {m} waypoints, got {len(obj[key])}")
+    if "times" in obj and np.any(np.diff(obj["times"]) <= 0):
+        i = int(np.argmax(np.diff(obj["times"]) <= 0)) + 1
+        raise MessageError(f"times[{i}]", "times must increase strictly")
+    if "corridors" in obj and len(obj["corridors"]) != max(m - 1, 0):
+        raise MessageError("corridors", f"expected one corridor per segment ({m - 1}), got {len(obj['corridors'])}")
+    for key in ("corridors", "obstacles"):
+        for i, region in enumerate(obj.get(key, [])):
+            if "A" in region and len(region["A"]) != len(region["b"]):
+                raise MessageError(f"{key}[{i}].b", f"expected {len(region['A'])} entries (one per row of A), got {len(region['b'])}")
+
+
+def check_geofence(points: Any, lo: Any, hi: Any, field: str) -> None:
+    """Every point (NED) inside the box [lo, hi]; the first offender is named."""
+    pts = np.atleast_2d(np.asarray(points, dtype=float))
+    outside = np.any((pts < np.asarray(lo)) | (pts > np.asarray(hi)), axis=1)
+    if np.any(outside):
+        i = int(np.argmax(outside))
+        raise MessageError(
+            f"{field}[{i}]",
+            f"position {pts[i].tolist()} (NED) is outside the geofence {list(lo)}..{list(hi)}",
+        )
+
+
+def decode(kind: str, payload: bytes, *, max_bytes: int, max_waypoints: int = 10**6, max_obstacles: int = 10**6) -> dict[str, Any]:
+    """Bytes -> validated dict, or MessageError."""
+    obj = validate(kind, parse_json(payload, max_bytes))
+    if kind == "mission":
+        if len(obj["waypoints"]) > max_waypoints:
+            raise MessageError("waypoints", f"{len(obj['waypoints'])} waypoints exceed the limit of {max_waypoints}")
+        _check_lengths(obj)
+    elif kind == "obstacles":
+        if len(obj.get("add", [])) > max_obstacles:
+            raise MessageError("add", f"{len(obj['add'])} obstacles exceed the limit of {max_obstacles}")
+        for i, ob in enumerate(obj.get("add", [])):
+            if "A" in ob and len(ob["A"]) != len(ob["b"]):
+                raise MessageError(f"add[{i}].b", f"expected {len(ob['A'])} entries (one per row of A), got {len(ob['b'])}")
+    elif kind == "change" and "append" in obj:
+        body = obj["append"]
+        if "durations" in body and len(body["durations"]) != len(body["waypoints"]):
+            raise MessageError("append.durations", f"expected {len(body['waypoints'])} entries, got {len(body['durations'])}")
+    return obj

@@ -1,0 +1,632 @@
+"""Mission -> verified route, and in-flight replanning of the remainder.
+
+Pure functions over numpy and planner_core (no asyncio, no I/O): the service
+calls them in a worker thread. Everything here is NED and in the flight's
+time base (seconds since the companion took control).
+
+A *route* is what is being flown: the remaining waypoints, their times, which
+mission waypoint each one is (-1 for a synthetic one such as the split point),
+the problem and its verified trajectory. A replan splits the flown trajectory
+at `t_split` (a little ahead of now), keeps every waypoint after it, starts
+from the exact jet of the old trajectory at `t_split` (so the setpoints stay
+C^4 and the piece being flown does not change), rebuilds the corridors against
+the current obstacles, plans, and verifies.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from companion.config import Config
+from companion.messages import MessageError, check_geofence
+from planner_core import plan, verify
+from planner_core.bezier import split_segment
+from planner_core.problem import Bounds, FloatArray, Polytope, Problem, Trajectory, rest_jet
+
+INSIDE_EPS = 1e-9
+
+
+# -- mission spec ---------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class MissionSpec:
+    id: str
+    waypoints: FloatArray  # (k, 3) NED goals
+    durations: FloatArray | None  # (k-1,) or None: allocate
+    bounds: Bounds
+    obstacles: tuple[tuple[str, Polytope], ...]
+    map_lo: FloatArray
+    map_hi: FloatArray
+    radius: float
+    start: str  # "current" | "first_waypoint"
+    autostart: bool
+    initial: FloatArray | None  # (5, 3) for start == "first_waypoint"
+    raw: dict[str, Any] = field(default_factory=dict, compare=False)
+
+
+def _bound(value: Any, field_name: str) -> tuple[FloatArray, FloatArray]:
+    if isinstance(value, int | float):
+        hi = np.full(3, float(value))
+        return -hi, hi
+    arr = np.asarray(value, dtype=float)
+    if arr.shape == (2,):
+        lo, hi = np.full(3, arr[0]), np.full(3, arr[1])
+    else:
+        lo, hi = arr[:, 0], arr[:, 1]
+    if np.any(lo >= 0) or np.any(hi <= 0):
+        raise MessageError(field_name, "each interval must contain 0 (lo < 0 < hi)")
+    return lo, hi
+
+
+def bounds_from(obj: dict[str, Any] | None, cfg: Config) -> Bounds:
+    b = cfg.planner.bounds
+    base = Bounds.symmetric(b.velocity, b.acceleration, b.jerk, b.snap)
+    lo, hi = base.lo.copy(), base.hi.copy()
+    for row, name in enumerate(("velocity", "acceleration", "jerk", "snap")):
+        if obj and name in obj:
+            lo[row], hi[row] = _bound(obj[name], f"bounds.{name}")
+    return Bounds(lo, hi)
+
+
+def parse_region(obj: dict[str, Any], field_name: str) -> Polytope:
+    from planner_core.changes import ChangeError, parse_polytope
+
+    try:
+        return parse_polytope({k: v for k, v in obj.items() if k != "id"}, field_name)
+    except ChangeError as exc:
+        raise MessageError(exc.field, exc.reason) from None
+
+
+def mission_from_message(obj: dict[str, Any], cfg: Config) -> MissionSpec:
+    """A schema-valid mission dict, already in NED, to a MissionSpec (or MessageError)."""
+    wps = np.asarray(obj["waypoints"], dtype=float)
+    lo_g, hi_g = np.asarray(cfg.geofence.min), np.asarray(cfg.geofence.max)
+    check_geofence(wps, lo_g, hi_g, "waypoints")
+    start = obj.get("start", "current")
+    if start == "first_waypoint" and len(wps) < 2:
+        raise MessageError("waypoints", "start 'first_waypoint' needs at least 2 waypoints")
+    durations = None
+    if "durations" in obj:
+        durations = np.asarray(obj["durations"], dtype=float)
+    elif "times" in obj:
+        durations = np.diff(np.asarray(obj["times"], dtype=float))
+    map_lo, map_hi = lo_g, hi_g
+    if "map" in obj:
+        map_lo = np.maximum(lo_g, np.asarray(obj["map"]["min"], dtype=float))
+        map_hi = np.minimum(hi_g, np.asarray(obj["map"]["max"], dtype=float))
+        if np.any(map_lo >= map_hi):
+            raise MessageError("map", "the map box does not overlap the geofence")
+        check_geofence(wps, map_lo, map_hi, "waypoints")
+    obstacles = tuple(
+        (str(o.get("id", f"mission-{i}")), parse_region(o, f"obstacles[{i}]"))
+        for i, o in enumerate(obj.get("obstacles", []))
+    )
+    initial = None
+    if start == "first_waypoint":
+        initial = rest_jet(wps[0])
+        for row, name in enumerate(("velocity", "acceleration", "jerk", "snap"), start=1):
+            if name in obj.get("initial", {}):
+                initial[row] = obj["initial"][name]
+    radius = max(cfg.planner.vehicle_radius, float(obj.get("vehicle_radius", 0.0)))
+    return MissionSpec(
+        id=str(obj["id"]),
+        waypoints=wps,
+        durations=durations,
+        bounds=bounds_from(obj.get("bounds"), cfg),
+        obstacles=obstacles,
+        map_lo=map_lo,
+        map_hi=map_hi,
+        radius=radius,
+        start=start,
+        autostart=bool(obj.get("autostart", True)),
+        initial=initial,
+        raw=obj,
+    )
+
+
+# -- timing -----------------------------------------------------------------------
+
+
+def allocate_durations(waypoints: FloatArray, bounds: Bounds, initial_velocity: FloatArray | None = None) -> FloatArray:
+    """Segment durations for `waypoints` (planner_core.timing when present)."""
+    try:
+        from planner_core.timing import allocate_times
+
+        times = allocate_times(waypoints, bounds, t0=0.0, initial_velocity=initial_velocity)
+        return np.asarray(np.diff(times), dtype=float)
+    except ImportError:
+        pass
+    v = float(np.min(np.minimum(-bounds.lo[0], bounds.hi[0])))
+    a = float(np.min(np.minimum(-bounds.lo[1], bounds.hi[1])))
+    d = np.linalg.norm(np.diff(waypoints, axis=0), axis=1)
+    # Rest-to-rest bang-coast-bang time, stretched because snap limits round the corners.
+    trapezoid = np.where(d < v * v / a, 2.0 * np.sqrt(d / a), d / v + v / a)
+    return np.asarray(np.maximum(1.6 * trapezoid, 0.5), dtype=float)
+
+
+# -- geometry -----------------------------------------------------------------------
+
+
+def inflate(poly: Polytope, radius: float) -> Polytope:
+    return Polytope(poly.A, poly.b + radius * np.linalg.norm(poly.A, axis=1))
+
+
+def first_hit(traj: Trajectory, t_from: float, obstacles: Sequence[Polytope], radius: float, dt: float = 0.01) -> float | None:
+    """Earliest sampled time >= t_from at which the trajectory enters an inflated obstacle."""
+    if t_from >= traj.t_end or not obstacles:
+        return None
+    ts = np.arange(t_from, traj.t_end + dt, dt)
+    pts = traj.evaluate(ts)
+    inside = np.zeros(len(ts), dtype=bool)
+    for ob in obstacles:
+        inside |= inflate(ob, radius).contains(pts, tol=-INSIDE_EPS)
+    if not np.any(inside):
+        return None
+    return float(ts[int(np.argmax(inside))])
+
+
+def build_corridors(waypoints: FloatArray, obstacles: Sequence[Polytope], mission: MissionSpec) -> tuple[Polytope, ...]:
+    from planner_core.corridors import build_corridors as build
+
+    return tuple(build(waypoints, list(obstacles), (mission.map_lo, mission.map_hi), mission.radius))
+
+
+# -- splicing -------------------------------------------------------------------------
+
+
+def split_at(traj: Trajectory, t: float) -> tuple[Trajectory, int]:
+    """The trajectory with a boundary at t (exact de Casteljau) and the index of that boundary."""
+    times = traj.times
+    if t <= times[0] + 1e-12:
+        return traj, 0
+    if t >= times[-1] - 1e-12:
+        return traj, len(times) - 1
+    j = int(np.searchsorted(times, t, side="right") - 1)
+    if abs(times[j] - t) < 1e-12:
+        return traj, j
+    u = (t - times[j]) / (times[j + 1] - times[j])
+    left, right = split_segment(traj.control_points[j], u)
+    ctrl = np.concatenate([traj.control_points[:j], left[None], right[None], traj.control_points[j + 1 :]])
+    new_times = np.concatenate([times[: j + 1], [t], times[j + 1 :]])
+    cors = None
+    if traj.corridors is not None:
+        cors = (*traj.corridors[: j + 1], traj.corridors[j], *traj.corridors[j + 1 :])
+    return Trajectory(new_times, ctrl, cors, dict(traj.stats)), j + 1
+
+
+def splice(old: Trajectory, new: Trajectory) -> Trajectory:
+    """Old up to new.t0, then new. The caller guarantees the jets agree at new.t0."""
+    if new.t0 >= old.t_end - 1e-12:
+        head, k = old, old.n_segments
+    else:
+        head, k = split_at(old, new.t0)
+    ctrl = np.concatenate([head.control_points[:k], new.control_points])
+    times = np.concatenate([head.times[:k], new.times])
+    cors: tuple[Polytope | None, ...] | None = None
+    if head.corridors is not None or new.corridors is not None:
+        hc = head.corridors or (None,) * head.n_segments
+        nc = new.corridors or (None,) * new.n_segments
+        cors = (*hc[:k], *nc)
+    # Keep the spliced trajectory short: pieces long past are never sampled again.
+    return Trajectory(times, ctrl, cors, dict(new.stats))
+
+
+def trim_before(traj: Trajectory, t: float) -> Trajectory:
+    """Drop whole segments that ended before t (never sampled again)."""
+    k = int(np.searchsorted(traj.times, t, side="right")) - 2
+    if k <= 0:
+        return traj
+    cors = None if traj.corridors is None else traj.corridors[k:]
+    return Trajectory(traj.times[k:], traj.control_points[k:], cors, traj.stats)
+
+
+# -- planning ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Route:
+    mission: MissionSpec
+    waypoints: FloatArray  # (k, 3)
+    times: FloatArray  # (k,)
+    labels: FloatArray  # (k,) mission index per waypoint, -1 synthetic
+    problem: Problem
+    trajectory: Trajectory  # starts at times[0]
+
+    @property
+    def t_end(self) -> float:
+        return float(self.trajectory.t_end)
+
+
+@dataclass(frozen=True)
+class Outcome:
+    ok: bool
+    route: Route | None = None
+    message: str = ""
+    blocked_waypoint: int | None = None  # mission index of a blocked waypoint
+    stats: dict[str, Any] = field(default_factory=dict)
+
+
+def _plan_problem(problem: Problem, cfg: Config) -> tuple[Trajectory | None, str]:
+    opts: dict[str, Any] = {}
+    if cfg.planner.method == "iterative":
+        opts["window"] = cfg.planner.window
+    result = plan(problem, method=cfg.planner.method, **opts)
+    if not result.ok or result.trajectory is None:
+        return None, result.message
+    traj = result.trajectory
+    checked = problem if np.array_equal(traj.times, problem.times) else replace(problem, times=traj.times)
+    report = verify(traj, checked)
+    if not report.ok:  # plan() verifies too; never fly on one check alone being trusted
+        return None, "verification failed: " + report.summary()
+    return traj, result.message
+
+
+def plan_route(
+    mission: MissionSpec,
+    waypoints: FloatArray,
+    times: FloatArray,
+    labels: FloatArray,
+    initial: FloatArray,
+    obstacles: Sequence[Polytope],
+    cfg: Config,
+) -> Outcome:
+    """Corridors, plan, verify. `initial` is the jet at waypoints[0] (time times[0])."""
+    t0 = time.perf_counter()
+    from planner_core.corridors import CorridorError
+
+    try:
+        corridors = build_corridors(waypoints, obstacles, mission)
+    except CorridorError as exc:
+        wp = getattr(exc, "waypoint", None)
+        blocked = None
+        if wp is not None and 0 <= wp < len(labels) and labels[wp] >= 0:
+            blocked = int(labels[wp])
+        return Outcome(False, message=f"no free corridor: {exc}", blocked_waypoint=blocked,
+                       stats={"plan_seconds": time.perf_counter() - t0})
+    final = rest_jet(waypoints[-1])
+    problem = Problem(waypoints, times, mission.bounds, initial, final, corridors)
+    traj, message = _plan_problem(problem, cfg)
+    stats = {"plan_seconds": time.perf_counter() - t0}
+    if traj is None:
+        return Outcome(False, message=message, stats=stats)
+    problem = replace(problem, times=traj.times)
+    return Outcome(True, Route(mission, waypoints, traj.times, labels, problem, traj), message, stats=stats)
+
+
+def clip_velocity(v: FloatArray, bounds: Bounds) -> FloatArray:
+    return np.asarray(np.clip(v, 0.98 * bounds.lo[0], 0.98 * bounds.hi[0]), dtype=float)
+
+
+def start_mission(
+    mission: MissionSpec,
+    initial: FloatArray,
+    t_start: float,
+    obstacles: Sequence[Polytope],
+    cfg: Config,
+) -> Outcome:
+    """Plan a fresh mission from the jet `initial` at `t_start`."""
+    wps = mission.waypoints
+    labels = np.arange(len(wps), dtype=float)
+    jet = np.array(initial, dtype=float)
+    if mission.start == "first_waypoint":
+        gap = float(np.linalg.norm(jet[0] - wps[0]))
+        if gap > cfg.safety.arrival_tolerance:
+            return Outcome(False, message=f"start 'first_waypoint': vehicle is {gap:.2f} m from waypoint 0 "
+                           f"(tolerance {cfg.safety.arrival_tolerance} m)")
+        assert mission.initial is not None
+        jet = mission.initial.copy()
+        jet[0] = wps[0]
+        points, lab = wps, labels
+    else:
+        jet[1] = clip_velocity(jet[1], mission.bounds)
+        points = np.vstack([jet[0], wps])
+        lab = np.concatenate([[-1.0], labels])
+    if mission.durations is not None and mission.start != "first_waypoint":
+        lead = allocate_durations(points[:2], mission.bounds, jet[1])
+        durations = np.concatenate([lead, mission.durations])
+    elif mission.durations is not None:
+        durations = mission.durations
+    else:
+        durations = allocate_durations(points, mission.bounds, jet[1])
+    times = t_start + np.concatenate([[0.0], np.cumsum(durations)])
+    all_obs = [*obstacles, *(p for _, p in mission.obstacles)]
+    return plan_route(mission, points, times, lab, jet, all_obs, cfg)
+
+
+def replan_remainder(
+    route: Route,
+    active: Trajectory,
+    t_split: float,
+    obstacles: Sequence[Polytope],
+    cfg: Config,
+    waypoints: FloatArray | None = None,
+    times: FloatArray | None = None,
+    labels: FloatArray | None = None,
+) -> Outcome:
+    """Re-plan everything after t_split from the jet of `active` at t_split.
+
+    `waypoints/times/labels` (defaults: the route's) may carry an edit; only
+    the entries later than t_split are kept.
+    """
+    wps = route.waypoints if waypoints is None else waypoints
+    tms = route.times if times is None else times
+    lab = route.labels if labels is None else labels
+    keep = tms > t_split + 1e-6
+    if not np.any(keep):
+        return Outcome(False, message="mission already complete: nothing left to replan")
+    jet = active.jet(t_split)
+    points = np.vstack([jet[0], wps[keep]])
+    new_times = np.concatenate([[t_split], tms[keep]])
+    new_labels = np.concatenate([[-1.0], lab[keep]])
+    # A split just before a waypoint leaves a sliver of a segment: give it room.
+    min_first = 0.3
+    if new_times[1] - new_times[0] < min_first:
+        new_times[1:] += min_first - (new_times[1] - new_times[0])
+    all_obs = [*obstacles, *(p for _, p in route.mission.obstacles)]
+    return plan_route(route.mission, points, new_times, new_labels, jet, all_obs, cfg)
+
+
+def brake(jet: FloatArray, bounds: Bounds, corridor: Polytope | None, t0: float) -> tuple[Trajectory | None, str]:
+    """A verified stop to rest from `jet` at t0 inside `corridor` (None and why, if none)."""
+    from planner_core.braking import braking_trajectory
+
+    result = braking_trajectory(jet, bounds, corridor, t0)
+    if not result.ok or result.trajectory is None:
+        return None, result.message
+    # braking_trajectory certifies its result with verify() before returning it.
+    return result.trajectory, result.message
+
+
+def corridor_at(traj: Trajectory, t: float) -> Polytope | None:
+    if traj.corridors is None:
+        return None
+    j = int(np.clip(np.searchsorted(traj.times, t, side="right") - 1, 0, traj.n_segments - 1))
+    return traj.corridors[j]
+
+
+def safe_corridor(position: FloatArray, velocity: FloatArray, obstacles: Sequence[Polytope], mission: MissionSpec) -> Polytope | None:
+    """A free polytope around `position` (for braking) that excludes every obstacle."""
+    from planner_core.corridors import CorridorError
+
+    step = velocity / max(float(np.linalg.norm(velocity)), 1e-9) * 1e-3 if np.linalg.norm(velocity) > 1e-6 else np.array([1e-3, 0, 0])
+    try:
+        return build_corridors(np.vstack([position, position + step]), obstacles, mission)[0]
+    except (CorridorError, ValueError):
+        return None
+
+
+def mission_index_to_route(route: Route, index: int) -> int | None:
+    hits = np.nonzero(route.labels == index)[0]
+    return int(hits[0]) if len(hits) else None
+
+
+def finite(x: float) -> float | None:
+    return x if math.isfinite(x) else None
+
+
+def _route_index(route: Route, index: int, t_split: float, what: str) -> int:
+    i = mission_index_to_route(route, index)
+    if i is None:
+        known = sorted(int(x) for x in route.labels if x >= 0)
+        raise MessageError(f"{what}.index", f"mission waypoint {index} is not ahead of the vehicle (remaining: {known})")
+    if route.times[i] <= t_split:
+        raise MessageError(f"{what}.index", f"mission waypoint {index} has already been passed")
+    return i
+
+
+def _retime(points: FloatArray, times: FloatArray, i: int, bounds: Bounds) -> FloatArray:
+    """Re-allocate the segments touching waypoint i and shift later times by the difference."""
+    lo, hi = max(i - 1, 0), min(i + 1, len(points) - 1)
+    d = allocate_durations(points[lo : hi + 1], bounds)
+    new = times.copy()
+    new[lo + 1 : hi + 1] = times[lo] + np.cumsum(d)
+    new[hi + 1 :] = times[hi + 1 :] + (new[hi] - times[hi])
+    return new
+
+
+def apply_change(route: Route, change: dict[str, Any], t_split: float, cfg: Config) -> tuple[FloatArray, FloatArray, FloatArray, str]:
+    """Edit the route's waypoints/times/labels per a `change` message (NED)."""
+    wps, tms, lab = route.waypoints.copy(), route.times.copy(), route.labels.copy()
+    lo, hi = route.mission.map_lo, route.mission.map_hi
+    bounds = route.mission.bounds
+    if "move_waypoint" in change:
+        body = change["move_waypoint"]
+        check_geofence([body["position"]], lo, hi, "move_waypoint.position")
+        i = _route_index(route, body["index"], t_split, "move_waypoint")
+        wps[i] = body["position"]
+        return wps, tms, lab, f"moved waypoint {body['index']}"
+    if "duration" in change:
+        body = change["duration"]
+        i = _route_index(route, body["index"] + 1, t_split, "duration")
+        if i == 0 or lab[i - 1] not in (body["index"], -1):
+            raise MessageError("duration.index", f"segment {body['index']} is not in the remaining mission")
+        # If the segment is being flown its start is the last split point; the
+        # new duration then counts from there.
+        start = tms[i - 1]
+        shift = start + body["value"] - tms[i]
+        if start + body["value"] <= t_split + 0.05:
+            raise MessageError("duration.value", "the new duration ends before the replanning point")
+        tms[i:] += shift
+        return wps, tms, lab, f"segment {body['index']} duration set to {body['value']} s"
+    if "insert_waypoint" in change:
+        body = change["insert_waypoint"]
+        check_geofence([body["position"]], lo, hi, "insert_waypoint.position")
+        j = body["index"]
+        i = mission_index_to_route(route, j)
+        if i is None:
+            raise MessageError("insert_waypoint.index", f"mission waypoint {j} is not ahead of the vehicle; use append")
+        if tms[i] <= t_split:
+            raise MessageError("insert_waypoint.index", f"mission waypoint {j} has already been passed")
+        wps = np.insert(wps, i, body["position"], axis=0)
+        tms = np.insert(tms, i, tms[i])
+        lab = np.insert(lab, i, j)
+        lab[i + 1 :] = np.where(lab[i + 1 :] >= 0, lab[i + 1 :] + 1, lab[i + 1 :])
+        tms = _retime(wps, tms, i, bounds)
+        return wps, tms, lab, f"inserted waypoint {j}"
+    if "remove_waypoint" in change:
+        body = change["remove_waypoint"]
+        i = _route_index(route, body["index"], t_split, "remove_waypoint")
+        if i == len(wps) - 1 and len(wps) <= 2:
+            raise MessageError("remove_waypoint.index", "cannot remove the only remaining waypoint")
+        wps, tms, lab = np.delete(wps, i, axis=0), np.delete(tms, i), np.delete(lab, i)
+        lab[i:] = np.where(lab[i:] >= 0, lab[i:] - 1, lab[i:])
+        tms = _retime(wps, tms, min(i, len(wps) - 1), bounds)
+        return wps, tms, lab, f"removed waypoint {body['index']}"
+    if "append" in change:
+        body = change["append"]
+        new = np.asarray(body["waypoints"], dtype=float)
+        check_geofence(new, lo, hi, "append.waypoints")
+        if "durations" in body:
+            d = np.asarray(body["durations"], dtype=float)
+        else:
+            d = allocate_durations(np.vstack([wps[-1:], new]), bounds)
+        start = max(tms[-1], t_split)
+        nxt = int(np.max(lab)) + 1 if np.any(lab >= 0) else 0
+        wps = np.vstack([wps, new])
+        tms = np.concatenate([tms, start + np.cumsum(d)])
+        lab = np.concatenate([lab, nxt + np.arange(len(new), dtype=float)])
+        return wps, tms, lab, f"appended {len(new)} waypoints"
+    raise MessageError("", "no change given")  # pragma: no cover - the schema requires one
+
+
+# -- local replanning (paper section 3.1) via planner_core.replan ----------------------
+
+
+def trim(route: Route, t: float) -> Route:
+    """Drop waypoints (and segments) entirely before t; the rest is bit-for-bit the same."""
+    k0 = int(np.searchsorted(route.times, t, side="right")) - 1
+    if k0 <= 0:
+        return route
+    k0 = min(k0, len(route.times) - 2)
+    tr = route.trajectory
+    from planner_core.bezier import start_jet
+
+    initial = start_jet(tr.control_points[k0], float(tr.times[k0 + 1] - tr.times[k0]))
+    initial[0] = route.waypoints[k0]
+    cors = None if route.problem.corridors is None else route.problem.corridors[k0:]
+    problem = Problem(route.waypoints[k0:], route.times[k0:], route.problem.bounds, initial, route.problem.final, cors)
+    traj = Trajectory(tr.times[k0:], tr.control_points[k0:], None if tr.corridors is None else tr.corridors[k0:], tr.stats)
+    return Route(route.mission, route.waypoints[k0:], route.times[k0:], route.labels[k0:], problem, traj)
+
+
+@dataclass(frozen=True)
+class LocalEdit:
+    """A planner_core edit in route indices plus how it renumbers the labels."""
+
+    edits: tuple[Any, ...]
+    description: str
+    relabel: Any  # (labels, wp: index map) -> labels
+
+
+def _same(labels: FloatArray, _wp: Any) -> FloatArray:
+    return labels
+
+
+def local_edit(route: Route, change: dict[str, Any], t_split: float) -> LocalEdit:
+    """The `change` message as planner_core edits on the route (MessageError if impossible)."""
+    from planner_core import changes as ch
+
+    lo, hi = route.mission.map_lo, route.mission.map_hi
+    if "move_waypoint" in change:
+        body = change["move_waypoint"]
+        check_geofence([body["position"]], lo, hi, "move_waypoint.position")
+        i = _route_index(route, body["index"], t_split, "move_waypoint")
+        return LocalEdit((ch.MoveWaypoint(i, np.asarray(body["position"], dtype=float)),),
+                         f"moved waypoint {body['index']}", _same)
+    if "duration" in change:
+        body = change["duration"]
+        i = _route_index(route, body["index"] + 1, t_split, "duration")
+        if i == 0 or route.labels[i - 1] != body["index"]:
+            raise MessageError("duration.index", f"segment {body['index']} is being flown or already passed")
+        return LocalEdit((ch.SetDuration(i - 1, float(body["value"])),),
+                         f"segment {body['index']} duration set to {body['value']} s", _same)
+    if "insert_waypoint" in change:
+        body = change["insert_waypoint"]
+        check_geofence([body["position"]], lo, hi, "insert_waypoint.position")
+        j = body["index"]
+        i = _route_index(route, j, t_split, "insert_waypoint")
+        if i == 0:
+            raise MessageError("insert_waypoint.index", f"cannot insert before mission waypoint {j}: it starts the route")
+
+        def relabel_insert(labels: FloatArray, wp: Any) -> FloatArray:
+            k = wp(i)
+            out = np.insert(labels, k, float(j))
+            out[k + 1 :] = np.where(out[k + 1 :] >= 0, out[k + 1 :] + 1, out[k + 1 :])
+            return out
+
+        return LocalEdit((ch.InsertWaypoint(i, np.asarray(body["position"], dtype=float)),),
+                         f"inserted waypoint {j}", relabel_insert)
+    if "remove_waypoint" in change:
+        body = change["remove_waypoint"]
+        i = _route_index(route, body["index"], t_split, "remove_waypoint")
+        if i >= len(route.labels) - 1:
+            raise MessageError("remove_waypoint.index", "cannot remove the final waypoint (send a new mission)")
+
+        def relabel_remove(labels: FloatArray, wp: Any) -> FloatArray:
+            k = wp(i)
+            out = np.delete(labels, k)
+            out[k:] = np.where(out[k:] >= 0, out[k:] - 1, out[k:])
+            return out
+
+        return LocalEdit((ch.RemoveWaypoint(i),), f"removed waypoint {body['index']}", relabel_remove)
+    if "append" in change:
+        body = change["append"]
+        new = np.asarray(body["waypoints"], dtype=float)
+        check_geofence(new, lo, hi, "append.waypoints")
+        d = None if "durations" not in body else np.asarray(body["durations"], dtype=float)
+        nxt = float(np.max(route.labels)) + 1 if np.any(route.labels >= 0) else 0.0
+
+        def relabel_append(labels: FloatArray, _wp: Any) -> FloatArray:
+            return np.concatenate([labels, nxt + np.arange(len(new), dtype=float)])
+
+        return LocalEdit((ch.AppendWaypoints(new, d),), f"appended {len(new)} waypoints", relabel_append)
+    raise MessageError("", "no change given")  # pragma: no cover - the schema requires one
+
+
+def local_replan(
+    route: Route,
+    t_now: float,
+    t_split: float,
+    edit: LocalEdit,
+    known_obstacles: Sequence[Polytope],
+    cfg: Config,
+) -> Outcome:
+    """planner_core.replan with from_time = t_split: only the touched jets are re-solved."""
+    from planner_core.replan import Environment, ReplanOptions, replan
+    from planner_core.changes import ChangeError, ChangeSet
+
+    t0 = time.perf_counter()
+    r = trim(route, t_now)
+    if t_split >= r.times[-1] - 1e-6 and not any(type(e).__name__ == "AppendWaypoints" for e in edit.edits):
+        return Outcome(False, message="mission already complete: nothing left to replan")
+    env = Environment(tuple(known_obstacles), (r.mission.map_lo, r.mission.map_hi), r.mission.radius)
+    try:
+        result = replan(r.problem, r.trajectory, ChangeSet(edit.edits, from_time=t_split),
+                        options=ReplanOptions(environment=env))
+    except ChangeError as exc:
+        return Outcome(False, message=str(exc), stats={"plan_seconds": time.perf_counter() - t0})
+    stats = {"plan_seconds": time.perf_counter() - t0, "method": "local", "resolved_jets": list(result.resolved_jets)}
+    if not result.ok or result.trajectory is None:
+        return Outcome(False, message=result.message, stats=stats)
+    k = result.stats.get("split_index")
+    labels = r.labels if k is None else np.insert(r.labels, int(k), -1.0)
+
+    def wp(i: int) -> int:
+        return i + 1 if k is not None and i >= int(k) else i
+
+    labels = edit.relabel(labels, wp)
+    p = result.problem
+    traj = result.trajectory
+    if len(labels) != p.m:
+        return Outcome(False, message="internal: waypoint bookkeeping mismatch after replan", stats=stats)
+    report = verify(traj, p)
+    if not report.ok:
+        return Outcome(False, message="verification failed: " + report.summary(), stats=stats)
+    return Outcome(True, Route(r.mission, p.waypoints, p.times, labels, p, traj), result.message, stats=stats)

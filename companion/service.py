@@ -1,0 +1,798 @@
+"""The companion service: one asyncio loop per vehicle.
+
+Zenoh in (mission, obstacles, change, command) -> validation -> planning in a
+worker thread -> verified trajectory -> absolute-deadline setpoint loop ->
+MAVLink out. Telemetry comes back over MAVLink and goes out on Zenoh.
+
+Invariants:
+- the setpoint loop samples `self.active`, which is only ever a verified
+  trajectory or a hold at a measured position;
+- a swap replaces `self.active` with a trajectory equal to the old one up to
+  the split time (checked), so the piece being flown never changes;
+- trajectory time is `time.monotonic() - self.t_base`, fixed while we keep
+  control; replans keep it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+import sys
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+
+from companion import route as rt
+from companion.config import Config
+from companion.flight import AIRBORNE_CONTROL, IN_OUR_MODE, Flight, State, on_mode_report, refuse_command
+from companion.frames import change_to_ned, obstacles_to_ned, scenario_to_ned
+from companion.mavlink_io import CommandFailed, MavlinkLink
+from companion.messages import MessageError, decode
+from companion.sdnotify import Notifier
+from companion.setpoints import DeadlineScheduler, Setpoint, YawPolicy, hold_trajectory, sample, sleep_until
+from companion.zenoh_io import ZenohIO, encode
+from planner_core.problem import Polytope, Problem, Trajectory, rest_jet
+
+log = logging.getLogger("companion")
+
+S = State
+MAV_LANDED_IN_AIR = 2
+
+
+def _r(x: float | None, nd: int = 4) -> float | None:
+    return None if x is None or not math.isfinite(x) else round(float(x), nd)
+
+
+def _vec(v: Any) -> list[float] | None:
+    a = np.asarray(v, dtype=float)
+    return None if not np.all(np.isfinite(a)) else [round(float(x), 4) for x in a]
+
+
+def trajectory_dict(traj: Trajectory) -> dict[str, Any]:
+    from planner_core.io import trajectory_to_dict
+
+    return trajectory_to_dict(traj, "ned")
+
+
+class Service:
+    def __init__(self, cfg: Config, stop: asyncio.Event | None = None) -> None:
+        self.cfg = cfg
+        self.stop = stop or asyncio.Event()
+        self.flight = Flight()
+        self.link = MavlinkLink(cfg, self._on_mavlink)
+        self.zio: ZenohIO | None = None
+        self.pool = ThreadPoolExecutor(cfg.planner.workers, thread_name_prefix="planner")
+        self.notifier = Notifier()
+        self.yaw = YawPolicy(cfg.setpoints.yaw_mode, cfg.setpoints.yaw, cfg.setpoints.yaw_min_speed)
+        self.loop: asyncio.AbstractEventLoop | None = None
+        # control
+        self.streaming = False
+        self.t_base: float | None = None
+        self.active: Trajectory | None = None
+        self.route: rt.Route | None = None
+        self.pending: rt.MissionSpec | None = None
+        self.obstacles: dict[str, Polytope] = {}
+        self.exit_requested = False
+        self.disarm_requested = False
+        self.airborne = False
+        self.link_lost = False
+        self.seen_link = False
+        self.task: asyncio.Task[None] | None = None
+        self.plan_lock = asyncio.Lock()
+        self.tasks: list[asyncio.Task[Any]] = []
+        # measurements
+        self.last_sp: Setpoint | None = None
+        self.last_sp_time = 0.0
+        self.tracking_error: float | None = None
+        self.plan_latency: float | None = None
+        self.replan_latency: float | None = None
+        self.setpoint_latency: float | None = None
+        self._latency_mark: tuple[float, Trajectory, str] | None = None
+        self.setpoint_gap_max = 0.0
+        self._status_dirty = True
+
+    # -- small helpers -------------------------------------------------------
+
+    def now_t(self) -> float:
+        assert self.t_base is not None
+        return time.monotonic() - self.t_base
+
+    def event(self, kind: str, message: str, **extra: Any) -> None:
+        body = {"type": kind, "time": round(time.time(), 3), "state": self.flight.state.value, "message": message, **extra}
+        log.info("%s: %s %s", kind, message, {k: v for k, v in extra.items() if k != "trajectory"})
+        if self.zio is not None:
+            try:
+                self.zio.publish("events", body)
+            except Exception as exc:  # never let a publish error reach the flight logic
+                log.warning("event publish failed: %s", exc)
+        self._status_dirty = True
+
+    def go(self, to: State, reason: str) -> None:
+        ev = self.flight.go(to, reason)
+        if ev is not None:
+            self.event("state", reason, **{"from": ev["from"], "to": ev["to"]})
+
+    def reject(self, key: str, field: str, reason: str, **extra: Any) -> None:
+        self.event("rejected", f"{key}: {field + ': ' if field else ''}{reason}", key=key, field=field, reason=reason, **extra)
+
+    async def in_pool(self, fn: Any, *args: Any) -> Any:
+        assert self.loop is not None
+        return await self.loop.run_in_executor(self.pool, fn, *args)
+
+    def obstacle_list(self) -> list[Polytope]:
+        return list(self.obstacles.values())
+
+    # -- control primitives --------------------------------------------------
+
+    def take_control(self, position: np.ndarray, reason: str) -> None:
+        """Start streaming a hold at a measured position, with a fresh time base."""
+        self.t_base = time.monotonic()
+        self.active = hold_trajectory(position, 0.0)
+        self.exit_requested = False
+        self.streaming = True
+        self.publish_trajectory()
+        log.info("taking control: %s", reason)
+
+    def release_control(self) -> None:
+        """Stop commanding at once; remember what is left of the mission for `start`."""
+        self.streaming = False
+        if self.route is not None and self.t_base is not None:
+            remaining = self.remaining_mission(self.now_t())
+            if remaining is not None:
+                self.pending = remaining
+        self.route = None
+        self.active = None
+        self.t_base = None
+        if self.task is not None and self.task is not asyncio.current_task() and not self.task.done():
+            self.task.cancel()
+
+    def remaining_mission(self, t: float) -> rt.MissionSpec | None:
+        r = self.route
+        if r is None:
+            return None
+        keep = (r.times > t) & (r.labels >= 0)
+        if not np.any(keep):
+            return None
+        wps = r.waypoints[keep]
+        return replace(r.mission, waypoints=wps, durations=None, start="current", initial=None)
+
+    def swap(self, new: Trajectory, t_split: float, arrived: float | None, what: str) -> bool:
+        """Atomically replace the active trajectory; the new one must equal the old before t_split."""
+        old = self.active
+        if old is not None and self.t_base is not None:
+            now = self.now_t()
+            if t_split <= now + 0.5 / self.cfg.setpoints.rate_hz:
+                return False
+            ts = np.linspace(now, t_split, 8)
+            if not np.allclose(old.evaluate(ts), new.evaluate(ts), atol=1e-6):
+                log.error("swap refused: new trajectory differs from the flown one before the split")
+                return False
+            jo, jn = old.jet(t_split), new.jet(t_split)
+            if not np.allclose(jo, jn, rtol=1e-6, atol=1e-6):
+                log.error("swap refused: jets differ at the split")
+                return False
+            new = rt.trim_before(new, now - 1.0)
+        self.active = new
+        if arrived is not None:
+            self._latency_mark = (arrived, new, what)
+        self.publish_trajectory()
+        return True
+
+    def publish_trajectory(self) -> None:
+        if self.zio is not None and self.active is not None:
+            self.zio.publish("trajectory", trajectory_dict(self.active))
+
+    # -- loops -----------------------------------------------------------------
+
+    async def setpoint_loop(self) -> None:
+        rate = self.cfg.setpoints.rate_hz
+        sched = DeadlineScheduler(time.monotonic(), rate)
+        while not self.stop.is_set():
+            deadline = sched.next_deadline(time.monotonic())
+            now = await sleep_until(deadline)
+            self.notifier.watchdog()
+            if self.streaming and self.active is not None and self.t_base is not None:
+                t = now - self.t_base
+                sp = sample(self.active, t, self.yaw)
+                self.link.send_setpoint(sp)
+                if self.last_sp is not None:
+                    self.setpoint_gap_max = max(self.setpoint_gap_max, now - self.last_sp_time)
+                self.last_sp, self.last_sp_time = sp, now
+                mark = self._latency_mark
+                if mark is not None and mark[1] is self.active:
+                    self._latency_mark = None
+                    self.setpoint_latency = now - mark[0]
+                    self.event("latency", f"{mark[2]}: first setpoint of the new plan "
+                               f"{self.setpoint_latency * 1000:.1f} ms after the message",
+                               what=mark[2], latency_ms=round(self.setpoint_latency * 1000, 2))
+                self._progress(t)
+            else:
+                self.last_sp = None
+
+    def _progress(self, t: float) -> None:
+        st = self.flight.state
+        if st is S.STREAMING and self.route is not None and t >= self.route.t_end:
+            self.go(S.HOLDING, f"mission {self.route.mission.id} complete: holding at the last waypoint")
+            self.event("mission_complete", f"mission {self.route.mission.id} complete", mission=self.route.mission.id)
+        elif st is S.BRAKING and self.active is not None and t >= self.active.t_end:
+            self.go(S.HOLDING, "stopped after braking: holding position")
+
+    async def heartbeat_loop(self) -> None:
+        sched = DeadlineScheduler(time.monotonic(), self.cfg.mavlink.heartbeat_hz)
+        while not self.stop.is_set():
+            with contextlib.suppress(OSError):
+                self.link.send_heartbeat()
+            self.check_link()
+            await sleep_until(sched.next_deadline(time.monotonic()))
+
+    async def telemetry_loop(self) -> None:
+        sched = DeadlineScheduler(time.monotonic(), 20.0)
+        while not self.stop.is_set():
+            await sleep_until(sched.next_deadline(time.monotonic()))
+            st = self.link.state
+            if st.has_position and self.zio is not None:
+                self.zio.publish("telemetry", {
+                    "time": round(time.time(), 3),
+                    "frame": "ned",
+                    "position": _vec(st.position),
+                    "velocity": _vec(st.velocity),
+                    "attitude": {"roll": _r(st.attitude[0]), "pitch": _r(st.attitude[1]), "yaw": _r(st.attitude[2])},
+                    "armed": st.armed,
+                    "mode": st.mode,
+                })
+            self.check_link()
+
+    async def status_loop(self) -> None:
+        last = 0.0
+        while not self.stop.is_set():
+            await asyncio.sleep(0.05)
+            now = time.monotonic()
+            if self._status_dirty or now - last >= 0.5:
+                self._status_dirty = False
+                last = now
+                if self.zio is not None:
+                    self.zio.publish("status", self.status())
+
+    def status(self) -> dict[str, Any]:
+        st = self.link.state
+        seg = progress = time_to_go = None
+        if self.route is not None and self.t_base is not None:
+            t = self.now_t()
+            r = self.route
+            i = int(np.clip(np.searchsorted(r.times, t, side="right") - 1, 0, len(r.times) - 2))
+            nxt = r.labels[i + 1:]
+            ahead = nxt[nxt >= 0]
+            seg = int(ahead[0]) - 1 if len(ahead) else int(np.max(r.labels))
+            progress = float(np.clip((t - r.times[0]) / max(r.t_end - r.times[0], 1e-9), 0.0, 1.0))
+            time_to_go = max(r.t_end - t, 0.0)
+        if self.streaming and self.active is not None and st.has_position and self.t_base is not None:
+            ref = self.active.evaluate(self.now_t())
+            self.tracking_error = float(np.linalg.norm(st.position - ref))
+        elif not self.streaming:
+            self.tracking_error = None
+        return {
+            "vehicle": self.cfg.vehicle.id,
+            "time": round(time.time(), 3),
+            "state": self.flight.state.value,
+            "autopilot": st.autopilot,
+            "mode": st.mode,
+            "armed": st.armed,
+            "link": self.link.link_ok() if self.seen_link else False,
+            "streaming": self.streaming,
+            "mission": None if self.route is None else self.route.mission.id,
+            "pending_mission": None if self.pending is None else self.pending.id,
+            "segment": seg,
+            "progress": _r(progress),
+            "time_to_go": _r(time_to_go, 3),
+            "tracking_error": _r(self.tracking_error),
+            "plan_latency_ms": _r(None if self.plan_latency is None else self.plan_latency * 1000, 2),
+            "replan_latency_ms": _r(None if self.replan_latency is None else self.replan_latency * 1000, 2),
+            "message_to_setpoint_ms": _r(None if self.setpoint_latency is None else self.setpoint_latency * 1000, 2),
+            "obstacles": sorted(self.obstacles),
+            "setpoints_sent": self.link.sent_setpoints,
+        }
+
+    # -- autopilot reports ---------------------------------------------------
+
+    def _on_mavlink(self, kind: str, msg: Any) -> None:
+        if kind == "HEARTBEAT":
+            self.on_heartbeat()
+        elif kind == "STATUSTEXT":
+            self.event("autopilot", f"autopilot says: {msg.text}", severity=int(msg.severity))
+
+    def on_heartbeat(self) -> None:
+        st = self.link.state
+        if not self.seen_link:
+            self.seen_link = True
+            self.event("link", f"autopilot found: {st.autopilot} in {st.mode}", autopilot=st.autopilot, mode=st.mode)
+        if self.link_lost:
+            self.link_lost = False
+            self.event("link_restored", f"MAVLink link restored: autopilot in {st.mode}, "
+                       f"{'armed' if st.armed else 'disarmed'}; send 'start' to take control again",
+                       mode=st.mode, armed=st.armed)
+        state = self.flight.state
+        reaction = on_mode_report(state, st.in_follow_mode(), self.exit_requested)
+        if reaction is not None:
+            self.release_control()
+            self.go(reaction[0], f"{reaction[1]} (mode {st.mode})")
+            self.event("pilot_takeover", f"autopilot switched to {st.mode}: stopped commanding; "
+                       "send 'start' to take control again", mode=st.mode)
+            return
+        if state in IN_OUR_MODE and not st.armed and not self.disarm_requested:
+            self.release_control()
+            self.airborne = False
+            self.go(S.IDLE, "the autopilot disarmed the vehicle")
+            self.event("failsafe", "the autopilot disarmed the vehicle", mode=st.mode)
+        elif state is S.LANDING and not st.armed:
+            self.airborne = False
+            self.go(S.IDLE, "landed and disarmed")
+        if st.landed_state == MAV_LANDED_IN_AIR:
+            self.airborne = True
+        self._status_dirty = True
+
+    def check_link(self) -> None:
+        if not self.seen_link or self.link_lost or self.link.link_ok():
+            return
+        self.link_lost = True
+        was = self.flight.state
+        if self.flight.controlling:
+            self.release_control()
+            self.go(S.FAILSAFE, "MAVLink link lost: no autopilot heartbeat")
+        self.event("link_lost", f"MAVLink link lost (no heartbeat for {self.cfg.mavlink.link_timeout} s) while {was.value}; "
+                   "stopped commanding", previous_state=was.value)
+
+    # -- inbound messages -------------------------------------------------------
+
+    async def inbox_loop(self) -> None:
+        assert self.zio is not None
+        while not self.stop.is_set():
+            kind, payload, arrived = await self.zio.inbox.get()
+            lim = self.cfg.limits
+            try:
+                obj = decode(kind, payload, max_bytes=lim.max_message_bytes,
+                             max_waypoints=lim.max_waypoints, max_obstacles=lim.max_obstacles)
+            except MessageError as exc:
+                self.reject(kind, exc.field, exc.reason, bytes=len(payload))
+                continue
+            handler = {"mission": self.on_mission, "obstacles": self.on_obstacles,
+                       "change": self.on_change, "command": self.on_command}[kind]
+            task = asyncio.create_task(self._guard(kind, handler(obj, arrived)))
+            self.tasks.append(task)
+            self.tasks = [t for t in self.tasks if not t.done()]
+
+    async def _guard(self, kind: str, coro: Any) -> None:
+        try:
+            await coro
+        except MessageError as exc:
+            self.reject(kind, exc.field, exc.reason)
+        except asyncio.CancelledError:
+            raise
+        except Exception as exc:  # a bug in one handler must not stop the service
+            log.exception("handler for %s failed", kind)
+            self.event("error", f"{kind}: internal error: {exc!r}; holding the current plan", key=kind)
+
+    # mission ---------------------------------------------------------------
+
+    async def on_mission(self, obj: dict[str, Any], arrived: float) -> None:
+        spec = rt.mission_from_message(scenario_to_ned(obj), self.cfg)
+        if self.flight.state in AIRBORNE_CONTROL and spec.autostart:
+            await self.fly(spec, arrived)
+            return
+        st = self.link.state
+        if st.has_position:
+            jet = rest_jet(st.position)
+            outcome = await self.in_pool(rt.start_mission, spec, jet, 0.0, self.obstacle_list(), self.cfg)
+            if not outcome.ok:
+                self._reject_outcome("mission", spec, outcome)
+                return
+        self.pending = spec
+        self.event("accepted", f"mission {spec.id} loaded ({len(spec.waypoints)} waypoints); "
+                   "send 'start' to fly it", key="mission", mission=spec.id)
+
+    def _reject_outcome(self, key: str, spec: rt.MissionSpec, outcome: rt.Outcome) -> None:
+        field = "" if outcome.blocked_waypoint is None else f"waypoints[{outcome.blocked_waypoint}]"
+        self.reject(key, field, f"mission {spec.id}: {outcome.message}", mission=spec.id)
+
+    async def fly(self, spec: rt.MissionSpec, arrived: float | None) -> bool:
+        """Plan `spec` from the commanded state a little ahead of now and fly it."""
+        async with self.plan_lock:
+            for attempt in range(3):
+                if self.active is None or self.flight.state not in AIRBORNE_CONTROL:
+                    self.reject("mission", "", f"mission {spec.id}: no longer in control ({self.flight.state.value})")
+                    return False
+                base = self.active
+                t_split = self.now_t() + self.cfg.planner.split_ahead * (2 ** attempt)
+                jet = base.jet(t_split)
+                if t_split >= base.t_end:
+                    jet[1:] = 0.0
+                t0 = time.perf_counter()
+                outcome = await self.in_pool(rt.start_mission, spec, jet, t_split, self.obstacle_list(), self.cfg)
+                self.plan_latency = time.perf_counter() - t0
+                if not outcome.ok or outcome.route is None:
+                    self._reject_outcome("mission", spec, outcome)
+                    return False
+                if self.active is not base or self.flight.state not in AIRBORNE_CONTROL:
+                    continue
+                if not self.swap(rt.splice(base, outcome.route.trajectory), t_split, arrived, f"mission {spec.id}"):
+                    continue
+                self.route = outcome.route
+                self.pending = None
+                self.go(S.STREAMING, f"flying mission {spec.id}")
+                self.event("accepted", f"mission {spec.id}: planned and verified in {self.plan_latency * 1000:.1f} ms "
+                           f"({len(spec.waypoints)} waypoints, {outcome.route.t_end - t_split:.2f} s)",
+                           key="mission", mission=spec.id, plan_ms=round(self.plan_latency * 1000, 2))
+                return True
+        self.reject("mission", "", f"mission {spec.id}: planning did not finish before its split time")
+        return False
+
+    # obstacles -------------------------------------------------------------
+
+    async def on_obstacles(self, obj: dict[str, Any], arrived: float) -> None:
+        msg = obstacles_to_ned(obj)
+        added: dict[str, Polytope] = {}
+        for i, ob in enumerate(msg.get("add", [])):
+            added[ob["id"]] = rt.parse_region(ob, f"add[{i}]")
+        removed = [k for k in msg.get("remove", []) if k in self.obstacles]
+        unknown = [k for k in msg.get("remove", []) if k not in self.obstacles]
+        if msg.get("clear"):
+            removed = list(self.obstacles)
+        for k in removed:
+            del self.obstacles[k]
+        self.obstacles.update(added)
+        note = f"; unknown ids ignored: {unknown}" if unknown else ""
+        self.event("accepted", f"obstacles: added {sorted(added)}, removed {sorted(removed)}{note}",
+                   key="obstacles", added=sorted(added), removed=sorted(removed))
+        if added:
+            await self.avoid(list(added.values()), sorted(added), arrived)
+
+    async def avoid(self, new: list[Polytope], ids: list[str], arrived: float) -> None:
+        async with self.plan_lock:
+            if self.flight.state is not S.STREAMING or self.route is None or self.active is None:
+                return
+            now = self.now_t()
+            radius = self.route.mission.radius
+            hit = rt.first_hit(self.active, now, new, radius)
+            if hit is None:
+                self.event("obstacles_clear", f"obstacles {ids}: the current trajectory stays clear; no replan",
+                           obstacles=ids)
+                return
+            split_ahead = self.cfg.planner.split_ahead
+            if hit < now + split_ahead:
+                await self._brake(f"obstacle {ids} is {hit - now:.2f} s ahead: too close to replan", arrived)
+                return
+            known = [p for p in self.obstacle_list() if not any(p is q for q in new)]
+            known += [p for _, p in self.route.mission.obstacles]
+            edit = rt.LocalEdit((rt_add_obstacles(new),), f"avoid obstacles {ids}", rt._same)
+            ok = await self._replan(edit, known, arrived, f"obstacles {ids}", hit=hit)
+            if not ok:
+                return
+
+    async def _replan(self, edit: rt.LocalEdit, known: list[Polytope], arrived: float, what: str,
+                      hit: float | None = None, remainder: tuple[Any, Any, Any] | None = None) -> bool:
+        """Local replan, then a full replan of the remainder, then braking. Holds plan_lock."""
+        assert self.route is not None
+        messages = []
+        for attempt in range(3):
+            if self.active is None or self.route is None or self.flight.state not in AIRBORNE_CONTROL:
+                return False
+            base, route = self.active, self.route
+            now = self.now_t()
+            t_split = now + self.cfg.planner.split_ahead * (2 ** attempt)
+            if hit is not None and t_split >= hit:
+                break
+            t0 = time.perf_counter()
+            outcome = await self.in_pool(rt.local_replan, route, now, t_split, edit, known, self.cfg)
+            method = "local"
+            if not outcome.ok:
+                messages.append(f"local replan: {outcome.message}")
+                obstacles = self.obstacle_list()
+                if remainder is None:
+                    outcome = await self.in_pool(rt.replan_remainder, route, base, t_split, obstacles, self.cfg)
+                else:
+                    outcome = await self.in_pool(rt.replan_remainder, route, base, t_split, obstacles, self.cfg,
+                                                 *remainder)
+                method = "remainder"
+            self.replan_latency = time.perf_counter() - t0
+            if not outcome.ok or outcome.route is None:
+                messages.append(f"full replan: {outcome.message}")
+                if outcome.blocked_waypoint is not None:
+                    await self._brake(f"{what}: waypoint {outcome.blocked_waypoint} is blocked "
+                                      f"({outcome.message})", arrived, blocked=outcome.blocked_waypoint)
+                    return False
+                break
+            if self.active is not base or self.route is not route:
+                continue
+            if not self.swap(rt.splice(base, outcome.route.trajectory), t_split, arrived, what):
+                messages.append("planning finished after the split time; retrying further ahead")
+                continue
+            self.route = outcome.route
+            if self.flight.state is not S.STREAMING:
+                self.go(S.STREAMING, f"replanned: {edit.description}")
+            self.event("replanned", f"{edit.description}: {method} replan verified in "
+                       f"{self.replan_latency * 1000:.1f} ms, split at t={t_split:.3f} s",
+                       method=method, split_time=round(t_split, 4), replan_ms=round(self.replan_latency * 1000, 2),
+                       resolved_jets=outcome.stats.get("resolved_jets"))
+            return True
+        await self._brake(f"{what}: no safe plan ({'; '.join(messages) or 'too close'})", arrived)
+        return False
+
+    async def _brake(self, reason: str, arrived: float | None, blocked: int | None = None) -> None:
+        """Fly a verified stop inside a free corridor; hold; say why."""
+        if self.active is None or self.t_base is None:
+            return
+        base = self.active
+        t_split = self.now_t() + 2.0 / self.cfg.setpoints.rate_hz
+        jet = base.jet(t_split)
+        mission = self.route.mission if self.route is not None else None
+        obstacles = self.obstacle_list() + ([p for _, p in mission.obstacles] if mission else [])
+        corridor = None
+        if mission is not None:
+            corridor = rt.safe_corridor(jet[0], jet[1], obstacles, mission)
+        if corridor is None:
+            corridor = rt.corridor_at(base, t_split)
+        traj, why = await self.in_pool(rt.brake, jet, self.route.mission.bounds if self.route else
+                                       rt.bounds_from(None, self.cfg), corridor, t_split)
+        if traj is None and corridor is not None:
+            traj, why = await self.in_pool(rt.brake, jet, self.route.mission.bounds if self.route else
+                                           rt.bounds_from(None, self.cfg), None, t_split)
+        swapped = traj is not None and self.swap(rt.splice(base, traj), t_split, arrived, "braking")
+        if not swapped:
+            st = self.link.state
+            self.active = hold_trajectory(st.position, self.now_t())
+            self.publish_trajectory()
+            why = f"no verified braking trajectory ({why}); holding at the measured position"
+        self.go(S.BRAKING, reason)
+        self.event("braking", f"{reason}; braking to a stop and holding", reason=reason,
+                   blocked_waypoint=blocked, detail=why)
+
+    # change ------------------------------------------------------------------
+
+    async def on_change(self, obj: dict[str, Any], arrived: float) -> None:
+        change = change_to_ned(obj)
+        if self.route is None or self.flight.state not in AIRBORNE_CONTROL or self.t_base is None:
+            raise MessageError("", f"no mission in flight ({self.flight.state.value})")
+        async with self.plan_lock:
+            assert self.route is not None
+            t_split = self.now_t() + self.cfg.planner.split_ahead
+            edit = rt.local_edit(self.route, change, t_split)
+            remainder = rt.apply_change(self.route, change, t_split, self.cfg)[:3]
+            known = self.obstacle_list() + [p for _, p in self.route.mission.obstacles]
+            self.event("accepted", f"change: {edit.description}", key="change")
+            await self._replan(edit, known, arrived, f"change ({edit.description})", remainder=remainder)
+
+    # commands ----------------------------------------------------------------
+
+    async def on_command(self, obj: dict[str, Any], arrived: float) -> None:
+        cmd = obj["command"]
+        st = self.link.state
+        has_mission = self.pending is not None or (
+            self.route is not None and self.t_base is not None and self.route.t_end > self.now_t())
+        why = refuse_command(self.flight.state, cmd, armed=st.armed, auto_arm=self.cfg.safety.auto_arm,
+                             has_mission=has_mission)
+        if why is None and st.last_heartbeat == -math.inf:
+            why = "no autopilot heartbeat yet"
+        if why is None and cmd in ("arm", "takeoff", "start") and not st.has_position:
+            why = "no position estimate from the autopilot"
+        if why is not None:
+            self.event("refused", f"command {cmd}: {why}", key="command", command=cmd, reason=why)
+            return
+        self.event("accepted", f"command {cmd}", key="command", command=cmd)
+        altitude = float(obj.get("altitude", self.cfg.safety.takeoff_altitude))
+        if cmd in ("arm", "takeoff", "start"):
+            if self.task is not None and not self.task.done():
+                self.task.cancel()
+            body = {"arm": self.cmd_arm, "takeoff": lambda: self.cmd_takeoff(altitude),
+                    "start": lambda: self.cmd_start(arrived)}[cmd]
+            self.task = asyncio.create_task(self._sequence(cmd, body()))
+        elif cmd == "hold":
+            async with self.plan_lock:
+                await self._brake("hold command", arrived)
+        elif cmd == "resume":
+            await self.cmd_resume(arrived)
+        elif cmd == "land":
+            await self.cmd_land()
+        elif cmd == "abort":
+            await self.cmd_abort(arrived)
+        elif cmd == "disarm":
+            await self.cmd_disarm()
+
+    async def _sequence(self, cmd: str, coro: Any) -> None:
+        try:
+            await coro
+        except CommandFailed as exc:
+            self.event("refused", f"command {cmd} failed: {exc}", key="command", command=cmd, reason=str(exc))
+            if self.flight.state in (S.ARMING, S.TAKEOFF):
+                self.release_control()
+                self.go(S.IDLE if not self.link.state.armed else S.FAILSAFE, f"{cmd} failed: {exc}")
+        except asyncio.CancelledError:
+            pass
+
+    async def _take_follow_mode(self, reason: str) -> None:
+        """Stream a hold at the measured position, then ask for OFFBOARD/GUIDED."""
+        st = self.link.state
+        self.go(S.ARMING, reason)
+        if st.autopilot == "px4":
+            self.take_control(st.position, reason)
+            # PX4 refuses OFFBOARD unless setpoints have been streaming for a while.
+            await asyncio.sleep(1.1)
+        await self.link.set_follow_mode()
+        await self.link.wait_for(lambda s: s.in_follow_mode(), 3.0, "the autopilot to confirm OFFBOARD/GUIDED")
+        if st.autopilot != "px4" and self.airborne:
+            self.take_control(st.position, reason)
+
+    async def cmd_arm(self) -> None:
+        await self._take_follow_mode("arm command")
+        self.disarm_requested = False
+        await self.link.arm(True)
+        await self.link.wait_for(lambda s: s.armed, 3.0, "the autopilot to report armed")
+        self.go(S.READY, "armed in " + self.link.state.mode)
+
+    async def cmd_takeoff(self, altitude: float) -> None:
+        st = self.link.state
+        if not st.armed:
+            await self.cmd_arm()
+        elif self.flight.state not in (S.READY, S.HOLDING):
+            await self._take_follow_mode("takeoff command")
+        ground = st.position.copy()
+        target = ground + np.array([0.0, 0.0, -altitude])
+        self.go(S.TAKEOFF, f"taking off to {altitude:.2f} m")
+        tol = self.cfg.safety.arrival_tolerance
+        if st.autopilot == "px4":
+            await self._px4_climb(target)
+        else:
+            self.streaming = False
+            await self.link.takeoff(altitude)
+            await self.link.wait_for(lambda s: s.position[2] <= target[2] + tol, 10.0 + altitude / 0.3,
+                                     f"altitude {altitude:.2f} m")
+            self.take_control(self.link.state.position, "takeoff complete")
+        self.airborne = True
+        self.go(S.READY, f"airborne at {altitude:.2f} m: holding")
+
+    async def _px4_climb(self, target: np.ndarray) -> None:
+        """A verified vertical climb streamed in OFFBOARD (PX4 has no GUIDED-style takeoff for us)."""
+        assert self.active is not None
+        base = self.active
+        t_split = self.now_t() + self.cfg.planner.split_ahead
+        jet = base.jet(t_split)
+        bounds = rt.bounds_from(None, self.cfg)
+        d = rt.allocate_durations(np.vstack([jet[0], target]), bounds)
+        problem = Problem.from_waypoints(np.vstack([jet[0], target]), d, bounds, initial=jet, t0=t_split)
+        from planner_core import plan
+
+        result = await self.in_pool(plan, problem)
+        if not result.ok or result.trajectory is None:
+            raise CommandFailed(f"no verified climb: {result.message}")
+        if not self.swap(rt.splice(base, result.trajectory), t_split, None, "takeoff"):
+            raise CommandFailed("climb planning was too slow")
+        tol = self.cfg.safety.arrival_tolerance
+        end = result.trajectory.t_end
+        await self.link.wait_for(
+            lambda s: self.t_base is not None and self.now_t() >= end and abs(s.position[2] - target[2]) <= tol,
+            end - self.now_t() + 10.0, "the climb to finish")
+
+    async def cmd_start(self, arrived: float) -> None:
+        st = self.link.state
+        if not st.armed:
+            await self.cmd_takeoff(self.cfg.safety.takeoff_altitude)
+        elif self.flight.state in (S.PILOT, S.FAILSAFE, S.IDLE):
+            if not self.airborne and st.landed_state != MAV_LANDED_IN_AIR and st.autopilot != "px4":
+                raise CommandFailed("vehicle is on the ground: send 'takeoff' first")
+            await self._take_follow_mode("start command: taking control")
+            self.go(S.READY, f"in control ({self.link.state.mode}): holding")
+        elif self.flight.state is S.READY and not self.airborne:
+            await self.cmd_takeoff(self.cfg.safety.takeoff_altitude)
+        if self.pending is not None:
+            await self.fly(self.pending, arrived)
+        elif self.route is not None:
+            await self.cmd_resume(arrived)
+
+    async def cmd_resume(self, arrived: float) -> None:
+        if self.route is None or self.t_base is None:
+            self.event("refused", "command resume: no mission to resume", key="command", command="resume")
+            return
+        async with self.plan_lock:
+            t_split = self.now_t() + self.cfg.planner.split_ahead
+            if not np.any(self.route.times > t_split):
+                self.event("refused", "command resume: the mission is complete", key="command", command="resume")
+                return
+            spec = self.remaining_mission(t_split)
+        if spec is not None:
+            await self.fly(spec, arrived)
+
+    async def cmd_land(self) -> None:
+        if self.task is not None and not self.task.done():
+            self.task.cancel()
+        self.exit_requested = True
+        self.streaming = False
+        self.route = None
+        self.active = None
+        self.go(S.LANDING, "land command: the autopilot lands")
+        try:
+            await self.link.land()
+        except CommandFailed as exc:
+            self.event("refused", f"command land failed: {exc}", key="command", command="land")
+
+    async def cmd_abort(self, arrived: float) -> None:
+        if self.task is not None and not self.task.done():
+            self.task.cancel()
+        self.pending = None
+        state = self.flight.state
+        if state in AIRBORNE_CONTROL or (state is S.TAKEOFF and self.streaming):
+            async with self.plan_lock:
+                self.route = None
+                await self._brake("abort command", arrived)
+        elif state in (S.ARMING, S.TAKEOFF):
+            self.release_control()
+            self.go(S.IDLE if not self.link.state.armed else S.FAILSAFE, "abort command")
+        self.event("aborted", "mission and pending commands cancelled")
+
+    async def cmd_disarm(self) -> None:
+        st = self.link.state
+        if st.landed_state == MAV_LANDED_IN_AIR:
+            self.event("refused", "command disarm: vehicle is in the air (land first)", key="command", command="disarm")
+            return
+        self.disarm_requested = True
+        self.release_control()
+        try:
+            await self.link.arm(False)
+        except CommandFailed as exc:
+            self.event("refused", f"command disarm failed: {exc}", key="command", command="disarm")
+            return
+        self.airborne = False
+        self.go(S.IDLE, "disarmed on command")
+
+    # -- queryables -------------------------------------------------------------
+
+    def query_plan(self) -> bytes | None:
+        return None if self.active is None else encode(trajectory_dict(self.active))
+
+    def query_status(self) -> bytes | None:
+        return encode(self.status())
+
+    # -- run ----------------------------------------------------------------------
+
+    async def run(self) -> None:
+        self.loop = asyncio.get_running_loop()
+        # The planner thread holds the GIL in pure-Python stretches; a short
+        # switch interval bounds how long the setpoint loop can wait for it.
+        sys.setswitchinterval(0.0005)
+        self.zio = ZenohIO(self.cfg, self.loop)
+        self.zio.open({"plan": self.query_plan, "status": self.query_status})
+        self.link.open(self.loop)
+        loops = [self.setpoint_loop(), self.heartbeat_loop(), self.telemetry_loop(), self.status_loop(), self.inbox_loop()]
+        runners = [asyncio.create_task(c) for c in loops]
+        self.notifier.ready(f"vehicle {self.cfg.vehicle.id}: zenoh and mavlink up")
+        self.event("started", f"companion for {self.cfg.vehicle.id} started", mavlink=self.cfg.mavlink.url)
+        try:
+            stopper = asyncio.create_task(self.stop.wait())
+            done, _ = await asyncio.wait([stopper, *runners], return_when=asyncio.FIRST_COMPLETED)
+            for t in done:
+                if t is not stopper and t.exception() is not None:
+                    raise t.exception()  # type: ignore[misc]
+        finally:
+            self.notifier.stopping()
+            self.streaming = False
+            for t in [*runners, *self.tasks, *([self.task] if self.task else [])]:
+                t.cancel()
+            await asyncio.gather(*runners, *self.tasks, return_exceptions=True)
+            with contextlib.suppress(Exception):
+                self.event("stopped", "companion stopping")
+            self.link.close()
+            self.zio.close()
+            self.pool.shutdown(wait=False, cancel_futures=True)
+
+
+def rt_add_obstacles(new: list[Polytope]) -> Any:
+    from planner_core.changes import AddObstacles
+
+    return AddObstacles(tuple(new))
+
+
+async def run(config: Config, *, stop: asyncio.Event | None = None) -> None:
+    """Run the service until `stop` is set (or forever)."""
+    await Service(config, stop).run()

@@ -1,0 +1,138 @@
+"""A verified stop: two degree-9 segments from the current jet to rest.
+
+The end jet is rest at an unknown position p (the last five control points
+all equal p). A single segment cannot absorb the current jerk and snap: its
+first five control points are fixed by the current jet and spread with the
+duration cubed, so a second, short, leading segment with a free junction jet
+(position included) takes them out first. The QP (integrated squared snap
+plus a small pull of p towards the current position) constrains every
+hodograph point of both segments within the bounds and every control point
+(the junction included) inside the corridor. Total durations are tried
+shortest first along a short geometric sequence starting from the time a
+bang-bang stop would need; the first solution that passes `verify` is
+returned.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from planner_core.bezier import segments_from_jets
+from planner_core.localqp import solve_local
+from planner_core.problem import (
+    JET_ORDER,
+    ORDER_NAMES,
+    Bounds,
+    FloatArray,
+    Polytope,
+    Problem,
+    Trajectory,
+    rest_jet,
+)
+from planner_core.result import PlanResult, PlanStatus
+
+STOP_PULL = 1e-3  # weight of |p - p0|^2 against the normalised snap cost
+GROWTH = 1.5
+N_TRIES = 8
+LEAD = 0.25  # share of the total duration given to the leading segment
+
+
+def _infeasible(message: str, **stats: object) -> PlanResult:
+    return PlanResult(PlanStatus.INFEASIBLE, None, message, None, dict(stats))
+
+
+def _first_duration(jet: FloatArray, bounds: Bounds) -> float:
+    """Time a bang-bang stop at full acceleration would need (per axis, worst), at least 0.2 s."""
+    amax = np.minimum(-bounds.lo[1], bounds.hi[1])
+    amax = np.where(np.isfinite(amax) & (amax > 0), amax, np.inf)
+    t_axis = np.abs(jet[1]) / amax + np.abs(jet[2]) / np.where(np.isfinite(amax), amax, np.inf)
+    return float(max(0.2, 1.2 * float(np.max(t_axis))))
+
+
+def _try(
+    jet: FloatArray, bounds: Bounds, corridor: Polytope | None, t0: float, d: float
+) -> tuple[Trajectory, float] | str:
+    """One total duration: the verified two-segment stop, or the reason it failed."""
+    from planner_core.verify import verify
+
+    p0 = jet[0]
+    dur = {0: LEAD * d, 1: (1.0 - LEAD) * d}
+    free = {1: np.ones((JET_ORDER, 3), dtype=bool), 2: np.zeros((JET_ORDER, 3), dtype=bool)}
+    free[2][0] = True
+    n = 18  # junction jet (15) then stop position (3)
+    pull_p = np.zeros((n, n))
+    pull_q = np.zeros(n)
+    pull_p[15:, 15:] = 2.0 * STOP_PULL * np.eye(3)
+    pull_q[15:] = -2.0 * STOP_PULL * p0
+    rows = None
+    if corridor is not None and corridor.A.shape[0]:
+        g = np.zeros((corridor.A.shape[0], n))
+        g[:, :3] = corridor.A  # the junction point itself (segments constrain P^1..P^8 only)
+        rows = (g, np.full(corridor.A.shape[0], -1e30), corridor.b)
+    guess = {0: jet, 1: rest_jet(p0), 2: rest_jet(p0)}
+    sol = solve_local(
+        guess, dur, bounds, lambda _s: corridor, [0, 1], free, extra_cost=(pull_p, pull_q), extra_rows=rows
+    )
+    if not sol.ok:
+        return sol.message
+    jets = np.stack([jet, sol.jets[1], sol.jets[2]])
+    durations = np.array([dur[0], dur[1]])
+    ctrl = segments_from_jets(jets, durations)
+    corr = (corridor, corridor)
+    times = t0 + np.concatenate([[0.0], np.cumsum(durations)])
+    traj = Trajectory(times, ctrl, corr)
+    problem = Problem(jets[:, 0].copy(), times.copy(), bounds, jet, jets[2], corr)
+    report = verify(traj, problem)
+    if not report.ok:
+        return f"certificate failed: {report.summary()}"
+    return traj, sol.qp_time
+
+
+def braking_trajectory(
+    jet: FloatArray,
+    bounds: Bounds,
+    corridor: Polytope | None = None,
+    t0: float = 0.0,
+    *,
+    durations: Sequence[float] | None = None,
+) -> PlanResult:
+    """From `jet` (5, 3) at time t0 to rest, inside `corridor` and `bounds`; verified.
+
+    INFEASIBLE (with the reason) when the vehicle is outside the corridor, its
+    current derivatives already exceed the bounds, or no tried duration works.
+    """
+    jet = np.asarray(jet, dtype=float)
+    if jet.shape != (JET_ORDER, 3) or not np.all(np.isfinite(jet)):
+        raise ValueError(f"jet: expected a finite (5, 3) array, got shape {jet.shape}")
+    p0 = jet[0]
+    if corridor is not None and corridor.A.shape[0] and corridor.violation(p0) > 1e-9:
+        return _infeasible(
+            f"vehicle at {p0.tolist()} is outside the corridor (by {corridor.violation(p0):.3g} m)"
+        )
+    for k in range(1, JET_ORDER):
+        excess = np.maximum(jet[k] - bounds.hi[k - 1], bounds.lo[k - 1] - jet[k])
+        if np.any(excess > 1e-9):
+            axis = int(np.argmax(excess))
+            return _infeasible(
+                f"current {ORDER_NAMES[k]} on axis {axis} ({jet[k, axis]:.4g}) is already outside its bounds"
+            )
+    tries = list(durations) if durations is not None else [
+        _first_duration(jet, bounds) * GROWTH**i for i in range(N_TRIES)
+    ]
+    reason = "no duration tried"
+    for d in tries:
+        res = _try(jet, bounds, corridor, t0, float(d))
+        if isinstance(res, str):
+            reason = f"duration {d:.3g} s: {res}"
+            continue
+        traj, qp_time = res
+        stop = traj.control_points[-1, -1]
+        stats = {"duration": float(d), "tried": tries[: tries.index(d) + 1], "stop": stop.tolist(),
+                 "distance": float(np.linalg.norm(stop - p0)), "qp_time_s": qp_time}
+        traj = Trajectory(traj.times, traj.control_points, traj.corridors, dict(stats))
+        return PlanResult(PlanStatus.OK, traj, f"stop in {d:.3g} s at {np.round(stop, 3).tolist()}", None, stats)
+    return _infeasible(
+        f"no braking trajectory within {len(tries)} durations up to {max(tries):.3g} s: {reason}", tried=tries
+    )

@@ -1,0 +1,180 @@
+"""Constraint rows and cost matrices of one segment as linear maps of its two end jets.
+
+A segment's 10 control points are `[start_map @ J0; end_map @ J1]` (method.md), so
+every hull quantity the planner constrains (control points and hodograph
+control points of orders 1..4) is a fixed matrix times the stacked jet pair.
+
+Column layout used by every row here ("30-layout"): the pair of jets
+`(J0, J1)` of a segment, each (5, 3), flattened as `[J0.ravel(), J1.ravel()]`,
+so column = side * 15 + order * 3 + axis.
+
+Duration dependence is a pure power law (start/end maps scale column `order`
+by Δ^order, hodographs scale row order k by Δ^-k), so all matrices are built
+once at Δ = 1 and scaled, vectorised over segments.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import lru_cache
+from math import comb
+
+import numpy as np
+from numpy.typing import NDArray
+
+from planner_core.bezier import end_map, hodograph_matrix, start_map
+from planner_core.problem import DEGREE, JET_ORDER, N_CTRL, FloatArray, Polytope
+
+IntArray = NDArray[np.int64]
+
+N_HODO = tuple(N_CTRL - k for k in range(1, 5))  # hodograph points per order: 9, 8, 7, 6
+JET_COLS = 2 * JET_ORDER * 3  # 30
+INF = 1e30  # what both QP backends treat as "no bound"
+
+# Group kinds used by row metadata (diagnosis names them).
+KIND_BOUND = 0
+KIND_CORRIDOR = 1
+
+
+@lru_cache(maxsize=1)
+def _unit_templates() -> tuple[FloatArray, IntArray, IntArray, IntArray]:
+    """Q(1) (40, 10): ctrl points then hodographs 1..4, over (side*5+order); power table; row order; row index."""
+    smat = np.zeros((N_CTRL, 2 * JET_ORDER))
+    smat[:JET_ORDER, :JET_ORDER] = start_map(1.0)
+    smat[JET_ORDER:, JET_ORDER:] = end_map(1.0)
+    blocks = [np.eye(N_CTRL)] + [hodograph_matrix(k, 1.0) for k in range(1, 5)]
+    q1 = np.vstack(blocks) @ smat
+    row_order = np.concatenate([np.full(N_CTRL - k, k) for k in range(5)])
+    row_index = np.concatenate([np.arange(N_CTRL - k) for k in range(5)])
+    col_order = np.tile(np.arange(JET_ORDER), 2)
+    power = col_order[None, :] - row_order[:, None]
+    return q1, power, row_order, row_index
+
+
+def hull_maps(durations: FloatArray) -> FloatArray:
+    """Per segment, the (40, 10) map from one axis of (J0, J1) to ctrl + hodograph points."""
+    q1, power, _, _ = _unit_templates()
+    d = np.asarray(durations, dtype=float)
+    return q1[None, :, :] * d[:, None, None] ** power[None, :, :]
+
+
+# bound rows are the hodograph rows 10..39 (orders 1..4)
+_BOUND_Q_ROWS = np.arange(N_CTRL, N_CTRL + sum(N_HODO))
+_CORR_Q_ROWS = np.arange(1, N_CTRL - 1)  # P^1..P^8 (P^0, P^9 are the fixed waypoints)
+
+
+@lru_cache(maxsize=1)
+def _bound_meta() -> tuple[IntArray, IntArray, IntArray, NDArray[np.bool_]]:
+    _, _, row_order, row_index = _unit_templates()
+    order = np.repeat(row_order[_BOUND_Q_ROWS], 3)
+    index = np.repeat(row_index[_BOUND_Q_ROWS], 3)
+    axis = np.tile(np.arange(3), _BOUND_Q_ROWS.size)
+    # a hodograph point i of order k uses P^i..P^{i+k}; it depends on J0 only if i+k <= 4
+    half = index + order <= JET_ORDER - 1
+    return order, index, axis, half
+
+
+def bound_rows(hull: FloatArray, lo: FloatArray, hi: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Rows (90, 30), lower and upper limits of the dynamic-bound constraints of one segment.
+
+    `lo`, `hi` are the Bounds arrays (4, 3).
+    """
+    rows = np.kron(hull[_BOUND_Q_ROWS], np.eye(3))
+    order, _, axis, _ = _bound_meta()
+    return rows, lo[order - 1, axis], hi[order - 1, axis]
+
+
+def corridor_rows(hull: FloatArray, poly: Polytope) -> tuple[FloatArray, FloatArray]:
+    """Rows (8 f, 30) and upper limits of 'P^1..P^8 inside poly' for one segment."""
+    rows = np.kron(hull[_CORR_Q_ROWS], poly.A)
+    return rows, np.tile(poly.b, _CORR_Q_ROWS.size)
+
+
+def corridor_half_mask(n_faces: int) -> NDArray[np.bool_]:
+    """Corridor rows that depend only on the start jet (P^1..P^4)."""
+    return np.repeat(_CORR_Q_ROWS <= JET_ORDER - 1, n_faces)
+
+
+def bound_half_mask() -> NDArray[np.bool_]:
+    return _bound_meta()[3]
+
+
+def bound_row_orders() -> IntArray:
+    return _bound_meta()[0]
+
+
+# --- costs -------------------------------------------------------------------
+
+
+def bernstein_gram(n: int) -> FloatArray:
+    """∫_0^1 B_i^n(u) B_j^n(u) du."""
+    i = np.arange(n + 1)
+    ci = np.array([comb(n, a) for a in i], dtype=float)
+    c2 = np.array([[comb(2 * n, a + b) for b in i] for a in i], dtype=float)
+    return np.asarray(np.outer(ci, ci) / (c2 * (2 * n + 1)))
+
+
+@lru_cache(maxsize=8)
+def _unit_cost(order: int) -> tuple[FloatArray, FloatArray]:
+    q1, power, row_order, _ = _unit_templates()
+    rows = row_order == order
+    m = q1[rows]  # (10-order, 10)
+    k1 = m.T @ bernstein_gram(DEGREE - order) @ m
+    col_order = np.tile(np.arange(JET_ORDER), 2)
+    # ∫_0^Δ |x^(k)(t)|^2 dt = Δ * (Δ^-k)^2 * ... ; column scaling Δ^order(c)
+    cost_power = 1 - 2 * order + col_order[:, None] + col_order[None, :]
+    return k1, cost_power.astype(float)
+
+
+def cost_matrices(durations: FloatArray, order: int = 4) -> FloatArray:
+    """Per segment (10, 10) per-axis matrix K with ∫|x^(order)|^2 dt = Σ_axis z_d' K z_d."""
+    k1, power = _unit_cost(order)
+    d = np.asarray(durations, dtype=float)
+    return k1[None] * d[:, None, None] ** power[None]
+
+
+def integrated_cost(control_points: FloatArray, durations: FloatArray, order: int = 4) -> float:
+    """∫ |x^(order)(t)|^2 dt over a whole trajectory, from its control points."""
+    from planner_core.bezier import hodographs
+
+    pts = hodographs(control_points, order, durations)
+    gram = bernstein_gram(DEGREE - order)
+    per_seg = np.einsum("sid,ij,sjd->s", pts, gram, pts) * np.asarray(durations, dtype=float)
+    return float(np.sum(per_seg))
+
+
+@dataclass(frozen=True)
+class SegmentRows:
+    """All hull rows of one segment in the 30-layout, with metadata for diagnosis."""
+
+    rows: FloatArray  # (n, 30)
+    lo: FloatArray  # (n,)
+    hi: FloatArray  # (n,)
+    half: NDArray[np.bool_]  # rows that depend only on the start jet
+    kind: IntArray  # KIND_BOUND / KIND_CORRIDOR
+    order: IntArray  # derivative order for bound rows, 0 for corridor rows
+
+
+def segment_rows(hull: FloatArray, lo: FloatArray, hi: FloatArray, poly: Polytope | None) -> SegmentRows:
+    brows, blo, bhi = bound_rows(hull, lo, hi)
+    bhalf = bound_half_mask()
+    border = bound_row_orders()
+    if poly is None or poly.A.shape[0] == 0:
+        return SegmentRows(
+            brows,
+            np.clip(blo, -INF, INF),
+            np.clip(bhi, -INF, INF),
+            bhalf,
+            np.full(brows.shape[0], KIND_BOUND),
+            border,
+        )
+    crows, chi = corridor_rows(hull, poly)
+    n_c = crows.shape[0]
+    return SegmentRows(
+        np.vstack([brows, crows]),
+        np.clip(np.concatenate([blo, np.full(n_c, -np.inf)]), -INF, INF),
+        np.clip(np.concatenate([bhi, chi]), -INF, INF),
+        np.concatenate([bhalf, corridor_half_mask(poly.A.shape[0])]),
+        np.concatenate([np.full(brows.shape[0], KIND_BOUND), np.full(n_c, KIND_CORRIDOR)]),
+        np.concatenate([border, np.zeros(n_c, dtype=np.int64)]),
+    )

@@ -1,0 +1,363 @@
+"""Scenario and trajectory JSON (formats fixed in notes/common.md).
+
+`load_scenario` validates everything and raises `ScenarioError` naming the
+field and index ("bounds.velocity[1]: lo 3 > hi 2"). When a scenario has no
+times/durations, times come from `planner_core.timing.allocate_times`; when it
+has obstacles but no corridors, corridors come from
+`planner_core.corridors.build_corridors` (both imported lazily; a blocked
+segment raises that module's `CorridorError`, which is not an input error).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from planner_core.problem import DEGREE, Bounds, FloatArray, Polytope, Problem, Trajectory, rest_jet
+
+TRAJECTORY_FORMAT = "bezier-trajectory/1"
+SCENARIO_KEYS = frozenset({
+    "frame", "waypoints", "times", "durations", "bounds", "corridors", "obstacles", "map",
+    "vehicle_radius", "initial", "final", "description",
+})
+BOUND_KEYS = ("velocity", "acceleration", "jerk", "snap")
+STATE_KEYS = ("velocity", "acceleration", "jerk", "snap")
+WAYPOINT_TOL = 1e-9
+
+
+class ScenarioError(ValueError):
+    def __init__(self, field: str, reason: str) -> None:
+        super().__init__(f"{field}: {reason}")
+        self.field = field
+        self.reason = reason
+
+
+@dataclass(frozen=True)
+class Scenario:
+    problem: Problem
+    frame: str
+    obstacles: tuple[Polytope, ...]
+    map_box: tuple[FloatArray, FloatArray] | None
+    vehicle_radius: float
+    raw: dict[str, Any] = field(compare=False)
+    description: str = ""
+
+
+# --- small validators ------------------------------------------------------
+
+
+def _number(x: Any, name: str) -> float:
+    if isinstance(x, bool) or not isinstance(x, int | float):
+        raise ScenarioError(name, f"expected a number, got {type(x).__name__}")
+    v = float(x)
+    if not math.isfinite(v):
+        raise ScenarioError(name, f"must be finite, got {x}")
+    return v
+
+
+def _vector(x: Any, name: str, n: int = 3) -> FloatArray:
+    if not isinstance(x, Sequence) or isinstance(x, str) or len(x) != n:
+        raise ScenarioError(name, f"expected a list of {n} numbers")
+    return np.array([_number(v, f"{name}[{i}]") for i, v in enumerate(x)])
+
+
+def _matrix(x: Any, name: str, cols: int = 3, min_rows: int = 1) -> FloatArray:
+    if not isinstance(x, Sequence) or isinstance(x, str) or len(x) < min_rows:
+        raise ScenarioError(name, f"expected a list of at least {min_rows} rows of {cols} numbers")
+    return np.array([_vector(r, f"{name}[{i}]", cols) for i, r in enumerate(x)]).reshape(-1, cols)
+
+
+def _numbers(x: Any, name: str) -> FloatArray:
+    if not isinstance(x, Sequence) or isinstance(x, str):
+        raise ScenarioError(name, "expected a list of numbers")
+    return np.array([_number(v, f"{name}[{i}]") for i, v in enumerate(x)], dtype=float)
+
+
+def _keys(obj: Any, name: str, allowed: Sequence[str] | frozenset[str]) -> Mapping[str, Any]:
+    if not isinstance(obj, Mapping):
+        raise ScenarioError(name, f"expected an object, got {type(obj).__name__}")
+    for k in obj:
+        if k not in allowed:
+            prefix = f"{name}." if name else ""
+            raise ScenarioError(f"{prefix}{k}", f"unknown key (allowed: {', '.join(sorted(allowed))})")
+    return obj
+
+
+def _bound(x: Any, name: str) -> tuple[FloatArray, FloatArray]:
+    """B = number (symmetric) | [lo, hi] | [[lo, hi] x 3]."""
+    if isinstance(x, int | float) and not isinstance(x, bool):
+        v = _number(x, name)
+        if v <= 0:
+            raise ScenarioError(name, f"symmetric bound must be > 0, got {v}")
+        return np.full(3, -v), np.full(3, v)
+    if isinstance(x, Sequence) and not isinstance(x, str) and len(x) == 2 and all(
+        isinstance(v, int | float) and not isinstance(v, bool) for v in x
+    ):
+        lo, hi = _number(x[0], f"{name}[0]"), _number(x[1], f"{name}[1]")
+        if lo > hi:
+            raise ScenarioError(name, f"lo {lo:g} > hi {hi:g}")
+        return np.full(3, lo), np.full(3, hi)
+    if isinstance(x, Sequence) and not isinstance(x, str) and len(x) == 3:
+        lo_a, hi_a = np.zeros(3), np.zeros(3)
+        for i, pair in enumerate(x):
+            p = _vector(pair, f"{name}[{i}]", 2)
+            if p[0] > p[1]:
+                raise ScenarioError(f"{name}[{i}]", f"lo {p[0]:g} > hi {p[1]:g}")
+            lo_a[i], hi_a[i] = p
+        return lo_a, hi_a
+    raise ScenarioError(name, "expected a number, [lo, hi] or [[lo, hi], [lo, hi], [lo, hi]]")
+
+
+def _polytope(obj: Any, name: str, allow_vertices: bool) -> Polytope:
+    keys = ("A", "b", "vertices") if allow_vertices else ("A", "b")
+    _keys(obj, name, keys)
+    if "vertices" in obj:
+        if "A" in obj or "b" in obj:
+            raise ScenarioError(name, "give either {A, b} or {vertices}, not both")
+        verts = _matrix(obj["vertices"], f"{name}.vertices", 3, 4)
+        try:
+            from planner_core.corridors import polytope_from_vertices
+        except ImportError:
+            return _hull_polytope(verts, name)
+        try:
+            return polytope_from_vertices(verts)
+        except ValueError as e:
+            raise ScenarioError(f"{name}.vertices", str(e)) from e
+    if "A" not in obj or "b" not in obj:
+        raise ScenarioError(name, "needs both 'A' and 'b'")
+    A = _matrix(obj["A"], f"{name}.A", 3, 1)
+    b = _numbers(obj["b"], f"{name}.b")
+    if b.shape[0] != A.shape[0]:
+        raise ScenarioError(f"{name}.b", f"has {b.shape[0]} entries, A has {A.shape[0]} rows")
+    norms = np.linalg.norm(A, axis=1)
+    if np.any(norms == 0):
+        raise ScenarioError(f"{name}.A[{int(np.argmin(norms))}]", "zero row")
+    return Polytope(A, b)
+
+
+def _hull_polytope(verts: FloatArray, name: str) -> Polytope:
+    from scipy.spatial import ConvexHull, QhullError
+
+    try:
+        hull = ConvexHull(verts)
+    except QhullError as e:
+        raise ScenarioError(f"{name}.vertices", "degenerate (no 3-D volume)") from e
+    eq = hull.equations
+    return Polytope(np.ascontiguousarray(eq[:, :3]), np.ascontiguousarray(-eq[:, 3]))
+
+
+def _state(obj: Any, name: str, position: FloatArray) -> FloatArray:
+    _keys(obj, name, STATE_KEYS)
+    jet = rest_jet(position)
+    for k, key in enumerate(STATE_KEYS, start=1):
+        if key in obj:
+            jet[k] = _vector(obj[key], f"{name}.{key}")
+    return jet
+
+
+def load_scenario(obj: Any) -> Scenario:
+    """Validate a scenario dict and build its Problem (see module docstring)."""
+    raw = _keys(obj, "", SCENARIO_KEYS)
+    frame = raw.get("frame", "enu")
+    if frame not in ("enu", "ned"):
+        raise ScenarioError("frame", f"expected 'enu' or 'ned', got {frame!r}")
+    description = raw.get("description", "")
+    if not isinstance(description, str):
+        raise ScenarioError("description", "expected a string")
+    if "waypoints" not in raw:
+        raise ScenarioError("waypoints", "missing")
+    wps = _matrix(raw["waypoints"], "waypoints", 3, 2)
+    m = wps.shape[0]
+    bounds = _bounds(raw)
+    init = _state(raw.get("initial", {}), "initial", wps[0])
+    fin = _state(raw.get("final", {}), "final", wps[-1])
+    radius = _number(raw.get("vehicle_radius", 0.0), "vehicle_radius")
+    if radius < 0:
+        raise ScenarioError("vehicle_radius", f"must be >= 0, got {radius}")
+    map_box = _map(raw)
+    obstacles = tuple(
+        _polytope(o, f"obstacles[{i}]", True) for i, o in enumerate(_list(raw.get("obstacles", []), "obstacles"))
+    )
+    times = _times(raw, wps, bounds, init)
+    corridors = _corridors(raw, wps, obstacles, map_box, radius)
+    problem = Problem(wps, times, bounds, init, fin, corridors)
+    return Scenario(problem, str(frame), obstacles, map_box, radius, dict(raw), description)
+
+
+def _list(x: Any, name: str) -> Sequence[Any]:
+    if not isinstance(x, Sequence) or isinstance(x, str):
+        raise ScenarioError(name, "expected a list")
+    return x
+
+
+def _bounds(raw: Mapping[str, Any]) -> Bounds:
+    if "bounds" not in raw:
+        raise ScenarioError("bounds", "missing")
+    bobj = _keys(raw["bounds"], "bounds", BOUND_KEYS)
+    lo = np.full((4, 3), -np.inf)
+    hi = np.full((4, 3), np.inf)
+    for k, key in enumerate(BOUND_KEYS):
+        if key in bobj:
+            lo[k], hi[k] = _bound(bobj[key], f"bounds.{key}")
+    for key in BOUND_KEYS[:2]:
+        if key not in bobj:
+            raise ScenarioError(f"bounds.{key}", "missing (velocity and acceleration bounds are required)")
+    return Bounds(lo, hi)
+
+
+def _map(raw: Mapping[str, Any]) -> tuple[FloatArray, FloatArray] | None:
+    if "map" not in raw:
+        return None
+    mobj = _keys(raw["map"], "map", ("min", "max"))
+    if "min" not in mobj or "max" not in mobj:
+        raise ScenarioError("map", "needs both 'min' and 'max'")
+    lo, hi = _vector(mobj["min"], "map.min"), _vector(mobj["max"], "map.max")
+    for a in range(3):
+        if lo[a] >= hi[a]:
+            raise ScenarioError(f"map.min[{a}]", f"{lo[a]:g} >= map.max[{a}] {hi[a]:g}")
+    return lo, hi
+
+
+def _times(raw: Mapping[str, Any], wps: FloatArray, bounds: Bounds, init: FloatArray) -> FloatArray:
+    m = wps.shape[0]
+    if "times" in raw and "durations" in raw:
+        raise ScenarioError("times", "give either 'times' or 'durations', not both")
+    if "times" in raw:
+        t = _numbers(raw["times"], "times")
+        if t.shape[0] != m:
+            raise ScenarioError("times", f"has {t.shape[0]} entries for {m} waypoints")
+        for i in range(1, m):
+            if t[i] <= t[i - 1]:
+                raise ScenarioError(f"times[{i}]", f"{t[i]:g} is not after times[{i - 1}] {t[i - 1]:g}")
+        return t
+    if "durations" in raw:
+        d = _numbers(raw["durations"], "durations")
+        if d.shape[0] != m - 1:
+            raise ScenarioError("durations", f"has {d.shape[0]} entries for {m - 1} segments")
+        for i, v in enumerate(d):
+            if v <= 0:
+                raise ScenarioError(f"durations[{i}]", f"must be > 0, got {v:g}")
+        return np.concatenate([[0.0], np.cumsum(d)])
+    try:
+        from planner_core.timing import allocate_times
+    except ImportError as e:
+        raise ScenarioError("times", "missing, and automatic time allocation is unavailable") from e
+    return np.asarray(allocate_times(wps, bounds, t0=0.0, initial_velocity=init[1]), dtype=float)
+
+
+def _corridors(
+    raw: Mapping[str, Any],
+    wps: FloatArray,
+    obstacles: tuple[Polytope, ...],
+    map_box: tuple[FloatArray, FloatArray] | None,
+    radius: float,
+) -> tuple[Polytope | None, ...] | None:
+    m = wps.shape[0]
+    if "corridors" in raw:
+        items = _list(raw["corridors"], "corridors")
+        if len(items) != m - 1:
+            raise ScenarioError("corridors", f"has {len(items)} entries for {m - 1} segments")
+        polys = tuple(None if c is None else _polytope(c, f"corridors[{i}]", False) for i, c in enumerate(items))
+        for i, poly in enumerate(polys):
+            if poly is None:
+                continue
+            for w in (i, i + 1):
+                v = poly.violation(wps[w])
+                if v > WAYPOINT_TOL:
+                    raise ScenarioError(f"waypoints[{w}]", f"outside corridors[{i}] by {v:.3g}")
+        return polys
+    if not obstacles:
+        return None
+    from planner_core.corridors import build_corridors
+
+    return tuple(build_corridors(wps, obstacles, map_box, radius))
+
+
+# --- trajectories ------------------------------------------------------------
+
+
+def _poly_dict(p: Polytope | None) -> dict[str, Any] | None:
+    if p is None:
+        return None
+    return {"A": p.A.tolist(), "b": p.b.tolist()}
+
+
+def _jsonable(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {str(k): _jsonable(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_jsonable(v) for v in x]
+    if isinstance(x, np.ndarray):
+        return _jsonable(x.tolist())
+    if isinstance(x, np.generic):
+        return _jsonable(x.item())
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    if isinstance(x, str | int | float | bool) or x is None:
+        return x
+    return str(x)
+
+
+def trajectory_to_dict(traj: Trajectory, frame: str = "enu") -> dict[str, Any]:
+    corridors = traj.corridors or (None,) * traj.n_segments
+    return {
+        "format": TRAJECTORY_FORMAT,
+        "frame": frame,
+        "degree": DEGREE,
+        "segments": [
+            {
+                "t0": float(traj.times[s]),
+                "t1": float(traj.times[s + 1]),
+                "control_points": traj.control_points[s].tolist(),
+                "corridor": _poly_dict(corridors[s]),
+            }
+            for s in range(traj.n_segments)
+        ],
+        "stats": _jsonable(traj.stats),
+    }
+
+
+def trajectory_from_dict(d: Any) -> Trajectory:
+    obj = _keys(d, "", ("format", "frame", "degree", "segments", "stats"))
+    if obj.get("format") != TRAJECTORY_FORMAT:
+        raise ScenarioError("format", f"expected {TRAJECTORY_FORMAT!r}, got {obj.get('format')!r}")
+    if obj.get("degree", DEGREE) != DEGREE:
+        raise ScenarioError("degree", f"expected {DEGREE}")
+    segs = _list(obj.get("segments"), "segments")
+    if not segs:
+        raise ScenarioError("segments", "empty")
+    times = []
+    ctrl = []
+    corridors: list[Polytope | None] = []
+    for i, s in enumerate(segs):
+        so = _keys(s, f"segments[{i}]", ("t0", "t1", "control_points", "corridor"))
+        t0, t1 = _number(so.get("t0"), f"segments[{i}].t0"), _number(so.get("t1"), f"segments[{i}].t1")
+        if t1 <= t0:
+            raise ScenarioError(f"segments[{i}].t1", f"{t1:g} <= t0 {t0:g}")
+        if i and abs(t0 - times[-1]) > 1e-12 * (1 + abs(t0)):
+            raise ScenarioError(f"segments[{i}].t0", f"{t0:g} != previous t1 {times[-1]:g}")
+        if i == 0:
+            times.append(t0)
+        times.append(t1)
+        cp = _matrix(so.get("control_points"), f"segments[{i}].control_points", 3, DEGREE + 1)
+        if cp.shape[0] != DEGREE + 1:
+            raise ScenarioError(f"segments[{i}].control_points", f"expected {DEGREE + 1} points")
+        ctrl.append(cp)
+        c = so.get("corridor")
+        corridors.append(None if c is None else _polytope(c, f"segments[{i}].corridor", False))
+    cors = None if all(c is None for c in corridors) else tuple(corridors)
+    stats = obj.get("stats", {})
+    return Trajectory(np.array(times), np.stack(ctrl), cors, dict(stats) if isinstance(stats, dict) else {})
+
+
+__all__ = [
+    "Scenario",
+    "ScenarioError",
+    "load_scenario",
+    "trajectory_from_dict",
+    "trajectory_to_dict",
+]

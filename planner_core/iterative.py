@@ -1,0 +1,226 @@
+"""The paper's iterative planner as a receding window of jet QPs (method.md, section 3).
+
+At waypoint j the QP's unknowns are the jets of waypoints j .. j+H-1 (clipped
+at m-2); it fully constrains every segment those jets determine, half
+constrains the segment after the window and minimises integrated squared snap
+over the fully determined segments. Only the jet at j is committed. H = 1 is
+the paper's pass (one 12-unknown QP per waypoint).
+
+Recovery when a window QP is infeasible: first backtrack into already
+committed jets and/or widen the window (re-solving earlier jets is allowed: the
+trajectory is not flown during planning), then stretch the durations of the
+segments around the failure by a bounded factor (later waypoint times shift by
+the same amount), and only then report infeasibility with a diagnosis.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from planner_core.constraints import integrated_cost
+from planner_core.jets import COSTS, ProblemCache, initial_jets, solve_jets, trajectory_from_jets
+from planner_core.problem import FloatArray, Problem
+from planner_core.qp import BACKENDS
+from planner_core.result import PlanResult, PlanStatus
+
+__all__ = ["IterativeOptions", "plan_iterative", "solve_jets"]
+
+DEFAULT_WINDOW = 3
+
+
+@dataclass(frozen=True)
+class IterativeOptions:
+    window: int = DEFAULT_WINDOW  # jets solved per QP (1 = the paper's method)
+    cost: str = "snap"  # "snap" | "jerk" | "waypoint-snap"
+    backend: str = "daqp"  # "daqp" | "osqp"
+    recover: bool = True
+    # (backtrack, extra window) attempts, in order, before stretching durations
+    retries: tuple[tuple[int, int], ...] = ((0, 1), (1, 0), (1, 1), (2, 2), (4, 2))
+    stretch_factor: float = 1.5
+    max_stretches: int = 4  # per failure site; total factor <= 1.5**4 ~ 5
+    diagnose: bool = True
+
+    def __post_init__(self) -> None:
+        if self.window < 1:
+            raise ValueError(f"window: must be >= 1, got {self.window}")
+        if self.cost not in COSTS:
+            raise ValueError(f"cost: unknown cost {self.cost!r} (expected one of {COSTS})")
+        if self.backend not in BACKENDS:
+            raise ValueError(f"backend: unknown backend {self.backend!r} (expected one of {BACKENDS})")
+        if self.stretch_factor <= 1.0:
+            raise ValueError("stretch_factor: must be > 1")
+
+
+@dataclass
+class _Timers:
+    build: list[float] = field(default_factory=list)
+    solve: list[float] = field(default_factory=list)
+    steps: list[float] = field(default_factory=list)
+
+
+def _stretch(problem: Problem, segments: list[int], factor: float) -> Problem:
+    d = problem.durations.copy()
+    d[segments] *= factor
+    times = problem.times[0] + np.concatenate([[0.0], np.cumsum(d)])
+    return replace(problem, times=times)
+
+
+def _window(j: int, h: int, m: int) -> list[int]:
+    return list(range(j, min(j + h, m - 1)))
+
+
+def _try(
+    problem: Problem, cache: ProblemCache, jets: FloatArray, j: int, h: int, back: int, opts: IterativeOptions
+) -> FloatArray | None:
+    start = max(1, j - back)
+    free = list(range(start, min(j + h, problem.m - 1)))
+    res = solve_jets(
+        problem, jets, free, cost=opts.cost, backend=opts.backend, open_end=True, cache=cache
+    )
+    if not res.ok:
+        return None
+    out = jets.copy()
+    out[start : j + 1] = res.jets[start : j + 1]  # commit up to j only
+    return out
+
+
+def plan_iterative(problem: Problem, options: IterativeOptions | None = None) -> PlanResult:
+    opts = options or IterativeOptions()
+    t_start = time.perf_counter()
+    m = problem.m
+    cache = ProblemCache(problem)
+    jets = initial_jets(problem)
+    step_times: list[float] = []
+    recoveries: list[dict[str, Any]] = []
+    stretched: dict[int, float] = {}
+    original = problem
+    j = 1
+    while j <= m - 2:
+        t0 = time.perf_counter()
+        new = _try(problem, cache, jets, j, opts.window, 0, opts)
+        step_times.append(time.perf_counter() - t0)
+        if new is None and opts.recover:
+            new, problem, cache, info = _recover(problem, cache, jets, j, opts, stretched)
+            recoveries.append(info)
+        if new is None:
+            return _infeasible(problem, cache, jets, j, opts, t_start, recoveries)
+        jets = new
+        j += 1
+    if m == 2:
+        pass  # a single segment: both jets are given, nothing to solve
+    ctrl_ok = _check_terminal_segment(problem, cache, jets, opts)
+    if not ctrl_ok:
+        return _infeasible(problem, cache, jets, max(1, m - 2), opts, t_start, recoveries)
+    traj = trajectory_from_jets(problem, jets)
+    stats = {
+        "method": "iterative",
+        "window": opts.window,
+        "cost": opts.cost,
+        "cost_note": _cost_note(opts.cost, opts.window),
+        "backend": opts.backend,
+        "integrated_snap": integrated_cost(traj.control_points, problem.durations, 4),
+        "integrated_jerk": integrated_cost(traj.control_points, problem.durations, 3),
+        "time_total": time.perf_counter() - t_start,
+        "step_time_median": float(np.median(step_times)) if step_times else 0.0,
+        "n_qp": len(step_times),
+        "recoveries": recoveries,
+        "stretched_durations": _stretch_report(original, problem, stretched),
+    }
+    return PlanResult(PlanStatus.OK, replace(traj, stats=stats), "planned", None, stats)
+
+
+def _cost_note(cost: str, window: int) -> str:
+    if cost == "waypoint-snap":
+        return "squared snap at the committed waypoints (paper eq. 15) + 1e-6*|x|^2 regulariser (rank-deficient otherwise)"
+    what = "snap" if cost == "snap" else "jerk"
+    return f"integrated squared {what} over the segments fully determined by a window of {window} jet(s)"
+
+
+def _stretch_report(original: Problem, problem: Problem, stretched: dict[int, float]) -> list[dict[str, float]]:
+    return [
+        {
+            "segment": s,
+            "old": float(original.durations[s]),
+            "new": float(problem.durations[s]),
+            "factor": float(problem.durations[s] / original.durations[s]),
+        }
+        for s in sorted(stretched)
+    ]
+
+
+def _recover(
+    problem: Problem,
+    cache: ProblemCache,
+    jets: FloatArray,
+    j: int,
+    opts: IterativeOptions,
+    stretched: dict[int, float],
+) -> tuple[FloatArray | None, Problem, ProblemCache, dict[str, Any]]:
+    info: dict[str, Any] = {"waypoint": j}
+    for back, extra in opts.retries:
+        new = _try(problem, cache, jets, j, opts.window + extra, back, opts)
+        if new is not None:
+            info.update(action="backtrack/widen", backtrack=back, window=opts.window + extra)
+            return new, problem, cache, info
+    from planner_core.diagnose import elastic_segments
+
+    # stretch the segments whose constraints the elastic LP has to relax; else the whole window
+    window = list(range(j - 1, min(j + opts.window, problem.m - 1)))
+    segs = elastic_segments(problem, jets, _window(j, opts.window, problem.m), open_end=True, cache=cache)
+    segs = [s for s in segs if s in window] or window
+    for n in range(1, opts.max_stretches + 1):
+        cand = _stretch(problem, segs, opts.stretch_factor**n)
+        ccache = ProblemCache(cand)
+        # segments before the failure keep their jets, but their durations are
+        # unchanged, so committed jets stay valid; re-solve from j
+        for back, extra in ((0, 0), *opts.retries):
+            new = _try(cand, ccache, jets, j, opts.window + extra, back, opts)
+            if new is not None:
+                for s in segs:
+                    stretched[s] = stretched.get(s, 1.0) * opts.stretch_factor**n
+                info.update(action="stretch", segments=segs, factor=opts.stretch_factor**n,
+                            backtrack=back, window=opts.window + extra)
+                return new, cand, ccache, info
+    info["action"] = "failed"
+    return None, problem, cache, info
+
+
+def _check_terminal_segment(problem: Problem, cache: ProblemCache, jets: FloatArray, opts: IterativeOptions) -> bool:
+    """m == 2 has no QP; make sure its single segment is admissible (others were checked by their QP)."""
+    if problem.m != 2:
+        return True
+    from planner_core.jets import CHECK_TOL
+
+    sr = cache.rows(0)
+    z = np.concatenate([jets[0].ravel(), jets[1].ravel()])
+    v = sr.rows @ z
+    return bool(np.all(v <= sr.hi + CHECK_TOL) and np.all(v >= sr.lo - CHECK_TOL))
+
+
+def _infeasible(
+    problem: Problem,
+    cache: ProblemCache,
+    jets: FloatArray,
+    j: int,
+    opts: IterativeOptions,
+    t_start: float,
+    recoveries: list[dict[str, Any]],
+) -> PlanResult:
+    diag = None
+    if opts.diagnose and problem.m > 2:
+        from planner_core.diagnose import diagnose
+
+        diag = diagnose(problem, jets, _window(j, opts.window, problem.m), open_end=True, cache=cache)
+    msg = diag.message() if diag is not None else f"infeasible at waypoint {j}"
+    stats = {
+        "method": "iterative",
+        "window": opts.window,
+        "failed_waypoint": j,
+        "recoveries": recoveries,
+        "time_total": time.perf_counter() - t_start,
+    }
+    return PlanResult(PlanStatus.INFEASIBLE, None, msg, diag, stats)

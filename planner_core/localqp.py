@@ -1,0 +1,343 @@
+"""A dense QP over chosen entries of a few jets, every touched segment fully constrained.
+
+Replanning and braking both fix most jets and free a few entries (the
+derivative rows of the re-solved jets; the end position of a braking
+segment). Every segment touching a free entry gets all its hull rows (bounds
+of orders 1..4, corridor on P^1..P^8); rows that depend on fixed entries only
+are checked instead of handed to the solver, so a fixed half that already
+violates a (new) constraint is reported by name rather than as a bare
+"infeasible". Cost: integrated squared snap over the touched segments.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+from numpy.typing import NDArray
+
+from planner_core.bezier import hodograph_matrix, hodographs, segment_from_jets
+from planner_core.constraints import KIND_BOUND, cost_matrices, hull_maps, segment_rows
+from planner_core.problem import DEGREE, JET_ORDER, ORDER_NAMES, Bounds, FloatArray, Polytope
+from planner_core.qp import solve_qp
+
+BoolArray = NDArray[np.bool_]
+CorridorOf = Callable[[int], Polytope | None]
+
+FIXED_TOL = 1e-9  # slack allowed on rows fixed by jets we do not re-solve (verify's tolerance)
+
+
+@dataclass(frozen=True)
+class LocalSolution:
+    ok: bool
+    jets: dict[int, FloatArray]  # the solved jets (only the ones with free entries)
+    message: str
+    qp_time: float
+    n_vars: int
+    n_rows: int
+
+
+def _layout(free: Mapping[int, BoolArray]) -> tuple[dict[int, NDArray[np.int64]], int]:
+    """Per jet, the variable index of each of its 15 entries (-1 when fixed)."""
+    cols: dict[int, NDArray[np.int64]] = {}
+    n = 0
+    for j in sorted(free):
+        mask = np.asarray(free[j], dtype=bool).ravel()
+        idx = np.full(JET_ORDER * 3, -1, dtype=np.int64)
+        k = int(mask.sum())
+        idx[mask] = np.arange(n, n + k)
+        cols[j] = idx
+        n += k
+    return cols, n
+
+
+def _row_name(kind: int, order: int, segment: int) -> str:
+    if kind == KIND_BOUND:
+        return f"{ORDER_NAMES[order]} bound of segment {segment}"
+    return f"corridor of segment {segment}"
+
+
+def solve_local(
+    jets: Mapping[int, FloatArray],
+    durations: Mapping[int, float],
+    bounds: Bounds,
+    corridor_of: CorridorOf,
+    segments: Sequence[int],
+    free: Mapping[int, BoolArray],
+    *,
+    extra_cost: tuple[FloatArray, FloatArray] | None = None,
+    extra_rows: tuple[FloatArray, FloatArray, FloatArray] | None = None,
+    backend: str = "daqp",
+) -> LocalSolution:
+    """Choose the free entries of `jets` (segment s joins jets s and s+1).
+
+    `jets` must hold both end jets of every segment in `segments` (free entries
+    are used only as a fallback guess). `extra_cost` = (P, q) is added to the
+    normalised snap cost, in variable space; `extra_rows` = (G, lo, hi) are
+    more constraint rows in variable space (variables: the free entries of
+    the free jets, jets in increasing index, entries row-major).
+    """
+    cols, n = _layout(free)
+    if n == 0:
+        return LocalSolution(True, {}, "nothing to solve", 0.0, 0, 0)
+    blocks: list[FloatArray] = []
+    los: list[FloatArray] = []
+    his: list[FloatArray] = []
+    P = np.zeros((n, n))
+    q = np.zeros(n)
+    none_free = np.full(JET_ORDER * 3, -1, dtype=np.int64)
+    for s in segments:
+        d = float(durations[s])
+        hull = hull_maps(np.array([d]))[0]
+        rows = segment_rows(hull, bounds.lo, bounds.hi, corridor_of(s))
+        z = np.concatenate([jets[s].ravel(), jets[s + 1].ravel()])
+        colmap = np.concatenate([cols.get(s, none_free), cols.get(s + 1, none_free)])
+        fc = colmap >= 0
+        rf = rows.rows[:, fc]
+        const = rows.rows[:, ~fc] @ z[~fc]
+        live = np.any(rf != 0.0, axis=1)
+        dead = ~live
+        bad = dead & ((const > rows.hi + FIXED_TOL) | (const < rows.lo - FIXED_TOL))
+        if np.any(bad):
+            r = int(np.flatnonzero(bad)[0])
+            excess = float(max(const[r] - rows.hi[r], rows.lo[r] - const[r]))
+            name = _row_name(int(rows.kind[r]), int(rows.order[r]), s)
+            return LocalSolution(
+                False, {}, f"{name} violated by {excess:.3g} by jets that are held fixed", 0.0, n, 0
+            )
+        g = np.zeros((int(live.sum()), n))
+        g[:, colmap[fc]] = rf[live]
+        blocks.append(g)
+        los.append(rows.lo[live] - const[live])
+        his.append(rows.hi[live] - const[live])
+        k30 = np.kron(cost_matrices(np.array([d]), 4)[0], np.eye(3))
+        ix = colmap[fc]
+        P[np.ix_(ix, ix)] += k30[np.ix_(fc, fc)]
+        q[ix] += k30[np.ix_(fc, ~fc)] @ z[~fc]
+    scale = float(np.max(np.abs(np.diag(P))))
+    scale = 1.0 if scale <= 0.0 else scale
+    P = 2.0 * P / scale
+    q = 2.0 * q / scale
+    P += 1e-10 * np.eye(n)
+    if extra_cost is not None:
+        P += extra_cost[0]
+        q += extra_cost[1]
+    if extra_rows is not None:
+        blocks.append(extra_rows[0])
+        los.append(extra_rows[1])
+        his.append(extra_rows[2])
+    G = np.vstack(blocks) if blocks else np.zeros((0, n))
+    lo = np.concatenate(los) if los else np.zeros(0)
+    hi = np.concatenate(his) if his else np.zeros(0)
+    t0 = time.perf_counter()
+    if G.shape[0] == 0:
+        x: FloatArray | None = np.asarray(np.linalg.solve(P, -q), dtype=np.float64)
+        ok = True
+    else:
+        res = solve_qp(P, q, G, lo, hi, backend)
+        x, ok = res.x, res.ok
+    qp_time = time.perf_counter() - t0
+    if not ok or x is None:
+        where = ", ".join(str(j) for j in sorted(free))
+        return LocalSolution(False, {}, f"QP infeasible for jets {where}", qp_time, n, G.shape[0])
+    out: dict[int, FloatArray] = {}
+    for j, idx in cols.items():
+        jet = np.array(jets[j], dtype=float).ravel()
+        m = idx >= 0
+        jet[m] = x[idx[m]]
+        out[j] = jet.reshape(JET_ORDER, 3)
+    return LocalSolution(True, out, "ok", qp_time, n, G.shape[0])
+
+
+def hull_violation(
+    ctrl: FloatArray,
+    durations: FloatArray,
+    bounds: Bounds,
+    corridors: Sequence[Polytope | None],
+    tol: float = 1e-9,
+    labels: Sequence[int] | None = None,
+) -> str | None:
+    """First hull certificate failure of segments (s, 10, 3), or None when all pass.
+
+    `labels` are the segments' indices to name in the message (default 0..s-1).
+    """
+    d = np.asarray(durations, dtype=float)
+    names = list(range(ctrl.shape[0])) if labels is None else list(labels)
+    for k in range(1, 5):
+        h = hodographs(ctrl, k, d)  # (s, 10-k, 3)
+        over = h - bounds.hi[k - 1]
+        under = bounds.lo[k - 1] - h
+        worst = np.maximum(over, under).max(axis=(1, 2))
+        if np.any(worst > tol):
+            s = int(np.argmax(worst))
+            return f"{ORDER_NAMES[k]} bound exceeded by {float(worst[s]):.3g} on segment {names[s]}"
+    for s, poly in enumerate(corridors):
+        if poly is not None and poly.A.shape[0] > 0:
+            v = poly.violation(ctrl[s])
+            if v > tol:
+                return f"corridor violated by {v:.3g} on segment {names[s]}"
+    return None
+
+
+def build_segments(jets: Mapping[int, FloatArray], durations: Mapping[int, float], segments: Sequence[int]) -> FloatArray:
+    """Control points (len(segments), 10, 3) of the given segments from their end jets."""
+    return np.stack([segment_from_jets(jets[s], jets[s + 1], float(durations[s])) for s in segments])
+
+
+# --- fast path: free jets' derivative rows (the replanning case) --------------
+
+MARGIN = 1e-6  # relative tightening, as jets.py: the solution then meets the untightened rows
+CHECK_TOL = 1e-9
+_NV = 12  # velocity..snap x 3 axes per free jet
+
+
+@lru_cache(maxsize=1)
+def _jet_rows() -> tuple[FloatArray, FloatArray]:
+    """(5, 5) maps from P^0..P^4 (resp. P^5..P^9) to the unscaled start (end) jet."""
+    u0 = np.zeros((JET_ORDER, JET_ORDER))
+    u1 = np.zeros((JET_ORDER, JET_ORDER))
+    for k in range(JET_ORDER):
+        h = hodograph_matrix(k, 1.0) if k else np.eye(DEGREE + 1)
+        u0[k] = h[0, :JET_ORDER]
+        u1[k] = h[-1, JET_ORDER:]
+    u0.setflags(write=False)
+    u1.setflags(write=False)
+    return u0, u1
+
+
+_POWERS = -np.arange(JET_ORDER, dtype=float)
+
+
+def start_jet_fast(ctrl: FloatArray, duration: float) -> FloatArray:
+    """bezier.start_jet without the per-order Python loop."""
+    return np.asarray((_jet_rows()[0] @ ctrl[:JET_ORDER]) * (duration**_POWERS)[:, None])
+
+
+def end_jet_fast(ctrl: FloatArray, duration: float) -> FloatArray:
+    return np.asarray((_jet_rows()[1] @ ctrl[JET_ORDER:]) * (duration**_POWERS)[:, None])
+
+
+def _tighten(lo: FloatArray, hi: FloatArray) -> tuple[FloatArray, FloatArray]:
+    tlo = np.where(lo > -1e29, lo + MARGIN * (1.0 + np.abs(lo)), lo)
+    thi = np.where(hi < 1e29, hi - MARGIN * (1.0 + np.abs(hi)), hi)
+    return tlo, thi
+
+
+def solve_derivatives(
+    jets: Mapping[int, FloatArray],
+    durations: Mapping[int, float],
+    bounds: Bounds,
+    corridor_of: CorridorOf,
+    free: Sequence[int],
+    *,
+    backend: str = "daqp",
+) -> LocalSolution:
+    """Velocity..snap of the `free` jets, all other jets fixed; every touching segment fully constrained.
+
+    Same QP as jets.solve_jets (integrated squared snap, rows tightened by
+    MARGIN, solution checked against the untightened rows), assembled per
+    axis with broadcasting instead of Kronecker products: it is the
+    latency-critical step of a local replan.
+    """
+    free = sorted(free)
+    pos = {j: i for i, j in enumerate(free)}
+    n = _NV * len(free)
+    segs = sorted({s for j in free for s in (j - 1, j)})
+    eye3 = np.eye(3)
+    g_parts: list[FloatArray] = []
+    lo_parts: list[FloatArray] = []
+    hi_parts: list[FloatArray] = []
+    P = np.zeros((n, n))
+    q = np.zeros(n)
+    hodo = slice(DEGREE + 1, None)  # hull rows 10..39: hodographs of orders 1..4
+    inner = slice(1, DEGREE)  # control points P^1..P^8
+    order_of_row = np.concatenate([np.full(DEGREE + 1 - k, k) for k in range(1, 5)])
+    for s in segs:
+        d = float(durations[s])
+        Q = hull_maps(np.array([d]))[0]  # (40, 10) per axis over (side*5 + order)
+        K = cost_matrices(np.array([d]), 4)[0]  # (10, 10)
+        Z = np.concatenate([jets[s], jets[s + 1]])  # (10, 3)
+        fcols: list[tuple[int, NDArray[np.int64]]] = []
+        fixed = np.ones(2 * JET_ORDER, dtype=bool)
+        for side, j in ((0, s), (1, s + 1)):
+            if j in pos:
+                c = np.arange(side * JET_ORDER + 1, side * JET_ORDER + JET_ORDER)
+                fixed[c] = False
+                fcols.append((pos[j], c))
+        Zf = np.where(fixed[:, None], Z, 0.0)
+        base = Q @ Zf  # (40, 3): every hull point's value from the fixed entries
+        # bounds, rows (point, axis)
+        qb = Q[hodo]
+        live_b = np.zeros(qb.shape[0], dtype=bool)
+        for _, c in fcols:
+            live_b |= np.any(qb[:, c] != 0.0, axis=1)
+        lo_b = bounds.lo[order_of_row - 1]  # (30, 3)
+        hi_b = bounds.hi[order_of_row - 1]
+        vb = base[hodo]
+        dead = ~live_b
+        if np.any(dead):
+            over = np.maximum(vb[dead] - hi_b[dead], lo_b[dead] - vb[dead])
+            if np.any(over > CHECK_TOL):
+                r = int(np.argmax(over.max(axis=1)))
+                k = int(order_of_row[np.flatnonzero(dead)[r]])
+                return LocalSolution(False, {}, f"{ORDER_NAMES[k]} bound of segment {s} violated by "
+                                     f"{float(over.max()):.3g} by jets held fixed", 0.0, n, 0)
+        nb = int(live_b.sum())
+        gb = np.zeros((nb, 3, n))
+        for p, c in fcols:
+            blk = qb[live_b][:, c]  # (nb, 4)
+            gb[:, :, _NV * p : _NV * p + _NV] = (blk[:, None, :, None] * eye3[None, :, None, :]).reshape(nb, 3, _NV)
+        g_parts.append(gb.reshape(nb * 3, n))
+        lo_parts.append((lo_b[live_b] - vb[live_b]).ravel())
+        hi_parts.append((hi_b[live_b] - vb[live_b]).ravel())
+        # corridor, rows (point, face)
+        poly = corridor_of(s)
+        if poly is not None and poly.A.shape[0]:
+            A = poly.A
+            qc = Q[inner]
+            live_c = np.zeros(qc.shape[0], dtype=bool)
+            for _, c in fcols:
+                live_c |= np.any(qc[:, c] != 0.0, axis=1)
+            vc = base[inner] @ A.T - poly.b  # (8, f): <= 0 wanted
+            if np.any(vc[~live_c] > CHECK_TOL):
+                return LocalSolution(False, {}, f"corridor of segment {s} violated by "
+                                     f"{float(vc[~live_c].max()):.3g} by jets held fixed", 0.0, n, 0)
+            nc = int(live_c.sum())
+            gc = np.zeros((nc, A.shape[0], n))
+            for p, c in fcols:
+                blk = qc[live_c][:, c]
+                gc[:, :, _NV * p : _NV * p + _NV] = (blk[:, None, :, None] * A[None, :, None, :]).reshape(nc, A.shape[0], _NV)
+            g_parts.append(gc.reshape(nc * A.shape[0], n))
+            lo_parts.append(np.full(nc * A.shape[0], -1e30))
+            hi_parts.append(-vc[live_c].ravel())
+        # cost: sum over axes of z_d' K z_d
+        kz = K @ Zf  # (10, 3)
+        for pa, ca in fcols:
+            q[_NV * pa : _NV * pa + _NV] += 2.0 * kz[ca].ravel()
+            for pb, cb in fcols:
+                blk = K[np.ix_(ca, cb)]
+                P[_NV * pa : _NV * pa + _NV, _NV * pb : _NV * pb + _NV] += 2.0 * (
+                    blk[:, None, :, None] * eye3[None, :, None, :]
+                ).reshape(_NV, _NV)
+    G = np.vstack(g_parts)
+    lo0 = np.clip(np.concatenate(lo_parts), -1e30, 1e30)
+    hi0 = np.clip(np.concatenate(hi_parts), -1e30, 1e30)
+    lo_t, hi_t = _tighten(lo0, hi0)
+    t0 = time.perf_counter()
+    res = solve_qp(P, q, G, lo_t, hi_t, backend)
+    qp_time = time.perf_counter() - t0
+    if not res.ok or res.x is None:
+        return LocalSolution(False, {}, f"QP {res.status.value} for jets {free}", qp_time, n, G.shape[0])
+    rv = G @ res.x
+    viol = float(max(np.max(rv - hi0, initial=0.0), np.max(lo0 - rv, initial=0.0)))
+    if viol > CHECK_TOL:
+        return LocalSolution(False, {}, f"QP solution misses a row by {viol:.3g} for jets {free}", qp_time, n, G.shape[0])
+    out: dict[int, FloatArray] = {}
+    for j, p in pos.items():
+        jet = np.array(jets[j], dtype=float)
+        jet[1:] = res.x[_NV * p : _NV * p + _NV].reshape(4, 3)
+        out[j] = jet
+    return LocalSolution(True, out, "ok", qp_time, n, G.shape[0])

@@ -1,0 +1,144 @@
+"""`python -m planner_core replan SCENARIO.json TRAJ.json CHANGE.json -o NEW.json`.
+
+Exit codes: 0 ok, 2 invalid input, 3 infeasible (no safe corridor, no local
+replan, or the result failed the full certificate). The scenario supplies the
+bounds and the environment (obstacles, map, radius) corridors are rebuilt
+from; the trajectory supplies the current plan. When the trajectory no longer
+matches the scenario's waypoints (it came from an earlier replan), the problem
+is taken from the trajectory itself so that replans can be chained.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from planner_core.problem import Problem, Trajectory
+
+EXIT_OK = 0
+EXIT_INVALID = 2
+EXIT_INFEASIBLE = 3
+
+
+def add_replan_parser(sub: Any) -> None:
+    """Register the subcommand on an argparse subparsers object."""
+    rp = sub.add_parser("replan", help="apply a change (CHANGE.json) to a planned trajectory locally")
+    rp.add_argument("scenario", type=Path)
+    rp.add_argument("trajectory", type=Path)
+    rp.add_argument("change", type=Path)
+    rp.add_argument("-o", "--output", type=Path, required=True)
+    rp.add_argument("--max-widen", type=int, default=3, help="neighbour steps when the seed jets are infeasible")
+    rp.add_argument("--max-stretch", type=int, default=2, help="duration stretches after widening fails")
+
+
+def _read(path: Path, what: str) -> Any:
+    try:
+        return json.loads(path.read_text())
+    except OSError as e:
+        raise ValueError(f"{what}: cannot read {path}: {e.strerror}") from e
+    except json.JSONDecodeError as e:
+        raise ValueError(f"{what}: {path}: invalid JSON ({e.msg} at line {e.lineno})") from e
+
+
+def _err(msg: str) -> None:
+    print(f"error: {msg}", file=sys.stderr)
+
+
+def problem_for(scenario_problem: Problem, traj: Trajectory) -> Problem:
+    """The scenario's problem if the trajectory still solves it, else the trajectory's own."""
+    from planner_core.localqp import end_jet_fast, start_jet_fast
+
+    same = (
+        scenario_problem.m == traj.n_segments + 1
+        and np.allclose(scenario_problem.waypoints, traj.waypoints, rtol=0.0, atol=1e-9)
+        and np.allclose(scenario_problem.times, traj.times, rtol=0.0, atol=1e-9)
+    )
+    if same:
+        corridors = scenario_problem.corridors if scenario_problem.corridors is not None else traj.corridors
+        return Problem(
+            scenario_problem.waypoints, scenario_problem.times, scenario_problem.bounds,
+            scenario_problem.initial, scenario_problem.final, corridors,
+        )
+    d = np.diff(traj.times)
+    return Problem(
+        traj.waypoints, traj.times.copy(), scenario_problem.bounds,
+        start_jet_fast(traj.control_points[0], float(d[0])),
+        end_jet_fast(traj.control_points[-1], float(d[-1])),
+        traj.corridors,
+    )
+
+
+def replan_command(args: argparse.Namespace) -> int:
+    from planner_core.changes import ChangeError, parse_change
+    from planner_core.io import (
+        ScenarioError,
+        load_scenario,
+        trajectory_from_dict,
+        trajectory_to_dict,
+    )
+    from planner_core.replan import Environment, ReplanOptions, replan
+    from planner_core.verify import verify
+
+    try:
+        from planner_core.corridors import CorridorError
+    except ImportError:  # pragma: no cover
+        CorridorError = ValueError  # type: ignore[misc,assignment]
+
+    try:
+        raw_scenario = _read(args.scenario, "scenario")
+        raw_traj = _read(args.trajectory, "trajectory")
+        raw_change = _read(args.change, "change")
+    except ValueError as e:
+        _err(f"invalid input: {e}")
+        return EXIT_INVALID
+    try:
+        scenario = load_scenario(raw_scenario)
+    except CorridorError as e:
+        _err(f"no safe corridor for the scenario: {e}")
+        return EXIT_INFEASIBLE
+    except ScenarioError as e:
+        _err(f"invalid scenario: {e}")
+        return EXIT_INVALID
+    try:
+        traj = trajectory_from_dict(raw_traj)
+    except ValueError as e:
+        _err(f"invalid trajectory: {e}")
+        return EXIT_INVALID
+    try:
+        change = parse_change(raw_change)
+    except ValueError as e:
+        _err(f"invalid change: {e}")
+        return EXIT_INVALID
+    if args.max_widen < 0 or args.max_stretch < 0:
+        _err("invalid option: --max-widen and --max-stretch must be >= 0")
+        return EXIT_INVALID
+    problem = problem_for(scenario.problem, traj)
+    env = Environment(tuple(scenario.obstacles), scenario.map_box, scenario.vehicle_radius)
+    opts = ReplanOptions(max_widen=args.max_widen, max_stretch=args.max_stretch, environment=env)
+    try:
+        result = replan(problem, traj, change, options=opts)
+    except ChangeError as e:
+        _err(f"invalid change: {e}")
+        return EXIT_INVALID
+    if not result.ok or result.trajectory is None:
+        _err(result.message)
+        if result.diagnosis is not None:
+            print(json.dumps({"diagnosis": result.diagnosis}), file=sys.stderr)
+        return EXIT_INFEASIBLE
+    report = verify(result.trajectory, result.problem)
+    if not report.ok:
+        _err(f"replanned trajectory failed the certificate: {report.summary()}")
+        return EXIT_INFEASIBLE
+    stats = {**result.stats, "resolved_jets": list(result.resolved_jets), "message": result.message}
+    out = Trajectory(result.trajectory.times, result.trajectory.control_points, result.trajectory.corridors, stats)
+    args.output.write_text(json.dumps(trajectory_to_dict(out, scenario.frame), indent=1))
+    print(
+        f"replanned: {result.message}; {result.problem.m} waypoints, "
+        f"{1e3 * float(result.stats.get('time_s', 0.0)):.2f} ms -> {args.output}"
+    )
+    return EXIT_OK

@@ -1,0 +1,99 @@
+"""``python -m sitl_mock``: run a mock PX4 / ArduPilot autopilot."""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+from types import FrameType
+
+from .faults import _seconds, parse_faults
+from .server import MockAutopilot, MockConfig
+
+
+def _takeover(text: str) -> tuple[float, str]:
+    at, sep, mode = text.partition(":")
+    if not sep or not mode:
+        raise argparse.ArgumentTypeError(f"--takeover-at: expected SECONDS:MODE, got {text!r}")
+    return _seconds(at, "takeover-at"), mode
+
+
+def _triple(text: str) -> tuple[float, float, float]:
+    parts = text.split(",")
+    if len(parts) != 3:
+        raise argparse.ArgumentTypeError(f"--wind: expected N,E,D in m/s, got {text!r}")
+    return float(parts[0]), float(parts[1]), float(parts[2])
+
+
+def _param(text: str) -> tuple[str, float]:
+    name, sep, value = text.partition("=")
+    if not sep:
+        raise argparse.ArgumentTypeError(f"--param: expected NAME=VALUE, got {text!r}")
+    return name.strip().upper(), float(value)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m sitl_mock", description=__doc__)
+    p.add_argument("--autopilot", choices=["px4", "ardupilot"], default="px4")
+    p.add_argument("--endpoint", action="append", dest="endpoints", metavar="KIND:HOST:PORT",
+                   help="udpin:H:P (default udpin:127.0.0.1:14540), udpout:H:P or tcpin:H:P; repeatable")
+    p.add_argument("--sysid", type=int, default=1)
+    p.add_argument("--compid", type=int, default=1)
+    p.add_argument("--log", dest="log_path", metavar="FILE.jsonl")
+    p.add_argument("--log-rate-hz", type=float, default=None,
+                   help="state records per second (default: every simulation step)")
+    p.add_argument("--speed", type=float, default=1.0, help="simulated seconds per wall second")
+    p.add_argument("--control", metavar="HOST:PORT", help="JSON-lines control socket")
+    p.add_argument("--fault", action="append", default=[],
+                   help="drop=F, latency=50ms, pause=AT:SECONDS, reboot=AT, reject-arming; repeatable")
+    p.add_argument("--takeover-at", action="append", type=_takeover, default=[], metavar="SECONDS:MODE",
+                   help="switch mode at this simulated time as a pilot would")
+    p.add_argument("--rate-hz", type=float, default=250.0)
+    p.add_argument("--home-lat", type=float, default=47.397742)
+    p.add_argument("--home-lon", type=float, default=8.545594)
+    p.add_argument("--home-alt", type=float, default=488.0)
+    p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--wind", type=_triple, default=(0.0, 0.0, 0.0), metavar="N,E,D")
+    p.add_argument("--noise", type=float, default=0.0, help="position noise std (m)")
+    p.add_argument("--offboard-warmup", type=float, default=1.0, metavar="SECONDS",
+                   help="how long a >= 2 Hz setpoint stream must run before OFFBOARD is allowed "
+                   "(PX4 docs: 1 s; 0: PX4 code's rule, one setpoint within COM_OF_LOSS_T)")
+    p.add_argument("--param", action="append", type=_param, default=[], metavar="NAME=VALUE")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        config = MockConfig(
+            autopilot=args.autopilot,
+            endpoints=args.endpoints or ["udpin:127.0.0.1:14540"],
+            sysid=args.sysid, compid=args.compid, log_path=args.log_path, speed=args.speed,
+            control=args.control, faults=parse_faults(args.fault), rate_hz=args.rate_hz,
+            log_rate_hz=args.log_rate_hz, home_lat=args.home_lat, home_lon=args.home_lon,
+            home_alt=args.home_alt, seed=args.seed, wind=args.wind, noise=args.noise,
+            takeovers=args.takeover_at, params=dict(args.param),
+            offboard_warmup_s=args.offboard_warmup,
+        )
+        mock = MockAutopilot(config)
+        mock.bind()
+    except (ValueError, OSError) as exc:
+        print(f"sitl_mock: {exc}", file=sys.stderr)
+        return 2
+
+    def on_signal(signum: int, frame: FrameType | None) -> None:
+        mock.request_stop()
+
+    signal.signal(signal.SIGINT, on_signal)
+    signal.signal(signal.SIGTERM, on_signal)
+    ends = ", ".join(f"{e} -> {a[0]}:{a[1]}" for e, a in zip(config.endpoints, mock.addresses, strict=True))
+    print(f"sitl_mock {config.autopilot} sysid {config.sysid} on {ends}", file=sys.stderr, flush=True)
+    try:
+        mock.run()
+    finally:
+        mock.stop()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

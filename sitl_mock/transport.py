@@ -1,0 +1,150 @@
+"""MAVLink endpoints: ``udpin:`` (server, replies to every sender), ``udpout:``, ``tcpin:``."""
+
+from __future__ import annotations
+
+import socket
+from dataclasses import dataclass
+from typing import Any
+
+from pymavlink.dialects.v20 import common as mav
+
+
+@dataclass(frozen=True)
+class Endpoint:
+    kind: str  # udpin | udpout | tcpin
+    host: str
+    port: int
+
+    def __str__(self) -> str:
+        return f"{self.kind}:{self.host}:{self.port}"
+
+
+def parse_endpoint(text: str) -> Endpoint:
+    kind, sep, rest = text.partition(":")
+    kind = kind.lower()
+    aliases = {"udp": "udpin", "udpin": "udpin", "udpout": "udpout", "tcpin": "tcpin"}
+    host, sep2, port = rest.rpartition(":")
+    if not sep or kind not in aliases or not sep2 or not port.isdigit():
+        raise ValueError(
+            f"--endpoint: expected udpin:HOST:PORT, udpout:HOST:PORT or tcpin:HOST:PORT, got {text!r}"
+        )
+    return Endpoint(aliases[kind], host or "0.0.0.0", int(port))
+
+
+class _Capture:
+    """File-like sink so that pymavlink's MAVLink.send() does framing and sequencing."""
+
+    def __init__(self) -> None:
+        self.data = b""
+
+    def write(self, data: bytes) -> None:
+        self.data = bytes(data)
+
+
+class Encoder:
+    def __init__(self, sysid: int, compid: int) -> None:
+        self._sink = _Capture()
+        self.mav = mav.MAVLink(self._sink, srcSystem=sysid, srcComponent=compid)
+
+    def encode(self, msg: Any) -> bytes:
+        self.mav.send(msg)
+        return self._sink.data
+
+
+def new_parser() -> Any:
+    parser = mav.MAVLink(None)
+    parser.robust_parsing = True
+    return parser
+
+
+class Link:
+    """One endpoint; ``poll_sockets`` are selected by the owner, which calls ``read``."""
+
+    def __init__(self, endpoint: Endpoint) -> None:
+        self.endpoint = endpoint
+        self.peers: list[Any] = []  # udp addresses or tcp sockets
+        self.parsers: dict[Any, Any] = {}
+        if endpoint.kind == "tcpin":
+            self.sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+            self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            self.sock.bind((endpoint.host, endpoint.port))
+            self.sock.listen(4)
+        else:
+            self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+            if endpoint.kind == "udpin":
+                self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+                self.sock.bind((endpoint.host, endpoint.port))
+            else:
+                self.peers.append((endpoint.host, endpoint.port))
+        self.sock.setblocking(False)
+        self.address: tuple[str, int] = self.sock.getsockname()
+
+    def poll_sockets(self) -> list[socket.socket]:
+        if self.endpoint.kind == "tcpin":
+            return [self.sock, *self.peers]
+        return [self.sock]
+
+    def read(self, sock: socket.socket) -> list[tuple[Any, bytes]]:
+        """Raw chunks with their peer key; new UDP senders become reply peers."""
+        out: list[tuple[Any, bytes]] = []
+        if self.endpoint.kind == "tcpin":
+            if sock is self.sock:
+                try:
+                    conn, _ = self.sock.accept()
+                except BlockingIOError:
+                    return out
+                conn.setblocking(False)
+                self.peers.append(conn)
+                return out
+            try:
+                data = sock.recv(65536)
+            except (BlockingIOError, InterruptedError):
+                return out
+            except OSError:
+                data = b""
+            if not data:
+                self.peers.remove(sock)
+                self.parsers.pop(sock, None)
+                sock.close()
+                return out
+            return [(sock, data)]
+        for _ in range(64):
+            try:
+                data, addr = self.sock.recvfrom(65536)
+            except (BlockingIOError, InterruptedError):
+                break
+            except OSError:
+                # ICMP port unreachable from a udpout peer that is not up yet.
+                break
+            if self.endpoint.kind == "udpin" and addr not in self.peers:
+                self.peers.append(addr)
+            out.append((addr, data))
+        return out
+
+    def parse(self, peer: Any, data: bytes) -> list[Any]:
+        parser = self.parsers.setdefault(peer, new_parser())
+        try:
+            msgs = parser.parse_buffer(data)
+        except mav.MAVError:
+            return []
+        return [m for m in (msgs or []) if m.get_type() != "BAD_DATA"]
+
+    def send(self, data: bytes) -> None:
+        for peer in list(self.peers):
+            try:
+                if isinstance(peer, socket.socket):
+                    peer.sendall(data)
+                else:
+                    self.sock.sendto(data, peer)
+            except (BlockingIOError, InterruptedError):
+                pass
+            except OSError:
+                if isinstance(peer, socket.socket):
+                    self.peers.remove(peer)
+                    peer.close()
+
+    def close(self) -> None:
+        for peer in self.peers:
+            if isinstance(peer, socket.socket):
+                peer.close()
+        self.sock.close()

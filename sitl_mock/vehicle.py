@@ -1,0 +1,170 @@
+"""Point-mass quadrotor in local NED with a cascaded position/velocity controller.
+
+z is down; the ground is z = 0 and the vehicle can never go below it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+G = 9.80665
+
+
+@dataclass(frozen=True)
+class VehicleParams:
+    kp_pos: float = 1.2  # 1/s, position error -> velocity command
+    kv_vel: float = 5.0  # 1/s, velocity error -> acceleration command (damping ~1)
+    tau_acc: float = 0.04  # s, first-order lag of the achieved acceleration
+    max_tilt_deg: float = 35.0
+    max_jerk: float = 40.0  # m/s^3, rate limit on the achieved acceleration
+    max_speed_xy: float = 12.0
+    max_climb: float = 3.0  # m/s up
+    max_descent: float = 1.5  # m/s down
+    max_acc_up: float = 6.0  # m/s^2 net upward acceleration
+    max_yaw_rate: float = math.radians(90.0)
+    drag: float = 0.3  # 1/s: wind speed (m/s) -> disturbance acceleration
+
+    @property
+    def max_acc_xy(self) -> float:
+        return G * math.tan(math.radians(self.max_tilt_deg))
+
+
+@dataclass
+class Target:
+    """Per-axis target; NaN means the axis is not commanded at that level."""
+
+    pos: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    vel: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    acc: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    yaw: float = math.nan
+    yaw_rate: float = math.nan
+
+    @staticmethod
+    def hold(pos: np.ndarray, yaw: float) -> Target:
+        return Target(pos.astype(float).copy(), np.zeros(3), np.zeros(3), yaw, math.nan)
+
+    def copy(self) -> Target:
+        return Target(self.pos.copy(), self.vel.copy(), self.acc.copy(), self.yaw, self.yaw_rate)
+
+
+@dataclass
+class VehicleState:
+    pos: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    vel: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    acc: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    yaw: float = 0.0
+    yaw_rate: float = 0.0
+    on_ground: bool = True
+
+
+def sqrt_controller(error: float, kp: float, accel: float) -> float:
+    """Velocity for a position error: linear near zero, braking-distance limited far away.
+
+    The same shape as ArduPilot's sqrt_controller: a pure P gain would command speeds that
+    the acceleration limit cannot stop from in time, and overshoot large steps.
+    """
+    linear = accel / (kp * kp)
+    mag = abs(error)
+    if mag <= linear:
+        return kp * error
+    return math.copysign(math.sqrt(2.0 * accel * (mag - 0.5 * linear)), error)
+
+
+def _clip_norm(v: np.ndarray, limit: float) -> np.ndarray:
+    n = float(np.hypot(v[0], v[1]))
+    if n > limit > 0.0:
+        v = v.copy()
+        v[:2] *= limit / n
+    return v
+
+
+class Vehicle:
+    def __init__(self, params: VehicleParams | None = None) -> None:
+        self.params = params or VehicleParams()
+        self.state = VehicleState()
+        self.acc_cmd = np.zeros(3)
+
+    def reset(self, pos: np.ndarray | None = None) -> None:
+        self.state = VehicleState()
+        if pos is not None:
+            self.state.pos = pos.astype(float).copy()
+        self.acc_cmd = np.zeros(3)
+
+    def _command(self, target: Target) -> np.ndarray:
+        p, s = self.params, self.state
+        has_pos = np.isfinite(target.pos)
+        has_vel = np.isfinite(target.vel)
+        vel_ff = np.where(has_vel, target.vel, 0.0)
+        err = np.where(has_pos, np.nan_to_num(target.pos) - s.pos, 0.0)
+        n_xy = float(np.hypot(err[0], err[1]))
+        v_p = np.zeros(3)
+        if n_xy > 0.0:
+            v_p[:2] = err[:2] * (sqrt_controller(n_xy, p.kp_pos, 0.5 * p.max_acc_xy) / n_xy)
+        v_p[2] = sqrt_controller(float(err[2]), p.kp_pos, 0.5 * p.max_acc_up)
+        v_cmd = np.where(has_pos, v_p + vel_ff, vel_ff)
+        v_cmd = _clip_norm(v_cmd, p.max_speed_xy)
+        v_cmd[2] = min(max(v_cmd[2], -p.max_climb), p.max_descent)
+        # An axis with neither position nor velocity is driven by its acceleration only.
+        vel_loop = has_pos | has_vel
+        acc_ff = np.where(np.isfinite(target.acc), target.acc, 0.0)
+        damp = np.where(np.isfinite(target.acc), 0.0, -p.kv_vel * s.vel)
+        a_cmd = np.where(vel_loop, p.kv_vel * (v_cmd - s.vel) + acc_ff, acc_ff + damp)
+        a_cmd = _clip_norm(a_cmd, p.max_acc_xy)
+        # Thrust cannot pull down: net downward acceleration is at most g.
+        a_cmd[2] = min(max(a_cmd[2], -p.max_acc_up), G)
+        return a_cmd
+
+    def step(self, dt: float, target: Target | None, armed: bool, wind: np.ndarray) -> None:
+        p, s = self.params, self.state
+        # Motors off: free fall (or resting on the ground).
+        a_cmd = self._command(target) if armed and target is not None else np.array([0.0, 0.0, G])
+        self.acc_cmd = a_cmd
+        alpha = min(1.0, dt / p.tau_acc) if armed else 1.0
+        delta = (a_cmd - s.acc) * alpha
+        if armed:
+            dn = float(np.linalg.norm(delta))
+            lim = p.max_jerk * dt
+            if dn > lim:
+                delta *= lim / dn
+        s.acc = s.acc + delta
+        # Wind is a constant push; the vehicle's own drag is taken as compensated by the
+        # autopilot, as PX4/ArduPilot do with their velocity-loop integrators.
+        total = s.acc + p.drag * wind if armed and not s.on_ground else s.acc
+        s.vel = s.vel + total * dt
+        s.pos = s.pos + s.vel * dt
+        if s.pos[2] >= 0.0:
+            s.pos[2] = 0.0
+            s.vel[2] = min(s.vel[2], 0.0)
+            if s.acc[2] >= 0.0 or not armed:
+                # Resting on the ground: friction stops horizontal motion.
+                s.vel[:] = 0.0
+                s.acc[2] = min(s.acc[2], 0.0) if armed else 0.0
+        s.on_ground = bool(s.pos[2] >= -0.02 and s.vel[2] >= -0.05 and self.acc_cmd[2] >= -0.05)
+        self._step_yaw(dt, target if armed else None)
+
+    def _step_yaw(self, dt: float, target: Target | None) -> None:
+        p, s = self.params, self.state
+        rate = 0.0
+        if target is not None and not s.on_ground:
+            if math.isfinite(target.yaw):
+                err = math.atan2(math.sin(target.yaw - s.yaw), math.cos(target.yaw - s.yaw))
+                rate = 4.0 * err
+            elif math.isfinite(target.yaw_rate):
+                rate = target.yaw_rate
+        rate = min(max(rate, -p.max_yaw_rate), p.max_yaw_rate)
+        s.yaw_rate = rate
+        s.yaw = math.atan2(math.sin(s.yaw + rate * dt), math.cos(s.yaw + rate * dt))
+
+    def attitude(self) -> tuple[float, float, float]:
+        """Roll, pitch, yaw from the thrust direction needed for the achieved acceleration."""
+        s = self.state
+        c, sn = math.cos(s.yaw), math.sin(s.yaw)
+        fwd = c * s.acc[0] + sn * s.acc[1]
+        right = -sn * s.acc[0] + c * s.acc[1]
+        up = G - s.acc[2]
+        pitch = -math.atan2(fwd, up)
+        roll = math.atan2(right * math.cos(pitch), up)
+        return roll, pitch, s.yaw

@@ -1,0 +1,245 @@
+"""PX4 flavour over real MAVLink/UDP with pymavlink as the client."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import pytest
+from conftest import CUSTOM, POS_ONLY, Client, Streamer, records, wait_for
+from pymavlink import mavutil
+from pymavlink.dialects.v20 import common as mav
+
+OFFBOARD = (CUSTOM, 6, 0)
+LOITER = (CUSTOM, 4, 3)
+ACCEPTED, TEMP_REJ, DENIED, UNSUPPORTED = (mav.MAV_RESULT_ACCEPTED, mav.MAV_RESULT_TEMPORARILY_REJECTED,
+                                           mav.MAV_RESULT_DENIED, mav.MAV_RESULT_UNSUPPORTED)
+
+
+def fly_offboard(mock, client, port, z=-2.0):  # type: ignore[no-untyped-def]
+    """Stream a hover setpoint, switch to OFFBOARD, arm, wait until airborne."""
+    streamer = Streamer(port, x=0.0, y=0.0, z=z, mask=POS_ONLY)
+    time.sleep(1.2 / mock.config.speed + 0.3)
+    assert client.command(176, *OFFBOARD) == ACCEPTED
+    assert client.command(400, 1) == ACCEPTED
+    assert wait_for(lambda: mock.snapshot()["position"][2] < z + 0.3, 10)
+    return streamer
+
+
+def test_heartbeat_identity_and_modes(make_mock) -> None:  # type: ignore[no-untyped-def]
+    mock, c = make_mock("px4", speed=4.0)
+    hb = c.wait("HEARTBEAT", cond=lambda m: m.get_srcSystem() == 1)
+    assert hb.type == mav.MAV_TYPE_QUADROTOR and hb.autopilot == mav.MAV_AUTOPILOT_PX4
+    assert hb.base_mode & CUSTOM and not hb.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED
+    assert mavutil.mode_string_v10(hb) == "POSCTL"
+    for main, sub, name in [(4, 3, "LOITER"), (4, 6, "LAND"), (3, 0, "POSCTL"), (4, 2, "TAKEOFF")]:
+        assert c.command(176, CUSTOM, main, sub) == ACCEPTED
+        assert c.wait("HEARTBEAT", cond=lambda m, n=name: mavutil.mode_string_v10(m) == n) is not None
+    texts = [r["text"] for r in records(mock, "event") if r["event"] == "statustext"]
+    assert sum("->" in t for t in texts) >= 4  # a STATUSTEXT per mode change
+
+
+def test_commands_acknowledged(make_mock) -> None:  # type: ignore[no-untyped-def]
+    mock, c = make_mock("px4", speed=4.0)
+    assert c.command(mav.MAV_CMD_SET_MESSAGE_INTERVAL, mav.MAVLINK_MSG_ID_ATTITUDE, 100000) == ACCEPTED
+    assert c.command(mav.MAV_CMD_SET_MESSAGE_INTERVAL, 9999, 100000) == DENIED
+    assert c.command(mav.MAV_CMD_REQUEST_MESSAGE, mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION) == ACCEPTED
+    assert c.command(mav.MAV_CMD_DO_SET_MODE, 0, 6, 0) == UNSUPPORTED  # no custom-mode flag
+    assert c.command(mav.MAV_CMD_DO_SET_MODE, CUSTOM, 42, 0) == DENIED
+    assert c.command(mav.MAV_CMD_DO_SET_SERVO, 1, 1500) == UNSUPPORTED
+    assert c.command(mav.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, 0, 0, math.nan) == ACCEPTED
+    assert mock.snapshot()["mode"] == "TAKEOFF"
+    assert c.command(mav.MAV_CMD_NAV_LAND) == ACCEPTED
+    assert mock.snapshot()["mode"] == "LAND"
+    # Commands addressed to another system are not ours to answer.
+    c.drain()
+    c.mav.command_long_send(7, 1, mav.MAV_CMD_NAV_LAND, 0, 0, 0, 0, 0, 0, 0, 0)
+    assert c.wait("COMMAND_ACK", 1.0) is None
+
+
+def test_autopilot_version_capabilities(make_mock) -> None:  # type: ignore[no-untyped-def]
+    _, c = make_mock("px4", speed=4.0)
+    c.mav.command_long_send(1, 1, mav.MAV_CMD_REQUEST_MESSAGE, 0, mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION,
+                            0, 0, 0, 0, 0, 0)
+    av = c.wait("AUTOPILOT_VERSION")
+    assert av is not None
+    for cap in (mav.MAV_PROTOCOL_CAPABILITY_MAVLINK2, mav.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED):
+        assert av.capabilities & cap
+
+
+def test_command_int_and_set_mode_message(make_mock) -> None:  # type: ignore[no-untyped-def]
+    mock, c = make_mock("px4", speed=4.0)
+    c.drain()
+    c.mav.command_int_send(1, 1, 0, mav.MAV_CMD_DO_SET_MODE, 0, 0, CUSTOM, 4, 3, 0, 0, 0, 0)
+    ack = c.wait("COMMAND_ACK", cond=lambda m: m.command == mav.MAV_CMD_DO_SET_MODE)
+    assert ack is not None and ack.result == ACCEPTED and mock.snapshot()["mode"] == "LOITER"
+    c.mav.set_mode_send(1, CUSTOM, 3 << 16)
+    assert wait_for(lambda: mock.snapshot()["mode"] == "POSCTL", 2)
+
+
+def test_set_message_interval_changes_rate(make_mock) -> None:  # type: ignore[no-untyped-def]
+    mock, c = make_mock("px4", speed=1.0)
+
+    def rate(seconds: float) -> float:
+        c.drain()
+        stamps = []
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            m = c.wait("LOCAL_POSITION_NED", 0.5)
+            if m is not None:
+                stamps.append(m.time_boot_ms)
+        return (len(stamps) - 1) / ((stamps[-1] - stamps[0]) / 1000.0)
+
+    assert rate(1.0) == pytest.approx(30.0, rel=0.2)
+    assert c.command(mav.MAV_CMD_SET_MESSAGE_INTERVAL, mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED, 200000) == ACCEPTED
+    assert rate(1.5) == pytest.approx(5.0, rel=0.2)
+
+
+def test_telemetry_set_for_ground_stations(make_mock) -> None:  # type: ignore[no-untyped-def]
+    _, c = make_mock("px4", speed=4.0)
+    for kind in ("SYS_STATUS", "EXTENDED_SYS_STATE", "HOME_POSITION", "GLOBAL_POSITION_INT",
+                 "GPS_RAW_INT", "ATTITUDE", "SYSTEM_TIME"):
+        assert c.wait(kind, 3.0) is not None, kind
+    gps = c.wait("GPS_RAW_INT")
+    assert gps.fix_type == mav.GPS_FIX_TYPE_3D_FIX
+    ess = c.wait("EXTENDED_SYS_STATE")
+    assert ess.landed_state == mav.MAV_LANDED_STATE_ON_GROUND
+    c.mav.timesync_send(0, 123456)
+    ts = c.wait("TIMESYNC", cond=lambda m: m.ts1 == 123456)
+    assert ts is not None and ts.tc1 > 0
+
+
+def test_params_list_read_set(make_mock) -> None:  # type: ignore[no-untyped-def]
+    mock, c = make_mock("px4", speed=4.0)
+    c.drain()
+    c.mav.param_request_list_send(1, 1)
+    names = set()
+    while True:
+        pv = c.wait("PARAM_VALUE", 1.0)
+        if pv is None:
+            break
+        names.add(pv.param_id)
+        count = pv.param_count
+    assert {"COM_OF_LOSS_T", "COM_OBL_RC_ACT"} <= names and len(names) == count
+    c.mav.param_set_send(1, 1, b"COM_OF_LOSS_T", 0.5, mav.MAV_PARAM_TYPE_REAL32)
+    pv = c.wait("PARAM_VALUE", cond=lambda m: m.param_id == "COM_OF_LOSS_T")
+    assert pv.param_value == pytest.approx(0.5)
+    c.mav.param_request_read_send(1, 1, b"COM_OF_LOSS_T", -1)
+    assert c.wait("PARAM_VALUE", cond=lambda m: m.param_id == "COM_OF_LOSS_T").param_value == pytest.approx(0.5)
+    c.mav.mission_request_list_send(1, 1, 0)
+    assert c.wait("MISSION_COUNT").count == 0
+
+
+def test_offboard_refused_without_stream_then_accepted(make_mock) -> None:  # type: ignore[no-untyped-def]
+    mock, c = make_mock("px4", speed=2.0)
+    port = mock.addresses[0][1]
+    assert c.command(176, *OFFBOARD) == TEMP_REJ
+    assert c.command(400, 1) == ACCEPTED  # arming is fine in POSCTL
+    assert c.command(400, 0) == ACCEPTED
+    c.setpoint(0, 0, -2, mask=POS_ONLY)  # a single setpoint is not a stream
+    assert c.command(176, *OFFBOARD) == TEMP_REJ
+    assert any("Offboard denied" in r.get("text", "") for r in records(mock, "event"))
+    with Streamer(port, x=0.0, y=0.0, z=-2.0, mask=POS_ONLY):
+        time.sleep(1.3 / mock.config.speed + 0.2)
+        assert c.command(176, *OFFBOARD) == ACCEPTED
+        assert c.command(400, 1) == ACCEPTED
+        # Armed in OFFBOARD on the ground with a setpoint above: it takes off by following it.
+        assert wait_for(lambda: abs(mock.snapshot()["position"][2] + 2.0) < 0.1, 10)
+    modes = records(mock, "mode")
+    assert modes[-1]["to"] == "LOITER" and modes[-1]["reason"] == "failsafe"
+
+
+def test_arming_in_offboard_refused_without_stream(make_mock) -> None:  # type: ignore[no-untyped-def]
+    mock, c = make_mock("px4", speed=2.0)
+    with Streamer(mock.addresses[0][1], mask=POS_ONLY):
+        time.sleep(1.3 / mock.config.speed + 0.2)
+        assert c.command(176, *OFFBOARD) == ACCEPTED
+    time.sleep(0.3)
+    assert c.command(400, 1) == DENIED
+    assert not mock.snapshot()["armed"]
+
+
+@pytest.mark.parametrize(("action", "mode"), [(5, "LOITER"), (4, "LAND")])
+def test_failsafe_after_stream_stops_timed_from_log(make_mock, action: int, mode: str) -> None:  # type: ignore[no-untyped-def]
+    mock, c = make_mock("px4", speed=1.0, params={"COM_OBL_RC_ACT": action})
+    streamer = fly_offboard(mock, c, mock.addresses[0][1])
+    streamer.stop()
+    assert wait_for(lambda: mock.snapshot()["mode"] == mode, 4)
+    last_sp = max(r["t"] for r in records(mock, "setpoint") if r["valid"])
+    change = [r for r in records(mock, "mode") if r["to"] == mode and r["reason"] == "failsafe"]
+    assert len(change) == 1
+    assert change[0]["t"] - last_sp == pytest.approx(1.0, abs=0.2)  # COM_OF_LOSS_T default
+    assert any(r.get("text", "").startswith("Failsafe") for r in records(mock, "event"))
+
+
+def _hover_and_send(mock, c, **sp):  # type: ignore[no-untyped-def]
+    """In OFFBOARD at 2 m; stop the good stream, send only the given setpoint for a while."""
+    streamer = fly_offboard(mock, c, mock.addresses[0][1])
+    streamer.stop()
+    t_end = time.monotonic() + 1.6
+    while time.monotonic() < t_end:
+        c.setpoint(**sp)
+        time.sleep(0.04)
+    return records(mock, "setpoint")[-1]
+
+
+def test_frame_7_ignored_and_does_not_keep_offboard_alive(make_mock) -> None:  # type: ignore[no-untyped-def]
+    mock, c = make_mock("px4", speed=1.0)
+    last = _hover_and_send(mock, c, x=5.0, y=0.0, z=-2.0, mask=POS_ONLY, frame=mav.MAV_FRAME_LOCAL_OFFSET_NED)
+    assert not last["valid"] and "frame 7" in last["reason"]
+    assert mock.snapshot()["mode"] == "LOITER"  # invalid setpoints are no proof of life
+    assert abs(mock.snapshot()["position"][0]) < 0.2
+
+
+def test_force_set_with_acceleration_rejected(make_mock) -> None:  # type: ignore[no-untyped-def]
+    mock, c = make_mock("px4", speed=1.0)
+    last = _hover_and_send(mock, c, x=5.0, y=0.0, z=-2.0, mask=512)
+    assert not last["valid"] and "force" in last["reason"]
+    assert mock.snapshot()["mode"] == "LOITER"
+
+
+def test_wrong_target_system_ignored_zero_accepted(make_mock) -> None:  # type: ignore[no-untyped-def]
+    mock, c = make_mock("px4", speed=1.0)
+    last = _hover_and_send(mock, c, x=5.0, y=0.0, z=-2.0, mask=POS_ONLY, target=9)
+    assert not last["valid"] and last["reason"] == "not for us"
+    assert mock.snapshot()["mode"] == "LOITER"
+    c.setpoint(x=1.0, z=-2.0, mask=POS_ONLY, target=0)
+    time.sleep(0.2)
+    assert records(mock, "setpoint")[-1]["valid"]
+
+
+def test_setpoints_applied_only_in_offboard_with_per_axis_mask(make_mock) -> None:  # type: ignore[no-untyped-def]
+    mock, c = make_mock("px4", speed=2.0)
+    port = mock.addresses[0][1]
+    streamer = fly_offboard(mock, c, port)
+    streamer.stop()
+    # x only (y, z ignored): PX4 keeps per-axis NaNs.
+    x_only = 0b110 | (0b111 << 3) | (0b111 << 6) | 0b1100_0000_0000
+    with Streamer(port, x=3.0, y=9.0, z=9.0, mask=x_only):
+        assert wait_for(lambda: abs(mock.snapshot()["position"][0] - 3.0) < 0.1, 10)
+        last = records(mock, "setpoint")[-1]
+        assert last["applied"] and last["pos"][0] == 3.0 and last["pos"][1] is None and last["pos"][2] is None
+        assert abs(mock.snapshot()["position"][2] + 2.0) < 0.2  # z not commanded: holds
+        assert c.command(176, *LOITER) == ACCEPTED
+        time.sleep(0.3)
+        last = records(mock, "setpoint")[-1]
+        assert last["valid"] and not last["applied"] and "not in OFFBOARD" in last["reason"]
+    echo = c.wait("POSITION_TARGET_LOCAL_NED")
+    assert echo is not None and echo.coordinate_frame == mav.MAV_FRAME_LOCAL_NED
+
+
+def test_disarm_in_air_refused_unless_forced(make_mock) -> None:  # type: ignore[no-untyped-def]
+    mock, c = make_mock("px4", speed=2.0)
+    with fly_offboard(mock, c, mock.addresses[0][1]):
+        assert c.command(400, 0) == DENIED
+        assert c.command(400, 0, 21196) == ACCEPTED
+    assert wait_for(lambda: mock.snapshot()["landed"], 5)
+
+
+def test_two_mocks_with_different_sysids(make_mock) -> None:  # type: ignore[no-untyped-def]
+    m1, c1 = make_mock("px4", speed=4.0, sysid=1)
+    m2, c2 = make_mock("px4", speed=4.0, sysid=2)
+    assert c2.wait("HEARTBEAT", cond=lambda m: m.get_srcSystem() == 2) is not None
+    assert c2.command(176, *LOITER, target=2) == ACCEPTED
+    assert m2.snapshot()["mode"] == "LOITER" and m1.snapshot()["mode"] == "POSCTL"
+    assert isinstance(c1, Client)
