@@ -110,6 +110,10 @@ def cmd_run(args: argparse.Namespace) -> int:
         return 2
     logging.basicConfig(level=logging.INFO if not args.quiet else logging.WARNING,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    import faulthandler
+
+    # `kill -USR1 PID` dumps every thread's stack: how to see where a stuck service is.
+    faulthandler.register(signal.SIGUSR1, all_threads=True)
     from companion.service import run
 
     async def main() -> None:

@@ -44,7 +44,13 @@ class MissionResult:
     name: str
     ok: bool = False
     reason: str = ""
-    plan_latency: float | None = None  # mission put -> first trajectory received (s)
+    plan_latency: float | None = None  # mission put -> streaming it (s; includes takeoff if any)
+    plan_ms: float | None = None  # the companion's own plan + verify time
+    replan_ms: list[float] = field(default_factory=list)
+    message_to_setpoint_ms: list[float] = field(default_factory=list)
+    setpoint_deviation: float | None = None  # max |setpoint at the mock - planned| (m)
+    starts: list[float] = field(default_factory=list)
+    tau_stream: float = -float("inf")  # trajectory time at which this mission took over
     replan_latencies: dict[str, float] = field(default_factory=dict)
     stats: dict[str, Any] = field(default_factory=dict)
     flight_time: float | None = None
@@ -107,41 +113,83 @@ def region_vertices_enu(region: dict[str, Any], frame: str) -> FloatArray:
 # --- tracking and peaks ----------------------------------------------------------------------
 
 
-def align_offset(traj: Trajectory, t: FloatArray, pos: FloatArray, guess: float) -> float:
+def align_offset(traj: Trajectory, t: FloatArray, pos: FloatArray, lo: float, hi: float) -> float:
     """Mock-clock time of trajectory time 0 that best matches the commanded positions.
 
     The setpoints the mock logged are samples of the trajectory, so the right offset makes them
-    coincide; a coarse scan around the guess then a golden-section refine finds it without
-    trusting the two processes to share an epoch.
+    coincide; a scan of [lo, hi] then a golden-section refine finds it without trusting the two
+    processes to share an epoch.
     """
+    if len(t) > 400:
+        idx = np.linspace(0, len(t) - 1, 400).astype(int)
+        t, pos = t[idx], pos[idx]
 
     def cost(off: float) -> float:
         d = traj.evaluate(t - off) - pos
         return float(np.mean(np.sum(d * d, axis=1)))
 
-    span = traj.t_end - traj.t0
-    grid = guess + np.linspace(-min(span, 5.0), min(span, 5.0), 201)
-    best = float(grid[int(np.argmin([cost(g) for g in grid]))])
+    grid = np.linspace(lo, hi, int(min(max((hi - lo) / 0.05, 20), 2000)))
+    costs = [cost(g) for g in grid]
+    k = int(np.argmin(costs))
     step = float(grid[1] - grid[0])
-    lo, hi = best - step, best + step
+    a, b = float(grid[k]) - step, float(grid[k]) + step
     ratio = (np.sqrt(5) - 1) / 2
-    for _ in range(40):
-        a, c = hi - ratio * (hi - lo), lo + ratio * (hi - lo)
-        if cost(a) < cost(c):
-            hi = c
+    for _ in range(50):
+        c, d = b - ratio * (b - a), a + ratio * (b - a)
+        if cost(c) < cost(d):
+            b = d
         else:
-            lo = a
-    return (lo + hi) / 2
+            a = c
+    return (a + b) / 2
 
 
-def tracking_error(traj: Trajectory, flown: Flown, offset: float) -> Tracking:
-    """Flown position vs the planned one over the trajectory's span (m)."""
-    tau = flown.t - offset
-    mask = (tau >= traj.t0) & (tau <= traj.t_end)
+def stitched(trajs: Sequence[Trajectory], starts: Sequence[float], tau: FloatArray, order: int = 0) -> FloatArray:
+    """Position at trajectory times tau from whichever trajectory was active then.
+
+    starts[k] is the trajectory time from which trajectory k was the active one (a replan equals
+    its predecessor up to its split point, so taking it over a little late changes nothing).
+    """
+    which = np.clip(np.searchsorted(np.asarray(starts), tau, side="right") - 1, 0, len(trajs) - 1)
+    out = np.empty((len(tau), 3))
+    for k in np.unique(which):
+        sel = which == k
+        out[sel] = trajs[int(k)].evaluate(tau[sel], order)
+    return out
+
+
+def local_offsets(trajs: Sequence[Trajectory], starts: Sequence[float], t: FloatArray, pos: FloatArray,
+                  offset: float, search: float = 0.3, step: float = 0.002,
+                  smooth: int = 51) -> tuple[FloatArray, FloatArray]:
+    """Mock-clock time of trajectory time 0, per setpoint, smoothed.
+
+    The mock's simulated clock slips against wall time when the machine is busy (it catches up
+    at most a few steps at a time), so one global offset would read a scheduling hiccup as
+    tracking error. Each setpoint is matched to the nearest planned point within +-search s of
+    the global estimate; a running median removes the ambiguity of hovering stretches.
+    Returns (raw, smoothed) offsets.
+    """
+    grid = np.arange(-search, search + step / 2, step)
+    tau = (t - offset)[:, None] + grid[None, :]
+    pts = stitched(trajs, starts, tau.ravel()).reshape(len(t), len(grid), 3)
+    best = np.argmin(np.sum((pts - pos[:, None, :]) ** 2, axis=2), axis=1)
+    raw = offset - grid[best]
+    half = smooth // 2
+    padded = np.pad(raw, half, mode="edge")
+    windows = np.lib.stride_tricks.sliding_window_view(padded, smooth)
+    return raw, np.asarray(np.median(windows, axis=1), dtype=float)
+
+
+def tracking_error(trajs: Sequence[Trajectory], starts: Sequence[float], flown: Flown,
+                   sp_t: FloatArray, sp_offsets: FloatArray, tau_start: float, tau_end: float) -> Tracking:
+    """Flown position against the planned one, from the first mission trajectory to tau_end (m)."""
+    offsets = np.interp(flown.t, sp_t, sp_offsets)
+    tau = flown.t - offsets
+    mask = (tau >= max(tau_start, trajs[0].t0)) & (tau <= min(tau_end, trajs[-1].t_end))
     if not mask.any():
-        return Tracking(offset, float("nan"), float("nan"), 0)
-    err = np.linalg.norm(flown.pos[mask] - traj.evaluate(tau[mask]), axis=1)
-    return Tracking(offset, float(np.sqrt(np.mean(err**2))), float(err.max()), int(mask.sum()))
+        return Tracking(float(np.median(sp_offsets)), float("nan"), float("nan"), 0)
+    err = np.linalg.norm(flown.pos[mask] - stitched(trajs, starts, tau[mask]), axis=1)
+    return Tracking(float(np.median(sp_offsets)), float(np.sqrt(np.mean(err**2))), float(err.max()),
+                    int(mask.sum()))
 
 
 def planned_peaks(traj: Trajectory, samples_per_segment: int = 400) -> FloatArray:
@@ -200,20 +248,33 @@ def _peak(peaks: FloatArray | None, bounds: FloatArray | None, row: int) -> str:
     return f"{value:.2f} / {float(np.min(bounds[row])):.2f}"
 
 
+def _short(text: str, n: int = 60) -> str:
+    line = text.splitlines()[0] if text else ""
+    return line if len(line) <= n else line[: n - 3] + "..."
+
+
+def _ms_list(values: Sequence[float]) -> str:
+    return "-" if not values else ", ".join(f"{v:.1f}" for v in values) + " ms"
+
+
 def summary_rows(result: MissionResult) -> list[tuple[str, str]]:
     st = result.stats
     rows = [
-        ("result", "OK" if result.ok else f"FAILED: {result.reason}"),
-        ("plan latency (put -> trajectory)", _ms(result.plan_latency)),
-        ("planner time (plan + verify)", _ms(_num(st.get("time_total")))),
-        ("QPs solved / median QP", f"{st.get('n_qp', '-')} / {_ms(_num(st.get('step_time_median')))}"),
+        ("result", "OK" if result.ok else f"FAILED: {_short(result.reason)}"),
+        ("plan + verify (companion)", "-" if result.plan_ms is None else f"{result.plan_ms:.1f} ms"),
+        ("QPs / median QP time", f"{st.get('n_qp', '-')} / {_ms(_num(st.get('step_time_median')))}"),
         ("verified", str(st.get("verified", "-"))),
+        ("mission put -> streaming", "-" if result.plan_latency is None else f"{result.plan_latency:.2f} s"),
     ]
     for what, latency in result.replan_latencies.items():
-        rows.append((f"replan latency ({what})", _ms(latency)))
+        rows.append((f"{what}: put -> new trajectory", _ms(latency)))
+    rows.append(("replans (companion, each)", _ms_list(result.replan_ms)))
+    rows.append(("message -> first new setpoint", _ms_list(result.message_to_setpoint_ms)))
     rows.append(("flight time", "-" if result.flight_time is None else f"{result.flight_time:.1f} s"))
     if result.tracking is not None:
         rows.append(("tracking error RMS / max", f"{result.tracking.rms:.3f} / {result.tracking.max:.3f} m"))
+    if result.setpoint_deviation is not None:
+        rows.append(("setpoints vs trajectory, max", f"{result.setpoint_deviation:.1e} m"))
     b = result.bounds
     rows += [
         ("peak |v| planned / bound", _peak(result.peaks_planned, b, 0)),
@@ -265,6 +326,7 @@ def plot_path(
     planned: Sequence[tuple[str, Trajectory]],
     flown_enu: FloatArray | None,
     flown_tau: FloatArray | None = None,
+    tau_start: float = -np.inf,
 ) -> None:
     """Top view with obstacles and corridors, and altitude against trajectory time."""
     import matplotlib
@@ -288,6 +350,7 @@ def plot_path(
     for k, (label, traj) in enumerate(planned):
         last = k == len(planned) - 1
         t = _sample_times(traj, 200)
+        t = t[t >= tau_start]
         pts = swap_points(traj.evaluate(t))
         style = {"color": colors[min(k, 1)], "lw": 2.2 if last else 1.3, "alpha": 1.0 if last else 0.55,
                  "ls": "-" if last else "-.", "label": label}
@@ -305,6 +368,9 @@ def plot_path(
         top.annotate("", xy=(new[0], new[1]), xytext=(old[0], old[1]),
                      arrowprops={"arrowstyle": "->", "color": "tab:red", "lw": 1.5})
         top.plot([new[0]], [new[1]], "s", color="tab:red", ms=6, label="moved waypoint", zorder=5)
+    lo, hi = _extent(scene, planned, flown_enu, tau_start)
+    top.set_xlim(lo[0], hi[0])
+    top.set_ylim(lo[1], hi[1])
     top.set_xlabel("east x [m]")
     top.set_ylabel("north y [m]")
     top.set_aspect("equal", adjustable="box")
@@ -323,36 +389,57 @@ def plot_path(
     plt.close(fig)
 
 
+def _extent(scene: Scene, planned: Sequence[tuple[str, Trajectory]], flown: FloatArray | None,
+            tau_start: float, margin: float = 1.5) -> tuple[FloatArray, FloatArray]:
+    """What is worth looking at: paths, waypoints and obstacles (corridors may reach the map edge)."""
+    pts = [scene.waypoints, *scene.obstacles, *scene.popups]
+    for _, tr in planned:
+        t = _sample_times(tr, 50)
+        pts.append(swap_points(tr.evaluate(t[t >= tau_start])))
+    if flown is not None and len(flown):
+        pts.append(flown)
+    allp = np.vstack([p for p in pts if len(p)])
+    return allp.min(axis=0) - margin, allp.max(axis=0) + margin
+
+
 def plot_derivatives(
     path: Path,
     title: str,
-    traj: Trajectory,
+    trajs: Sequence[Trajectory],
+    starts: Sequence[float],
     bounds: FloatArray | None,
     flown: Flown | None,
     offset: float | None,
+    tau_start: float = -np.inf,
 ) -> None:
+    """Velocity..snap of the flown plan (stitched across replans) against the bounds."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    t = _sample_times(traj, 300)
+    starts = list(starts) if len(starts) == len(trajs) else [-np.inf] * len(trajs)
+    t = np.unique(np.concatenate([_sample_times(tr, 300) for tr in trajs]))
+    t = t[(t >= max(trajs[0].t0, tau_start)) & (t <= trajs[-1].t_end)]
     fig, axes = plt.subplots(4, 1, figsize=(11, 9), sharex=True)
     colors = ("tab:blue", "tab:orange", "tab:green")
     for k, ax in enumerate(axes, start=1):
-        values = swap_points(traj.evaluate(t, k))
+        values = swap_points(stitched(trajs, starts, t, k))
         for a in range(3):
             ax.plot(t, values[:, a], color=colors[a], lw=1.3, label=f"planned {AXES[a]} (ENU)")
         if bounds is not None and np.isfinite(bounds[k - 1]).any():
             b = float(np.min(bounds[k - 1]))
-            for s in (-1, 1):
-                ax.axhline(s * b, color="k", ls="--", lw=1.0, label="bound" if s > 0 else None)
+            for sign in (-1, 1):
+                ax.axhline(sign * b, color="k", ls="--", lw=1.0, label="bound" if sign > 0 else None)
+        for s in starts[1:]:
+            if s < t[0]:
+                continue
+            ax.axvline(s, color="tab:red", lw=0.8, alpha=0.6, label="replan" if s == starts[1] else None)
         if k == 1 and flown is not None and offset is not None:
-            mask = (flown.t - offset >= traj.t0) & (flown.t - offset <= traj.t_end)
+            mask = (flown.t - offset >= t[0]) & (flown.t - offset <= t[-1])
             vel = swap_points(flown.vel[mask])
             for a in range(3):
-                ax.plot(flown.t[mask] - offset, vel[:, a], ":", color=colors[a], lw=1.2,
-                        label=f"flown {AXES[a]}")
+                ax.plot(flown.t[mask] - offset, vel[:, a], ":", color=colors[a], lw=1.4, label=f"flown {AXES[a]}")
         ax.set_ylabel(ORDER_LABELS[k - 1])
         ax.grid(True, alpha=0.3)
     axes[0].legend(loc="upper right", ncol=4, fontsize=8)

@@ -36,7 +36,7 @@ from planner_core.result import PlanResult, PlanStatus
 STOP_PULL = 1e-3  # weight of |p - p0|^2 against the normalised snap cost
 GROWTH = 1.5
 N_TRIES = 8
-LEAD = 0.25  # share of the total duration given to the leading segment
+LEADS = (0.25, 0.08)  # shares of the total duration given to the leading segment, tried in turn
 
 
 def _infeasible(message: str, **stats: object) -> PlanResult:
@@ -44,21 +44,25 @@ def _infeasible(message: str, **stats: object) -> PlanResult:
 
 
 def _first_duration(jet: FloatArray, bounds: Bounds) -> float:
-    """Time a bang-bang stop at full acceleration would need (per axis, worst), at least 0.2 s."""
-    amax = np.minimum(-bounds.lo[1], bounds.hi[1])
-    amax = np.where(np.isfinite(amax) & (amax > 0), amax, np.inf)
-    t_axis = np.abs(jet[1]) / amax + np.abs(jet[2]) / np.where(np.isfinite(amax), amax, np.inf)
+    """A lower estimate of the stopping time, worst axis, at least 0.2 s: |v| / a_max
+    (braking) plus |a| / j_max (unwinding the current acceleration)."""
+
+    def limit(row: int) -> FloatArray:
+        lim = np.minimum(-bounds.lo[row], bounds.hi[row])
+        return np.where(np.isfinite(lim) & (lim > 0), lim, np.inf)
+
+    t_axis = np.abs(jet[1]) / limit(1) + np.abs(jet[2]) / limit(2)
     return float(max(0.2, 1.2 * float(np.max(t_axis))))
 
 
 def _try(
-    jet: FloatArray, bounds: Bounds, corridor: Polytope | None, t0: float, d: float
+    jet: FloatArray, bounds: Bounds, corridor: Polytope | None, t0: float, d: float, lead: float
 ) -> tuple[Trajectory, float] | str:
     """One total duration: the verified two-segment stop, or the reason it failed."""
     from planner_core.verify import verify
 
     p0 = jet[0]
-    dur = {0: LEAD * d, 1: (1.0 - LEAD) * d}
+    dur = {0: lead * d, 1: (1.0 - lead) * d}
     free = {1: np.ones((JET_ORDER, 3), dtype=bool), 2: np.zeros((JET_ORDER, 3), dtype=bool)}
     free[2][0] = True
     n = 18  # junction jet (15) then stop position (3)
@@ -93,24 +97,30 @@ def _try(
 def braking_trajectory(
     jet: FloatArray,
     bounds: Bounds,
-    corridor: Polytope | None = None,
+    corridor: Polytope | Sequence[Polytope | None] | None = None,
     t0: float = 0.0,
     *,
     durations: Sequence[float] | None = None,
 ) -> PlanResult:
     """From `jet` (5, 3) at time t0 to rest, inside `corridor` and `bounds`; verified.
 
-    INFEASIBLE (with the reason) when the vehicle is outside the corridor, its
-    current derivatives already exceed the bounds, or no tried duration works.
+    `corridor` may be a sequence of candidate regions (e.g. the current
+    segment's corridor, then the next one's: near a turn the vehicle is often
+    in both and only the next leaves room to stop); those that contain the
+    vehicle are tried in order. INFEASIBLE (with the reason) when the vehicle
+    is outside every candidate, its current derivatives already exceed the
+    bounds, or no tried duration works.
     """
     jet = np.asarray(jet, dtype=float)
     if jet.shape != (JET_ORDER, 3) or not np.all(np.isfinite(jet)):
         raise ValueError(f"jet: expected a finite (5, 3) array, got shape {jet.shape}")
     p0 = jet[0]
-    if corridor is not None and corridor.A.shape[0] and corridor.violation(p0) > 1e-9:
-        return _infeasible(
-            f"vehicle at {p0.tolist()} is outside the corridor (by {corridor.violation(p0):.3g} m)"
-        )
+    candidates = [corridor] if corridor is None or isinstance(corridor, Polytope) else list(corridor)
+    inside = [i for i, c in enumerate(candidates) if c is None or c.A.shape[0] == 0 or c.violation(p0) <= 1e-9]
+    if not inside:
+        gap = min(c.violation(p0) for c in candidates if c is not None) if candidates else float("nan")
+        where = "the corridor" if len(candidates) == 1 else f"all {len(candidates)} corridors"
+        return _infeasible(f"vehicle at {p0.tolist()} is outside {where} (by {gap:.3g} m)")
     for k in range(1, JET_ORDER):
         excess = np.maximum(jet[k] - bounds.hi[k - 1], bounds.lo[k - 1] - jet[k])
         if np.any(excess > 1e-9):
@@ -121,18 +131,37 @@ def braking_trajectory(
     tries = list(durations) if durations is not None else [
         _first_duration(jet, bounds) * GROWTH**i for i in range(N_TRIES)
     ]
+    reasons = []
+    for c_index in inside:
+        res = _shortest(jet, bounds, candidates[c_index], t0, tries)
+        if isinstance(res, PlanResult):
+            res.stats["corridor_candidate"] = c_index
+            return res
+        reasons.append(res if len(inside) == 1 else f"corridor candidate {c_index}: {res}")
+    return _infeasible(
+        f"no braking trajectory within {len(tries)} durations up to {max(tries):.3g} s: {'; '.join(reasons)}",
+        tried=tries,
+    )
+
+
+def _shortest(
+    jet: FloatArray, bounds: Bounds, corridor: Polytope | None, t0: float, tries: Sequence[float]
+) -> PlanResult | str:
+    """The shortest verified stop in `corridor` over the tried durations, or the last reason."""
     reason = "no duration tried"
     for d in tries:
-        res = _try(jet, bounds, corridor, t0, float(d))
+        res: tuple[Trajectory, float] | str = "not tried"
+        for lead in LEADS:
+            res = _try(jet, bounds, corridor, t0, float(d), lead)
+            if not isinstance(res, str):
+                break
         if isinstance(res, str):
             reason = f"duration {d:.3g} s: {res}"
             continue
         traj, qp_time = res
         stop = traj.control_points[-1, -1]
-        stats = {"duration": float(d), "tried": tries[: tries.index(d) + 1], "stop": stop.tolist(),
-                 "distance": float(np.linalg.norm(stop - p0)), "qp_time_s": qp_time}
+        stats = {"duration": float(d), "tried": list(tries[: list(tries).index(d) + 1]), "stop": stop.tolist(),
+                 "distance": float(np.linalg.norm(stop - jet[0])), "qp_time_s": qp_time}
         traj = Trajectory(traj.times, traj.control_points, traj.corridors, dict(stats))
         return PlanResult(PlanStatus.OK, traj, f"stop in {d:.3g} s at {np.round(stop, 3).tolist()}", None, stats)
-    return _infeasible(
-        f"no braking trajectory within {len(tries)} durations up to {max(tries):.3g} s: {reason}", tried=tries
-    )
+    return reason

@@ -1,8 +1,9 @@
 """Mission changes for local replanning, and their JSON form.
 
-A change set is a dict (CHANGE.json) with any of these keys ("move_waypoint"
-is accepted for "move"; "description" is ignored); every index refers to the
-problem *as given* (before any split or edit):
+A change set is a dict (CHANGE.json) with any of these keys; every index
+refers to the problem *as given* (before any split or edit). The companion
+schema's spellings are accepted too ("move_waypoint", "insert_waypoint",
+"remove_waypoint", duration {"index", "value"}); "description" is ignored.
 
     {"from_time": t,
      "move": {"index": j, "position": [x, y, z]}            (or a list of them),
@@ -228,10 +229,12 @@ def _parse_append(d: dict[str, Any], field: str) -> AppendWaypoints:
 def parse_change(obj: Any) -> ChangeSet:
     """Parse CHANGE.json; raises ChangeError naming the field on bad input."""
     d = {k: v for k, v in _dict(obj, "change").items() if k not in ("description", "comment")}
-    if "move_waypoint" in d:  # the spelling of examples/scenario2_move.json
-        if "move" in d:
-            raise ChangeError("move_waypoint", "give either move or move_waypoint")
-        d["move"] = d.pop("move_waypoint")
+    # the spellings of examples/scenario2_move.json and companion/schemas/change.json
+    for alias, key in (("move_waypoint", "move"), ("insert_waypoint", "insert"), ("remove_waypoint", "remove")):
+        if alias in d:
+            if key in d:
+                raise ChangeError(alias, f"give either {key} or {alias}")
+            d[key] = d.pop(alias)
     known = {"from_time", "move", "duration", "corridor", "obstacles", "insert", "remove", "append"}
     unknown = sorted(set(d) - known)
     if unknown:
@@ -240,10 +243,13 @@ def parse_change(obj: Any) -> ChangeSet:
     for f, e in _items(d.get("move", []), "move"):
         edits.append(MoveWaypoint(_index(_require(e, "index", f), f"{f}.index"), _vector(_require(e, "position", f), f"{f}.position")))
     for f, e in _items(d.get("duration", []), "duration"):
+        # {"segment", "duration"}, or the companion schema's {"index", "value"}
+        seg_key = "index" if "index" in e and "segment" not in e else "segment"
+        val_key = "value" if "value" in e and "duration" not in e else "duration"
         edits.append(
             SetDuration(
-                _index(_require(e, "segment", f), f"{f}.segment"),
-                _number(_require(e, "duration", f), f"{f}.duration", positive=True),
+                _index(_require(e, seg_key, f), f"{f}.{seg_key}"),
+                _number(_require(e, val_key, f), f"{f}.{val_key}", positive=True),
             )
         )
     for f, e in _items(d.get("corridor", []), "corridor"):

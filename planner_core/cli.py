@@ -32,6 +32,11 @@ def _parser() -> argparse.ArgumentParser:
     ve.add_argument("scenario", type=Path)
     ve.add_argument("trajectory", type=Path)
     ve.add_argument("--json", action="store_true", help="print the report as JSON")
+    from planner_core.replan_cli import (
+        add_replan_parser,  # replan subcommand (planner_core/replan_cli.py)
+    )
+
+    add_replan_parser(sub)
     return p
 
 
@@ -60,7 +65,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     try:
         from planner_core.corridors import CorridorError
     except ImportError:  # pragma: no cover - corridors module always ships
-        CorridorError = ValueError  # type: ignore[misc,assignment]  # noqa: N806
+        CorridorError = ValueError  # type: ignore[misc,assignment]
 
     try:
         scenario = load_scenario(_read_json(args.scenario, "scenario"))
@@ -143,4 +148,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     if args.command == "plan":
         return _cmd_plan(args)
+    if args.command == "replan":
+        from planner_core.replan_cli import replan_command
+
+        return replan_command(args)
     return _cmd_verify(args)

@@ -79,14 +79,14 @@ def bound_rows(hull: FloatArray, lo: FloatArray, hi: FloatArray) -> tuple[FloatA
 
     `lo`, `hi` are the Bounds arrays (4, 3).
     """
-    rows = np.kron(hull[_BOUND_Q_ROWS], np.eye(3))
+    rows: FloatArray = np.kron(hull[_BOUND_Q_ROWS], np.eye(3)).astype(np.float64)
     order, _, axis, _ = _bound_meta()
     return rows, lo[order - 1, axis], hi[order - 1, axis]
 
 
 def corridor_rows(hull: FloatArray, poly: Polytope) -> tuple[FloatArray, FloatArray]:
     """Rows (8 f, 30) and upper limits of 'P^1..P^8 inside poly' for one segment."""
-    rows = np.kron(hull[_CORR_Q_ROWS], poly.A)
+    rows: FloatArray = np.kron(hull[_CORR_Q_ROWS], poly.A).astype(np.float64)
     return rows, np.tile(poly.b, _CORR_Q_ROWS.size)
 
 
@@ -116,7 +116,7 @@ def bernstein_gram(n: int) -> FloatArray:
 
 @lru_cache(maxsize=8)
 def _unit_cost(order: int) -> tuple[FloatArray, FloatArray]:
-    q1, power, row_order, _ = _unit_templates()
+    q1, _power, row_order, _ = _unit_templates()
     rows = row_order == order
     m = q1[rows]  # (10-order, 10)
     k1 = m.T @ bernstein_gram(DEGREE - order) @ m

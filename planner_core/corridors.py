@@ -105,12 +105,15 @@ def _triple_chunks(k: int) -> list[IntArray]:
 
 
 def _unique_rows(x: FloatArray, tol: float) -> FloatArray:
-    """Rows of x with near-duplicates (max-norm <= tol) removed, first kept."""
+    """Rows of x with near-duplicates removed (snapped to a tol grid; first kept).
+
+    Two rows straddling a grid line may both survive; every caller tolerates
+    duplicates, this only keeps the sets small.
+    """
     if x.shape[0] <= 1:
         return x
-    diff = np.max(np.abs(x[:, None, :] - x[None, :, :]), axis=-1)
-    dup = np.tril(diff <= tol, -1).any(axis=1)
-    return np.asarray(x[~dup], dtype=float)
+    _, first = np.unique(np.round(x / tol), axis=0, return_index=True)
+    return np.asarray(x[np.sort(first)], dtype=float)
 
 
 def normalised(poly: Polytope, name: str = "polytope") -> tuple[FloatArray, FloatArray]:

@@ -77,7 +77,7 @@ def _elastic_slack(
     """Smallest relaxation per group (one slack per group, rows normalised), by LP (HiGHS)."""
     from scipy.optimize import linprog
 
-    Gd = G.toarray() if sp.issparse(G) else np.asarray(G)
+    Gd = np.asarray(G.toarray()) if isinstance(G, sp.spmatrix | sp.sparray) else np.asarray(G)
     n, ng = Gd.shape[1], len(groups)
     gi = {g: i for i, g in enumerate(groups)}
     col = np.array([gi[k] for k in keys], dtype=np.int64)

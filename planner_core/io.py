@@ -171,7 +171,7 @@ def load_scenario(obj: Any) -> Scenario:
     if "waypoints" not in raw:
         raise ScenarioError("waypoints", "missing")
     wps = _matrix(raw["waypoints"], "waypoints", 3, 2)
-    m = wps.shape[0]
+    wps.shape[0]
     bounds = _bounds(raw)
     init = _state(raw.get("initial", {}), "initial", wps[0])
     fin = _state(raw.get("final", {}), "final", wps[-1])
@@ -330,8 +330,8 @@ def trajectory_from_dict(d: Any) -> Trajectory:
     segs = _list(obj.get("segments"), "segments")
     if not segs:
         raise ScenarioError("segments", "empty")
-    times = []
-    ctrl = []
+    times: list[float] = []
+    ctrl: list[FloatArray] = []
     corridors: list[Polytope | None] = []
     for i, s in enumerate(segs):
         so = _keys(s, f"segments[{i}]", ("t0", "t1", "control_points", "corridor"))

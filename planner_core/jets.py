@@ -28,8 +28,11 @@ A replanner calls it as:
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
+from functools import cached_property
+from typing import Any
 
 import numpy as np
 import scipy.sparse as sp
@@ -39,11 +42,14 @@ from planner_core.bezier import segments_from_jets
 from planner_core.constraints import (
     INF,
     KIND_BOUND,
+    KIND_CORRIDOR,
     SegmentRows,
     cost_matrices,
     hull_maps,
     segment_rows,
 )
+
+__all__ = ["JetSolve", "ProblemCache", "assemble", "initial_jets", "solve_jets", "trajectory_from_jets"]
 from planner_core.problem import JET_ORDER, FloatArray, Problem, Trajectory
 from planner_core.qp import QPResult, QPStatus, solve_qp
 
@@ -52,6 +58,7 @@ MARGIN = 1e-6  # relative tightening of every limit
 CHECK_TOL = 1e-9  # absolute: untightened rows must hold to this
 WAYPOINT_SNAP_REG = 1e-6
 NV = 4 * 3  # unknowns per free jet
+DENSE_FALLBACK_JETS = 200  # up to 2400 unknowns, a dense solve is still affordable
 
 
 def initial_jets(problem: Problem) -> FloatArray:
@@ -63,44 +70,166 @@ def initial_jets(problem: Problem) -> FloatArray:
     return jets
 
 
+@dataclass(frozen=True)
+class SegBlocks:
+    """One segment's rows: value = c0 + A @ Ja + B @ Jb (Ja, Jb: derivative rows of its jets, 12 each).
+
+    Rows are ordered [start-jet only | both jets | end-jet only] (n1, n2, n3 rows),
+    so every role a QP needs is a contiguous slice (a view, no copy):
+    'half' = [0:n1], 'a' (end jet fixed) = [0:n1+n2], 'b' (start jet fixed) = [n1:], 'ab' = all.
+    """
+
+    A: FloatArray  # (n, 12)
+    B: FloatArray  # (n, 12)
+    c0: FloatArray  # (n,) contribution of the two (fixed) waypoint positions
+    lo: FloatArray  # untightened limits
+    hi: FloatArray
+    lo_t: FloatArray  # tightened limits
+    hi_t: FloatArray
+    seg: NDArray[np.int64]
+    kind: NDArray[np.int64]
+    order: NDArray[np.int64]
+    n1: int
+    n2: int
+
+    @cached_property
+    def lim(self) -> FloatArray:
+        """(4, n): tightened lo, hi, untightened lo, hi (one slice per QP instead of four)."""
+        return np.stack([self.lo_t, self.hi_t, self.lo, self.hi])
+
+    @cached_property
+    def meta(self) -> NDArray[np.int64]:
+        """(3, n): segment, kind, order of each row."""
+        return np.stack([self.seg, self.kind, self.order])
+
+    def role(self, role: str) -> slice:
+        n = self.kind.size
+        return {
+            "half": slice(0, self.n1),
+            "a": slice(0, self.n1 + self.n2),
+            "b": slice(self.n1, n),
+            "ab": slice(0, n),
+        }[role]
+
+    def dead(self, role: str) -> slice:
+        """Rows that involve only the fixed jet in roles 'a' / 'b' (constants to check)."""
+        n = self.kind.size
+        return slice(self.n1 + self.n2, n) if role == "a" else slice(0, self.n1)
+
+
+def _bound_groups() -> tuple[NDArray[np.int64], int, int]:
+    """Permutation of the 90 bound rows into [start only | both | end only] and group sizes."""
+    from planner_core.constraints import _bound_meta
+
+    order, index, _, _ = _bound_meta()
+    a_only = index + order <= JET_ORDER - 1
+    b_only = index >= JET_ORDER
+    both = ~a_only & ~b_only
+    perm = np.concatenate([np.flatnonzero(a_only), np.flatnonzero(both), np.flatnonzero(b_only)])
+    return perm, int(a_only.sum()), int(both.sum())
+
+
 class ProblemCache:
-    """Everything that depends only on durations, bounds and corridors, built once per problem."""
+    """Everything that depends only on durations, bounds and corridors, built once per problem.
+
+    Bound rows of all segments are built in one vectorised pass; corridor rows
+    per segment on first use.
+    """
 
     def __init__(self, problem: Problem) -> None:
+        from planner_core.constraints import bound_row_orders
+
         self.problem = problem
         self.durations = problem.durations
         self.hull = hull_maps(self.durations)
-        self._rows: list[SegmentRows | None] = [None] * (problem.m - 1)
-        self._tight: list[tuple[FloatArray, FloatArray] | None] = [None] * (problem.m - 1)
+        n_seg = problem.m - 1
+        self._blocks: list[SegBlocks | None] = [None] * n_seg
         self._cost: dict[int, FloatArray] = {}
+        perm, self._bn1, self._bn2 = _bound_groups()
+        qb = self.hull[:, 10:40]  # (S, 30, 10) hodograph rows, per axis
+        eye = np.eye(3)
+        rows_a = np.einsum("src,de->srdce", qb[:, :, 1:5], eye).reshape(n_seg, 90, 12)
+        rows_b = np.einsum("src,de->srdce", qb[:, :, 6:10], eye).reshape(n_seg, 90, 12)
+        w = problem.waypoints
+        c0 = (qb[:, :, 0, None] * w[:-1, None, :] + qb[:, :, 5, None] * w[1:, None, :]).reshape(n_seg, 90)
+        self._bA = rows_a[:, perm]
+        self._bB = rows_b[:, perm]
+        self._bc0 = c0[:, perm]
+        orders = bound_row_orders()[perm]
+        axes = np.tile(np.arange(3), 30)[perm]
+        b = problem.bounds
+        lo = np.clip(b.lo[orders - 1, axes], -INF, INF)
+        hi = np.clip(b.hi[orders - 1, axes], -INF, INF)
+        self._blo, self._bhi = lo, hi
+        self._blo_t, self._bhi_t = _tighten(lo, hi)
+        self._border = orders.astype(np.int64)
 
     def rows(self, s: int) -> SegmentRows:
-        r = self._rows[s]
-        if r is None:
-            b = self.problem.bounds
-            r = segment_rows(self.hull[s], b.lo, b.hi, self.problem.corridor(s))
-            self._rows[s] = r
-        return r
+        b = self.problem.bounds
+        return segment_rows(self.hull[s], b.lo, b.hi, self.problem.corridor(s))
 
-    def tight(self, s: int) -> tuple[FloatArray, FloatArray]:
-        t = self._tight[s]
-        if t is None:
-            r = self.rows(s)
-            lo = np.where(r.lo > -INF, r.lo + MARGIN * (1.0 + np.abs(r.lo)), r.lo)
-            hi = np.where(r.hi < INF, r.hi - MARGIN * (1.0 + np.abs(r.hi)), r.hi)
-            t = (lo, hi)
-            self._tight[s] = t
-        return t
+    def blocks(self, s: int) -> SegBlocks:
+        blk = self._blocks[s]
+        if blk is None:
+            blk = self._build_blocks(s)
+            self._blocks[s] = blk
+        return blk
+
+    def _build_blocks(self, s: int) -> SegBlocks:
+        n1, n2 = self._bn1, self._bn2
+        poly = self.problem.corridor(s)
+        nb = self._border.size
+        kb = np.full(nb, KIND_BOUND, dtype=np.int64)
+        if poly is None or poly.A.shape[0] == 0:
+            return SegBlocks(
+                self._bA[s], self._bB[s], self._bc0[s], self._blo, self._bhi, self._blo_t, self._bhi_t,
+                np.full(nb, s, dtype=np.int64), kb, self._border, n1, n2,
+            )
+        q = self.hull[s]
+        f = poly.A.shape[0]
+        w = self.problem.waypoints
+        # P^1..P^4 depend on the start jet only, P^5..P^8 on the end jet only
+        pa = poly.A
+        # kron(X, A) written as a broadcast: np.kron is ~10x slower on these small blocks
+        ca = (q[1:5, None, 1:5, None] * pa[None, :, None, :]).reshape(4 * f, 12)
+        cb = (q[5:9, None, 6:10, None] * pa[None, :, None, :]).reshape(4 * f, 12)
+        ca0 = (q[1:5, 0, None] * (pa @ w[s])[None, :]).ravel()
+        cb0 = (q[5:9, 5, None] * (pa @ w[s + 1])[None, :]).ravel()
+        cb_hi = np.tile(poly.b, 4)
+        z = np.zeros((4 * f, 12))
+        sl_a, sl_m, sl_b = slice(0, n1), slice(n1, n1 + n2), slice(n1 + n2, nb)
+        A = np.vstack([self._bA[s, sl_a], ca, self._bA[s, sl_m], self._bA[s, sl_b], z])
+        B = np.vstack([self._bB[s, sl_a], z, self._bB[s, sl_m], self._bB[s, sl_b], cb])
+        c0 = np.concatenate([self._bc0[s, sl_a], ca0, self._bc0[s, sl_m], self._bc0[s, sl_b], cb0])
+        neg = np.full(4 * f, -INF)
+        hi_c = np.clip(cb_hi, -INF, INF)
+        hi_ct = _tighten(neg, hi_c)[1]
+
+        def mix(bound: NDArray[Any], cor: NDArray[Any]) -> NDArray[Any]:
+            return np.concatenate([bound[sl_a], cor, bound[sl_m], bound[sl_b], cor])
+
+        kc = np.full(4 * f, KIND_CORRIDOR, dtype=np.int64)
+        zc = np.zeros(4 * f, dtype=np.int64)
+        return SegBlocks(
+            A, B, c0, mix(self._blo, neg), mix(self._bhi, hi_c), mix(self._blo_t, neg), mix(self._bhi_t, hi_ct),
+            np.full(nb + 8 * f, s, dtype=np.int64), mix(kb, kc), mix(self._border, zc), n1 + 4 * f, n2,
+        )
 
     def cost30(self, order: int) -> FloatArray:
-        """(S, 30, 30) per-segment cost matrices in the 30-layout."""
+        """(S, 30, 30) per-segment cost matrices (times 2: the Hessian of z'Kz) in the 30-layout."""
         c = self._cost.get(order)
         if c is None:
             k = cost_matrices(self.durations, order)
-            s = k.shape[0]
-            c = np.einsum("sij,de->sidje", k, np.eye(3)).reshape(s, 30, 30)
+            n = k.shape[0]
+            c = 2.0 * np.einsum("sij,de->sidje", k, np.eye(3)).reshape(n, 30, 30)
             self._cost[order] = c
         return c
+
+
+def _tighten(lo: FloatArray, hi: FloatArray) -> tuple[FloatArray, FloatArray]:
+    lo_t = np.where(lo > -INF, lo + MARGIN * (1.0 + np.abs(lo)), lo)
+    hi_t = np.where(hi < INF, hi - MARGIN * (1.0 + np.abs(hi)), hi)
+    return lo_t, hi_t
 
 
 @dataclass
@@ -127,6 +256,10 @@ class JetSolve:
     qp: QPResult | None
     max_violation: float
     n_rows: int
+    t_build: float = 0.0  # seconds: assembling the QP from cached rows
+    t_solve: float = 0.0  # seconds: backend call(s)
+    t_check: float = 0.0  # seconds: scaling, row selection, exactness check
+    n_active_rows: int = 0  # rows handed to the backend (lazy selection)
 
     @property
     def ok(self) -> bool:
@@ -155,8 +288,7 @@ def assemble(
     drop: frozenset[tuple[int, int, int]] = frozenset(),
 ) -> AssembledQP:
     """Build the QP for `free` jets. `drop` removes groups (segment, kind, order) for diagnosis."""
-    problem = cache.problem
-    m = problem.m
+    m = cache.problem.m
     free = sorted(free)
     if not free or free[0] < 1 or free[-1] > m - 2:
         raise ValueError(f"free: jets must be interior waypoints 1..{m - 2}, got {free}")
@@ -164,93 +296,81 @@ def assemble(
     nx = NV * len(free)
     full, half = _segment_roles(m, free, open_end)
 
-    # constraint blocks: (row block coefficients per free jet, bounds, meta)
     g_blocks: list[tuple[int, int, FloatArray]] = []  # (row offset, jet position, (n, 12))
-    lo_parts: list[FloatArray] = []
-    hi_parts: list[FloatArray] = []
-    lo0_parts: list[FloatArray] = []
-    hi0_parts: list[FloatArray] = []
-    meta: list[tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]] = []
+    lim_p: list[FloatArray] = []
+    meta_p: list[NDArray[np.int64]] = []
     const_viol: list[tuple[int, int, int, float]] = []
     n_rows = 0
-    for s in [*full, *([half] if half is not None else [])]:
-        sr = cache.rows(s)
-        tlo, thi = cache.tight(s)
-        sel = sr.half if s == half else np.ones(sr.rows.shape[0], dtype=bool)
+    segs = [*full, *([half] if half is not None else [])]
+    for s in segs:
+        a_free = s in pos
+        b_free = (s + 1) in pos and s != half
+        role = "half" if s == half else ("ab" if a_free and b_free else ("a" if a_free else "b"))
+        blk = cache.blocks(s)
+        if role in ("a", "b"):
+            _check_constant_rows(blk, s, blk.dead(role), jets, const_viol)
+        sl = blk.role(role)
+        A, B, c0, lim, meta = blk.A[sl], blk.B[sl], blk.c0[sl], blk.lim[:, sl], blk.meta[:, sl]
         if drop:
-            for seg, kind, order in drop:
-                if seg == s:
-                    sel = sel & ~((sr.kind == kind) & (sr.order == order))
-        R = sr.rows[sel]
-        const = R[:, 0:3] @ jets[s, 0] + R[:, 15:18] @ jets[s + 1, 0]
-        coeffs: list[tuple[int, FloatArray]] = []
-        for side, jet in ((0, s), (1, s + 1)):
-            block = R[:, 15 * side + 3 : 15 * side + 15]
-            if jet in pos:
-                coeffs.append((pos[jet], block))
-            elif s != half or side == 0:
-                const = const + block @ jets[jet, 1:].ravel()
-        live = np.zeros(R.shape[0], dtype=bool)
-        for _, block in coeffs:
-            live |= np.any(block != 0.0, axis=1)
-        lo0 = sr.lo[sel] - const
-        hi0 = sr.hi[sel] - const
-        dead = ~live
-        if dead.any():
-            viol = np.maximum(-hi0[dead], lo0[dead])  # 0 <= ... : constant value is 0 after shift
-            kinds = sr.kind[sel][dead]
-            orders = sr.order[sel][dead]
-            for v, k, o in zip(viol, kinds, orders, strict=True):
-                if v > CHECK_TOL:
-                    const_viol.append((s, int(k), int(o), float(v)))
-        n_live = int(live.sum())
-        for p, block in coeffs:
-            g_blocks.append((n_rows, p, block[live]))
-        lo_parts.append((tlo[sel] - const)[live])
-        hi_parts.append((thi[sel] - const)[live])
-        lo0_parts.append(lo0[live])
-        hi0_parts.append(hi0[live])
-        meta.append((np.full(n_live, s), sr.kind[sel][live], sr.order[sel][live]))
-        n_rows += n_live
+            keep = np.ones(meta.shape[1], dtype=bool)
+            for dseg, dkind, dorder in drop:
+                if dseg == s:
+                    keep &= ~((meta[1] == dkind) & (meta[2] == dorder))
+            A, B, c0, lim, meta = A[keep], B[keep], c0[keep], lim[:, keep], meta[:, keep]
+        const = c0
+        if a_free:
+            g_blocks.append((n_rows, pos[s], A))
+        else:
+            const = const + A @ jets[s, 1:].ravel()
+        if b_free:
+            g_blocks.append((n_rows, pos[s + 1], B))
+        elif role != "half":
+            const = const + B @ jets[s + 1, 1:].ravel()
+        lim_p.append(lim - const)
+        meta_p.append(meta)
+        n_rows += meta.shape[1]
 
-    P, q = _cost_terms(cache, jets, free, pos, full, cost)
+    P, q = _cost_terms(cache, jets, free, pos, full, cost, sparse)
     G: FloatArray | sp.csc_matrix
     if sparse:
-        rr: list[NDArray[np.int64]] = []
-        cc: list[NDArray[np.int64]] = []
-        vv: list[FloatArray] = []
-        for r0, p, block in g_blocks:
-            nz_r, nz_c = np.nonzero(block)
-            rr.append(nz_r + r0)
-            cc.append(nz_c + NV * p)
-            vv.append(block[nz_r, nz_c])
-        G = sp.csc_matrix(
-            (np.concatenate(vv) if vv else np.zeros(0),
-             (np.concatenate(rr) if rr else np.zeros(0, dtype=np.int64),
-              np.concatenate(cc) if cc else np.zeros(0, dtype=np.int64))),
-            shape=(n_rows, nx),
-        )
+        G = _sparse_rows(g_blocks, n_rows, nx)
     else:
         G = np.zeros((n_rows, nx))
         for r0, p, block in g_blocks:
             G[r0 : r0 + block.shape[0], NV * p : NV * p + NV] = block
+    L = np.concatenate(lim_p, axis=1)
+    M = np.concatenate(meta_p, axis=1)
+    return AssembledQP(P, q, G, L[0], L[1], L[2], L[3], M[0], M[1], M[2], const_viol)
 
-    def cat(parts: list[FloatArray]) -> FloatArray:
-        return np.concatenate(parts) if parts else np.zeros(0)
 
-    return AssembledQP(
-        P=sp.csc_matrix(P) if sparse else P,
-        q=q,
-        G=G,
-        lo=cat(lo_parts),
-        hi=cat(hi_parts),
-        lo0=cat(lo0_parts),
-        hi0=cat(hi0_parts),
-        row_segment=np.concatenate([a for a, _, _ in meta]) if meta else np.zeros(0, dtype=np.int64),
-        row_kind=np.concatenate([b for _, b, _ in meta]) if meta else np.zeros(0, dtype=np.int64),
-        row_order=np.concatenate([c for _, _, c in meta]) if meta else np.zeros(0, dtype=np.int64),
-        constant_violation=const_viol,
-    )
+def _check_constant_rows(
+    blk: SegBlocks, s: int, dead: slice, jets: FloatArray, out: list[tuple[int, int, int, float]]
+) -> None:
+    """Rows of a segment that involve only its fixed jet are constants: they must already hold."""
+    if dead.stop <= dead.start:
+        return
+    val = blk.c0[dead] + blk.A[dead] @ jets[s, 1:].ravel() + blk.B[dead] @ jets[s + 1, 1:].ravel()
+    viol = np.maximum(val - blk.hi[dead], blk.lo[dead] - val)
+    if viol.max() > CHECK_TOL:
+        for i in np.flatnonzero(viol > CHECK_TOL):
+            out.append((s, int(blk.kind[dead][i]), int(blk.order[dead][i]), float(viol[i])))
+
+
+def _sparse_rows(g_blocks: list[tuple[int, int, FloatArray]], n_rows: int, nx: int) -> sp.csc_matrix:
+    rr: list[NDArray[np.int64]] = []
+    cc: list[NDArray[np.int64]] = []
+    vv: list[FloatArray] = []
+    for r0, p, block in g_blocks:
+        nz_r, nz_c = np.nonzero(block)
+        rr.append(nz_r + r0)
+        cc.append(nz_c + NV * p)
+        vv.append(block[nz_r, nz_c])
+    if not vv:
+        return sp.csc_matrix((n_rows, nx))
+    return sp.csc_matrix((np.concatenate(vv), (np.concatenate(rr), np.concatenate(cc))), shape=(n_rows, nx))
+
+
+_SIDE = (slice(3, 15), slice(18, 30))
 
 
 def _cost_terms(
@@ -260,102 +380,98 @@ def _cost_terms(
     pos: dict[int, int],
     full: list[int],
     cost: str,
-) -> tuple[FloatArray | sp.lil_matrix, FloatArray]:
+    sparse: bool,
+) -> tuple[FloatArray | sp.csc_matrix, FloatArray]:
     nx = NV * len(free)
-    big = len(free) > 40
-    P: FloatArray | sp.lil_matrix = sp.lil_matrix((nx, nx)) if big else np.zeros((nx, nx))
     q = np.zeros(nx)
     if cost == "waypoint-snap":
-        snap_idx = np.concatenate([NV * p + np.arange(9, 12) for p in range(len(free))])
         diag = np.full(nx, WAYPOINT_SNAP_REG)
-        diag[snap_idx] += 2.0
-        if big:
-            return sp.diags(diag).tolil(), q
-        return np.diag(diag), q
+        for p in range(len(free)):
+            diag[NV * p + 9 : NV * p + 12] += 2.0
+        return (sp.diags(diag, format="csc") if sparse else np.diag(diag)), q
     if cost not in ("snap", "jerk"):
         raise ValueError(f"cost: unknown cost {cost!r} (expected one of {COSTS})")
     k_all = cache.cost30(4 if cost == "snap" else 3)
-    if big:
-        return _cost_terms_sparse(k_all, jets, free, pos, full)
-    assert isinstance(P, np.ndarray)
+    blocks: list[tuple[int, int, FloatArray]] = []
     for s in full:
         K = k_all[s]
-        z = np.concatenate([jets[s].ravel(), jets[s + 1].ravel()])
-        fixed = np.ones(30, dtype=bool)
-        idx = []
-        for side, jet in ((0, s), (1, s + 1)):
-            if jet in pos:
-                cols = np.arange(15 * side + 3, 15 * side + 15)
-                fixed[cols] = False
-                idx.append((pos[jet], cols))
-        zf = np.where(fixed, z, 0.0)
-        grad = 2.0 * K @ zf
-        for pa, ca in idx:
-            q[NV * pa : NV * pa + NV] += grad[ca]
-            for pb, cb in idx:
-                P[NV * pa : NV * pa + NV, NV * pb : NV * pb + NV] += 2.0 * K[np.ix_(ca, cb)]
-    return P, q
-
-
-def _cost_terms_sparse(
-    k_all: FloatArray, jets: FloatArray, free: list[int], pos: dict[int, int], full: list[int]
-) -> tuple[sp.coo_matrix, FloatArray]:
-    nx = NV * len(free)
-    q = np.zeros(nx)
-    rows: list[NDArray[np.int64]] = []
-    cols: list[NDArray[np.int64]] = []
-    vals: list[FloatArray] = []
-    local = np.arange(NV)
-    for s in full:
-        K = k_all[s]
-        z = np.concatenate([jets[s].ravel(), jets[s + 1].ravel()])
-        fixed = np.ones(30, dtype=bool)
-        idx = []
-        for side, jet in ((0, s), (1, s + 1)):
-            if jet in pos:
-                c = np.arange(15 * side + 3, 15 * side + 15)
-                fixed[c] = False
-                idx.append((pos[jet], c))
-        grad = 2.0 * K @ np.where(fixed, z, 0.0)
-        for pa, ca in idx:
-            q[NV * pa : NV * pa + NV] += grad[ca]
-            for pb, cb in idx:
-                blk = 2.0 * K[np.ix_(ca, cb)]
-                rows.append(np.repeat(NV * pa + local, NV))
-                cols.append(np.tile(NV * pb + local, NV))
-                vals.append(blk.ravel())
-    P = sp.coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(nx, nx))
-    return P, q
+        pa = pos.get(s)
+        pb = pos.get(s + 1)
+        if pa is not None and pb is not None:
+            blocks += [(pa, pa, K[3:15, 3:15]), (pa, pb, K[3:15, 18:30]), (pb, pa, K[18:30, 3:15]),
+                       (pb, pb, K[18:30, 18:30])]
+            # only the (fixed) positions enter the linear term
+            grad = K[:, [0, 1, 2, 15, 16, 17]] @ np.concatenate([jets[s, 0], jets[s + 1, 0]])
+            q[NV * pa : NV * pa + NV] += grad[3:15]
+            q[NV * pb : NV * pb + NV] += grad[18:30]
+        elif pa is not None:
+            blocks.append((pa, pa, K[3:15, 3:15]))
+            z = np.concatenate([jets[s, 0], np.zeros(NV), jets[s + 1].ravel()])
+            q[NV * pa : NV * pa + NV] += K[3:15] @ z
+        elif pb is not None:
+            blocks.append((pb, pb, K[18:30, 18:30]))
+            z = np.concatenate([jets[s].ravel(), jets[s + 1, 0], np.zeros(NV)])
+            q[NV * pb : NV * pb + NV] += K[18:30] @ z
+    if sparse:
+        local = np.arange(NV)
+        rows = [np.repeat(NV * pa + local, NV) for pa, _, _ in blocks]
+        cols = [np.tile(NV * pb + local, NV) for _, pb, _ in blocks]
+        vals = [blk.ravel() for _, _, blk in blocks]
+        P = sp.csc_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(nx, nx))
+        return P, q
+    Pd = np.zeros((nx, nx))
+    for pa, pb, blk in blocks:
+        Pd[NV * pa : NV * pa + NV, NV * pb : NV * pb + NV] += blk
+    return Pd, q
 
 
 def _column_scale(cache: ProblemCache, free: Sequence[int]) -> FloatArray:
-    """Per-variable scale τ^k (τ: mean duration around the jet) so that derivative
+    """Per-variable scale τ^-k (τ: mean duration around the jet) so that derivative
     orders 1..4 have comparable magnitudes; without it long segments give Hessians
     with condition numbers ~ Δ^8."""
     d = cache.durations
-    out = np.empty(NV * len(free))
-    k = np.repeat(np.arange(1, 5), 3)
-    for p, f in enumerate(sorted(free)):
-        tau = 0.5 * (d[f - 1] + d[f])
-        out[NV * p : NV * p + NV] = tau ** (-k.astype(float))
-    return out
+    f = np.asarray(sorted(free))
+    tau = 0.5 * (d[f - 1] + d[f])
+    return np.asarray((tau[:, None] ** -_ORDERS[None, :]).ravel())
 
 
-def solve_assembled(qp: AssembledQP, backend: str, col_scale: FloatArray | None = None) -> tuple[QPResult, float]:
+_ORDERS = np.repeat(np.arange(1, 5), 3).astype(float)
+LAZY_SLACK = 0.2  # rows whose relative slack at the guess is below this start in the working set
+LAZY_ROUNDS = 6
+LAZY = True
+LAZY_MIN_VARS = 36  # measured: below 3 jets the selection costs more than it saves
+
+
+def solve_assembled(
+    qp: AssembledQP,
+    backend: str,
+    col_scale: FloatArray | None = None,
+    guess: FloatArray | None = None,
+) -> tuple[QPResult, float, int]:
     """Solve (on a row- and column-scaled copy) and check against the untightened rows.
 
-    Returns (result, max violation of the untightened rows).
+    With `guess` (dense backends only), start from the rows that are nearly
+    active at the guess and add violated rows until none is left: the result
+    is then optimal for the full QP (optimal on a relaxation, feasible for all).
+    Returns (result, max violation of the untightened rows, rows given to the backend).
     """
     if qp.constant_violation:
-        return QPResult(QPStatus.INFEASIBLE, None, 0, 0.0, backend), max(v for *_, v in qp.constant_violation)
+        res = QPResult(QPStatus.INFEASIBLE, None, 0, 0.0, backend)
+        return res, max(v for *_, v in qp.constant_violation), 0
     nx = qp.q.shape[0]
+    if backend == "osqp":
+        # OSQP's own Ruiz equilibration does better without ours (measured: 950 vs 20000 iterations)
+        res = solve_qp(qp.P, qp.q, qp.G, qp.lo, qp.hi, backend)
+        if not res.ok:
+            return res, np.inf, qp.lo.size
+        return _checked(qp, res, backend, np.ones(nx), qp.lo.size)
     c = np.ones(nx) if col_scale is None else col_scale
     if sp.issparse(qp.G):
         Gc = sp.csc_matrix(qp.G @ sp.diags(c))
         norms = np.sqrt(np.asarray(Gc.multiply(Gc).sum(axis=1)).ravel())
         norms[norms == 0] = 1.0
-        Gs = sp.csc_matrix(sp.diags(1.0 / norms) @ Gc)
-        Ps = sp.csc_matrix(sp.diags(c) @ sp.csc_matrix(qp.P) @ sp.diags(c))
+        Gs: FloatArray | sp.csc_matrix = sp.csc_matrix(sp.diags(1.0 / norms) @ Gc)
+        Ps: FloatArray | sp.csc_matrix = sp.csc_matrix(sp.diags(c) @ sp.csc_matrix(qp.P) @ sp.diags(c))
         pscale = float(np.max(np.abs(Ps.diagonal()))) or 1.0
     else:
         Gc = np.asarray(qp.G) * c[None, :]
@@ -366,15 +482,52 @@ def solve_assembled(qp: AssembledQP, backend: str, col_scale: FloatArray | None 
         pscale = float(np.max(np.abs(np.diag(Ps)))) or 1.0
     lo = np.where(qp.lo > -INF, qp.lo / norms, -INF)
     hi = np.where(qp.hi < INF, qp.hi / norms, INF)
-    res = solve_qp(Ps / pscale, qp.q * c / pscale, Gs, lo, hi, backend)
+    Ps = Ps / pscale
+    qs = qp.q * c / pscale
+    n_used = lo.size
+    if LAZY and guess is not None and not sp.issparse(Gs) and nx >= LAZY_MIN_VARS and lo.size > 2 * nx:
+        res, n_used = _solve_lazy(Ps, qs, np.asarray(Gs), lo, hi, guess / c, backend)
+    else:
+        res = solve_qp(Ps, qs, Gs, lo, hi, backend)
     if not res.ok or res.x is None:
-        return res, np.inf
+        return res, np.inf, n_used
+    return _checked(qp, res, backend, c, n_used)
+
+
+def _checked(qp: AssembledQP, res: QPResult, backend: str, c: FloatArray, n_used: int) -> tuple[QPResult, float, int]:
+    assert res.x is not None
     x = res.x * c
     r = np.asarray(qp.G @ x).ravel()
     viol = float(max(np.max(r - qp.hi0, initial=0.0), np.max(qp.lo0 - r, initial=0.0)))
     if viol > CHECK_TOL:
-        return QPResult(QPStatus.FAILED, None, res.iterations, res.solve_time, backend), viol
-    return replace(res, x=x), viol
+        return QPResult(QPStatus.FAILED, None, res.iterations, res.solve_time, backend), viol, n_used
+    return replace(res, x=x), viol, n_used
+
+
+def _solve_lazy(
+    P: FloatArray, q: FloatArray, G: FloatArray, lo: FloatArray, hi: FloatArray, y0: FloatArray, backend: str
+) -> tuple[QPResult, int]:
+    r = G @ y0
+    span = np.minimum(hi - r, r - lo)
+    scale = 1.0 + np.minimum(np.abs(hi), np.abs(lo))
+    work = span < LAZY_SLACK * scale
+    total = 0.0
+    iters = 0
+    for _ in range(LAZY_ROUNDS):
+        idx = np.flatnonzero(work)
+        res = solve_qp(P, q, G[idx], lo[idx], hi[idx], backend)
+        total += res.solve_time
+        iters += res.iterations
+        if not res.ok or res.x is None:
+            return replace(res, solve_time=total, iterations=iters), int(idx.size)
+        r = G @ res.x
+        tol = 1e-12 * (1.0 + np.abs(hi))
+        bad = ((r > hi + tol) | (r < lo - tol)) & ~work
+        if not bad.any():
+            return replace(res, solve_time=total, iterations=iters), int(idx.size)
+        work |= bad
+    res = solve_qp(P, q, G, lo, hi, backend)
+    return replace(res, solve_time=total + res.solve_time, iterations=iters + res.iterations), int(lo.size)
 
 
 def solve_jets(
@@ -386,21 +539,34 @@ def solve_jets(
     backend: str = "daqp",
     open_end: bool = False,
     cache: ProblemCache | None = None,
+    guess: FloatArray | None = None,
 ) -> JetSolve:
     """Solve the jets at `free` (interior indices) with every other jet of `jets` fixed.
 
     Returns a copy of `jets` with the free rows replaced (on success) and the
     QP's status. `cache` may be passed to reuse duration-dependent matrices
-    across calls on the same problem.
+    across calls on the same problem. `guess` (m, 5, 3), e.g. the previous
+    window's solution, lets the dense backend start from the nearly active rows.
     """
     cache = cache if cache is not None and cache.problem is problem else ProblemCache(problem)
     sparse = backend == "osqp" and len(free) > 4
+    t0 = time.perf_counter()
     qp = assemble(cache, jets, free, cost=cost, open_end=open_end, sparse=sparse)
-    res, viol = solve_assembled(qp, backend, _column_scale(cache, free))
+    t1 = time.perf_counter()
+    x0 = None if guess is None else np.asarray(guess)[sorted(free), 1:].ravel()
+    res, viol, n_used = solve_assembled(qp, backend, _column_scale(cache, free), x0)
+    if res.status is QPStatus.FAILED and backend == "osqp" and len(free) <= DENSE_FALLBACK_JETS:
+        # ADMM stalled or its answer did not refine to an exact one: the dense active-set solver is exact
+        qp = assemble(cache, jets, free, cost=cost, open_end=open_end)
+        res, viol, n_used = solve_assembled(qp, "daqp", _column_scale(cache, free), None)
+    t2 = time.perf_counter()
     out = np.array(jets, dtype=float, copy=True)
     if res.ok and res.x is not None:
         out[sorted(free), 1:] = res.x.reshape(len(free), 4, 3)
-    return JetSolve(res.status, out, res, viol, int(qp.G.shape[0]))
+    t_solve = res.solve_time if res.solve_time > 0 else t2 - t1
+    return JetSolve(
+        res.status, out, res, viol, int(qp.G.shape[0]), t1 - t0, t_solve, max(t2 - t1 - t_solve, 0.0), n_used
+    )
 
 
 def trajectory_from_jets(problem: Problem, jets: FloatArray, stats: dict[str, object] | None = None) -> Trajectory:

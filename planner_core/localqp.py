@@ -19,7 +19,7 @@ from functools import lru_cache
 import numpy as np
 from numpy.typing import NDArray
 
-from planner_core.bezier import hodograph_matrix, hodographs, segment_from_jets
+from planner_core.bezier import hodograph_matrix, segment_from_jets
 from planner_core.constraints import KIND_BOUND, cost_matrices, hull_maps, segment_rows
 from planner_core.problem import DEGREE, JET_ORDER, ORDER_NAMES, Bounds, FloatArray, Polytope
 from planner_core.qp import solve_qp
@@ -152,6 +152,14 @@ def solve_local(
     return LocalSolution(True, out, "ok", qp_time, n, G.shape[0])
 
 
+@lru_cache(maxsize=4096)
+def _hodograph_stack(d: float) -> FloatArray:
+    """(30, 10): control points -> hodograph control points of orders 1..4, stacked."""
+    out = np.vstack([hodograph_matrix(k, d) for k in range(1, 5)])
+    out.setflags(write=False)
+    return out
+
+
 def hull_violation(
     ctrl: FloatArray,
     durations: FloatArray,
@@ -162,23 +170,24 @@ def hull_violation(
 ) -> str | None:
     """First hull certificate failure of segments (s, 10, 3), or None when all pass.
 
-    `labels` are the segments' indices to name in the message (default 0..s-1).
+    Checks every hodograph control point of orders 1..4 against the bounds and
+    all 10 control points against the corridor. `labels` are the segments'
+    indices to name in the message (default 0..s-1).
     """
-    d = np.asarray(durations, dtype=float)
     names = list(range(ctrl.shape[0])) if labels is None else list(labels)
-    for k in range(1, 5):
-        h = hodographs(ctrl, k, d)  # (s, 10-k, 3)
-        over = h - bounds.hi[k - 1]
-        under = bounds.lo[k - 1] - h
-        worst = np.maximum(over, under).max(axis=(1, 2))
-        if np.any(worst > tol):
-            s = int(np.argmax(worst))
-            return f"{ORDER_NAMES[k]} bound exceeded by {float(worst[s]):.3g} on segment {names[s]}"
-    for s, poly in enumerate(corridors):
+    lo = bounds.lo[_ORDER_OF_ROW - 1]  # (30, 3)
+    hi = bounds.hi[_ORDER_OF_ROW - 1]
+    for i in range(ctrl.shape[0]):
+        h = _hodograph_stack(float(durations[i])) @ ctrl[i]  # (30, 3)
+        worst = np.maximum(h - hi, lo - h)
+        if float(worst.max()) > tol:
+            k = int(_ORDER_OF_ROW[int(np.argmax(worst.max(axis=1)))])
+            return f"{ORDER_NAMES[k]} bound exceeded by {float(worst.max()):.3g} on segment {names[i]}"
+        poly = corridors[i]
         if poly is not None and poly.A.shape[0] > 0:
-            v = poly.violation(ctrl[s])
+            v = float((ctrl[i] @ poly.A.T - poly.b).max())
             if v > tol:
-                return f"corridor violated by {v:.3g} on segment {names[s]}"
+                return f"corridor violated by {v:.3g} on segment {names[i]}"
     return None
 
 
@@ -226,6 +235,65 @@ def _tighten(lo: FloatArray, hi: FloatArray) -> tuple[FloatArray, FloatArray]:
     return tlo, thi
 
 
+@dataclass(frozen=True)
+class _SegmentMats:
+    """Everything about one segment's QP block that depends only on its duration and free sides."""
+
+    Q: FloatArray  # (40, 10) hull map per axis over (side*5 + order)
+    fixed: NDArray[np.bool_]  # (10,) entries held fixed
+    live_b: NDArray[np.bool_]  # (30,) hodograph points that depend on a free entry
+    order_live: NDArray[np.int64]  # bound row (order-1) of each live hodograph point
+    order_dead: NDArray[np.int64]
+    gb: dict[int, FloatArray]  # free side -> (3 * live points, 12) bound rows
+    live_c: NDArray[np.bool_]  # (8,) control points P^1..P^8 that depend on a free entry
+    qc: dict[int, FloatArray]  # free side -> (live points, 4) corridor coefficients per axis
+    pblk: dict[tuple[int, int], FloatArray]  # (side a, side b) -> (12, 12) cost Hessian block
+    kq: dict[int, FloatArray]  # free side -> (4, 10): cost gradient rows (times fixed entries)
+
+
+_HODO = slice(DEGREE + 1, None)  # hull rows 10..39: hodographs of orders 1..4
+_INNER = slice(1, DEGREE)  # control points P^1..P^8
+_ORDER_OF_ROW = np.concatenate([np.full(DEGREE + 1 - k, k) for k in range(1, 5)])
+
+
+def _expand(blk: FloatArray, other: FloatArray) -> FloatArray:
+    """Rows (i, f) x columns (order, axis): blk[i, order] * other[f, axis]."""
+    r, c = blk.shape
+    f, a = other.shape
+    return np.asarray((blk[:, None, :, None] * other[None, :, None, :]).reshape(r * f, c * a))
+
+
+@lru_cache(maxsize=4096)
+def _segment_mats(d: float, free0: bool, free1: bool) -> _SegmentMats:
+    Q = hull_maps(np.array([d]))[0]
+    K = cost_matrices(np.array([d]), 4)[0]
+    sides = [side for side, f in ((0, free0), (1, free1)) if f]
+    cols = {side: np.arange(side * JET_ORDER + 1, side * JET_ORDER + JET_ORDER) for side in sides}
+    fixed = np.ones(2 * JET_ORDER, dtype=bool)
+    for c in cols.values():
+        fixed[c] = False
+    qb = Q[_HODO]
+    qi = Q[_INNER]
+    live_b = np.zeros(qb.shape[0], dtype=bool)
+    live_c = np.zeros(qi.shape[0], dtype=bool)
+    for c in cols.values():
+        live_b |= np.any(qb[:, c] != 0.0, axis=1)
+        live_c |= np.any(qi[:, c] != 0.0, axis=1)
+    eye3 = np.eye(3)
+    return _SegmentMats(
+        Q=Q,
+        fixed=fixed,
+        live_b=live_b,
+        order_live=_ORDER_OF_ROW[live_b] - 1,
+        order_dead=_ORDER_OF_ROW[~live_b] - 1,
+        gb={side: _expand(qb[live_b][:, c], eye3) for side, c in cols.items()},
+        live_c=live_c,
+        qc={side: qi[live_c][:, c] for side, c in cols.items()},
+        pblk={(sa, sb): 2.0 * _expand(K[np.ix_(ca, cb)], eye3) for sa, ca in cols.items() for sb, cb in cols.items()},
+        kq={side: 2.0 * K[c] for side, c in cols.items()},
+    )
+
+
 def solve_derivatives(
     jets: Mapping[int, FloatArray],
     durations: Mapping[int, float],
@@ -239,89 +307,55 @@ def solve_derivatives(
 
     Same QP as jets.solve_jets (integrated squared snap, rows tightened by
     MARGIN, solution checked against the untightened rows), assembled per
-    axis with broadcasting instead of Kronecker products: it is the
-    latency-critical step of a local replan.
+    axis from per-duration cached blocks: it is the latency-critical step of
+    a local replan.
     """
     free = sorted(free)
     pos = {j: i for i, j in enumerate(free)}
     n = _NV * len(free)
     segs = sorted({s for j in free for s in (j - 1, j)})
-    eye3 = np.eye(3)
     g_parts: list[FloatArray] = []
     lo_parts: list[FloatArray] = []
     hi_parts: list[FloatArray] = []
     P = np.zeros((n, n))
     q = np.zeros(n)
-    hodo = slice(DEGREE + 1, None)  # hull rows 10..39: hodographs of orders 1..4
-    inner = slice(1, DEGREE)  # control points P^1..P^8
-    order_of_row = np.concatenate([np.full(DEGREE + 1 - k, k) for k in range(1, 5)])
     for s in segs:
-        d = float(durations[s])
-        Q = hull_maps(np.array([d]))[0]  # (40, 10) per axis over (side*5 + order)
-        K = cost_matrices(np.array([d]), 4)[0]  # (10, 10)
-        Z = np.concatenate([jets[s], jets[s + 1]])  # (10, 3)
-        fcols: list[tuple[int, NDArray[np.int64]]] = []
-        fixed = np.ones(2 * JET_ORDER, dtype=bool)
-        for side, j in ((0, s), (1, s + 1)):
-            if j in pos:
-                c = np.arange(side * JET_ORDER + 1, side * JET_ORDER + JET_ORDER)
-                fixed[c] = False
-                fcols.append((pos[j], c))
-        Zf = np.where(fixed[:, None], Z, 0.0)
-        base = Q @ Zf  # (40, 3): every hull point's value from the fixed entries
-        # bounds, rows (point, axis)
-        qb = Q[hodo]
-        live_b = np.zeros(qb.shape[0], dtype=bool)
-        for _, c in fcols:
-            live_b |= np.any(qb[:, c] != 0.0, axis=1)
-        lo_b = bounds.lo[order_of_row - 1]  # (30, 3)
-        hi_b = bounds.hi[order_of_row - 1]
-        vb = base[hodo]
-        dead = ~live_b
-        if np.any(dead):
-            over = np.maximum(vb[dead] - hi_b[dead], lo_b[dead] - vb[dead])
-            if np.any(over > CHECK_TOL):
-                r = int(np.argmax(over.max(axis=1)))
-                k = int(order_of_row[np.flatnonzero(dead)[r]])
-                return LocalSolution(False, {}, f"{ORDER_NAMES[k]} bound of segment {s} violated by "
-                                     f"{float(over.max()):.3g} by jets held fixed", 0.0, n, 0)
-        nb = int(live_b.sum())
-        gb = np.zeros((nb, 3, n))
-        for p, c in fcols:
-            blk = qb[live_b][:, c]  # (nb, 4)
-            gb[:, :, _NV * p : _NV * p + _NV] = (blk[:, None, :, None] * eye3[None, :, None, :]).reshape(nb, 3, _NV)
-        g_parts.append(gb.reshape(nb * 3, n))
-        lo_parts.append((lo_b[live_b] - vb[live_b]).ravel())
-        hi_parts.append((hi_b[live_b] - vb[live_b]).ravel())
-        # corridor, rows (point, face)
+        side_pos = {side: pos[j] for side, j in ((0, s), (1, s + 1)) if j in pos}
+        mats = _segment_mats(float(durations[s]), 0 in side_pos, 1 in side_pos)
+        Zf = np.concatenate([jets[s], jets[s + 1]]) * mats.fixed[:, None]  # (10, 3)
+        base = mats.Q @ Zf  # every hull point's value from the fixed entries
+        vb = base[_HODO]
+        live = mats.live_b
+        vdead = vb[~live]
+        over = np.maximum(vdead - bounds.hi[mats.order_dead], bounds.lo[mats.order_dead] - vdead)
+        if over.size and float(over.max()) > CHECK_TOL:
+            k = int(mats.order_dead[int(np.argmax(over.max(axis=1)))]) + 1
+            return LocalSolution(False, {}, f"{ORDER_NAMES[k]} bound of segment {s} violated by "
+                                 f"{float(over.max()):.3g} by jets held fixed", 0.0, n, 0)
+        vlive = vb[live]
+        g = np.zeros((vlive.size, n))
+        for side, p in side_pos.items():
+            g[:, _NV * p : _NV * p + _NV] = mats.gb[side]
+        g_parts.append(g)
+        lo_parts.append((bounds.lo[mats.order_live] - vlive).ravel())
+        hi_parts.append((bounds.hi[mats.order_live] - vlive).ravel())
         poly = corridor_of(s)
         if poly is not None and poly.A.shape[0]:
-            A = poly.A
-            qc = Q[inner]
-            live_c = np.zeros(qc.shape[0], dtype=bool)
-            for _, c in fcols:
-                live_c |= np.any(qc[:, c] != 0.0, axis=1)
-            vc = base[inner] @ A.T - poly.b  # (8, f): <= 0 wanted
-            if np.any(vc[~live_c] > CHECK_TOL):
+            vc = base[_INNER] @ poly.A.T - poly.b  # (8, faces): <= 0 wanted
+            lc = mats.live_c
+            if not lc.all() and float(vc[~lc].max()) > CHECK_TOL:
                 return LocalSolution(False, {}, f"corridor of segment {s} violated by "
-                                     f"{float(vc[~live_c].max()):.3g} by jets held fixed", 0.0, n, 0)
-            nc = int(live_c.sum())
-            gc = np.zeros((nc, A.shape[0], n))
-            for p, c in fcols:
-                blk = qc[live_c][:, c]
-                gc[:, :, _NV * p : _NV * p + _NV] = (blk[:, None, :, None] * A[None, :, None, :]).reshape(nc, A.shape[0], _NV)
-            g_parts.append(gc.reshape(nc * A.shape[0], n))
-            lo_parts.append(np.full(nc * A.shape[0], -1e30))
-            hi_parts.append(-vc[live_c].ravel())
-        # cost: sum over axes of z_d' K z_d
-        kz = K @ Zf  # (10, 3)
-        for pa, ca in fcols:
-            q[_NV * pa : _NV * pa + _NV] += 2.0 * kz[ca].ravel()
-            for pb, cb in fcols:
-                blk = K[np.ix_(ca, cb)]
-                P[_NV * pa : _NV * pa + _NV, _NV * pb : _NV * pb + _NV] += 2.0 * (
-                    blk[:, None, :, None] * eye3[None, :, None, :]
-                ).reshape(_NV, _NV)
+                                     f"{float(vc[~lc].max()):.3g} by jets held fixed", 0.0, n, 0)
+            gc = np.zeros((int(lc.sum()) * poly.A.shape[0], n))
+            for side, p in side_pos.items():
+                gc[:, _NV * p : _NV * p + _NV] = _expand(mats.qc[side], poly.A)
+            g_parts.append(gc)
+            lo_parts.append(np.full(gc.shape[0], -1e30))
+            hi_parts.append(-vc[lc].ravel())
+        for sa, pa in side_pos.items():
+            q[_NV * pa : _NV * pa + _NV] += (mats.kq[sa] @ Zf).ravel()
+            for sb, pb in side_pos.items():
+                P[_NV * pa : _NV * pa + _NV, _NV * pb : _NV * pb + _NV] += mats.pblk[(sa, sb)]
     G = np.vstack(g_parts)
     lo0 = np.clip(np.concatenate(lo_parts), -1e30, 1e30)
     hi0 = np.clip(np.concatenate(hi_parts), -1e30, 1e30)

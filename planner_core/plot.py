@@ -39,7 +39,7 @@ def _hull2d(pts: FloatArray) -> FloatArray:
     from scipy.spatial import ConvexHull
 
     h = ConvexHull(pts)
-    idx = list(h.vertices) + [h.vertices[0]]
+    idx = [*list(h.vertices), h.vertices[0]]
     return np.asarray(pts[idx])
 
 
@@ -100,8 +100,8 @@ def plot_path3d(traj: Trajectory, obstacles: Sequence[Polytope], path: str) -> N
         faces = _faces(poly)
         if faces:
             ax.add_collection3d(Poly3DCollection(faces, facecolor="0.5", edgecolor="none", alpha=0.5))
-    for poly in traj.corridors or ():
-        faces = _faces(poly) if poly is not None else []
+    for cor in traj.corridors or ():
+        faces = _faces(cor) if cor is not None else []
         if faces:
             ax.add_collection3d(Poly3DCollection(faces, facecolor="none", edgecolor="tab:green",
                                                  linewidths=0.2, alpha=0.25))

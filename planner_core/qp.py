@@ -14,13 +14,14 @@ from __future__ import annotations
 
 import contextlib
 import enum
+import io
 import os
 import sys
 import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeAlias
 
 import numpy as np
 import scipy.sparse as sp
@@ -29,7 +30,7 @@ import scipy.sparse.linalg as spla
 from planner_core.problem import FloatArray
 
 INF = 1e30
-Matrix = FloatArray | sp.spmatrix | sp.sparray
+Matrix: TypeAlias = FloatArray | sp.spmatrix | sp.sparray
 
 
 class QPStatus(enum.Enum):
@@ -75,7 +76,7 @@ def solve_qp(
 
 def _dense(a: Matrix) -> FloatArray:
     if sp.issparse(a):
-        return np.asarray(a.toarray(), dtype=float)  # type: ignore[union-attr]
+        return np.asarray(a.toarray(), dtype=np.float64)  # type: ignore[union-attr]
     return np.ascontiguousarray(a, dtype=float)
 
 
@@ -108,15 +109,15 @@ _STDOUT_LOCK = threading.Lock()
 def silenced_stdout() -> Iterator[None]:
     """Silence fd 1 around a native call: OSQP's C code prints even with verbose off."""
     with _STDOUT_LOCK:
-        try:
+        with contextlib.suppress(AttributeError, ValueError):
             sys.stdout.flush()
-        except (AttributeError, ValueError):
-            pass
         saved = os.dup(1)
         devnull = os.open(os.devnull, os.O_WRONLY)
         try:
             os.dup2(devnull, 1)
-            yield
+            # OSQP's Python build prints through PySys_WriteStdout, i.e. sys.stdout
+            with contextlib.redirect_stdout(io.StringIO()):
+                yield
         finally:
             _flush_c_stdio()  # C printf output sits in stdio's buffer until flushed
             os.dup2(saved, 1)
@@ -141,14 +142,15 @@ def solve_osqp(P: Matrix, q: FloatArray, G: Matrix, lo: FloatArray, hi: FloatArr
 
     Ps = sp.triu(sp.csc_matrix(P), format="csc")
     Gs = sp.csc_matrix(G)
-    lo_c = np.clip(lo, -INF, INF)
-    hi_c = np.clip(hi, -INF, INF)
+    # OSQP wants real infinities (it maps them to its own OSQP_INFTY internally)
+    lo_c = np.where(lo <= -INF, -np.inf, lo)
+    hi_c = np.where(hi >= INF, np.inf, hi)
     t0 = time.perf_counter()
     solver = osqp.OSQP()
     with silenced_stdout():
         solver.setup(
             Ps, np.asarray(q, dtype=float), Gs, lo_c, hi_c,
-            verbose=False, polishing=True, eps_abs=1e-8, eps_rel=1e-8,
+            verbose=False, polishing=True, eps_abs=1e-6, eps_rel=1e-6,
             max_iter=20000, polish_refine_iter=10,
         )
         res = solver.solve(raise_error=False)

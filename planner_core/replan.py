@@ -74,6 +74,7 @@ __all__ = [
 
 TIME_EPS = 1e-9  # a split closer than this to a waypoint time reuses that waypoint
 CONTINUITY_TOL = 1e-6  # relative, as verify.py
+JOINT_MAX = 6  # free jets solved in one dense QP; longer runs go through the iterative pass
 
 
 @dataclass(frozen=True)
@@ -187,6 +188,7 @@ class _Work:
         self.lock = lock
         self.env = env
         self.new_obstacles: tuple[Polytope, ...] = ()
+        self.same_layout = True  # segment s still comes from old segment s (no insert/remove/append)
 
     @property
     def m(self) -> int:
@@ -255,7 +257,14 @@ class _Work:
         self.corridors[s] = poly
         if poly is None or self.src[s] < 0:
             return
-        if poly.violation(self.old_ctrl[int(self.src[s])]) > 1e-9:
+        v = poly.violation(self.old_ctrl[int(self.src[s])])
+        if v > 1e-9:
+            if s < self.lock:
+                raise _Infeasible(
+                    f"segment {s}, before from_time (being flown), leaves its new corridor by {v:.3g}: "
+                    "it cannot be replanned; brake",
+                    {"kind": "corridor", "segment": s, "waypoint": None, "before_from_time": True},
+                )
             self.touch(s)
             self.seed(s, s + 1)
 
@@ -272,6 +281,7 @@ class _Work:
         if not t0 < t < t1:
             raise ChangeError("insert.time", f"{t} must lie strictly between {t0} and {t1}")
         self.touch(s)
+        self.same_layout = False
         self.over = _renumber(self.over, i, 1)
         self.over[i] = rest_jet(pos)
         self.seeds = {j + 1 if j >= i else j for j in self.seeds}
@@ -290,6 +300,7 @@ class _Work:
             raise ChangeError("remove.index", f"waypoint {i} is at or before from_time")
         self.touch(i - 1)
         self.touch(i)
+        self.same_layout = False
         del self.over[i]
         self.over = _renumber(self.over, i + 1, -1)
         self.seeds = {j - 1 if j > i else j for j in self.seeds if j != i}
@@ -312,6 +323,7 @@ class _Work:
 
     def append(self, edit: AppendWaypoints) -> None:
         m_old = self.m
+        self.same_layout = False
         k = edit.positions.shape[0]
         last = m_old - 1
         self.over.setdefault(last, self.jet(last))
@@ -393,21 +405,33 @@ def _rebuild_corridors(work: _Work) -> None:
         work.corridors = [None] * (work.m - 1)
     obstacles = (*env.obstacles, *work.new_obstacles)
     missing = np.array([c is None for c in work.corridors], dtype=bool)
+    missing[: max(work.lock - 1, 0)] = False  # the past keeps whatever it had
     for s in (int(i) for i in np.flatnonzero(work.geo | missing)):
+        old = work.corridors[s]
+        if not work.new_obstacles and old is not None and float((work.wps[s : s + 2] @ old.A.T - old.b).max()) < 0.0:
+            # the old corridor holds the new straight segment: keeping it is safe (the QP keeps
+            # the curve inside) and skips a corridor build, the slow part of a geometric change.
+            # With new obstacles a fresh build is roomier than the old corridor cut by a new plane.
+            continue
         try:
             work.corridors[s] = build_corridors(work.wps[s : s + 2], obstacles, env.map_box, env.radius)[0]
         except CorridorError as exc:
             raise _corridor_error(exc, s) from exc
     if work.new_obstacles:
+        # segments before the one being flown (the one ending at the split) are the past
+        first = max(work.lock - 1, 0)
         try:
-            current = tuple(c for c in work.corridors if c is not None)
+            current = tuple(c for c in work.corridors[first:] if c is not None)
             updated, changed = update_corridors(
-                work.wps, current, env.obstacles, work.new_obstacles, env.map_box, env.radius
+                work.wps[first:], current, env.obstacles, work.new_obstacles, env.map_box, env.radius
             )
         except CorridorError as exc:
-            raise _corridor_error(exc) from exc
+            err = _corridor_error(exc, first)
+            if err.diagnosis is not None and err.diagnosis.get("segment") is not None and err.diagnosis["segment"] < work.lock:
+                raise _Infeasible(f"{err} — the piece being flown is blocked: brake", err.diagnosis) from exc
+            raise err from exc
         for s in changed:
-            work.set_corridor(int(s), updated[int(s)])
+            work.set_corridor(int(s) + first, updated[int(s)])
     work.env = Environment(obstacles, env.map_box, env.radius)
 
 
@@ -437,6 +461,9 @@ def _solve(work: _Work, free: set[int], opts: ReplanOptions) -> tuple[dict[int, 
     def corridor_of(s: int) -> Polytope | None:
         return None if corridors is None else corridors[s]
 
+    if len(free) > JOINT_MAX and max(free) - min(free) + 1 == len(free):
+        # a long run of free jets (a big append): the iterative pass, O(run), not one dense QP
+        return _solve_iterative(work, free, opts)
     if opts.cost != "snap":  # other costs: the core's general jet solver on a window sub-problem
         return _solve_general(work, free, opts)
     t0 = time.perf_counter()
@@ -446,13 +473,34 @@ def _solve(work: _Work, free: set[int], opts: ReplanOptions) -> tuple[dict[int, 
     return sol.jets, time.perf_counter() - t0
 
 
+def _sub_problem(work: _Work, lo: int, hi: int) -> tuple[Problem, FloatArray]:
+    """Waypoints lo..hi as a problem of their own, the end jets fixed to the current ones."""
+    jets = np.stack([work.jet(i) for i in range(lo, hi + 1)])
+    corr = None if work.corridors is None else tuple(work.corridors[lo:hi])
+    return Problem(work.wps[lo : hi + 1], work.times[lo : hi + 1], work.bounds, jets[0], jets[-1], corr), jets
+
+
+def _solve_iterative(work: _Work, free: set[int], opts: ReplanOptions) -> tuple[dict[int, FloatArray], float]:
+    from planner_core.iterative import IterativeOptions, plan_iterative
+
+    lo, hi = min(free) - 1, max(free) + 1
+    sub, _ = _sub_problem(work, lo, hi)
+    t0 = time.perf_counter()
+    # no stretching inside: replan's own stretch step keeps the later segments' times consistent
+    res = plan_iterative(sub, IterativeOptions(cost=opts.cost, backend=opts.backend, max_stretches=0, diagnose=False))
+    elapsed = time.perf_counter() - t0
+    if not res.ok or res.trajectory is None or not np.array_equal(res.trajectory.times, sub.times):
+        raise _Infeasible(f"iterative pass over jets {min(free)}..{max(free)}: {res.message}")
+    ctrl = res.trajectory.control_points
+    d = np.diff(sub.times)
+    return {j: start_jet_fast(ctrl[j - lo], float(d[j - lo])) for j in free}, elapsed
+
+
 def _solve_general(work: _Work, free: set[int], opts: ReplanOptions) -> tuple[dict[int, FloatArray], float]:
     from planner_core.jets import solve_jets
 
-    lo, hi = min(free) - 1, max(free) + 1
-    jets = np.stack([work.jet(i) for i in range(lo, hi + 1)])
-    corr = None if work.corridors is None else tuple(work.corridors[lo:hi])
-    sub = Problem(work.wps[lo : hi + 1], work.times[lo : hi + 1], work.bounds, jets[0], jets[-1], corr)
+    lo = min(free) - 1
+    sub, jets = _sub_problem(work, lo, max(free) + 1)
     t0 = time.perf_counter()
     res = solve_jets(sub, jets, [j - lo for j in sorted(free)], cost=opts.cost, backend=opts.backend)
     elapsed = time.perf_counter() - t0
@@ -470,9 +518,12 @@ def _assemble(work: _Work, solved: dict[int, FloatArray], free: set[int]) -> tup
     durations = np.diff(work.times)
     needed = {i for s in rebuild for i in (s, s + 1)}
     jets = {i: solved[i] if i in solved else work.jet(i) for i in needed}
-    ctrl = np.empty((m - 1, 10, 3))
-    keep = ~rebuild_mask
-    ctrl[keep] = work.old_ctrl[work.src[keep]]
+    if work.same_layout:  # a plain copy (memcpy) is much cheaper than a gather at large m
+        ctrl = work.old_ctrl.copy()
+    else:
+        ctrl = np.empty((m - 1, 10, 3))
+        keep = ~rebuild_mask
+        ctrl[keep] = work.old_ctrl[work.src[keep]]
     if rebuild:
         ctrl[rebuild] = build_segments(jets, {s: float(durations[s]) for s in rebuild}, rebuild)
     corridors = None if work.corridors is None else tuple(work.corridors)
@@ -561,6 +612,12 @@ def replan(
     cs = as_change_set(change)
     if traj.n_segments != problem.m - 1:
         raise ChangeError("trajectory", f"has {traj.n_segments} segments, the problem {problem.m - 1}")
+    if not np.array_equal(traj.times, problem.times):
+        # the planner may have stretched durations: the trajectory's times are what is flown
+        if not np.all(np.diff(traj.times) > 0):
+            raise ChangeError("trajectory", "times are not strictly increasing")
+        problem = Problem(problem.waypoints, traj.times.copy(), problem.bounds, problem.initial, problem.final,
+                          problem.corridors)
     lock, split = 0, False
     if cs.from_time is not None:
         t = float(cs.from_time)
@@ -633,7 +690,7 @@ def _check_waypoints_in_corridors(work: _Work) -> None:
         if poly is None:
             continue
         for i in (int(s), int(s) + 1):
-            v = poly.violation(work.wps[i])
+            v = float((poly.A @ work.wps[i] - poly.b).max()) if poly.A.shape[0] else -np.inf
             if v > 1e-9:
                 raise _Infeasible(
                     f"waypoint {i} at {work.wps[i].tolist()} is outside the corridor of segment {s} (by {v:.3g})",

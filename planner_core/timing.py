@@ -3,46 +3,54 @@
 The rule (`allocate_times`), for segment j of length L_j and direction u_j:
 
 1. Directional bounds. Moving along u at speed v puts v|u_i| on axis i, so the
-   usable speed is v_j = min_i bound_i / |u_i| (the smallest per-axis bound seen
-   along the direction; the velocity bound on the side of travel, both sides
-   for acceleration, jerk and snap, which act in both senses).
-2. Waypoint speeds (a junction-speed pass, as in CNC/3-D printer planners):
+   usable magnitude of derivative k is the smallest bound_i / |u_i| (velocity:
+   the bound on the side of travel; acceleration, jerk, snap: both sides).
+2. Effective acceleration. Jerk and snap slow down how fast acceleration
+   builds: a_eff = v / (time of an S-curve from 0 to v with a, j, s).
+3. Waypoint speeds (junction-speed passes, as in CNC/3-D printer planners):
    the speed through interior waypoint i is capped at
-   min(v_{i-1}, v_i) * (1 + cos θ_i) / 2 for a turn of angle θ_i (full speed
-   straight on, half at a right angle, zero for a reversal); the start speed is
-   the initial velocity's component along u_0 (0 if None), the end speed 0.
-   Forward and backward passes then enforce w_{i+1}^2 <= w_i^2 + 2 a L.
-3. Trapezoid: each segment runs entry speed -> peak (<= v_j) -> exit speed at
-   acceleration a_j; that is its kinematic time.
-4. Higher orders: no rest-to-rest motion over L is faster than the bang-bang
-   limits (32 L / j)^(1/3) (jerk) and (384 L / s)^(1/4) (snap); the segment's
-   time is at least these.
-5. Slack: the planner's curve is one degree-9 polynomial per segment, C^4 at
-   the waypoints, with bounds imposed on hodograph control points (a
-   sufficient, conservative condition). It cannot follow the bang-bang and
-   trapezoid profiles, so the time above is multiplied by `safety`; the first
-   and last segments start or end at rest with four derivatives pinned to
-   zero, and get the extra factor `end_factor`.
-6. An initial velocity across or against u_0 first has to be cancelled: the
-   first segment gets |v0 - (v0.u_0)^+ u_0| / a_min more time (a_min the
-   smallest per-axis acceleration bound).
-7. Every duration is at least `min_duration`.
+   min(v_{i-1}, v_i) ((1 + cos θ_i) / 2)^2 for a turn of angle θ_i (full speed
+   straight on, 1/4 at a right angle, zero for a reversal; the square was
+   measured better than the plain factor); start speed = initial velocity
+   along u_0 (0 by default), end speed 0. Forward and backward passes enforce
+   w_{i+1}^2 <= w_i^2 + 2 a_eff L.
+4. Trapezoid: entry speed -> peak (<= v) -> exit speed at a_eff: the
+   kinematic time.
+5. Hull minimum: the planner bounds the hodograph control points of one
+   degree-9 polynomial per segment, which needs more time than a trapezoid,
+   most of all at ends pinned at rest. Order k alone requires
+   T >= (C_k L / bound_k)^(1/k), with C_k exact (an LP over scalar control
+   points, table `_HULL_C`) for each pair of end types rest/stop/free; a
+   junction of speed w interpolates between stop (w = 0) and free (w = v).
+   Both ends at rest give the exact minimum 9 L / v, sqrt(72 L / a),
+   (1008 L / j)^(1/3), (9072 L / s)^(1/4) of the fixed rest-to-rest curve.
+6. A start velocity across or against u_0 must be cancelled first: the first
+   segment gets |v0 - (v0.u_0)^+ u_0| / a_min more (a_min: smallest axis bound).
+7. Slack: the maximum of 4 and 5 (plus 6) times `safety` (turns, corridors and
+   the coupling between orders are not in the model); at least `min_duration`.
+8. With a moving start, the first segment's first five control points are
+   fixed by the start jet and march outwards as T grows; if the first corridor
+   is given, T_0 is capped where one of them would leave it.
 
-The defaults were tuned so that the global planner finds a verified plan on
-random cluttered scenarios without hand tuning (tests/planner/test_timing.py
-measures the rate).
+The default safety was tuned on random cluttered scenarios so that the
+planners succeed without hand tuning; tests/planner/test_timing.py measures
+the rate.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+from math import comb
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from planner_core.problem import Bounds, FloatArray
+from planner_core.problem import Bounds, FloatArray, Polytope
 
-DEFAULT_SAFETY = 1.6
+DEFAULT_SAFETY = 1.4
 DEFAULT_MIN_DURATION = 0.05  # seconds
 _EPS = 1e-12
+_HUGE = 1e12  # stands in for an unbounded derivative
 BoolArray = NDArray[np.bool_]
 # Hodograph-hull necessary conditions, order k alone: T >= (C_k L / bound_k)^(1/k)
 # with C_k = 9!/(9-k)! / g, g = max (p_9 - p_0) over scalar control points with
@@ -101,13 +109,46 @@ def directional_bounds(bounds: Bounds, units: FloatArray) -> FloatArray:
     return np.asarray(out)
 
 
+def _ramp_time(delta: FloatArray, rate: FloatArray, rate_of_rate: FloatArray) -> FloatArray:
+    """Time to raise a quantity by delta when its rate and the rate's rate are bounded (S-curve).
+
+    A bound >= _HUGE counts as absent.
+    """
+    free_rate = rate >= _HUGE
+    free_ror = rate_of_rate >= _HUGE
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        long = delta / rate + rate / rate_of_rate
+        short = 2.0 * np.sqrt(delta / rate_of_rate)
+        t = np.where(delta >= rate**2 / rate_of_rate, long, short)
+    t = np.where(free_rate & ~free_ror, short, t)
+    t = np.where(free_ror & ~free_rate, delta / rate, t)
+    return np.asarray(np.where(free_rate & free_ror, 0.0, t))
+
+
+def effective_acceleration(lim: FloatArray) -> FloatArray:
+    """(s,) average acceleration of a jerk- and snap-limited ramp from 0 to full speed.
+
+    Snap limits how fast jerk builds, so acceleration a is reached after
+    ramp(a; j, s) and the effective jerk is a / that; full speed v is then
+    reached after ramp(v; a, j_eff); v over that time is the trapezoid's
+    acceleration (conservative for small speed changes).
+    """
+    v, a, j, s = lim.T
+    ta = _ramp_time(a, j, s)
+    j_eff = np.where(ta > 0.0, a / np.maximum(ta, _EPS), _HUGE)
+    tv = _ramp_time(v, a, j_eff)
+    a_eff = np.where(tv > 0.0, v / np.maximum(tv, _EPS), _HUGE)
+    a_eff = np.where(v >= _HUGE, a, a_eff)  # no cruise speed: the ramp never ends
+    return np.asarray(np.minimum(a_eff, a))
+
+
 def junction_speeds(units: FloatArray, vmax: FloatArray, start_speed: float) -> FloatArray:
     """(m,) speed caps at the waypoints from turn angles (rule 2, before the passes)."""
     caps = np.zeros(units.shape[0] + 1)
     caps[0] = min(max(start_speed, 0.0), float(vmax[0]))
     if units.shape[0] > 1:
         cos = np.clip(np.einsum("sd,sd->s", units[:-1], units[1:]), -1.0, 1.0)
-        caps[1:-1] = np.minimum(vmax[:-1], vmax[1:]) * (1.0 + cos) / 2.0
+        caps[1:-1] = np.minimum(vmax[:-1], vmax[1:]) * ((1.0 + cos) / 2.0) ** 2
     return caps
 
 
@@ -156,15 +197,53 @@ def hull_minimum(lengths: FloatArray, lim: FloatArray, start_w: FloatArray, end_
     return np.asarray(np.max(np.nan_to_num(t, posinf=0.0), axis=1))
 
 
-def durations_from_lengths(
-    waypoints: ArrayLike,
-    bounds: Bounds,
-    initial_velocity: ArrayLike | None = None,
-    *,
-    safety: float = DEFAULT_SAFETY,
-    min_duration: float = DEFAULT_MIN_DURATION,
+def _fixed_points(jet: FloatArray, durations: FloatArray) -> FloatArray:
+    """(G, 5, 3) control points P^0..P^4 fixed by a start jet, for each duration."""
+    k = np.arange(5)[:, None]
+    ell = np.arange(5)[None, :]
+    binom = np.array([[comb(int(i), int(j)) for j in range(5)] for i in range(5)], dtype=float)
+    falling = np.array([1.0, 9.0, 72.0, 504.0, 3024.0])
+    coeff = np.where(ell <= k, binom / falling[None, :], 0.0)  # (5, 5)
+    powers = durations[:, None] ** np.arange(5)[None, :]  # (G, 5)
+    return np.asarray(np.einsum("kl,gl,ld->gkd", coeff, powers, jet))
+
+
+def corridor_cap(jet: FloatArray, corridor: Polytope, t_hi: float, min_duration: float) -> float:
+    """Largest T in [min_duration, t_hi] (on a grid) keeping the jet-fixed points in the corridor.
+
+    Returns t_hi when they never leave it.
+    """
+    grid = np.geomspace(min_duration, t_hi, 64) if t_hi > min_duration else np.array([t_hi])
+    pts = _fixed_points(jet, grid)  # (G, 5, 3)
+    tol = 1e-9 * max(1.0, float(np.max(np.abs(corridor.b)))) if corridor.b.size else 0.0
+    inside = np.all(pts @ np.asarray(corridor.A).T <= np.asarray(corridor.b) + tol, axis=(1, 2))
+    if inside.all():
+        return t_hi
+    first_out = int(np.argmin(inside))
+    return float(grid[first_out - 1]) if first_out > 0 else min_duration
+
+
+def _start_jet(
+    waypoints: FloatArray, initial_velocity: ArrayLike | None, initial_jet: ArrayLike | None
 ) -> FloatArray:
-    """Segment durations (m-1,) by the rule in the module docstring."""
+    jet = np.zeros((5, 3))
+    jet[0] = waypoints[0]
+    if initial_jet is not None:
+        if initial_velocity is not None:
+            raise ValueError("initial_velocity: give either initial_velocity or initial_jet, not both")
+        given = np.asarray(initial_jet, dtype=float)
+        if given.shape != (5, 3) or not np.all(np.isfinite(given)):
+            raise ValueError(f"initial_jet: expected a finite (5, 3) array, got shape {given.shape}")
+        jet[1:] = given[1:]
+    elif initial_velocity is not None:
+        v0 = np.asarray(initial_velocity, dtype=float)
+        if v0.shape != (3,) or not np.all(np.isfinite(v0)):
+            raise ValueError(f"initial_velocity: expected 3 finite numbers, got {v0.tolist()}")
+        jet[1] = v0
+    return jet
+
+
+def _validated(waypoints: ArrayLike, safety: float, min_duration: float) -> FloatArray:
     wps = np.asarray(waypoints, dtype=float)
     if wps.ndim != 2 or wps.shape[1] != 3 or wps.shape[0] < 2:
         raise ValueError(f"waypoints: expected shape (m, 3) with m >= 2, got {wps.shape}")
@@ -174,27 +253,48 @@ def durations_from_lengths(
         raise ValueError(f"safety: must be finite and >= 1, got {safety}")
     if not (np.isfinite(min_duration) and min_duration > 0.0):
         raise ValueError(f"min_duration: must be finite and > 0, got {min_duration}")
-    v0 = np.zeros(3) if initial_velocity is None else np.asarray(initial_velocity, dtype=float)
-    if v0.shape != (3,) or not np.all(np.isfinite(v0)):
-        raise ValueError(f"initial_velocity: expected 3 finite numbers, got {np.asarray(v0).tolist()}")
+    return wps
+
+
+def durations_from_lengths(
+    waypoints: ArrayLike,
+    bounds: Bounds,
+    initial_velocity: ArrayLike | None = None,
+    *,
+    safety: float = DEFAULT_SAFETY,
+    min_duration: float = DEFAULT_MIN_DURATION,
+    initial_jet: ArrayLike | None = None,
+    corridors: Sequence[Polytope | None] | None = None,
+) -> FloatArray:
+    """Segment durations (m-1,) by the rule in the module docstring.
+
+    initial_jet (5, 3) replaces initial_velocity when the start also has
+    acceleration, jerk or snap (its row 0 is ignored: the start is waypoint 0).
+    corridors (one per segment, as in Problem) enables rule 8.
+    """
+    wps = _validated(waypoints, safety, min_duration)
+    jet = _start_jet(wps, initial_velocity, initial_jet)
+    v0 = jet[1]
     lengths, units = _directions(wps)
-    lim = directional_bounds(bounds, units)  # (s, 4)
-    vmax, amax = lim[:, 0], lim[:, 1]
+    lim = np.minimum(directional_bounds(bounds, units), _HUGE)  # (s, 4); unbounded -> huge
+    vmax, amax = lim[:, 0], effective_acceleration(lim)
     along = float(v0 @ units[0])
-    caps = junction_speeds(units, vmax, along)
-    w = _limit_by_acceleration(caps, lengths, amax)
+    w = _limit_by_acceleration(junction_speeds(units, vmax, along), lengths, amax)
     kinematic = trapezoid_durations(lengths, w[:-1], w[1:], vmax, amax)
     segs = lengths.shape[0]
     start_pinned = np.zeros(segs, dtype=bool)
-    start_pinned[0] = not np.any(v0)
+    start_pinned[0] = not np.any(jet[1:])
     end_pinned = np.zeros(segs, dtype=bool)
-    end_pinned[-1] = True  # allocate_times plans to a stop at the last waypoint
-    start_w = end_weights(w[:-1], vmax, start_pinned)
-    end_w = end_weights(w[1:], vmax, end_pinned)
-    base = np.maximum(kinematic, hull_minimum(lengths, lim, start_w, end_w))
-    base[0] += float(np.linalg.norm(v0 - max(along, 0.0) * units[0])) / float(np.min(_symmetric(bounds)[1]))
-    base *= safety
-    return np.asarray(np.maximum(base, min_duration))
+    end_pinned[-1] = True  # the plan ends at rest at the last waypoint
+    hull = hull_minimum(lengths, lim, end_weights(w[:-1], vmax, start_pinned), end_weights(w[1:], vmax, end_pinned))
+    base = np.maximum(kinematic, hull)
+    a_min = float(np.min(np.minimum(_symmetric(bounds)[1], _HUGE)))
+    base[0] += float(np.linalg.norm(v0 - max(along, 0.0) * units[0])) / a_min
+    out = np.maximum(base * safety, min_duration)
+    first = None if corridors is None else corridors[0]
+    if first is not None and np.any(jet[1:]):
+        out[0] = corridor_cap(jet, first, float(out[0]), min_duration)
+    return np.asarray(out)
 
 
 def allocate_times(
@@ -205,11 +305,19 @@ def allocate_times(
     *,
     safety: float = DEFAULT_SAFETY,
     min_duration: float = DEFAULT_MIN_DURATION,
+    initial_jet: ArrayLike | None = None,
+    corridors: Sequence[Polytope | None] | None = None,
 ) -> FloatArray:
     """Waypoint times (m,), starting at t0, strictly increasing (see module docstring)."""
     if not np.isfinite(t0):
         raise ValueError(f"t0: must be finite, got {t0}")
     d = durations_from_lengths(
-        waypoints, bounds, initial_velocity, safety=safety, min_duration=min_duration
+        waypoints,
+        bounds,
+        initial_velocity,
+        safety=safety,
+        min_duration=min_duration,
+        initial_jet=initial_jet,
+        corridors=corridors,
     )
     return np.asarray(float(t0) + np.concatenate([[0.0], np.cumsum(d)]))

@@ -72,7 +72,8 @@ class VerifyReport:
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
         d["failures"] = self.failures()
-        return _finite(d)
+        out: dict[str, Any] = _finite(d)
+        return out
 
 
 def _finite(obj: Any) -> Any:

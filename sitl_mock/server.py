@@ -106,6 +106,11 @@ class MockAutopilot:
             if name not in self.params:
                 raise ValueError(f"params: unknown parameter {name!r}; known: {sorted(self.params)}")
             self.params[name] = Param(name, float(value), self.params[name].ptype)
+        for i, (_, mode) in enumerate(config.takeovers):
+            try:
+                self.modes.canonical(mode)
+            except ValueError as exc:
+                raise ValueError(f"takeovers[{i}]: {exc}") from None
         self.vehicle = Vehicle(config.vehicle)
         self.enc = Encoder(config.sysid, config.compid)
         self.log = FlightLog(config.log_path)
@@ -128,6 +133,8 @@ class MockAutopilot:
         self._step_count = 0
         self._log_every = max(1, round(config.rate_hz / config.log_rate_hz)) if config.log_rate_hz else 1
         self._snapshot: dict[str, Any] = {}
+        self._last_reject_text: dict[str, float] = {}
+        self._reboot_pending = False
         self._reset_state()
 
     # ------------------------------------------------------------------ lifecycle
@@ -568,9 +575,11 @@ class MockAutopilot:
         self.link_faults.clear()
         self._reset_state()
         self.rebooting_until = self.t + REBOOT_SILENCE_S
+        self.boot_t = self.rebooting_until  # the clock restarts when it has booted
         for mid in self.next_due:
             self.next_due[mid] = self.rebooting_until
         self.log.write("mode", self.t, **{"from": None, "to": self.mode, "reason": "reboot"})
+        self._update_snapshot()
 
     # ------------------------------------------------------------------ incoming MAVLink
 
@@ -614,8 +623,12 @@ class MockAutopilot:
         result, why = self._dispatch_command(command, p)
         self.log.write("event", self.t, event="command", command=command, params=list(p),
                        result=result, reason=why)
+        self._update_snapshot()  # so that whoever sees the ACK sees its effect too
         self._send(self.enc.mav.command_ack_encode(command, result, 0, 0, msg.get_srcSystem(),
                                                    msg.get_srcComponent()))
+        if self._reboot_pending:
+            self._reboot_pending = False
+            self.reboot()
 
     def _dispatch_command(self, command: int, p: tuple[float, ...]) -> tuple[int, str]:
         if command == mav.MAV_CMD_COMPONENT_ARM_DISARM:
@@ -633,6 +646,12 @@ class MockAutopilot:
             return self._set_interval(_int(p[0]), float(p[1]))
         if command == mav.MAV_CMD_REQUEST_MESSAGE:
             return self._request_message(_int(p[0]))
+        if command == mav.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN and _int(p[0]) == 1:
+            if self.armed:
+                return self._refuse(), "reboot refused: armed"
+            # Acknowledged first, as the autopilot does before it goes quiet.
+            self._reboot_pending = True
+            return int(mav.MAV_RESULT_ACCEPTED), ""
         if command == mav.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
             return self._request_message(mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION)
         return int(mav.MAV_RESULT_UNSUPPORTED), f"command {command} unsupported"
@@ -656,6 +675,7 @@ class MockAutopilot:
         result, _ = self._do_set_mode(int(msg.base_mode), *self._split_custom(int(msg.custom_mode)))
         # PX4 acks a SET_MODE as the DO_SET_MODE it turns it into; ArduPilot acks message id 11.
         command = mav.MAV_CMD_DO_SET_MODE if self.flavour is Flavour.PX4 else mav.MAVLINK_MSG_ID_SET_MODE
+        self._update_snapshot()
         self._send(self.enc.mav.command_ack_encode(command, result, 0, 0, msg.get_srcSystem(),
                                                    msg.get_srcComponent()))
 
@@ -707,7 +727,9 @@ class MockAutopilot:
             if self.t - self.last_sp > STREAM_GAP_S:
                 self.stream_start = self.t
             self.last_sp = self.t
-        elif self.flavour is Flavour.PX4:
+        elif self.flavour is Flavour.PX4 and self.t - self._last_reject_text.get(d.reason, -math.inf) >= 1.0:
+            # PX4 reports each rejection, throttled like its mavlink_log.
+            self._last_reject_text[d.reason] = self.t
             self._text(mav.MAV_SEVERITY_CRITICAL, f"SET_POSITION_TARGET_LOCAL_NED {d.reason}")
         if d.stop:
             self.follow_target = Target.hold(s.pos.copy(), s.yaw)
@@ -893,7 +915,7 @@ class MockAutopilot:
 
 def _int(value: float) -> int:
     """MAVLink float parameter as an integer; NaN (unset) becomes -1."""
-    return int(round(value)) if math.isfinite(value) else -1
+    return round(value) if math.isfinite(value) else -1
 
 
 def _number(req: dict[str, Any], name: str, minimum: float) -> float:

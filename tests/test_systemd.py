@@ -9,15 +9,18 @@ re-created with the same seccomp rules systemd installs, and the syscalls the wo
 from __future__ import annotations
 
 import configparser
+import contextlib
 import itertools
 import json
 import os
 import re
 import shutil
+import signal
 import socket
 import subprocess
 import sys
 import textwrap
+import time
 from pathlib import Path
 from typing import Any
 
@@ -447,3 +450,86 @@ def test_notifier_survives_a_vanished_socket(tmp_path: Path) -> None:
 )
 def test_watchdog_interval(env: dict[str, str], expected: float | None) -> None:
     assert watchdog_interval(env) == expected
+
+
+# --- the real service under the emulated sandbox -----------------------------------------------
+
+
+def _free_port(kind: int) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="seccomp is Linux-only")
+def test_companion_runs_sandboxed_and_speaks_sd_notify(tmp_path: Path) -> None:
+    """The service as systemd would run it: sandbox rules, NOTIFY_SOCKET and WATCHDOG_USEC set.
+
+    It must come up (READY=1), keep pinging the watchdog from its setpoint loop, plan a mission
+    sent over Zenoh, stay inside the unit's syscall filter (when strace is there to tell), and
+    stop cleanly on SIGTERM (STOPPING=1, exit 0).
+    """
+    from companion.config import config_to_toml
+    from companion.demo import Child, Peer, demo_config
+
+    mav_port, zenoh_port = _free_port(socket.SOCK_DGRAM), _free_port(socket.SOCK_STREAM)
+    cfg = demo_config(zenoh_port, mav_port)
+    cfg_path = tmp_path / "uav.toml"
+    cfg_path.write_text(config_to_toml(cfg))
+    sandbox = tmp_path / "sandbox.py"
+    sandbox.write_text(SANDBOX)
+    notify, address = _receiver(tmp_path, abstract=True)
+    env = dict(os.environ, NOTIFY_SOCKET=address, WATCHDOG_USEC="2000000", **_unit_environment())
+    summary = tmp_path / "strace.txt"
+    tracer = [STRACE, "-f", "-c", "-o", str(summary)] if STRACE and ANALYZE else []
+    mock = Child("mock", [sys.executable, "-m", "sitl_mock", "--endpoint", f"udpin:127.0.0.1:{mav_port}"],
+                 tmp_path / "mock.log")
+    proc = subprocess.Popen(
+        [*tracer, sys.executable, str(sandbox), "-m", "companion", "run", "--config", str(cfg_path)],
+        env=env, cwd=ROOT, stdout=(tmp_path / "companion.log").open("wb"), stderr=subprocess.STDOUT,
+    )
+    received: list[dict[str, str]] = []
+    peer: Peer | None = None
+    try:
+        notify.settimeout(60)
+        received.append(_fields(notify))
+        assert received[0].get("READY") == "1", received
+        peer = Peer(f"tcp/127.0.0.1:{zenoh_port}", cfg.vehicle.id)
+        deadline = time.monotonic() + 30
+        while not (peer.query("status", 1.0) or {}).get("link") and time.monotonic() < deadline:
+            time.sleep(0.2)
+        t_put = peer.put("mission", {"id": "sandboxed", "frame": "enu", "waypoints": [[2, 1, 3], [4, 0, 3]]})
+        accepted = None
+        while accepted is None and time.monotonic() < t_put + 30:
+            sample = peer.samples.get(timeout=30)
+            if sample.topic == "events" and sample.data.get("key") == "mission":
+                accepted = sample.data
+        notify.settimeout(5)
+        pings = 0
+        while pings < 2:
+            fields = _fields(notify)
+            received.append(fields)
+            pings += fields.get("WATCHDOG") == "1"
+    finally:
+        if peer is not None:
+            peer.close()
+        # as systemd would: SIGTERM to the main process (under strace, strace's child)
+        main_pid = proc.pid
+        if tracer:
+            children = Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text().split()
+            main_pid = int(children[0]) if children else proc.pid
+        os.kill(main_pid, signal.SIGTERM)
+        code = proc.wait(30)
+        mock.stop()
+        notify.setblocking(False)
+        with contextlib.suppress(BlockingIOError):
+            while True:
+                received.append(dict(line.split("=", 1) for line in notify.recv(4096).decode().splitlines()))
+        notify.close()
+    log = (tmp_path / "companion.log").read_text(errors="replace")
+    assert accepted is not None and accepted["type"] == "accepted", log[-3000:]
+    assert code == 0, log[-3000:]
+    assert any(f.get("STOPPING") == "1" for f in received), received
+    if tracer:
+        used = _traced_syscalls(summary.read_text())
+        assert used - _unit_syscall_allowlist() - {"seccomp"} == set()

@@ -74,8 +74,10 @@ def test_split_is_exact(seed: int, d: float, s: float) -> None:
     for k in range(5):
         whole_l = evaluate_segment(ctrl, d, u * s, k)
         whole_r = evaluate_segment(ctrl, d, s + u * (1 - s), k)
-        assert np.allclose(evaluate_segment(left, d * s, u, k), whole_l, rtol=1e-9, atol=1e-9)
-        assert np.allclose(evaluate_segment(right, d * (1 - s), u, k), whole_r, rtol=1e-9, atol=1e-9)
+        # relative to the derivative's size: short pieces have large high derivatives
+        scale = 1e-9 * (1.0 + max(np.abs(whole_l).max(), np.abs(whole_r).max()))
+        assert np.allclose(evaluate_segment(left, d * s, u, k), whole_l, rtol=0, atol=scale)
+        assert np.allclose(evaluate_segment(right, d * (1 - s), u, k), whole_r, rtol=0, atol=scale)
 
 
 @settings(max_examples=25, deadline=None)

@@ -246,3 +246,21 @@ def test_cli_plot(tmp_path: Path) -> None:
     for suffix in ("path2d", "path3d", "derivatives"):
         p = Path(f"{prefix}_{suffix}.png")
         assert p.exists() and p.stat().st_size > 10_000
+
+
+def test_missing_times_use_allocation() -> None:
+    pytest.importorskip("planner_core.timing")
+    d = base()
+    del d["durations"]
+    sc = load_scenario(d)
+    t = sc.problem.times
+    assert t.shape == (4,) and t[0] == 0.0 and np.all(np.diff(t) > 0)
+    assert plan(sc.problem).ok
+
+
+def test_obstacles_without_corridors_build_corridors() -> None:
+    pytest.importorskip("planner_core.corridors")
+    sc = load_scenario(json.loads((EXAMPLES / "scenario1.json").read_text()))
+    assert "corridors" not in sc.raw
+    assert sc.problem.corridors is not None and len(sc.problem.corridors) == sc.problem.m - 1
+    assert len(sc.obstacles) == 9

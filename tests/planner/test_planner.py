@@ -140,3 +140,83 @@ def test_invalid_options() -> None:
         IterativeOptions(window=0)
     with pytest.raises(ValueError, match="method"):
         plan(random_problem(1, 4), "nope")
+
+
+def test_row_blocks_match_bezier_hull() -> None:
+    """Every cached row equals the hull quantity computed from the segment's control points."""
+    from planner_core.bezier import hodograph, segment_from_jets
+    from planner_core.constraints import KIND_BOUND
+    from planner_core.jets import ProblemCache
+
+    problem = random_problem(13, 5)
+    cache = ProblemCache(problem)
+    rng = np.random.default_rng(0)
+    jets = rng.normal(size=(5, 5, 3))
+    jets[:, 0] = problem.waypoints
+    d = problem.durations
+    for s in range(4):
+        blk = cache.blocks(s)
+        val = blk.c0 + blk.A @ jets[s, 1:].ravel() + blk.B @ jets[s + 1, 1:].ravel()
+        ctrl = segment_from_jets(jets[s], jets[s + 1], d[s])
+        hodo = {k: hodograph(ctrl, k, d[s]) for k in range(1, 5)}
+        bound = blk.kind == KIND_BOUND
+        # bound rows: the multiset of values equals all hodograph control points, orders 1..4
+        expect = np.sort(np.concatenate([hodo[k].ravel() for k in range(1, 5)]))
+        assert np.allclose(np.sort(val[bound]), expect, rtol=1e-12, atol=1e-9)
+        poly = problem.corridor(s)
+        assert poly is not None
+        expect_c = np.sort((ctrl[1:9] @ poly.A.T).ravel())
+        assert np.allclose(np.sort(val[~bound]), expect_c, rtol=1e-12, atol=1e-9)
+        # the 'half' rows depend on the start jet only
+        half = blk.role("half")
+        assert not np.any(blk.B[half])
+        assert not np.any(blk.A[blk.dead("a")])
+
+
+def test_global_backends_agree() -> None:
+    problem = random_problem(21, 7)
+    a = plan(problem, "global", backend="osqp")
+    b = plan(problem, "global", backend="daqp")
+    assert a.ok and b.ok
+    assert a.stats["integrated_snap"] == pytest.approx(b.stats["integrated_snap"], rel=1e-6)
+
+
+def test_window_larger_than_problem_is_clipped() -> None:
+    problem = random_problem(4, 4)
+    res = plan(problem, "iterative", window=10)
+    glob = plan(problem, "global")
+    assert res.ok and glob.ok
+    # one QP over all interior jets with the terminal jet fixed is the global problem
+    assert res.stats["integrated_snap"] == pytest.approx(glob.stats["integrated_snap"], rel=1e-6)
+
+
+def test_diagnosis_names_corridor_group() -> None:
+    from dataclasses import replace
+
+    from planner_core.result import PlanStatus as Status
+
+    problem = random_problem(2, 5)
+    init = problem.initial.copy()
+    poly = problem.corridor(0)
+    assert poly is not None
+    # leave along the outward normal of one corridor face: P^1 = W0 + v Δ/9 lies outside
+    face = int(np.argmin(poly.b - poly.A @ problem.waypoints[0]))
+    room = float(poly.b[face] - poly.A[face] @ problem.waypoints[0])
+    init[1] = poly.A[face] * (room + 0.5) * 9.0 / problem.durations[0]
+    init[1] = np.clip(init[1], -6.9, 6.9)
+    res = plan(replace(problem, initial=init), "iterative")
+    assert res.status is Status.INFEASIBLE
+    assert res.diagnosis is not None
+    assert res.diagnosis.waypoint == 1 and res.diagnosis.segment == 0
+    assert res.diagnosis.kind == "corridor"
+    assert "corridor of segment 0" in res.message
+
+
+def test_plan_is_deterministic_and_input_untouched() -> None:
+    problem = random_problem(17, 6)
+    before = problem.waypoints.copy()
+    a = plan(problem)
+    b = plan(problem)
+    assert a.trajectory is not None and b.trajectory is not None
+    assert np.array_equal(a.trajectory.control_points, b.trajectory.control_points)
+    assert np.array_equal(problem.waypoints, before)

@@ -10,7 +10,7 @@ from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mav
 
 from sitl_mock.faults import parse_faults
-from sitl_mock.protocol import Flavour, ModeTable, decode_setpoint
+from sitl_mock.protocol import APM_MODES, PX4_MODES, Flavour, ModeTable, decode_setpoint
 
 HERE = (1.0, 2.0, -3.0)
 IGN_POS, IGN_VEL, IGN_ACC = 0b111, 0b111 << 3, 0b111 << 6
@@ -32,10 +32,6 @@ def heartbeat_for(table: ModeTable, name: str, armed: bool) -> object:
 @pytest.mark.parametrize("flavour", list(Flavour))
 def test_every_mode_decodes_by_mavutil_to_its_own_name(flavour: Flavour) -> None:
     table = ModeTable(flavour)
-    names = table.__class__  # silence unused warnings in older pythons
-    del names
-    from sitl_mock.protocol import APM_MODES, PX4_MODES
-
     for name in PX4_MODES if flavour is Flavour.PX4 else APM_MODES:
         hb = heartbeat_for(table, name, armed=True)
         assert mavutil.mode_string_v10(hb) == name
@@ -48,7 +44,10 @@ def test_px4_custom_mode_layout_matches_px4_custom_mode_h() -> None:
     assert table.custom_mode("LOITER") == (4 << 16) | (3 << 24)
     assert table.custom_mode("LAND") == (4 << 16) | (6 << 24)
     assert table.from_custom(4, 0) is None  # AUTO without a sub mode is not a mode
-    assert mavutil.mode_mapping_px4 if hasattr(mavutil, "mode_mapping_px4") else True
+    for name, (base, main, sub) in mavutil.px4_map.items():
+        if name in PX4_MODES:
+            assert PX4_MODES[name] == (main, sub), name
+            assert base & mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
 
 
 def test_ardupilot_mode_numbers_match_mavutil_acm_table() -> None:
