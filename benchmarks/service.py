@@ -214,7 +214,8 @@ class Popup:
     replanned: bool = False
 
 
-def run_rate(rate: float, flight: float, out: Path, popups: int, load: bool) -> dict[str, Any]:
+def run_rate(rate: float, flight: float, out: Path, popups: int, load: bool,
+             workers: int | None = None) -> dict[str, Any]:
     from companion.demo import rig
 
     out.mkdir(parents=True, exist_ok=True)
@@ -222,11 +223,12 @@ def run_rate(rate: float, flight: float, out: Path, popups: int, load: bool) -> 
     stamps_path = out / "setpoint_stamps.json"
     relay_proc = subprocess.Popen([sys.executable, __file__, "--relay", str(relay_port), str(mock_port),
                                    str(stamps_path)])
-    result: dict[str, Any] = {"rate_hz": rate}
+    result: dict[str, Any] = {"rate_hz": rate, "workers": workers or 1}
     mission = flight_mission()
     results: list[Popup] = []
     try:
-        with rig(out, "px4", rate_hz=rate, mav_port=mock_port, companion_mav_port=relay_port) as r:
+        with rig(out, "px4", rate_hz=rate, mav_port=mock_port, companion_mav_port=relay_port,
+                 workers=workers) as r:
             events = _EventLog(r.peer)
             t_put = r.peer.put("mission", mission)
             events.wait(lambda e: e.get("type") == "accepted" and e.get("key") == "mission", t_put, 20.0)
@@ -394,6 +396,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--flight", type=float, default=24.0, help="seconds of streaming measured per rate")
     p.add_argument("--popups", type=int, default=6)
     p.add_argument("--no-load", action="store_true", help="skip the parallel 1000-waypoint plans")
+    p.add_argument("--workers", type=int, default=None, help="companion planner threads (default: its own)")
     p.add_argument("--out", type=Path, default=Path("out/bench/service"))
     p.add_argument("--json", type=Path, default=None)
     p.add_argument("--relay", nargs=3, metavar=("LISTEN", "TARGET", "OUT"), help=argparse.SUPPRESS)
@@ -404,7 +407,8 @@ def main(argv: list[str] | None = None) -> int:
     for rate in args.rates:
         print(f"flying {args.flight:.0f} s at {rate:.0f} Hz with {'1000-waypoint plans in parallel' if not args.no_load else 'no planning load'} ...",
               flush=True)
-        results.append(run_rate(rate, args.flight, args.out / f"{rate:.0f}hz", args.popups, not args.no_load))
+        results.append(run_rate(rate, args.flight, args.out / f"{rate:.0f}hz", args.popups, not args.no_load,
+                                args.workers))
     print(format_table(results))
     at50 = next((r for r in results if r["rate_hz"] == 50.0), None)
     if at50 is not None:

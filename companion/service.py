@@ -95,6 +95,7 @@ class Service:
         self._latency_mark: tuple[float, Trajectory, str] | None = None
         self.setpoint_gap_max = 0.0
         self._status_dirty = True
+        self._in_start = False
 
     # -- small helpers -------------------------------------------------------
 
@@ -652,6 +653,8 @@ class Service:
             self.take_control(self.link.state.position, "takeoff complete")
         self.airborne = True
         self.go(S.READY, f"airborne at {altitude:.2f} m: holding")
+        if self.pending is not None and self.pending.autostart and not self._in_start:
+            await self.fly(self.pending, None)
 
     async def _px4_climb(self, target: np.ndarray) -> None:
         """A verified vertical climb streamed in OFFBOARD (PX4 has no GUIDED-style takeoff for us)."""
@@ -676,6 +679,13 @@ class Service:
             end - self.now_t() + 10.0, "the climb to finish")
 
     async def cmd_start(self, arrived: float) -> None:
+        self._in_start = True
+        try:
+            await self._start(arrived)
+        finally:
+            self._in_start = False
+
+    async def _start(self, arrived: float) -> None:
         st = self.link.state
         if not st.armed:
             await self.cmd_takeoff(self.cfg.safety.takeoff_altitude)

@@ -45,7 +45,6 @@ DEFAULT_INFLUENCE_MARGIN = 3.0  # metres beyond the segment length (plus 2r) tha
 _HULL_TOL = 1e-9  # relative to the point cloud's extent
 _DET_TOL = 1e-12  # unit normals: |det| below this means three planes share no single point
 _CHUNK = 20000  # triples per vectorised batch (bounds memory for big hulls)
-_QP_SENSE_CACHE: dict[int, NDArray[np.int32]] = {}
 
 
 class CorridorError(ValueError):
@@ -277,10 +276,12 @@ def exclusion_margin(corridor: Polytope, obstacle_vertices: ArrayLike) -> float:
 # --- maximum-margin separation -------------------------------------------------
 
 
+@lru_cache(maxsize=256)
 def _sense(k: int) -> NDArray[np.int32]:
-    if k not in _QP_SENSE_CACHE:
-        _QP_SENSE_CACHE[k] = np.zeros(k, dtype=np.int32)
-    return _QP_SENSE_CACHE[k]
+    """daqp constraint kinds: all plain inequalities."""
+    out = np.zeros(k, dtype=np.int32)
+    out.setflags(write=False)
+    return out
 
 
 _SVM_H = np.diag([1.0, 1.0, 1.0, 1e-12])

@@ -28,6 +28,9 @@ def plan(problem: Problem, method: str = "iterative", cost: str | None = None, *
     elif method == "global":
         from planner_core.global_qp import plan_global
 
+        for key in opts:
+            if key not in ("backend", "diagnose"):
+                raise ValueError(f"{key}: not an option of the global planner (backend, diagnose)")
         result = plan_global(problem, cost=cost or "snap", **opts)
     else:
         raise ValueError(f"method: unknown method {method!r} (expected one of {METHODS})")

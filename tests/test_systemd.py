@@ -516,11 +516,21 @@ def test_companion_runs_sandboxed_and_speaks_sd_notify(tmp_path: Path) -> None:
         # as systemd would: SIGTERM to the main process (under strace, strace's child)
         main_pid = proc.pid
         if tracer:
-            children = Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text().split()
-            main_pid = int(children[0]) if children else proc.pid
-        os.kill(main_pid, signal.SIGTERM)
-        code = proc.wait(30)
-        mock.stop()
+            with contextlib.suppress(OSError):
+                children = Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text().split()
+                main_pid = int(children[0]) if children else proc.pid
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(main_pid, signal.SIGTERM)
+        try:
+            code = proc.wait(30)
+        except subprocess.TimeoutExpired:
+            for pid in {main_pid, proc.pid}:
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(pid, signal.SIGKILL)
+            proc.wait(10)
+            code = None
+        finally:
+            mock.stop()
         notify.setblocking(False)
         with contextlib.suppress(BlockingIOError):
             while True:

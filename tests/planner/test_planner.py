@@ -33,7 +33,7 @@ def random_problem(seed: int, m: int, corridors: bool = True) -> Problem:
     steps[:, 2] *= 0.3
     steps *= rng.uniform(2.0, 5.0, size=(m - 1, 1)) / np.linalg.norm(steps, axis=1, keepdims=True)
     wps = np.concatenate([np.zeros((1, 3)), np.cumsum(steps, axis=0)])
-    durations = np.linalg.norm(steps, axis=1) / 2.0 + 1.0
+    durations = np.linalg.norm(steps, axis=1) / 2.0 + 2.0
     cors = tuple(box_corridor(wps[i], wps[i + 1], 1.0) for i in range(m - 1)) if corridors else None
     return Problem.from_waypoints(wps, durations, Bounds.symmetric(7, 6.5, 15, 60), cors)
 
@@ -220,3 +220,8 @@ def test_plan_is_deterministic_and_input_untouched() -> None:
     assert a.trajectory is not None and b.trajectory is not None
     assert np.array_equal(a.trajectory.control_points, b.trajectory.control_points)
     assert np.array_equal(problem.waypoints, before)
+
+
+def test_global_rejects_iterative_options() -> None:
+    with pytest.raises(ValueError, match="window"):
+        plan(random_problem(1, 4), "global", window=3)

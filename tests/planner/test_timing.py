@@ -172,7 +172,8 @@ def test_moving_start_keeps_its_fixed_control_points_in_the_corridor() -> None:
 # --- feasibility on random cluttered scenarios ------------------------------------------
 
 
-def random_scenario(seed: int) -> Problem:
+def random_scenario(seed: int, moving: bool = False) -> Problem:
+    """A cluttered scene with times from allocate_times; `moving`: the start flies towards waypoint 1."""
     rng = np.random.default_rng(seed)
     while True:
         m = int(rng.integers(3, 8))
@@ -201,12 +202,18 @@ def random_scenario(seed: int) -> Problem:
             ]
         )
         bounds = Bounds(lo=-hi, hi=hi.copy())
-        times = allocate_times(wps, bounds, corridors=corridors)
-        return Problem.from_waypoints(wps, np.diff(times), bounds, corridors=corridors)
+        start = rest_jet(wps[0])
+        if moving:
+            u = (wps[1] - wps[0]) / np.linalg.norm(wps[1] - wps[0])
+            start[1] = u * rng.uniform(0.1, 0.8) * hi[0].min() + rng.normal(size=3) * 0.2
+        times = allocate_times(wps, bounds, initial_jet=start, corridors=corridors)
+        return Problem.from_waypoints(wps, np.diff(times), bounds, corridors=corridors, initial=start)
 
 
-@pytest.mark.parametrize(("method", "n_scenarios"), [("iterative", 12), ("global", 6)])
-def test_allocated_times_give_feasible_plans(method: str, n_scenarios: int) -> None:
+@pytest.mark.parametrize(
+    ("method", "n_scenarios", "moving"), [("iterative", 12, False), ("global", 6, False), ("iterative", 8, True)]
+)
+def test_allocated_times_give_feasible_plans(method: str, n_scenarios: int, moving: bool) -> None:
     planner_core = pytest.importorskip("planner_core")
     plan = getattr(planner_core, "plan", None)
     verify = pytest.importorskip("planner_core.verify").verify
@@ -215,11 +222,12 @@ def test_allocated_times_give_feasible_plans(method: str, n_scenarios: int) -> N
     opts = {"recover": False} if method == "iterative" else {}  # the times alone must do
     ok = 0
     for seed in range(n_scenarios):
-        problem = random_scenario(seed)
+        problem = random_scenario(seed, moving)
         result = plan(problem, method=method, **opts)
         if result.ok:
             assert verify(result.trajectory, problem).ok
             ok += 1
-    # Measured 100% on 100 such scenes per method at the default safety (see timing.py);
-    # one miss is tolerated so a solver tolerance change does not flip the test.
+    # Measured: 100% of 100 (iterative) and 60 (global) such scenes at rest, 59 of 60
+    # moving (see timing.py); one miss is tolerated so a solver tolerance change does
+    # not flip the test.
     assert ok >= n_scenarios - 1, f"only {ok} of {n_scenarios} scenarios planned"
