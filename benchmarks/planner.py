@@ -147,12 +147,24 @@ def _table(rows: list[Row], cols: list[str]) -> str:
     return "\n".join(lines)
 
 
+def bench_quality() -> list[Row]:
+    """Cost / global and success per window on random cluttered scenes (benchmarks/quality.py, ~40 s)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from quality import SUMMARY_COLS, quality_rows, table
+
+    rows = quality_rows()
+    print("\nquality on random cluttered scenes where the global QP is feasible (target: 100%, median <= 1.10)")
+    print(table(rows, SUMMARY_COLS))
+    return rows
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sizes", type=int, nargs="+", default=[10, 100, 1000])
     ap.add_argument("--window", type=int, default=DEFAULT_WINDOW)
     ap.add_argument("--window-sweep", action="store_true")
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--quality", action="store_true", help="also run benchmarks/quality.py (~40 s)")
     args = ap.parse_args(argv)
     out: dict[str, list[Row]] = {}
     if args.window_sweep:
@@ -168,6 +180,8 @@ def main(argv: list[str] | None = None) -> int:
         out["replan"] = bench_replan(args.sizes)
         print("\nlocal replan, one moved waypoint (target <= 1 ms at any m)")
         print(_table(out["replan"], ["m", "resolved_jets", "verified", "median_ms", "p95_ms", "qp_ms"]))
+    if args.quality:
+        out["quality"] = bench_quality()
     if args.json:
         args.json.write_text(json.dumps(out, indent=1))
     return 0

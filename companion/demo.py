@@ -292,26 +292,19 @@ def lifted_mission(scenario: dict[str, Any], mission_id: str, dz: float = LIFT) 
 
 def transit(mission: dict[str, Any], here: np.ndarray | None, altitude: float = 6.0) -> list[dict[str, Any]]:
     """Missions that climb to `altitude` (above every obstacle), cross, and descend onto the
-    mission's waypoint 0. The climb and the descent are single rest-to-rest segments; the crossing
-    has collinear waypoints every few metres, so the planner can carry speed through them
-    without the sideways swing a minimum-snap curve takes through a corner."""
+    mission's waypoint 0. Each is sent shortly before the previous one ends (see main), so the
+    companion blends them; the crossing has collinear waypoints every few metres so the planner
+    carries speed along it without the sideways swing a minimum-snap curve takes at a corner."""
     goal = np.asarray(mission["waypoints"][0], dtype=float)
     start = np.array([0.0, 0.0, LIFT]) if here is None else np.asarray(here, dtype=float)
     top_a = np.array([start[0], start[1], altitude])
     top_b = np.array([goal[0], goal[1], altitude])
     n = max(1, int(np.ceil(np.linalg.norm(top_b - top_a) / 4.0)))
-    cross = [top_a + (top_b - top_a) * k / n for k in range(n + 1)]
-    legs: list[list[np.ndarray]] = [[start, top_a], cross, [top_b, goal]]
-    out = []
-    for i, pts in enumerate(legs):
-        if float(np.linalg.norm(pts[-1] - pts[0])) < 0.05:
-            continue
-        first = here is None and not out  # on the ground: the companion takes off first
-        out.append({"id": f"transit-{mission['id']}-{i}", "frame": "enu",
-                    "start": "current" if first else "first_waypoint",
-                    "waypoints": [[round(float(v), 4) for v in p] for p in (pts[1:] if first else pts)],
-                    "bounds": {"velocity": 5.0, "acceleration": 4.0, "jerk": 10.0, "snap": 40.0}})
-    return out
+    legs = [[top_a], [top_a + (top_b - top_a) * k / n for k in range(1, n + 1)], [goal]]
+    return [{"id": f"transit-{mission['id']}-{i}", "frame": "enu", "start": "current",
+             "waypoints": [[round(float(v), 4) for v in p] for p in pts],
+             "bounds": {"velocity": 5.0, "acceleration": 4.0, "jerk": 10.0, "snap": 40.0}}
+            for i, pts in enumerate(legs)]
 
 
 def clear_of_route(popup: dict[str, Any], mission: dict[str, Any], margin: float = 0.2) -> dict[str, Any]:
@@ -420,8 +413,10 @@ FAIL_EVENTS = {"rejected", "refused", "braking", "aborted"}
 AIRBORNE = {"READY", "HOLDING", "STREAMING", "BRAKING"}
 
 
-def fly(r: Rig, mission: dict[str, Any], actions: list[Action], timeout: float, progress: Progress) -> FlightOutcome:
-    """Publish a mission (and `start` when on the ground), run the actions, wait for completion."""
+def fly(r: Rig, mission: dict[str, Any], actions: list[Action], timeout: float, progress: Progress,
+        handoff: float = 0.0) -> FlightOutcome:
+    """Publish a mission (and `start` when on the ground), run the actions, wait for completion
+    (or, with `handoff` > 0, until that many seconds are left, to chain the next mission)."""
     _drain(r.peer)
     status = r.peer.query("status") or {}
     t_put = r.peer.put("mission", mission)
@@ -453,7 +448,11 @@ def fly(r: Rig, mission: dict[str, Any], actions: list[Action], timeout: float, 
                 r.peer.put("command", {"command": "start"})
                 progress.show(f"[{name}] mission loaded; sent 'start' (arm, take off, fly)", force=True)
                 progress.done()
-            elif kind == "state" and ev.get("to") == "STREAMING" and t_stream is None:
+            elif t_stream is None and (
+                (kind == "state" and ev.get("to") == "STREAMING")
+                # already streaming the previous mission: no state change, but this event
+                or (kind == "accepted" and ev.get("mission") == name and "plan_ms" in ev)
+            ):
                 t_stream = s.mono
             elif kind == "mission_complete" and ev.get("mission") in (name, None):
                 t_done = s.mono
@@ -469,6 +468,10 @@ def fly(r: Rig, mission: dict[str, Any], actions: list[Action], timeout: float, 
                     progress.show(f"[{name}] published {a.label}", force=True)
                     progress.done()
         st = r.peer.latest.get("status")
+        if handoff > 0 and t_stream is not None and st is not None and st.mono > t_stream:
+            left = st.data.get("time_to_go") if st.data.get("mission") == name else None
+            if isinstance(left, int | float) and left <= handoff:
+                t_done = now
         progress.show(_status_line(name, st.data if st else None, pos, now - t_put))
     progress.done()
     if not reason and t_done is None:
@@ -739,9 +742,10 @@ def main(argv: list[str] | None = None) -> int:
                 if mission.get("start") == "first_waypoint":
                     print(f"- transit to {name}'s waypoint 0 (over the obstacles)")
                     moved = None
-                    for leg in transit(mission, here):
+                    legs = transit(mission, here)
+                    for i, leg in enumerate(legs):
                         for _ in range(3):
-                            moved = fly(r, leg, [], args.timeout, progress)
+                            moved = fly(r, leg, [], args.timeout, progress, handoff=1.0 if i < len(legs) - 1 else 0.0)
                             # a machine busy elsewhere can make a plan miss its split time
                             if moved.ok or "split time" not in moved.reason:
                                 break

@@ -20,10 +20,10 @@ import numpy as np
 
 os.environ.setdefault("MAVLINK20", "1")
 
-from pymavlink import mavutil  # noqa: E402
+from pymavlink import mavutil
 
-from companion.config import Config  # noqa: E402
-from companion.setpoints import Setpoint  # noqa: E402
+from companion.config import Config
+from companion.setpoints import Setpoint
 
 mavlink = mavutil.mavlink
 

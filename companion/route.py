@@ -25,9 +25,16 @@ import numpy as np
 
 from companion.config import Config
 from companion.messages import MessageError, check_geofence
+from planner_core import changes as ch
 from planner_core import plan, verify
-from planner_core.bezier import split_segment
+from planner_core.bezier import split_segment, start_jet
+from planner_core.braking import braking_trajectory
+from planner_core.changes import ChangeError, ChangeSet, parse_polytope
+from planner_core.corridors import CorridorError
+from planner_core.corridors import build_corridors as _build_corridors
 from planner_core.problem import Bounds, FloatArray, Polytope, Problem, Trajectory, rest_jet
+from planner_core.replan import Environment, ReplanOptions, replan
+from planner_core.timing import allocate_times
 
 INSIDE_EPS = 1e-9
 
@@ -76,8 +83,6 @@ def bounds_from(obj: dict[str, Any] | None, cfg: Config) -> Bounds:
 
 
 def parse_region(obj: dict[str, Any], field_name: str) -> Polytope:
-    from planner_core.changes import ChangeError, parse_polytope
-
     try:
         return parse_polytope({k: v for k, v in obj.items() if k != "id"}, field_name)
     except ChangeError as exc:
@@ -136,19 +141,8 @@ def mission_from_message(obj: dict[str, Any], cfg: Config) -> MissionSpec:
 
 def allocate_durations(waypoints: FloatArray, bounds: Bounds, initial_velocity: FloatArray | None = None) -> FloatArray:
     """Segment durations for `waypoints` (planner_core.timing when present)."""
-    try:
-        from planner_core.timing import allocate_times
-
-        times = allocate_times(waypoints, bounds, t0=0.0, initial_velocity=initial_velocity)
-        return np.asarray(np.diff(times), dtype=float)
-    except ImportError:
-        pass
-    v = float(np.min(np.minimum(-bounds.lo[0], bounds.hi[0])))
-    a = float(np.min(np.minimum(-bounds.lo[1], bounds.hi[1])))
-    d = np.linalg.norm(np.diff(waypoints, axis=0), axis=1)
-    # Rest-to-rest bang-coast-bang time, stretched because snap limits round the corners.
-    trapezoid = np.where(d < v * v / a, 2.0 * np.sqrt(d / a), d / v + v / a)
-    return np.asarray(np.maximum(1.6 * trapezoid, 0.5), dtype=float)
+    times = allocate_times(waypoints, bounds, t0=0.0, initial_velocity=initial_velocity)
+    return np.asarray(np.diff(times), dtype=float)
 
 
 # -- geometry -----------------------------------------------------------------------
@@ -173,9 +167,7 @@ def first_hit(traj: Trajectory, t_from: float, obstacles: Sequence[Polytope], ra
 
 
 def build_corridors(waypoints: FloatArray, obstacles: Sequence[Polytope], mission: MissionSpec) -> tuple[Polytope, ...]:
-    from planner_core.corridors import build_corridors as build
-
-    return tuple(build(waypoints, list(obstacles), (mission.map_lo, mission.map_hi), mission.radius))
+    return tuple(_build_corridors(waypoints, list(obstacles), (mission.map_lo, mission.map_hi), mission.radius))
 
 
 # -- splicing -------------------------------------------------------------------------
@@ -279,16 +271,26 @@ def plan_route(
 ) -> Outcome:
     """Corridors, plan, verify. `initial` is the jet at waypoints[0] (time times[0])."""
     t0 = time.perf_counter()
-    from planner_core.corridors import CorridorError
-
     try:
         corridors = build_corridors(waypoints, obstacles, mission)
     except CorridorError as exc:
-        wp = getattr(exc, "waypoint", None)
+        wp, seg = getattr(exc, "waypoint", None), getattr(exc, "segment", None)
+
+        def name(i: int) -> str:
+            return f"mission waypoint {int(labels[i])}" if labels[i] >= 0 else "the current position"
+
         blocked = None
-        if wp is not None and 0 <= wp < len(labels) and labels[wp] >= 0:
-            blocked = int(labels[wp])
-        return Outcome(False, message=f"no free corridor: {exc}", blocked_waypoint=blocked,
+        if seg is not None and 0 <= seg < len(labels) - 1:
+            what = f"the path from {name(seg)} to {name(seg + 1)} is blocked"
+        elif wp is not None and 0 <= wp < len(labels):
+            what = f"{name(wp)} is blocked"
+            blocked = int(labels[wp]) if labels[wp] >= 0 else None
+        else:
+            what = "no free corridor"
+        return Outcome(False, message=f"{what} (planner: {exc})", blocked_waypoint=blocked,
+                       stats={"plan_seconds": time.perf_counter() - t0})
+    except Exception as exc:  # a geometry bug must be a refusal, not a crash
+        return Outcome(False, message=f"corridor construction failed: {exc!r}",
                        stats={"plan_seconds": time.perf_counter() - t0})
     final = rest_jet(waypoints[-1])
     problem = Problem(waypoints, times, mission.bounds, initial, final, corridors)
@@ -375,8 +377,6 @@ def replan_remainder(
 
 def brake(jet: FloatArray, bounds: Bounds, corridor: Polytope | None, t0: float) -> tuple[Trajectory | None, str]:
     """A verified stop to rest from `jet` at t0 inside `corridor` (None and why, if none)."""
-    from planner_core.braking import braking_trajectory
-
     result = braking_trajectory(jet, bounds, corridor, t0)
     if not result.ok or result.trajectory is None:
         return None, result.message
@@ -393,8 +393,6 @@ def corridor_at(traj: Trajectory, t: float) -> Polytope | None:
 
 def safe_corridor(position: FloatArray, velocity: FloatArray, obstacles: Sequence[Polytope], mission: MissionSpec) -> Polytope | None:
     """A free polytope around `position` (for braking) that excludes every obstacle."""
-    from planner_core.corridors import CorridorError
-
     step = velocity / max(float(np.linalg.norm(velocity)), 1e-9) * 1e-3 if np.linalg.norm(velocity) > 1e-6 else np.array([1e-3, 0, 0])
     try:
         return build_corridors(np.vstack([position, position + step]), obstacles, mission)[0]
@@ -506,8 +504,6 @@ def trim(route: Route, t: float) -> Route:
         return route
     k0 = min(k0, len(route.times) - 2)
     tr = route.trajectory
-    from planner_core.bezier import start_jet
-
     initial = start_jet(tr.control_points[k0], float(tr.times[k0 + 1] - tr.times[k0]))
     initial[0] = route.waypoints[k0]
     cors = None if route.problem.corridors is None else route.problem.corridors[k0:]
@@ -531,8 +527,6 @@ def _same(labels: FloatArray, _wp: Any) -> FloatArray:
 
 def local_edit(route: Route, change: dict[str, Any], t_split: float) -> LocalEdit:
     """The `change` message as planner_core edits on the route (MessageError if impossible)."""
-    from planner_core import changes as ch
-
     lo, hi = route.mission.map_lo, route.mission.map_hi
     if "move_waypoint" in change:
         body = change["move_waypoint"]
@@ -599,9 +593,6 @@ def local_replan(
     cfg: Config,
 ) -> Outcome:
     """planner_core.replan with from_time = t_split: only the touched jets are re-solved."""
-    from planner_core.replan import Environment, ReplanOptions, replan
-    from planner_core.changes import ChangeError, ChangeSet
-
     t0 = time.perf_counter()
     r = trim(route, t_now)
     if t_split >= r.times[-1] - 1e-6 and not any(type(e).__name__ == "AppendWaypoints" for e in edit.edits):
@@ -612,6 +603,8 @@ def local_replan(
                         options=ReplanOptions(environment=env))
     except ChangeError as exc:
         return Outcome(False, message=str(exc), stats={"plan_seconds": time.perf_counter() - t0})
+    except Exception as exc:  # a planner bug must degrade to the next fallback, not crash the service
+        return Outcome(False, message=f"local replan error: {exc!r}", stats={"plan_seconds": time.perf_counter() - t0})
     stats = {"plan_seconds": time.perf_counter() - t0, "method": "local", "resolved_jets": list(result.resolved_jets)}
     if not result.ok or result.trajectory is None:
         return Outcome(False, message=result.message, stats=stats)

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import logging
 import math
 import sys
@@ -29,13 +30,30 @@ import numpy as np
 
 from companion import route as rt
 from companion.config import Config
-from companion.flight import AIRBORNE_CONTROL, IN_OUR_MODE, Flight, State, on_mode_report, refuse_command
+from companion.flight import (
+    AIRBORNE_CONTROL,
+    IN_OUR_MODE,
+    Flight,
+    State,
+    on_mode_report,
+    refuse_command,
+)
 from companion.frames import change_to_ned, obstacles_to_ned, scenario_to_ned
 from companion.mavlink_io import CommandFailed, MavlinkLink
 from companion.messages import MessageError, decode
 from companion.sdnotify import Notifier
-from companion.setpoints import DeadlineScheduler, Setpoint, YawPolicy, hold_trajectory, sample, sleep_until
+from companion.setpoints import (
+    DeadlineScheduler,
+    Setpoint,
+    YawPolicy,
+    hold_trajectory,
+    sample,
+    sleep_until,
+)
 from companion.zenoh_io import ZenohIO, encode
+from planner_core import plan
+from planner_core.changes import AddObstacles
+from planner_core.io import trajectory_to_dict
 from planner_core.problem import Polytope, Problem, Trajectory, rest_jet
 
 log = logging.getLogger("companion")
@@ -54,9 +72,24 @@ def _vec(v: Any) -> list[float] | None:
 
 
 def trajectory_dict(traj: Trajectory) -> dict[str, Any]:
-    from planner_core.io import trajectory_to_dict
-
     return trajectory_to_dict(traj, "ned")
+
+
+def encode_trajectory(traj: Trajectory) -> bytes:
+    """Trajectory JSON, one segment per json.dumps call so other threads get the GIL between."""
+    head = trajectory_to_dict(Trajectory(traj.times[:2], traj.control_points[:1], None, traj.stats), "ned")
+    head["segments"] = []
+    parts = []
+    corridors = traj.corridors or (None,) * traj.n_segments
+    for s in range(traj.n_segments):
+        c = corridors[s]
+        parts.append(json.dumps({
+            "t0": float(traj.times[s]), "t1": float(traj.times[s + 1]),
+            "control_points": traj.control_points[s].tolist(),
+            "corridor": None if c is None else {"A": c.A.tolist(), "b": c.b.tolist()},
+        }, separators=(",", ":")))
+    text = json.dumps(head, separators=(",", ":"), default=str)
+    return text.replace('"segments":[]', '"segments":[' + ",".join(parts) + "]", 1).encode()
 
 
 class Service:
@@ -67,6 +100,10 @@ class Service:
         self.link = MavlinkLink(cfg, self._on_mavlink)
         self.zio: ZenohIO | None = None
         self.pool = ThreadPoolExecutor(cfg.planner.workers, thread_name_prefix="planner")
+        self.io_pool = ThreadPoolExecutor(1, thread_name_prefix="encode")
+        self._traj_seq = 0
+        self._traj_published = 0
+        self._traj_bytes: bytes | None = None
         self.notifier = Notifier()
         self.yaw = YawPolicy(cfg.setpoints.yaw_mode, cfg.setpoints.yaw, cfg.setpoints.yaw_min_speed)
         self.loop: asyncio.AbstractEventLoop | None = None
@@ -185,8 +222,22 @@ class Service:
         return True
 
     def publish_trajectory(self) -> None:
-        if self.zio is not None and self.active is not None:
-            self.zio.publish("trajectory", trajectory_dict(self.active))
+        """Encode off the loop (json.dumps of a long plan holds the GIL), then publish."""
+        if self.zio is None or self.active is None or self.loop is None:
+            return
+        self._traj_seq += 1
+        seq, traj = self._traj_seq, self.active
+        fut = self.loop.run_in_executor(self.io_pool, encode_trajectory, traj)
+
+        def done(f: asyncio.Future[bytes]) -> None:
+            if f.cancelled() or f.exception() is not None or seq < self._traj_published:
+                return
+            self._traj_published = seq
+            self._traj_bytes = f.result()
+            if self.zio is not None:
+                self.zio.publish_bytes("trajectory", self._traj_bytes)
+
+        fut.add_done_callback(done)
 
     # -- loops -----------------------------------------------------------------
 
@@ -202,7 +253,11 @@ class Service:
                 sp = sample(self.active, t, self.yaw)
                 self.link.send_setpoint(sp)
                 if self.last_sp is not None:
-                    self.setpoint_gap_max = max(self.setpoint_gap_max, now - self.last_sp_time)
+                    gap = now - self.last_sp_time
+                    self.setpoint_gap_max = max(self.setpoint_gap_max, gap)
+                    if gap > 0.04:
+                        log.warning("setpoint gap %.1f ms (deadline late by %.1f ms)", gap * 1000,
+                                    (now - deadline) * 1000)
                 self.last_sp, self.last_sp_time = sp, now
                 mark = self._latency_mark
                 if mark is not None and mark[1] is self.active:
@@ -296,6 +351,7 @@ class Service:
             "message_to_setpoint_ms": _r(None if self.setpoint_latency is None else self.setpoint_latency * 1000, 2),
             "obstacles": sorted(self.obstacles),
             "setpoints_sent": self.link.sent_setpoints,
+            "setpoint_gap_max_ms": round(self.setpoint_gap_max * 1000, 2),
         }
 
     # -- autopilot reports ---------------------------------------------------
@@ -665,8 +721,6 @@ class Service:
         bounds = rt.bounds_from(None, self.cfg)
         d = rt.allocate_durations(np.vstack([jet[0], target]), bounds)
         problem = Problem.from_waypoints(np.vstack([jet[0], target]), d, bounds, initial=jet, t0=t_split)
-        from planner_core import plan
-
         result = await self.in_pool(plan, problem)
         if not result.ok or result.trajectory is None:
             raise CommandFailed(f"no verified climb: {result.message}")
@@ -759,7 +813,7 @@ class Service:
     # -- queryables -------------------------------------------------------------
 
     def query_plan(self) -> bytes | None:
-        return None if self.active is None else encode(trajectory_dict(self.active))
+        return None if self.active is None else self._traj_bytes
 
     def query_status(self) -> bytes | None:
         return encode(self.status())
@@ -774,6 +828,8 @@ class Service:
         self.zio = ZenohIO(self.cfg, self.loop)
         self.zio.open({"plan": self.query_plan, "status": self.query_status})
         self.link.open(self.loop)
+        # First calls pay for imports and caches; pay them now, not during a flight.
+        await self.in_pool(warm_up, self.cfg)
         loops = [self.setpoint_loop(), self.heartbeat_loop(), self.telemetry_loop(), self.status_loop(), self.inbox_loop()]
         runners = [asyncio.create_task(c) for c in loops]
         self.notifier.ready(f"vehicle {self.cfg.vehicle.id}: zenoh and mavlink up")
@@ -795,12 +851,18 @@ class Service:
             self.link.close()
             self.zio.close()
             self.pool.shutdown(wait=False, cancel_futures=True)
+            self.io_pool.shutdown(wait=False, cancel_futures=True)
 
 
 def rt_add_obstacles(new: list[Polytope]) -> Any:
-    from planner_core.changes import AddObstacles
-
     return AddObstacles(tuple(new))
+
+
+def warm_up(cfg: Config) -> None:
+    spec = rt.mission_from_message({"id": "warm-up", "waypoints": [[1.0, 0.0, -1.0], [1.0, 1.0, -1.0]]}, cfg)
+    outcome = rt.start_mission(spec, rest_jet(np.array([0.0, 0.0, -1.0])), 0.0, [], cfg)
+    if outcome.route is not None:
+        encode_trajectory(outcome.route.trajectory)
 
 
 async def run(config: Config, *, stop: asyncio.Event | None = None) -> None:

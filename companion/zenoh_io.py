@@ -8,6 +8,7 @@ validation and every zenoh call happen on the loop thread.
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import json
 import time
 from collections.abc import Callable
@@ -103,17 +104,18 @@ class ZenohIO:
         if pub is not None:
             pub.put(encode(obj))
 
+    def publish_bytes(self, kind: str, payload: bytes) -> None:
+        pub = self._pubs.get(kind)
+        if pub is not None:
+            pub.put(payload)
+
     def close(self) -> None:
         for d in self._decls:
-            try:
+            with contextlib.suppress(Exception):
                 d.undeclare()
-            except Exception:
-                pass
         for p in self._pubs.values():
-            try:
+            with contextlib.suppress(Exception):
                 p.undeclare()
-            except Exception:
-                pass
         if self.session is not None:
             self.session.close()
             self.session = None

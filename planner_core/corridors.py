@@ -276,14 +276,6 @@ def exclusion_margin(corridor: Polytope, obstacle_vertices: ArrayLike) -> float:
 # --- maximum-margin separation -------------------------------------------------
 
 
-@lru_cache(maxsize=256)
-def _sense(k: int) -> NDArray[np.int32]:
-    """daqp constraint kinds: all plain inequalities."""
-    out = np.zeros(k, dtype=np.int32)
-    out.setflags(write=False)
-    return out
-
-
 _SVM_H = np.diag([1.0, 1.0, 1.0, 1e-12])
 _SVM_F = np.zeros(4)
 
@@ -307,7 +299,8 @@ def max_margin_normal(points: FloatArray, verts: FloatArray) -> FloatArray | Non
         ]
     )
     k = rows.shape[0]
-    x, _, flag, _ = daqp.solve(_SVM_H, _SVM_F, rows, -np.ones(k), np.full(k, -1e30), _sense(k))
+    sense = np.zeros(k, dtype=np.int32)  # fresh each call: daqp writes its active set back
+    x, _, flag, _ = daqp.solve(_SVM_H, _SVM_F, rows, -np.ones(k), np.full(k, -1e30), sense)
     if flag == -1:
         return None
     w = np.asarray(x[:3], dtype=float)

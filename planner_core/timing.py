@@ -107,7 +107,7 @@ def directional_bounds(bounds: Bounds, units: FloatArray) -> FloatArray:
     per_axis = np.concatenate(
         [side[:, None, :], np.broadcast_to(sym[1:], (units.shape[0], 3, 3))], axis=1
     )  # (s, 4, 3)
-    with np.errstate(divide="ignore"):
+    with np.errstate(divide="ignore", over="ignore"):
         ratio = np.where(comp[:, None, :] > _EPS, per_axis / comp[:, None, :], np.inf)
     out = np.min(ratio, axis=2)
     zero = ~np.any(comp > _EPS, axis=1)

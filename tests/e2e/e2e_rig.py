@@ -1,0 +1,290 @@
+"""End-to-end rig helpers: sitl_mock and the companion as subprocesses, a Zenoh client, all on loopback.
+
+Real Zenoh (explicit tcp/127.0.0.1 endpoints, multicast scouting off), real
+MAVLink 2 over UDP. One rig per autopilot flavour is shared by the tests of a
+module (they run in file order and leave the vehicle holding in control).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import os
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from planner_core.io import trajectory_from_dict
+from planner_core.problem import Polytope, Trajectory
+from sitl_mock.control import ControlClient
+
+REPO = Path(__file__).resolve().parents[2]
+PREFIX = "bezier"
+VEHICLE = "e2e"
+RADIUS = 0.25
+
+
+def free_port(kind: int = socket.SOCK_STREAM) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def box(lo: list[float], hi: list[float]) -> dict[str, Any]:
+    """An axis-aligned box as {"A", "b"} (NED)."""
+    eye = np.eye(3)
+    return {"A": np.vstack([eye, -eye]).tolist(), "b": [*hi, *(-np.asarray(lo)).tolist()]}
+
+
+def polytope(d: dict[str, Any]) -> Polytope:
+    return Polytope(np.asarray(d["A"], dtype=float), np.asarray(d["b"], dtype=float))
+
+
+def inside(points: np.ndarray, poly: Polytope, inflate: float) -> np.ndarray:
+    b = poly.b + inflate * np.linalg.norm(poly.A, axis=1)
+    return np.all(np.atleast_2d(points) @ poly.A.T <= b, axis=1)
+
+
+class Rig:
+    def __init__(self, autopilot: str, tmp: Path) -> None:
+        self.autopilot = autopilot
+        self.tmp = tmp
+        self.mav_port = free_port(socket.SOCK_DGRAM)
+        self.ctl_port = free_port()
+        self.zport = free_port()
+        self.log_path = tmp / f"{autopilot}-flight.jsonl"
+        self.events: list[dict[str, Any]] = []
+        self.statuses: list[dict[str, Any]] = []
+        self.trajectories: list[tuple[float, dict[str, Any]]] = []
+        self.lock = threading.Lock()
+        self.procs: list[subprocess.Popen[bytes]] = []
+        self.session: Any = None
+        self.control: ControlClient | None = None
+
+    # -- processes -------------------------------------------------------------
+
+    def config_text(self) -> str:
+        return f"""
+[vehicle]
+id = "{VEHICLE}"
+
+[zenoh]
+prefix = "{PREFIX}"
+listen = ["tcp/127.0.0.1:{self.zport}"]
+multicast_scouting = false
+
+[mavlink]
+url = "udpout:127.0.0.1:{self.mav_port}"
+
+[planner]
+vehicle_radius = {RADIUS}
+
+[planner.bounds]
+velocity = 3.0
+acceleration = 4.0
+jerk = 20.0
+snap = 120.0
+
+[geofence]
+min = [-20.0, -20.0, -10.0]
+max = [20.0, 20.0, 0.5]
+
+[safety]
+takeoff_altitude = 1.0
+"""
+
+    def start(self) -> None:
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        mock_cmd = [sys.executable, "-m", "sitl_mock", "--autopilot", self.autopilot,
+                    "--endpoint", f"udpin:127.0.0.1:{self.mav_port}", "--log", str(self.log_path),
+                    "--log-rate-hz", "50", "--control", f"127.0.0.1:{self.ctl_port}"]
+        self.procs.append(subprocess.Popen(mock_cmd, cwd=REPO, env=env, stdout=subprocess.DEVNULL,
+                                           stderr=open(self.tmp / f"{self.autopilot}-mock.err", "wb")))  # noqa: SIM115
+        cfg = self.tmp / f"{self.autopilot}.toml"
+        cfg.write_text(self.config_text())
+        self.procs.append(subprocess.Popen([sys.executable, "-m", "companion", "run", "--config", str(cfg)],
+                                           cwd=REPO, env=env, stdout=subprocess.DEVNULL,
+                                           stderr=open(self.tmp / f"{self.autopilot}-companion.err", "wb")))  # noqa: SIM115
+        zc = zenoh.Config()
+        zc.insert_json5("mode", '"client"')
+        zc.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{self.zport}"]))
+        zc.insert_json5("scouting/multicast/enabled", "false")
+        deadline = time.monotonic() + 30
+        while True:
+            try:
+                self.session = zenoh.open(zc)
+                break
+            except zenoh.ZError:
+                if time.monotonic() > deadline or any(p.poll() is not None for p in self.procs):
+                    raise RuntimeError(f"companion did not come up; see {self.tmp}") from None
+                time.sleep(0.2)
+        self.session.declare_subscriber(self.key("events"), self._on("events"))
+        self.session.declare_subscriber(self.key("status"), self._on("status"))
+        self.session.declare_subscriber(self.key("trajectory"), self._on("trajectory"))
+        deadline = time.monotonic() + 20
+        while True:
+            try:
+                self.control = ControlClient("127.0.0.1", self.ctl_port)
+                break
+            except OSError:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.1)
+        self.wait_status(lambda s: s.get("autopilot") == self.autopilot and s.get("link"), 30, "autopilot link")
+
+    def stop(self) -> None:
+        if self.session is not None:
+            with contextlib.suppress(Exception):
+                self.session.close()
+        if self.control is not None:
+            with contextlib.suppress(Exception):
+                self.control.close()
+        for p in reversed(self.procs):
+            p.terminate()
+        for p in self.procs:
+            try:
+                p.wait(5)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait(5)
+
+    # -- zenoh -------------------------------------------------------------------
+
+    def key(self, topic: str) -> str:
+        return f"{PREFIX}/{VEHICLE}/{topic}"
+
+    def _on(self, topic: str) -> Callable[[Any], None]:
+        def callback(sample: Any) -> None:
+            obj = json.loads(sample.payload.to_bytes())
+            with self.lock:
+                if topic == "events":
+                    self.events.append(obj)
+                elif topic == "status":
+                    self.statuses.append(obj)
+                else:
+                    self.trajectories.append((time.monotonic(), obj))
+
+        return callback
+
+    def put(self, topic: str, obj: Any) -> None:
+        payload = obj if isinstance(obj, bytes) else json.dumps(obj).encode()
+        self.session.put(self.key(topic), payload)
+
+    def command(self, name: str, **extra: Any) -> None:
+        self.put("command", {"command": name, **extra})
+
+    def mark(self) -> int:
+        with self.lock:
+            return len(self.events)
+
+    def wait_event(self, pred: Callable[[dict[str, Any]], bool], timeout: float, what: str, since: int = 0) -> dict[str, Any]:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            with self.lock:
+                for e in self.events[since:]:
+                    if pred(e):
+                        return e
+            time.sleep(0.02)
+        with self.lock:
+            tail = [(e["type"], e["message"]) for e in self.events[since:]][-15:]
+        raise AssertionError(f"timed out waiting for {what}; events since mark: {tail}")
+
+    def events_since(self, since: int) -> list[dict[str, Any]]:
+        with self.lock:
+            return list(self.events[since:])
+
+    def wait_status(self, pred: Callable[[dict[str, Any]], bool], timeout: float, what: str) -> dict[str, Any]:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            with self.lock:
+                if self.statuses and pred(self.statuses[-1]):
+                    return self.statuses[-1]
+            time.sleep(0.02)
+        with self.lock:
+            last = self.statuses[-1] if self.statuses else None
+        raise AssertionError(f"timed out waiting for {what}; last status {last}")
+
+    def state(self) -> str:
+        with self.lock:
+            return str(self.statuses[-1]["state"]) if self.statuses else ""
+
+    def latest_trajectory(self) -> Trajectory:
+        with self.lock:
+            return trajectory_from_dict(self.trajectories[-1][1])
+
+    # -- mock log -------------------------------------------------------------
+
+    def mock_time(self) -> float:
+        """Current mock simulation time (the log's clock), from the control socket."""
+        assert self.control is not None
+        return float(self.control.state()["t"])
+
+    def log(self) -> list[dict[str, Any]]:
+        time.sleep(0.6)  # the mock flushes its log every 0.5 s
+        out = []
+        with open(self.log_path, encoding="utf-8") as fh:
+            for line in fh:
+                with contextlib.suppress(json.JSONDecodeError):
+                    out.append(json.loads(line))
+        return out
+
+    # -- flying ----------------------------------------------------------------------
+
+    def ensure_airborne(self) -> None:
+        if self.state() in ("READY", "HOLDING") and self.statuses[-1].get("armed"):
+            return
+        since = self.mark()
+        self.command("arm")
+        self.wait_event(lambda e: e["type"] == "state" and e.get("to") == "READY", 20, "armed/READY", since)
+        since = self.mark()
+        self.command("takeoff", altitude=1.0)
+        self.wait_event(lambda e: e["type"] == "state" and e.get("to") == "READY", 30, "takeoff complete", since)
+
+    def fly(self, mission: dict[str, Any], timeout: float = 30.0) -> tuple[float, float, dict[str, Any]]:
+        """Fly a mission to completion; returns (mock t at start, mock t at end, accepted event)."""
+        since = self.mark()
+        t_start = self.mock_time()
+        self.put("mission", mission)
+        acc = self.wait_event(lambda e: e["type"] == "accepted" and e.get("mission") == mission["id"]
+                              and e.get("key") == "mission", 10, f"mission {mission['id']} accepted", since)
+        self.wait_event(lambda e: e["type"] == "mission_complete" and e.get("mission") == mission["id"],
+                        timeout, f"mission {mission['id']} complete", since)
+        time.sleep(0.5)  # let the vehicle settle on the final hold
+        return t_start, self.mock_time(), acc
+
+
+def setpoints(log: list[dict[str, Any]], t0: float, t1: float) -> list[dict[str, Any]]:
+    return [r for r in log if r["type"] == "setpoint" and t0 <= r["t"] <= t1]
+
+
+def states(log: list[dict[str, Any]], t0: float, t1: float) -> list[dict[str, Any]]:
+    return [r for r in log if r["type"] == "state" and t0 <= r["t"] <= t1]
+
+
+def max_gap(records: list[dict[str, Any]]) -> float:
+    t = np.array([r["t"] for r in records])
+    return float(np.max(np.diff(t))) if len(t) > 1 else math.inf
+
+
+def tracking_rms(log: list[dict[str, Any]], t0: float, t1: float) -> float:
+    """RMS distance between the flown position and the setpoint in force at that time."""
+    sps = [r for r in setpoints(log, t0, t1) if r.get("raw_pos") is not None]
+    st = states(log, t0, t1)
+    ts = np.array([r["t"] for r in sps])
+    sp_pos = np.array([r["raw_pos"] for r in sps])
+    errs = []
+    for r in st:
+        i = int(np.searchsorted(ts, r["t"], side="right")) - 1
+        if i >= 0:
+            errs.append(np.linalg.norm(np.asarray(r["pos"]) - sp_pos[i]))
+    assert errs, "no state records during the window"
+    return float(np.sqrt(np.mean(np.square(errs))))

@@ -1,0 +1,180 @@
+"""PX4 flavour, one shared rig; the tests run in order and each leaves the vehicle holding.
+
+mission -> pop-up obstacle -> blocked waypoint -> bad messages -> pilot takeover -> link loss.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+import pytest
+from e2e_rig import RADIUS, Rig, box, inside, max_gap, polytope, setpoints, states, tracking_rms
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def rig(rig_factory: Any) -> Rig:
+    r: Rig = rig_factory("px4")
+    r.ensure_airborne()
+    return r
+
+
+def clear_obstacles(rig: Rig) -> None:
+    since = rig.mark()
+    rig.put("obstacles", {"clear": True})
+    rig.wait_event(lambda e: e["type"] == "accepted" and e.get("key") == "obstacles", 5, "obstacles cleared", since)
+
+
+def test_mission_with_static_obstacle(rig: Rig) -> None:
+    obstacle = box([0.7, 0.7, -3.0], [1.3, 1.3, 0.0])
+    mission = {"id": "px4-square", "frame": "ned", "obstacles": [obstacle],
+               "waypoints": [[2.0, 0.0, -1.2], [2.0, 2.0, -1.2], [0.0, 2.0, -1.5]]}
+    t0, t1, accepted = rig.fly(mission)
+    log = rig.log()
+    assert "planned and verified" in accepted["message"]
+    assert tracking_rms(log, t0, t1) <= 0.15
+    final = np.asarray(rig.control.state()["position"])
+    assert np.linalg.norm(final - mission["waypoints"][-1]) <= 0.1
+    assert max_gap(setpoints(log, t0, t1)) <= 0.060
+    track = np.array([r["pos"] for r in states(log, t0, t1)])
+    assert not np.any(inside(track, polytope(obstacle), RADIUS - 0.05))
+    seen = rig.statuses[-1]
+    assert seen["state"] == "HOLDING" and seen["mission"] == "px4-square"
+    assert seen["plan_latency_ms"] is not None
+
+
+def test_popup_obstacle_replans_without_touching_the_flown_piece(rig: Rig) -> None:
+    clear_obstacles(rig)
+    since = rig.mark()
+    mission = {"id": "px4-popup", "waypoints": [[3.0, 2.0, -1.5], [3.0, 5.0, -1.5], [0.0, 5.0, -1.5]]}
+    t_start = rig.mock_time()
+    rig.put("mission", mission)
+    rig.wait_event(lambda e: e["type"] == "state" and e.get("to") == "STREAMING", 10, "streaming", since)
+    time.sleep(0.3)
+    before = rig.latest_trajectory()
+    # Beyond the corner at (3, 2): the straight legs keep their distance, the curve overshoots into it.
+    obstacle = box([3.55, 2.8, -3.0], [4.3, 4.2, 0.0])
+    poly = polytope(obstacle)
+    ts = np.linspace(before.t0, before.t_end, 800)
+    assert np.any(inside(before.evaluate(ts), poly, RADIUS)), "test geometry: the first plan must hit it"
+    mark = rig.mark()
+    rig.put("obstacles", {"add": [{"id": "popup", **obstacle}]})
+    ev = rig.wait_event(lambda e: e["type"] in ("replanned", "braking"), 10, "replan", mark)
+    assert ev["type"] == "replanned", ev["message"]
+    t_split = ev["split_time"]
+    time.sleep(0.2)
+    after = rig.latest_trajectory()
+    # The piece being flown did not change: identical samples up to the split.
+    ts = np.linspace(max(before.t0, after.t0), t_split, 200)
+    assert np.max(np.abs(before.evaluate(ts) - after.evaluate(ts))) <= 1e-9
+    # The new plan keeps the vehicle radius away from the obstacle.
+    ts = np.linspace(t_split, after.t_end, 1500)
+    assert not np.any(inside(after.evaluate(ts), poly, RADIUS - 1e-6))
+    rig.wait_event(lambda e: e["type"] == "latency", 5, "latency event", mark)
+    rig.wait_event(lambda e: e["type"] == "mission_complete" and e.get("mission") == "px4-popup", 30, "complete", since)
+    t_end = rig.mock_time()
+    log = rig.log()
+    track = np.array([r["pos"] for r in states(log, t_start, t_end)])
+    assert not np.any(inside(track, poly, RADIUS - 0.05))
+    assert max_gap(setpoints(log, t_start, t_end)) <= 0.060
+    status = rig.wait_status(lambda s: s["replan_latency_ms"] is not None, 3, "replan latency in status")
+    assert status["message_to_setpoint_ms"] is not None
+
+
+def test_blocked_waypoint_brakes_and_holds(rig: Rig) -> None:
+    clear_obstacles(rig)
+    since = rig.mark()
+    mission = {"id": "px4-blocked", "waypoints": [[0.0, 3.0, -1.5], [0.0, 1.0, -1.5], [-1.0, 0.0, -1.5]]}
+    rig.put("mission", mission)
+    rig.wait_event(lambda e: e["type"] == "state" and e.get("to") == "STREAMING", 10, "streaming", since)
+    time.sleep(0.4)
+    obstacle = box([-0.5, 0.5, -3.0], [0.5, 1.5, 0.0])
+    mark = rig.mark()
+    rig.put("obstacles", {"add": [{"id": "wall", **obstacle}]})
+    ev = rig.wait_event(lambda e: e["type"] == "braking", 10, "braking", mark)
+    assert ev["blocked_waypoint"] == 1
+    assert "waypoint 1" in ev["message"]
+    rig.wait_event(lambda e: e["type"] == "state" and e.get("to") == "HOLDING", 10, "holding", mark)
+    time.sleep(0.5)
+    st = rig.control.state()
+    assert np.linalg.norm(st["velocity"]) < 0.05
+    assert not inside(np.asarray(st["position"]), polytope(obstacle), RADIUS - 0.05)[0]
+    assert rig.state() == "HOLDING"
+
+
+def test_bad_messages_are_rejected_and_the_flight_continues(rig: Rig) -> None:
+    clear_obstacles(rig)
+    since = rig.mark()
+    mission = {"id": "px4-bad", "waypoints": [[-1.5, 2.5, -1.5], [-1.5, -1.0, -1.5], [1.0, -1.0, -1.5]]}
+    t_start = rig.mock_time()
+    rig.put("mission", mission)
+    rig.wait_event(lambda e: e["type"] == "state" and e.get("to") == "STREAMING", 10, "streaming", since)
+    bad: list[tuple[str, Any, str, str]] = [
+        ("mission", b'{"id": "x", "waypoints": [[0, 0', "", "malformed JSON"),
+        ("mission", b'{"id": "x", "waypoints": [[0, 0, NaN]]}', "waypoints[0][2]", "non-finite"),
+        ("mission", {"id": "x", "waypoints": [[0, 0]]}, "waypoints[0]", "too short"),
+        ("obstacles", {"add": [{"id": "o", "A": [[1, 0, 0]], "b": [1, 2]}]}, "add[0].b", "expected 1"),
+        ("mission", b"[" + b"0," * (5 * 1024 * 1024) + b"0]", "", "exceeds the limit"),
+        ("command", {"command": "fly"}, "command", "is not one of"),
+        ("mission", {"id": "far", "waypoints": [[0, 0, -1], [100, 0, -1]]}, "waypoints[1]", "geofence"),
+        ("change", {"move_waypoint": {"index": 1, "position": [0, 0]}}, "move_waypoint.position", "too short"),
+    ]
+    for key, payload, field, words in bad:
+        mark = rig.mark()
+        rig.put(key, payload)
+        ev = rig.wait_event(lambda e, k=key: e["type"] == "rejected" and e.get("key") == k, 10, f"rejection of {field}", mark)
+        assert ev["field"] == field, ev
+        assert words in ev["reason"], ev
+    assert rig.statuses[-1]["mission"] == "px4-bad"
+    rig.wait_event(lambda e: e["type"] == "mission_complete" and e.get("mission") == "px4-bad", 30, "complete", since)
+    t_end = rig.mock_time()
+    log = rig.log()
+    assert max_gap(setpoints(log, t_start, t_end)) <= 0.060
+    assert tracking_rms(log, t_start, t_end) <= 0.15
+    final = np.asarray(rig.control.state()["position"])
+    assert np.linalg.norm(final - mission["waypoints"][-1]) <= 0.1
+
+
+def test_pilot_takeover_stops_streaming_until_start(rig: Rig) -> None:
+    since = rig.mark()
+    rig.put("mission", {"id": "px4-takeover", "waypoints": [[1.0, 2.0, -1.5], [-1.0, 2.0, -1.5]]})
+    rig.wait_event(lambda e: e["type"] == "state" and e.get("to") == "STREAMING", 10, "streaming", since)
+    time.sleep(0.5)
+    assert rig.control.set_mode("POSCTL")["ok"]
+    t_switch = rig.mock_time()
+    ev = rig.wait_event(lambda e: e["type"] == "pilot_takeover", 5, "pilot takeover", since)
+    assert "POSCTL" in ev["message"]
+    rig.wait_status(lambda s: s["state"] == "PILOT" and not s["streaming"], 3, "PILOT")
+    time.sleep(1.5)
+    log = rig.log()
+    # Allow for the setpoints already in flight when the heartbeat reported the switch.
+    late = setpoints(log, t_switch + 0.5, rig.mock_time())
+    assert late == []
+    assert rig.control.state()["mode"] == "POSCTL"
+    mark = rig.mark()
+    rig.command("start")
+    rig.wait_event(lambda e: e["type"] == "state" and e.get("to") == "STREAMING", 15, "back in control", mark)
+    rig.wait_event(lambda e: e["type"] == "mission_complete", 30, "remaining mission flown", mark)
+    assert rig.control.state()["mode"] == "OFFBOARD"
+
+
+def test_link_loss_failsafe_and_no_silent_resume(rig: Rig) -> None:
+    assert rig.state() == "HOLDING"
+    since = rig.mark()
+    rig.control.pause_link(3.0)
+    t_pause = rig.mock_time()
+    rig.wait_event(lambda e: e["type"] == "link_lost", 6, "link lost", since)
+    rig.wait_event(lambda e: e["type"] == "state" and e.get("to") == "FAILSAFE", 3, "FAILSAFE", since)
+    restored = rig.wait_event(lambda e: e["type"] == "link_restored", 10, "link restored", since)
+    assert "start" in restored["message"]
+    time.sleep(1.5)
+    assert rig.state() == "FAILSAFE"
+    log = rig.log()
+    # The autopilot's own failsafe fired (it left OFFBOARD while the link was down).
+    modes = [r for r in log if r["type"] == "mode" and r["t"] >= t_pause]
+    assert any(m["from"] == "OFFBOARD" for m in modes)
+    assert setpoints(log, t_pause + 3.5, rig.mock_time()) == []
+    assert rig.control.state()["mode"] != "OFFBOARD"
