@@ -195,7 +195,14 @@ def split_at(traj: Trajectory, t: float) -> tuple[Trajectory, int]:
 
 def splice(old: Trajectory, new: Trajectory) -> Trajectory:
     """Old up to new.t0, then new. The caller guarantees the jets agree at new.t0."""
-    if new.t0 >= old.t_end - 1e-12:
+    if new.t0 > old.t_end + 1e-9:
+        # The old plan ended at rest: fill the wait with a hold at its end point.
+        end = old.control_points[-1, -1]
+        filler = np.repeat(end[None, None, :], 10, axis=1)
+        cors = None if old.corridors is None else (*old.corridors, None)
+        old = Trajectory(np.append(old.times, new.t0), np.concatenate([old.control_points, filler]), cors, old.stats)
+        head, k = old, old.n_segments
+    elif new.t0 >= old.t_end - 1e-12:
         head, k = old, old.n_segments
     else:
         head, k = split_at(old, new.t0)

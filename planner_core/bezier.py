@@ -7,23 +7,24 @@ points, and control points are a linear map of the two end jets (method.md,
 
 from __future__ import annotations
 
-from functools import lru_cache
+from functools import cache, lru_cache
 from math import comb, factorial
 
 import numpy as np
+from numpy.typing import NDArray
 
 from planner_core.problem import DEGREE, JET_ORDER, FloatArray, Trajectory
 
 N = DEGREE
 
 
-@lru_cache(maxsize=None)
+@cache
 def _difference_matrix(k: int, n: int = N) -> FloatArray:
     """(n-k+1, n+1) matrix of the k-th forward difference Δ^k P^i."""
     out = np.zeros((n - k + 1, n + 1))
     for i in range(n - k + 1):
-        for l in range(k + 1):
-            out[i, i + l] = (-1) ** (k - l) * comb(k, l)
+        for q in range(k + 1):
+            out[i, i + q] = (-1) ** (k - q) * comb(k, q)
     out.setflags(write=False)
     return out
 
@@ -48,7 +49,8 @@ def hodographs(ctrl: FloatArray, k: int, durations: FloatArray) -> FloatArray:
     """Order-k hodograph control points of many segments: (s, 10, 3) -> (s, 10-k, 3)."""
     n = ctrl.shape[-2] - 1
     scale = falling(n, k) / np.asarray(durations, dtype=float) ** k
-    return np.einsum("ij,sjd->sid", _difference_matrix(k, n), ctrl) * scale[:, None, None]
+    out: FloatArray = np.einsum("ij,sjd->sid", _difference_matrix(k, n), ctrl) * scale[:, None, None]
+    return out
 
 
 def bernstein_basis(n: int, u: FloatArray) -> FloatArray:
@@ -75,8 +77,8 @@ def evaluate_segment(ctrl: FloatArray, duration: float, u: FloatArray, order: in
 def _start_map_cached(duration: float) -> FloatArray:
     m = np.zeros((JET_ORDER, JET_ORDER))
     for k in range(JET_ORDER):
-        for l in range(k + 1):
-            m[k, l] = comb(k, l) * duration**l / falling(N, l)
+        for q in range(k + 1):
+            m[k, q] = comb(k, q) * duration**q / falling(N, q)
     m.setflags(write=False)
     return m
 
@@ -86,8 +88,8 @@ def _end_map_cached(duration: float) -> FloatArray:
     m = np.zeros((JET_ORDER, JET_ORDER))
     for k in range(JET_ORDER):
         row = JET_ORDER - 1 - k  # control point P^{9-k}, stored in order P^5..P^9
-        for l in range(k + 1):
-            m[row, l] = (-1) ** l * comb(k, l) * duration**l / falling(N, l)
+        for q in range(k + 1):
+            m[row, q] = (-1) ** q * comb(k, q) * duration**q / falling(N, q)
     m.setflags(write=False)
     return m
 
@@ -160,10 +162,10 @@ def split_segment(ctrl: FloatArray, u: float) -> tuple[FloatArray, FloatArray]:
 # --- trajectory evaluation --------------------------------------------------
 
 
-def locate(times: FloatArray, t: FloatArray) -> tuple[FloatArray, FloatArray]:
+def locate(times: FloatArray, t: FloatArray) -> tuple[NDArray[np.intp], FloatArray]:
     """Segment index and local parameter u for times t (clamped to the span)."""
     t = np.clip(np.atleast_1d(np.asarray(t, dtype=float)), times[0], times[-1])
-    seg = np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 2)
+    seg: NDArray[np.intp] = np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 2)
     u = (t - times[seg]) / (times[seg + 1] - times[seg])
     return seg, np.clip(u, 0.0, 1.0)
 
@@ -182,10 +184,10 @@ def evaluate_trajectory(traj: Trajectory, t: FloatArray, order: int = 0) -> Floa
     else:
         pts = hodographs(traj.control_points[seg], order, durations[seg])
     basis = bernstein_basis(n - order, u)  # (T, n-order+1)
-    out = np.einsum("ti,tid->td", basis, pts)
-    return out[0] if scalar else out
+    res: FloatArray = np.einsum("ti,tid->td", basis, pts)
+    return res[0] if scalar else res
 
 
 def trajectory_jet(traj: Trajectory, t: float) -> FloatArray:
     """Jet (position .. snap) at time t, shape (5, 3)."""
-    return np.stack([evaluate_trajectory(traj, np.float64(t), k) for k in range(JET_ORDER)])
+    return np.stack([evaluate_trajectory(traj, np.asarray(t, dtype=float), k) for k in range(JET_ORDER)])

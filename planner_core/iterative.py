@@ -26,6 +26,7 @@ from planner_core.jets import COSTS, ProblemCache, initial_jets, solve_jets, tra
 from planner_core.problem import FloatArray, Problem
 from planner_core.qp import BACKENDS
 from planner_core.result import PlanResult, PlanStatus
+from planner_core.window import WindowSolver
 
 __all__ = ["IterativeOptions", "plan_iterative", "solve_jets"]
 
@@ -61,11 +62,23 @@ class _Timers:
     solve: list[float] = field(default_factory=list)
     check: list[float] = field(default_factory=list)
 
+    def add(self, times: tuple[float, float, float]) -> None:
+        self.build.append(times[0])
+        self.solve.append(times[1])
+        self.check.append(times[2])
+
     def medians(self) -> dict[str, float]:
         return {
             f"step_{name}_median": float(np.median(v)) if v else 0.0
             for name, v in (("build", self.build), ("solve", self.solve), ("check", self.check))
         }
+
+
+def _fast_solver(cache: ProblemCache, opts: IterativeOptions) -> WindowSolver | None:
+    """The hot path covers the default configuration; other costs/backends take the general one."""
+    if opts.backend != "daqp" or opts.cost not in ("snap", "jerk") or cache.problem.m < 3:
+        return None
+    return WindowSolver(cache, 4 if opts.cost == "snap" else 3)
 
 
 def _stretch(problem: Problem, segments: list[int], factor: float) -> Problem:
@@ -113,26 +126,43 @@ def plan_iterative(problem: Problem, options: IterativeOptions | None = None) ->
     t_start = time.perf_counter()
     m = problem.m
     cache = ProblemCache(problem)
+    fast = _fast_solver(cache, opts)
     t_cache = time.perf_counter() - t_start
     jets = initial_jets(problem)
     timers = _Timers()
     guess = jets.copy()
-    step_times: list[float] = []
+    step_times = np.zeros(max(m - 2, 0))
+    n_steps = 0
     recoveries: list[dict[str, Any]] = []
     stretched: dict[int, float] = {}
     original = problem
     j = 1
     while j <= m - 2:
         t0 = time.perf_counter()
-        new = _try(problem, cache, jets, j, opts.window, 0, opts, timers, guess)
-        step_times.append(time.perf_counter() - t0)
+        new: FloatArray | None = None
+        if fast is not None:
+            f1 = min(j + opts.window - 1, m - 2)
+            d = fast.solve(jets, j, f1, True, guess)
+            if d is not None:
+                guess[j : f1 + 1, 1:] = d  # the uncommitted part predicts the next window
+                jets[j, 1:] = d[0]  # commit the jet at j only
+                new = jets
+                timers.add(fast.times)
+        if new is None:
+            new = _try(problem, cache, jets, j, opts.window, 0, opts, timers, guess)
+        if n_steps < step_times.size:
+            step_times[n_steps] = time.perf_counter() - t0
+            n_steps += 1
         if new is None and opts.recover:
             new, problem, cache, info = _recover(problem, cache, jets, j, opts, stretched)
             recoveries.append(info)
+            if fast is not None and fast.cache is not cache:
+                fast = _fast_solver(cache, opts)  # durations were stretched
         if new is None:
             return _infeasible(problem, cache, jets, j, opts, t_start, recoveries)
         jets = new
         j += 1
+    step_times = step_times[:n_steps]
     if m == 2:
         pass  # a single segment: both jets are given, nothing to solve
     ctrl_ok = _check_terminal_segment(problem, cache, jets, opts)
@@ -148,8 +178,8 @@ def plan_iterative(problem: Problem, options: IterativeOptions | None = None) ->
         "integrated_snap": integrated_cost(traj.control_points, problem.durations, 4),
         "integrated_jerk": integrated_cost(traj.control_points, problem.durations, 3),
         "time_total": time.perf_counter() - t_start,
-        "step_time_median": float(np.median(step_times)) if step_times else 0.0,
-        "n_qp": len(step_times),
+        "step_time_median": float(np.median(step_times)) if step_times.size else 0.0,
+        "n_qp": int(step_times.size),
         "time_cache": t_cache,
         **timers.medians(),
         "recoveries": recoveries,

@@ -162,7 +162,7 @@ def test_pilot_takeover_stops_streaming_until_start(rig: Rig) -> None:
 
 
 def test_link_loss_failsafe_and_no_silent_resume(rig: Rig) -> None:
-    assert rig.state() == "HOLDING"
+    rig.wait_status(lambda s: s["state"] == "HOLDING", 5, "holding before the link test")
     since = rig.mark()
     rig.control.pause_link(3.0)
     t_pause = rig.mock_time()
