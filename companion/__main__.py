@@ -123,7 +123,16 @@ def cmd_run(args: argparse.Namespace) -> int:
             loop.add_signal_handler(sig, stop.set)
         await run(cfg, stop=stop)
 
-    asyncio.run(main())
+    import zenoh
+
+    try:
+        asyncio.run(main())
+    except zenoh.ZError as exc:
+        print(f"zenoh: {exc}", file=sys.stderr)
+        return 1
+    except OSError as exc:
+        print(f"mavlink {cfg.mavlink.url}: {exc}", file=sys.stderr)
+        return 1
     return 0
 
 
@@ -160,10 +169,17 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.command == "run":
         return cmd_run(args)
-    if args.command == "send":
-        return cmd_send(args)
-    if args.command == "watch":
-        return cmd_watch(args)
+    if args.command in ("send", "watch"):
+        import zenoh
+
+        try:
+            return cmd_send(args) if args.command == "send" else cmd_watch(args)
+        except zenoh.ZError as exc:
+            print(f"zenoh: {exc}", file=sys.stderr)
+            return 2
+        except OSError as exc:
+            print(f"{args.command}: {exc}", file=sys.stderr)
+            return 2
     build_parser().print_help()
     return 2
 

@@ -63,6 +63,10 @@ class SetpointConfig:
     yaw: float = 0.0  # rad, NED heading used in fixed mode
     # Below this speed the along-velocity heading is ill-defined; keep the last one.
     yaw_min_speed: float = 0.3
+    # > 0: run the event loop thread under SCHED_FIFO at this priority (needs
+    # CAP_SYS_NICE; a warning and normal scheduling otherwise) so a busy
+    # computer cannot delay setpoints. Planner threads keep normal priority.
+    realtime_priority: int = 0
 
 
 @dataclass(frozen=True)

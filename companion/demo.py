@@ -12,245 +12,34 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
-import os
 import queue
-import signal
-import socket
-import subprocess
 import sys
-import threading
 import time
-from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from companion import demo_report as rep
-from companion.config import (
-    Config,
-    GeofenceConfig,
-    MavlinkConfig,
-    SafetyConfig,
-    VehicleConfig,
-    ZenohConfig,
-    config_to_toml,
+from companion.demo_rig import (
+    ROOT,
+    TAKEOFF_ALTITUDE,
+    Peer,
+    Rig,
+    Sample,
+    rig,
 )
 from companion.frames import swap_points
 from planner_core.problem import Trajectory
 
-ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ROOT / "examples"
-VEHICLE = "demo"
 UP = np.array([0.0, 0.0, 1.0])  # ENU
-LIFT = 2.0  # m: the paper's scenarios touch z = 0; fly them this much higher (ENU, up)
+# m: the paper's scenarios touch z = 0; fly them this much higher (ENU, up), which is also where
+# the companion's takeoff leaves the vehicle
+LIFT = TAKEOFF_ALTITUDE
 MAX_TRACKING_ERROR = 1.0  # m: beyond this the flight is not "as planned"
-
-
-# --- processes and ports ---------------------------------------------------------------------
-
-
-def free_port(kind: int = socket.SOCK_STREAM) -> int:
-    with socket.socket(socket.AF_INET, kind) as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-class Child:
-    """A subprocess with its output in a log file; stopped politely, then firmly."""
-
-    def __init__(self, name: str, argv: list[str], log: Path) -> None:
-        self.name = name
-        self.log = log
-        self._fh = open(log, "wb")  # noqa: SIM115 (closed in stop())
-        env = dict(os.environ, PYTHONUNBUFFERED="1")
-        self.proc = subprocess.Popen(argv, stdout=self._fh, stderr=subprocess.STDOUT, cwd=ROOT, env=env)
-
-    @property
-    def pid(self) -> int:
-        return self.proc.pid
-
-    def alive(self) -> bool:
-        return self.proc.poll() is None
-
-    def tail(self, n: int = 15) -> str:
-        try:
-            lines = self.log.read_text(errors="replace").splitlines()
-        except OSError:
-            return ""
-        return "\n".join(f"    {self.name}| {line}" for line in lines[-n:])
-
-    def stop(self, timeout: float = 5.0) -> int | None:
-        if self.alive():
-            self.proc.send_signal(signal.SIGINT)
-            try:
-                self.proc.wait(timeout)
-            except subprocess.TimeoutExpired:
-                self.proc.terminate()
-                try:
-                    self.proc.wait(2.0)
-                except subprocess.TimeoutExpired:
-                    self.proc.kill()
-                    self.proc.wait()
-        self._fh.close()
-        return self.proc.returncode
-
-
-# --- the Zenoh side --------------------------------------------------------------------------
-
-
-@dataclass
-class Sample:
-    topic: str
-    mono: float
-    data: Any
-
-
-class Peer:
-    """Our Zenoh peer: publishes inputs, records every output with its arrival time."""
-
-    def __init__(self, endpoint: str, vehicle: str, prefix: str = "bezier") -> None:
-        import zenoh
-
-        conf = zenoh.Config()
-        conf.insert_json5("mode", json.dumps("peer"))
-        conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
-        conf.insert_json5("listen/endpoints", json.dumps([]))
-        conf.insert_json5("scouting/multicast/enabled", "false")
-        self.base = f"{prefix}/{vehicle}"
-        self.session = zenoh.open(conf)
-        self.samples: queue.Queue[Sample] = queue.Queue()
-        self.latest: dict[str, Sample] = {}
-        # arrival times of every trajectory message, kept apart from the queue for benchmarks
-        self.trajectory_log: list[float] = []
-        self._lock = threading.Lock()
-        self._subs = [
-            self.session.declare_subscriber(f"{self.base}/{topic}", self._record(topic))
-            for topic in ("status", "telemetry", "trajectory", "events")
-        ]
-
-    def _record(self, topic: str) -> Callable[[Any], None]:
-        def callback(sample: Any) -> None:
-            mono = time.monotonic()
-            try:
-                data = json.loads(sample.payload.to_bytes())
-            except ValueError:
-                return
-            s = Sample(topic, mono, data)
-            with self._lock:
-                self.latest[topic] = s
-                if topic == "trajectory":
-                    self.trajectory_log.append(mono)
-            self.samples.put(s)
-
-        return callback
-
-    def put(self, topic: str, obj: Any) -> float:
-        """Publish; returns the monotonic time just before the put."""
-        payload = json.dumps(obj).encode()
-        t = time.monotonic()
-        self.session.put(f"{self.base}/{topic}", payload)
-        return t
-
-    def query(self, topic: str, timeout: float = 2.0) -> Any | None:
-        for reply in self.session.get(f"{self.base}/{topic}", timeout=timeout):
-            if reply.ok is not None:
-                return json.loads(reply.ok.payload.to_bytes())
-        return None
-
-    def close(self) -> None:
-        for s in self._subs:
-            with contextlib.suppress(Exception):
-                s.undeclare()
-        self.session.close()
-
-
-# --- rig: mock + companion + peer ------------------------------------------------------------
-
-
-@dataclass
-class Rig:
-    out: Path
-    autopilot: str
-    mock: Child
-    companion: Child
-    peer: Peer
-    flight_log: Path
-    control_port: int
-    config: Config
-    events: list[Sample] = field(default_factory=list)
-
-    def check_alive(self) -> str | None:
-        for child in (self.mock, self.companion):
-            if not child.alive():
-                return f"{child.name} exited with code {child.proc.returncode}\n{child.tail()}"
-        return None
-
-
-def demo_config(zenoh_port: int, mav_port: int, rate_hz: float = 50.0, workers: int | None = None) -> Config:
-    from companion.config import PlannerConfig, SetpointConfig
-
-    planner = PlannerConfig() if workers is None else PlannerConfig(workers=workers)
-    return Config(
-        planner=planner,
-        vehicle=VehicleConfig(id=VEHICLE),
-        zenoh=ZenohConfig(listen=(f"tcp/127.0.0.1:{zenoh_port}",), multicast_scouting=False),
-        mavlink=MavlinkConfig(url=f"udpout:127.0.0.1:{mav_port}"),
-        setpoints=SetpointConfig(rate_hz=rate_hz),
-        geofence=GeofenceConfig(min=(-60.0, -60.0, -20.0), max=(60.0, 60.0, 0.5)),
-        safety=SafetyConfig(auto_arm=True, takeoff_altitude=LIFT),
-    )
-
-
-@contextlib.contextmanager
-def rig(out: Path, autopilot: str, rate_hz: float = 50.0, mock_args: tuple[str, ...] = (),
-        mav_port: int | None = None, companion_mav_port: int | None = None,
-        workers: int | None = None) -> Iterator[Rig]:
-    """Mock + companion + our peer. `companion_mav_port` lets a relay sit between the two."""
-    out.mkdir(parents=True, exist_ok=True)
-    mav_port = mav_port or free_port(socket.SOCK_DGRAM)
-    control_port, zenoh_port = free_port(), free_port()
-    flight_log = out / "flight.jsonl"
-    cfg = demo_config(zenoh_port, companion_mav_port or mav_port, rate_hz, workers)
-    cfg_path = out / "companion.toml"
-    cfg_path.write_text(config_to_toml(cfg))
-    py = sys.executable
-    mock = Child("mock", [py, "-m", "sitl_mock", "--autopilot", autopilot,
-                          "--endpoint", f"udpin:127.0.0.1:{mav_port}", "--log", str(flight_log),
-                          "--control", f"127.0.0.1:{control_port}", *mock_args], out / "mock.log")
-    companion = Child("companion", [py, "-m", "companion", "run", "--config", str(cfg_path)],
-                      out / "companion.log")
-    peer: Peer | None = None
-    try:
-        peer = _connect_peer(f"tcp/127.0.0.1:{zenoh_port}", companion)
-        yield Rig(out, autopilot, mock, companion, peer, flight_log, control_port, cfg)
-    finally:
-        if peer is not None:
-            peer.close()
-        companion.stop()
-        mock.stop()
-
-
-def _connect_peer(endpoint: str, companion: Child, timeout: float = 30.0) -> Peer:
-    """The companion needs a moment to import, open its Zenoh listener and hear the autopilot."""
-    deadline = time.monotonic() + timeout
-    while True:
-        if not companion.alive():
-            raise RuntimeError(f"companion exited early\n{companion.tail()}")
-        peer = Peer(endpoint, VEHICLE)
-        status = peer.query("status", timeout=1.0)
-        # answering is not enough: the autopilot's heartbeat must have arrived too
-        while status is not None and not status.get("link") and time.monotonic() < deadline:
-            time.sleep(0.2)
-            status = peer.query("status", timeout=1.0)
-        if status is not None and status.get("link"):
-            return peer
-        peer.close()
-        if time.monotonic() > deadline:
-            raise RuntimeError(f"companion not up with a MAVLink link on {endpoint} within {timeout:.0f} s\n"
-                               f"{companion.tail()}")
-        time.sleep(0.3)
 
 
 # --- scenarios -------------------------------------------------------------------------------
@@ -292,19 +81,23 @@ def lifted_mission(scenario: dict[str, Any], mission_id: str, dz: float = LIFT) 
 
 def transit(mission: dict[str, Any], here: np.ndarray | None, altitude: float = 6.0) -> list[dict[str, Any]]:
     """Missions that climb to `altitude` (above every obstacle), cross, and descend onto the
-    mission's waypoint 0. Each is sent shortly before the previous one ends (see main), so the
-    companion blends them; the crossing has collinear waypoints every few metres so the planner
-    carries speed along it without the sideways swing a minimum-snap curve takes at a corner."""
+    mission's waypoint 0, each from rest where the previous one stopped. The crossing has
+    collinear waypoints every few metres, so the planner carries speed along it without the
+    sideways swing a minimum-snap curve takes through a corner."""
     goal = np.asarray(mission["waypoints"][0], dtype=float)
     start = np.array([0.0, 0.0, LIFT]) if here is None else np.asarray(here, dtype=float)
     top_a = np.array([start[0], start[1], altitude])
     top_b = np.array([goal[0], goal[1], altitude])
     n = max(1, int(np.ceil(np.linalg.norm(top_b - top_a) / 4.0)))
-    legs = [[top_a], [top_a + (top_b - top_a) * k / n for k in range(1, n + 1)], [goal]]
-    return [{"id": f"transit-{mission['id']}-{i}", "frame": "enu", "start": "current",
-             "waypoints": [[round(float(v), 4) for v in p] for p in pts],
-             "bounds": {"velocity": 5.0, "acceleration": 4.0, "jerk": 10.0, "snap": 40.0}}
-            for i, pts in enumerate(legs)]
+    legs = [[start, top_a], [top_a + (top_b - top_a) * k / n for k in range(n + 1)], [top_b, goal]]
+    out: list[dict[str, Any]] = []
+    for i, pts in enumerate(legs):
+        first = here is None and not out  # on the ground: the companion takes off first
+        out.append({"id": f"transit-{mission['id']}-{i}", "frame": "enu",
+                    "start": "current" if first else "first_waypoint",
+                    "waypoints": [[round(float(v), 4) for v in p] for p in (pts[1:] if first else pts)],
+                    "bounds": {"velocity": 5.0, "acceleration": 4.0, "jerk": 10.0, "snap": 40.0}})
+    return out
 
 
 def clear_of_route(popup: dict[str, Any], mission: dict[str, Any], margin: float = 0.2) -> dict[str, Any]:
@@ -318,7 +111,7 @@ def clear_of_route(popup: dict[str, Any], mission: dict[str, Any], margin: float
     """
     radius = float(mission.get("vehicle_radius", 0.3))
     x_line = float(mission["waypoints"][1][0])
-    out = json.loads(json.dumps(popup))
+    out: dict[str, Any] = json.loads(json.dumps(popup))
     for ob in out["obstacles"]:
         A = np.asarray(ob["A"], dtype=float)
         b = np.asarray(ob["b"], dtype=float)
@@ -413,10 +206,8 @@ FAIL_EVENTS = {"rejected", "refused", "braking", "aborted"}
 AIRBORNE = {"READY", "HOLDING", "STREAMING", "BRAKING"}
 
 
-def fly(r: Rig, mission: dict[str, Any], actions: list[Action], timeout: float, progress: Progress,
-        handoff: float = 0.0) -> FlightOutcome:
-    """Publish a mission (and `start` when on the ground), run the actions, wait for completion
-    (or, with `handoff` > 0, until that many seconds are left, to chain the next mission)."""
+def fly(r: Rig, mission: dict[str, Any], actions: list[Action], timeout: float, progress: Progress) -> FlightOutcome:
+    """Publish a mission (and `start` when on the ground), run the actions, wait for completion."""
     _drain(r.peer)
     status = r.peer.query("status") or {}
     t_put = r.peer.put("mission", mission)
@@ -468,10 +259,6 @@ def fly(r: Rig, mission: dict[str, Any], actions: list[Action], timeout: float, 
                     progress.show(f"[{name}] published {a.label}", force=True)
                     progress.done()
         st = r.peer.latest.get("status")
-        if handoff > 0 and t_stream is not None and st is not None and st.mono > t_stream:
-            left = st.data.get("time_to_go") if st.data.get("mission") == name else None
-            if isinstance(left, int | float) and left <= handoff:
-                t_done = now
         progress.show(_status_line(name, st.data if st else None, pos, now - t_put))
     progress.done()
     if not reason and t_done is None:
@@ -693,6 +480,20 @@ def figures(name: str, title: str, mission: dict[str, Any], result: rep.MissionR
 # --- main ------------------------------------------------------------------------------------
 
 
+def fly_transit(r: Rig, mission: dict[str, Any], here: np.ndarray | None, timeout: float,
+                progress: Progress) -> str | None:
+    """Fly the transit legs onto the mission's waypoint 0; the reason if one failed."""
+    for leg in transit(mission, here):
+        for _ in range(3):
+            moved = fly(r, leg, [], timeout, progress)
+            # a machine busy elsewhere can make a plan miss its split time: try again
+            if moved.ok or "split time" not in moved.reason:
+                break
+        if not moved.ok:
+            return moved.reason
+    return None
+
+
 def _quick_mission() -> dict[str, Any]:
     return {
         "id": "quick",
@@ -741,18 +542,9 @@ def main(argv: list[str] | None = None) -> int:
             for name, title, mission, actions, popup_msg, change_msg in plans:
                 if mission.get("start") == "first_waypoint":
                     print(f"- transit to {name}'s waypoint 0 (over the obstacles)")
-                    moved = None
-                    legs = transit(mission, here)
-                    for i, leg in enumerate(legs):
-                        for _ in range(3):
-                            moved = fly(r, leg, [], args.timeout, progress, handoff=1.0 if i < len(legs) - 1 else 0.0)
-                            # a machine busy elsewhere can make a plan miss its split time
-                            if moved.ok or "split time" not in moved.reason:
-                                break
-                        if not moved.ok:
-                            break
-                    if moved is not None and not moved.ok:
-                        results.append(rep.MissionResult(name=name, ok=False, reason=f"transit: {moved.reason}"))
+                    failed = fly_transit(r, mission, here, args.timeout, progress)
+                    if failed:
+                        results.append(rep.MissionResult(name=name, ok=False, reason=f"transit: {failed}"))
                         break
                 print(f"- {title}: {len(mission['waypoints'])} waypoints")
                 outcome = fly(r, mission, actions, args.timeout, progress)

@@ -171,8 +171,13 @@ def local_offsets(trajs: Sequence[Trajectory], starts: Sequence[float], t: Float
     grid = np.arange(-search, search + step / 2, step)
     tau = (t - offset)[:, None] + grid[None, :]
     pts = stitched(trajs, starts, tau.ravel()).reshape(len(t), len(grid), 3)
-    best = np.argmin(np.sum((pts - pos[:, None, :]) ** 2, axis=2), axis=1)
-    raw = offset - grid[best]
+    best = grid[np.argmin(np.sum((pts - pos[:, None, :]) ** 2, axis=2), axis=1)]
+    # refine to 0.05 ms around the coarse match: the deviation check wants ~1e-5 m resolution
+    fine = np.linspace(-step, step, 81)
+    tau = (t - offset + best)[:, None] + fine[None, :]
+    pts = stitched(trajs, starts, tau.ravel()).reshape(len(t), len(fine), 3)
+    best = best + fine[np.argmin(np.sum((pts - pos[:, None, :]) ** 2, axis=2), axis=1)]
+    raw = offset - best
     half = smooth // 2
     padded = np.pad(raw, half, mode="edge")
     windows = np.lib.stride_tricks.sliding_window_view(padded, smooth)
@@ -335,6 +340,7 @@ def plot_path(
     import matplotlib.pyplot as plt
 
     fig, (top, side) = plt.subplots(1, 2, figsize=(14, 5.6), gridspec_kw={"width_ratios": [1.4, 1]})
+    t_zero = tau_start if np.isfinite(tau_start) else planned[0][1].t0
     for verts in scene.corridors:
         if len(verts) >= 3:
             h = hull2d(verts[:, :2])
@@ -355,11 +361,11 @@ def plot_path(
         style = {"color": colors[min(k, 1)], "lw": 2.2 if last else 1.3, "alpha": 1.0 if last else 0.55,
                  "ls": "-" if last else "-.", "label": label}
         top.plot(pts[:, 0], pts[:, 1], **style)
-        side.plot(t, pts[:, 2], **style)
+        side.plot(t - t_zero, pts[:, 2], **style)
     if flown_enu is not None and len(flown_enu):
         top.plot(flown_enu[:, 0], flown_enu[:, 1], "--", color="tab:orange", lw=1.5, label="flown (mock log)")
         if flown_tau is not None:
-            side.plot(flown_tau, flown_enu[:, 2], "--", color="tab:orange", lw=1.5, label="flown (mock log)")
+            side.plot(flown_tau - t_zero, flown_enu[:, 2], "--", color="tab:orange", lw=1.5, label="flown (mock log)")
     wp = scene.waypoints
     top.plot(wp[:, 0], wp[:, 1], "o", ms=6, mfc="white", mec="k", label="waypoints", zorder=5)
     for i, p in enumerate(wp):
@@ -376,7 +382,7 @@ def plot_path(
     top.set_aspect("equal", adjustable="box")
     top.grid(True, alpha=0.3)
     top.set_title("top view")
-    side.set_xlabel("trajectory time [s]")
+    side.set_xlabel("mission time [s]")
     side.set_ylabel("altitude z (up) [m]")
     side.grid(True, alpha=0.3)
     side.set_title("altitude")
@@ -421,12 +427,13 @@ def plot_derivatives(
     starts = list(starts) if len(starts) == len(trajs) else [-np.inf] * len(trajs)
     t = np.unique(np.concatenate([_sample_times(tr, 300) for tr in trajs]))
     t = t[(t >= max(trajs[0].t0, tau_start)) & (t <= trajs[-1].t_end)]
+    t_zero = float(t[0])
     fig, axes = plt.subplots(4, 1, figsize=(11, 9), sharex=True)
     colors = ("tab:blue", "tab:orange", "tab:green")
     for k, ax in enumerate(axes, start=1):
         values = swap_points(stitched(trajs, starts, t, k))
         for a in range(3):
-            ax.plot(t, values[:, a], color=colors[a], lw=1.3, label=f"planned {AXES[a]} (ENU)")
+            ax.plot(t - t_zero, values[:, a], color=colors[a], lw=1.3, label=f"planned {AXES[a]} (ENU)")
         if bounds is not None and np.isfinite(bounds[k - 1]).any():
             b = float(np.min(bounds[k - 1]))
             for sign in (-1, 1):
@@ -434,16 +441,16 @@ def plot_derivatives(
         for s in starts[1:]:
             if s < t[0]:
                 continue
-            ax.axvline(s, color="tab:red", lw=0.8, alpha=0.6, label="replan" if s == starts[1] else None)
+            ax.axvline(s - t_zero, color="tab:red", lw=0.8, alpha=0.6, label="replan" if s == starts[1] else None)
         if k == 1 and flown is not None and offset is not None:
             mask = (flown.t - offset >= t[0]) & (flown.t - offset <= t[-1])
             vel = swap_points(flown.vel[mask])
             for a in range(3):
-                ax.plot(flown.t[mask] - offset, vel[:, a], ":", color=colors[a], lw=1.4, label=f"flown {AXES[a]}")
+                ax.plot(flown.t[mask] - offset - t_zero, vel[:, a], ":", color=colors[a], lw=1.4, label=f"flown {AXES[a]}")
         ax.set_ylabel(ORDER_LABELS[k - 1])
         ax.grid(True, alpha=0.3)
     axes[0].legend(loc="upper right", ncol=4, fontsize=8)
-    axes[-1].set_xlabel("trajectory time [s]")
+    axes[-1].set_xlabel("mission time [s]")
     fig.suptitle(title)
     fig.tight_layout()
     fig.savefig(path, dpi=110)

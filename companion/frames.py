@@ -20,12 +20,14 @@ P = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
 
 def swap_points(points: Any) -> FloatArray:
     """Points or vectors (..., 3) from one frame to the other."""
-    return np.asarray(points, dtype=float) @ P.T
+    out: FloatArray = np.asarray(points, dtype=float) @ P.T
+    return out
 
 
 def swap_halfspaces(A: Any) -> FloatArray:
     """Rows of A x <= b from one frame to the other (b is unchanged): A' = A P."""
-    return np.asarray(A, dtype=float) @ P
+    out: FloatArray = np.asarray(A, dtype=float) @ P
+    return out
 
 
 def swap_box(lo: Any, hi: Any) -> tuple[FloatArray, FloatArray]:

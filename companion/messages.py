@@ -40,7 +40,8 @@ def _validator(kind: str) -> jsonschema.protocols.Validator:
     doc = schema(kind)
     cls = jsonschema.validators.validator_for(doc)
     cls.check_schema(doc)
-    return cls(doc)  # type: ignore[no-any-return]
+    validator: jsonschema.protocols.Validator = cls(doc)
+    return validator
 
 
 def json_path(parts: Any) -> str:
@@ -100,9 +101,7 @@ def _check_lengths(obj: dict[str, Any]) -> None:
     if "times" in obj and np.any(np.diff(obj["times"]) <= 0):
         i = int(np.argmax(np.diff(obj["times"]) <= 0)) + 1
         raise MessageError(f"times[{i}]", "times must increase strictly")
-    if "corridors" in obj and len(obj["corridors"]) != max(m - 1, 0):
-        raise MessageError("corridors", f"expected one corridor per segment ({m - 1}), got {len(obj['corridors'])}")
-    for key in ("corridors", "obstacles"):
+    for key in ("obstacles",):
         for i, region in enumerate(obj.get(key, [])):
             if "A" in region and len(region["A"]) != len(region["b"]):
                 raise MessageError(f"{key}[{i}].b", f"expected {len(region['A'])} entries (one per row of A), got {len(region['b'])}")

@@ -199,8 +199,8 @@ def splice(old: Trajectory, new: Trajectory) -> Trajectory:
         # The old plan ended at rest: fill the wait with a hold at its end point.
         end = old.control_points[-1, -1]
         filler = np.repeat(end[None, None, :], 10, axis=1)
-        cors = None if old.corridors is None else (*old.corridors, None)
-        old = Trajectory(np.append(old.times, new.t0), np.concatenate([old.control_points, filler]), cors, old.stats)
+        filled = None if old.corridors is None else (*old.corridors, None)
+        old = Trajectory(np.append(old.times, new.t0), np.concatenate([old.control_points, filler]), filled, old.stats)
         head, k = old, old.n_segments
     elif new.t0 >= old.t_end - 1e-12:
         head, k = old, old.n_segments
@@ -464,9 +464,10 @@ def apply_change(route: Route, change: dict[str, Any], t_split: float, cfg: Conf
         body = change["insert_waypoint"]
         check_geofence([body["position"]], lo, hi, "insert_waypoint.position")
         j = body["index"]
-        i = mission_index_to_route(route, j)
-        if i is None:
+        found = mission_index_to_route(route, j)
+        if found is None:
             raise MessageError("insert_waypoint.index", f"mission waypoint {j} is not ahead of the vehicle; use append")
+        i = found
         if tms[i] <= t_split:
             raise MessageError("insert_waypoint.index", f"mission waypoint {j} has already been passed")
         wps = np.insert(wps, i, body["position"], axis=0)

@@ -16,10 +16,13 @@ Invariants:
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
+import functools
 import json
 import logging
 import math
+import os
 import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -101,6 +104,7 @@ class Service:
         self.zio: ZenohIO | None = None
         self.pool = ThreadPoolExecutor(cfg.planner.workers, thread_name_prefix="planner")
         self.io_pool = ThreadPoolExecutor(1, thread_name_prefix="encode")
+        self.decode_pool = ThreadPoolExecutor(1, thread_name_prefix="decode")
         self._traj_seq = 0
         self._traj_published = 0
         self._traj_bytes: bytes | None = None
@@ -131,6 +135,7 @@ class Service:
         self.setpoint_latency: float | None = None
         self._latency_mark: tuple[float, Trajectory, str] | None = None
         self.setpoint_gap_max = 0.0
+        self.periods: collections.deque[float] = collections.deque(maxlen=1000)
         self._status_dirty = True
         self._in_start = False
 
@@ -254,6 +259,7 @@ class Service:
                 self.link.send_setpoint(sp)
                 if self.last_sp is not None:
                     gap = now - self.last_sp_time
+                    self.periods.append(gap)
                     self.setpoint_gap_max = max(self.setpoint_gap_max, gap)
                     if gap > 0.04:
                         log.warning("setpoint gap %.1f ms (deadline late by %.1f ms)", gap * 1000,
@@ -284,12 +290,12 @@ class Service:
             with contextlib.suppress(OSError):
                 self.link.send_heartbeat()
             self.check_link()
-            await sleep_until(sched.next_deadline(time.monotonic()))
+            await sleep_until(sched.next_deadline(time.monotonic()), spin=0.0)
 
     async def telemetry_loop(self) -> None:
         sched = DeadlineScheduler(time.monotonic(), 20.0)
         while not self.stop.is_set():
-            await sleep_until(sched.next_deadline(time.monotonic()))
+            await sleep_until(sched.next_deadline(time.monotonic()), spin=0.0)
             st = self.link.state
             if st.has_position and self.zio is not None:
                 self.zio.publish("telemetry", {
@@ -352,6 +358,7 @@ class Service:
             "obstacles": sorted(self.obstacles),
             "setpoints_sent": self.link.sent_setpoints,
             "setpoint_gap_max_ms": round(self.setpoint_gap_max * 1000, 2),
+            "setpoint_period_ms": period_stats(self.periods),
         }
 
     # -- autopilot reports ---------------------------------------------------
@@ -411,8 +418,13 @@ class Service:
             kind, payload, arrived = await self.zio.inbox.get()
             lim = self.cfg.limits
             try:
-                obj = decode(kind, payload, max_bytes=lim.max_message_bytes,
-                             max_waypoints=lim.max_waypoints, max_obstacles=lim.max_obstacles)
+                # JSON Schema validation is pure Python (~0.1 ms per waypoint): off the loop,
+                # in one thread so messages keep their order.
+                assert self.loop is not None
+                obj = await self.loop.run_in_executor(
+                    self.decode_pool, functools.partial(
+                        decode, kind, payload, max_bytes=lim.max_message_bytes,
+                        max_waypoints=lim.max_waypoints, max_obstacles=lim.max_obstacles))
             except MessageError as exc:
                 self.reject(kind, exc.field, exc.reason, bytes=len(payload))
                 continue
@@ -441,15 +453,18 @@ class Service:
             await self.fly(spec, arrived)
             return
         st = self.link.state
+        plan_ms = None
         if st.has_position:
             jet = rest_jet(st.position)
+            t0 = time.perf_counter()
             outcome = await self.in_pool(rt.start_mission, spec, jet, 0.0, self.obstacle_list(), self.cfg)
+            plan_ms = round((time.perf_counter() - t0) * 1000, 2)
             if not outcome.ok:
                 self._reject_outcome("mission", spec, outcome)
                 return
         self.pending = spec
         self.event("accepted", f"mission {spec.id} loaded ({len(spec.waypoints)} waypoints); "
-                   "send 'start' to fly it", key="mission", mission=spec.id)
+                   "send 'start' to fly it", key="mission", mission=spec.id, plan_ms=plan_ms, pending=True)
 
     def _reject_outcome(self, key: str, spec: rt.MissionSpec, outcome: rt.Outcome) -> None:
         field = "" if outcome.blocked_waypoint is None else f"waypoints[{outcome.blocked_waypoint}]"
@@ -643,9 +658,13 @@ class Service:
         if cmd in ("arm", "takeoff", "start"):
             if self.task is not None and not self.task.done():
                 self.task.cancel()
-            body = {"arm": self.cmd_arm, "takeoff": lambda: self.cmd_takeoff(altitude),
-                    "start": lambda: self.cmd_start(arrived)}[cmd]
-            self.task = asyncio.create_task(self._sequence(cmd, body()))
+            if cmd == "arm":
+                body = self.cmd_arm()
+            elif cmd == "takeoff":
+                body = self.cmd_takeoff(altitude)
+            else:
+                body = self.cmd_start(arrived)
+            self.task = asyncio.create_task(self._sequence(cmd, body))
         elif cmd == "hold":
             async with self.plan_lock:
                 await self._brake("hold command", arrived)
@@ -830,6 +849,10 @@ class Service:
         self.link.open(self.loop)
         # First calls pay for imports and caches; pay them now, not during a flight.
         await self.in_pool(warm_up, self.cfg)
+        # Start the helper threads now, so they do not inherit the loop's realtime priority.
+        await self.loop.run_in_executor(self.io_pool, int, 0)
+        await self.loop.run_in_executor(self.decode_pool, int, 0)
+        set_realtime(self.cfg.setpoints.realtime_priority)
         loops = [self.setpoint_loop(), self.heartbeat_loop(), self.telemetry_loop(), self.status_loop(), self.inbox_loop()]
         runners = [asyncio.create_task(c) for c in loops]
         self.notifier.ready(f"vehicle {self.cfg.vehicle.id}: zenoh and mavlink up")
@@ -852,10 +875,31 @@ class Service:
             self.zio.close()
             self.pool.shutdown(wait=False, cancel_futures=True)
             self.io_pool.shutdown(wait=False, cancel_futures=True)
+            self.decode_pool.shutdown(wait=False, cancel_futures=True)
 
 
 def rt_add_obstacles(new: list[Polytope]) -> Any:
     return AddObstacles(tuple(new))
+
+
+def period_stats(periods: collections.deque[float]) -> dict[str, float] | None:
+    """p50/p99/max of the last setpoint periods (ms), measured at the send."""
+    if len(periods) < 2:
+        return None
+    p = np.asarray(periods) * 1000.0
+    return {"p50": round(float(np.percentile(p, 50)), 3), "p99": round(float(np.percentile(p, 99)), 3),
+            "max": round(float(p.max()), 3), "n": len(p)}
+
+
+def set_realtime(priority: int) -> None:
+    """SCHED_FIFO for the calling (event loop) thread only; threads created later inherit it."""
+    if priority <= 0:
+        return
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        log.info("event loop thread runs under SCHED_FIFO priority %d", priority)
+    except (OSError, AttributeError) as exc:
+        log.warning("realtime_priority %d not applied (%s); running with normal scheduling", priority, exc)
 
 
 def warm_up(cfg: Config) -> None:

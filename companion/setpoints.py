@@ -41,8 +41,8 @@ class DeadlineScheduler:
         return self.deadline(self.k)
 
 
-async def sleep_until(deadline: float, clock: Callable[[], float] = time.monotonic) -> float:
-    delay = deadline - clock() - _SPIN
+async def sleep_until(deadline: float, clock: Callable[[], float] = time.monotonic, spin: float = _SPIN) -> float:
+    delay = deadline - clock() - spin
     if delay > 0:
         await asyncio.sleep(delay)
     while (now := clock()) < deadline:

@@ -142,9 +142,9 @@ def plan_iterative(problem: Problem, options: IterativeOptions | None = None) ->
         new: FloatArray | None = None
         if fast is not None:
             f1 = min(j + opts.window - 1, m - 2)
-            d = fast.solve(jets, j, f1, True, guess)
+            d = fast.solve(jets, j, f1, True)
             if d is not None:
-                guess[j : f1 + 1, 1:] = d  # the uncommitted part predicts the next window
+                guess[j : f1 + 1, 1:] = d  # for the general path, should it be needed next
                 jets[j, 1:] = d[0]  # commit the jet at j only
                 new = jets
                 timers.add(fast.times)

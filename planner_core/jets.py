@@ -146,15 +146,7 @@ class ProblemCache:
         self._blocks: list[SegBlocks | None] = [None] * n_seg
         self._cost: dict[int, FloatArray] = {}
         perm, self._bn1, self._bn2 = _bound_groups()
-        qb = self.hull[:, 10:40]  # (S, 30, 10) hodograph rows, per axis
-        eye = np.eye(3)
-        rows_a = np.einsum("src,de->srdce", qb[:, :, 1:5], eye).reshape(n_seg, 90, 12)
-        rows_b = np.einsum("src,de->srdce", qb[:, :, 6:10], eye).reshape(n_seg, 90, 12)
-        w = problem.waypoints
-        c0 = (qb[:, :, 0, None] * w[:-1, None, :] + qb[:, :, 5, None] * w[1:, None, :]).reshape(n_seg, 90)
-        self._bA = rows_a[:, perm]
-        self._bB = rows_b[:, perm]
-        self._bc0 = c0[:, perm]
+        self._bperm = perm
         orders = bound_row_orders()[perm]
         axes = np.tile(np.arange(3), 30)[perm]
         b = problem.bounds
@@ -163,6 +155,17 @@ class ProblemCache:
         self._blo, self._bhi = lo, hi
         self._blo_t, self._bhi_t = _tighten(lo, hi)
         self._border = orders.astype(np.int64)
+
+    def bound_rows(self, s: int) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Bound rows of segment s in block order: (A (90, 12), B (90, 12), c0 (90,))."""
+        qb = self.hull[s, 10:40]  # (30, 10) hodograph rows, per axis
+        eye = np.eye(3)
+        rows_a = np.einsum("rc,de->rdce", qb[:, 1:5], eye).reshape(90, 12)
+        rows_b = np.einsum("rc,de->rdce", qb[:, 6:10], eye).reshape(90, 12)
+        w = self.problem.waypoints
+        c0 = (qb[:, 0, None] * w[s] + qb[:, 5, None] * w[s + 1]).reshape(90)
+        perm = self._bperm
+        return rows_a[perm], rows_b[perm], c0[perm]
 
     def rows(self, s: int) -> SegmentRows:
         b = self.problem.bounds
@@ -180,9 +183,10 @@ class ProblemCache:
         poly = self.problem.corridor(s)
         nb = self._border.size
         kb = np.full(nb, KIND_BOUND, dtype=np.int64)
+        bA, bB, bc0 = self.bound_rows(s)
         if poly is None or poly.A.shape[0] == 0:
             return SegBlocks(
-                self._bA[s], self._bB[s], self._bc0[s], self._blo, self._bhi, self._blo_t, self._bhi_t,
+                bA, bB, bc0, self._blo, self._bhi, self._blo_t, self._bhi_t,
                 np.full(nb, s, dtype=np.int64), kb, self._border, n1, n2,
             )
         q = self.hull[s]
@@ -198,9 +202,9 @@ class ProblemCache:
         cb_hi = np.tile(poly.b, 4)
         z = np.zeros((4 * f, 12))
         sl_a, sl_m, sl_b = slice(0, n1), slice(n1, n1 + n2), slice(n1 + n2, nb)
-        A = np.vstack([self._bA[s, sl_a], ca, self._bA[s, sl_m], self._bA[s, sl_b], z])
-        B = np.vstack([self._bB[s, sl_a], z, self._bB[s, sl_m], self._bB[s, sl_b], cb])
-        c0 = np.concatenate([self._bc0[s, sl_a], ca0, self._bc0[s, sl_m], self._bc0[s, sl_b], cb0])
+        A = np.vstack([bA[sl_a], ca, bA[sl_m], bA[sl_b], z])
+        B = np.vstack([bB[sl_a], z, bB[sl_m], bB[sl_b], cb])
+        c0 = np.concatenate([bc0[sl_a], ca0, bc0[sl_m], bc0[sl_b], cb0])
         neg = np.full(4 * f, -INF)
         hi_c = np.clip(cb_hi, -INF, INF)
         hi_ct = _tighten(neg, hi_c)[1]

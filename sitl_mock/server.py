@@ -712,6 +712,8 @@ class MockAutopilot:
             "target_system": int(msg.target_system), "target_component": int(msg.target_component),
             "raw_pos": [msg.x, msg.y, msg.z], "raw_vel": [msg.vx, msg.vy, msg.vz],
             "raw_acc": [msg.afx, msg.afy, msg.afz], "yaw": msg.yaw, "yaw_rate": msg.yaw_rate,
+            # the sender's clock: gaps in it are the sender's, not this loop's scheduling
+            "time_boot_ms": int(msg.time_boot_ms),
         }
         if not self._for_us(msg):
             self.log.write("setpoint", self.t, **record, valid=False, applied=False, reason="not for us")

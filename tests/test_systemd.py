@@ -470,7 +470,7 @@ def test_companion_runs_sandboxed_and_speaks_sd_notify(tmp_path: Path) -> None:
     stop cleanly on SIGTERM (STOPPING=1, exit 0).
     """
     from companion.config import config_to_toml
-    from companion.demo import Child, Peer, demo_config
+    from companion.demo_rig import Child, Peer, demo_config
 
     mav_port, zenoh_port = _free_port(socket.SOCK_DGRAM), _free_port(socket.SOCK_STREAM)
     cfg = demo_config(zenoh_port, mav_port)
@@ -521,6 +521,7 @@ def test_companion_runs_sandboxed_and_speaks_sd_notify(tmp_path: Path) -> None:
                 main_pid = int(children[0]) if children else proc.pid
         with contextlib.suppress(ProcessLookupError):
             os.kill(main_pid, signal.SIGTERM)
+        code: int | None = None
         try:
             code = proc.wait(30)
         except subprocess.TimeoutExpired:
@@ -528,7 +529,6 @@ def test_companion_runs_sandboxed_and_speaks_sd_notify(tmp_path: Path) -> None:
                 with contextlib.suppress(ProcessLookupError):
                     os.kill(pid, signal.SIGKILL)
             proc.wait(10)
-            code = None
         finally:
             mock.stop()
         notify.setblocking(False)

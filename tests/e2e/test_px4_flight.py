@@ -10,7 +10,18 @@ from typing import Any
 
 import numpy as np
 import pytest
-from e2e_rig import RADIUS, Rig, box, inside, max_gap, polytope, setpoints, states, tracking_rms
+from e2e_rig import (
+    RADIUS,
+    Rig,
+    arrival_gap,
+    box,
+    inside,
+    max_gap,
+    polytope,
+    setpoints,
+    states,
+    tracking_rms,
+)
 
 pytestmark = pytest.mark.slow
 
@@ -39,6 +50,7 @@ def test_mission_with_static_obstacle(rig: Rig) -> None:
     final = np.asarray(rig.control.state()["position"])
     assert np.linalg.norm(final - mission["waypoints"][-1]) <= 0.1
     assert max_gap(setpoints(log, t0, t1)) <= 0.060
+    assert arrival_gap(setpoints(log, t0, t1)) <= 0.5
     track = np.array([r["pos"] for r in states(log, t0, t1)])
     assert not np.any(inside(track, polytope(obstacle), RADIUS - 0.05))
     seen = rig.statuses[-1]
@@ -80,6 +92,7 @@ def test_popup_obstacle_replans_without_touching_the_flown_piece(rig: Rig) -> No
     track = np.array([r["pos"] for r in states(log, t_start, t_end)])
     assert not np.any(inside(track, poly, RADIUS - 0.05))
     assert max_gap(setpoints(log, t_start, t_end)) <= 0.060
+    assert arrival_gap(setpoints(log, t_start, t_end)) <= 0.5
     status = rig.wait_status(lambda s: s["replan_latency_ms"] is not None, 3, "replan latency in status")
     assert status["message_to_setpoint_ms"] is not None
 
@@ -122,6 +135,14 @@ def test_bad_messages_are_rejected_and_the_flight_continues(rig: Rig) -> None:
         ("mission", {"id": "far", "waypoints": [[0, 0, -1], [100, 0, -1]]}, "waypoints[1]", "geofence"),
         ("change", {"move_waypoint": {"index": 1, "position": [0, 0]}}, "move_waypoint.position", "too short"),
     ]
+    # Planning a 1000-waypoint mission in parallel must not disturb the setpoint stream.
+    rng = np.random.default_rng(3)
+    walk = np.cumsum(np.vstack([[0.0, 0.0, -2.0], rng.normal(size=(999, 3)) * [1.5, 1.5, 0.0]]), axis=0)
+    walk[:, :2] = np.clip(walk[:, :2], -18, 18)
+    mark = rig.mark()
+    rig.put("mission", {"id": "big", "autostart": False, "waypoints": walk.round(3).tolist()})
+    rig.wait_event(lambda e: e.get("key") == "mission" and e["type"] in ("accepted", "rejected")
+                   and "big" in e["message"], 20, "1000-waypoint plan", mark)
     for key, payload, field, words in bad:
         mark = rig.mark()
         rig.put(key, payload)
@@ -133,6 +154,7 @@ def test_bad_messages_are_rejected_and_the_flight_continues(rig: Rig) -> None:
     t_end = rig.mock_time()
     log = rig.log()
     assert max_gap(setpoints(log, t_start, t_end)) <= 0.060
+    assert arrival_gap(setpoints(log, t_start, t_end)) <= 0.5
     assert tracking_rms(log, t_start, t_end) <= 0.15
     final = np.asarray(rig.control.state()["position"])
     assert np.linalg.norm(final - mission["waypoints"][-1]) <= 0.1

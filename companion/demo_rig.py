@@ -1,0 +1,238 @@
+"""Test rig for the demo and the service benchmark: the mock autopilot and the companion as
+subprocesses on free loopback ports, and a Zenoh peer of ours that talks to the companion."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import queue
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from companion.config import (
+    Config,
+    GeofenceConfig,
+    MavlinkConfig,
+    SafetyConfig,
+    VehicleConfig,
+    ZenohConfig,
+    config_to_toml,
+)
+
+ROOT = Path(__file__).resolve().parents[1]
+VEHICLE = "demo"
+TAKEOFF_ALTITUDE = 2.0  # m
+
+
+# --- processes and ports ---------------------------------------------------------------------
+
+
+def free_port(kind: int = socket.SOCK_STREAM) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+class Child:
+    """A subprocess with its output in a log file; stopped politely, then firmly."""
+
+    def __init__(self, name: str, argv: list[str], log: Path) -> None:
+        self.name = name
+        self.log = log
+        self._fh = open(log, "wb")  # noqa: SIM115 (closed in stop())
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        self.proc = subprocess.Popen(argv, stdout=self._fh, stderr=subprocess.STDOUT, cwd=ROOT, env=env)
+
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
+
+    def alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def tail(self, n: int = 15) -> str:
+        try:
+            lines = self.log.read_text(errors="replace").splitlines()
+        except OSError:
+            return ""
+        return "\n".join(f"    {self.name}| {line}" for line in lines[-n:])
+
+    def stop(self, timeout: float = 5.0) -> int | None:
+        if self.alive():
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.terminate()
+                try:
+                    self.proc.wait(2.0)
+                except subprocess.TimeoutExpired:
+                    self.proc.kill()
+                    self.proc.wait()
+        self._fh.close()
+        return self.proc.returncode
+
+
+# --- the Zenoh side --------------------------------------------------------------------------
+
+
+@dataclass
+class Sample:
+    topic: str
+    mono: float
+    data: Any
+
+
+class Peer:
+    """Our Zenoh peer: publishes inputs, records every output with its arrival time."""
+
+    def __init__(self, endpoint: str, vehicle: str, prefix: str = "bezier") -> None:
+        import zenoh
+
+        conf = zenoh.Config()
+        conf.insert_json5("mode", json.dumps("peer"))
+        conf.insert_json5("connect/endpoints", json.dumps([endpoint]))
+        conf.insert_json5("listen/endpoints", json.dumps([]))
+        conf.insert_json5("scouting/multicast/enabled", "false")
+        self.base = f"{prefix}/{vehicle}"
+        self.session = zenoh.open(conf)
+        self.samples: queue.Queue[Sample] = queue.Queue()
+        self.latest: dict[str, Sample] = {}
+        # arrival times of every trajectory message, kept apart from the queue for benchmarks
+        self.trajectory_log: list[float] = []
+        self._lock = threading.Lock()
+        self._subs = [
+            self.session.declare_subscriber(f"{self.base}/{topic}", self._record(topic))
+            for topic in ("status", "telemetry", "trajectory", "events")
+        ]
+
+    def _record(self, topic: str) -> Callable[[Any], None]:
+        def callback(sample: Any) -> None:
+            mono = time.monotonic()
+            try:
+                data = json.loads(sample.payload.to_bytes())
+            except ValueError:
+                return
+            s = Sample(topic, mono, data)
+            with self._lock:
+                self.latest[topic] = s
+                if topic == "trajectory":
+                    self.trajectory_log.append(mono)
+            self.samples.put(s)
+
+        return callback
+
+    def put(self, topic: str, obj: Any) -> float:
+        """Publish; returns the monotonic time just before the put."""
+        payload = json.dumps(obj).encode()
+        t = time.monotonic()
+        self.session.put(f"{self.base}/{topic}", payload)
+        return t
+
+    def query(self, topic: str, timeout: float = 2.0) -> Any | None:
+        for reply in self.session.get(f"{self.base}/{topic}", timeout=timeout):
+            if reply.ok is not None:
+                return json.loads(reply.ok.payload.to_bytes())
+        return None
+
+    def close(self) -> None:
+        for s in self._subs:
+            with contextlib.suppress(Exception):
+                s.undeclare()  # type: ignore[no-untyped-call]
+        self.session.close()  # type: ignore[no-untyped-call]
+
+
+# --- rig: mock + companion + peer ------------------------------------------------------------
+
+
+@dataclass
+class Rig:
+    out: Path
+    autopilot: str
+    mock: Child
+    companion: Child
+    peer: Peer
+    flight_log: Path
+    control_port: int
+    config: Config
+    events: list[Sample] = field(default_factory=list)
+
+    def check_alive(self) -> str | None:
+        for child in (self.mock, self.companion):
+            if not child.alive():
+                return f"{child.name} exited with code {child.proc.returncode}\n{child.tail()}"
+        return None
+
+
+def demo_config(zenoh_port: int, mav_port: int, rate_hz: float = 50.0, workers: int | None = None) -> Config:
+    from companion.config import PlannerConfig, SetpointConfig
+
+    planner = PlannerConfig() if workers is None else PlannerConfig(workers=workers)
+    return Config(
+        planner=planner,
+        vehicle=VehicleConfig(id=VEHICLE),
+        zenoh=ZenohConfig(listen=(f"tcp/127.0.0.1:{zenoh_port}",), multicast_scouting=False),
+        mavlink=MavlinkConfig(url=f"udpout:127.0.0.1:{mav_port}"),
+        setpoints=SetpointConfig(rate_hz=rate_hz),
+        geofence=GeofenceConfig(min=(-60.0, -60.0, -20.0), max=(60.0, 60.0, 0.5)),
+        safety=SafetyConfig(auto_arm=True, takeoff_altitude=TAKEOFF_ALTITUDE),
+    )
+
+
+@contextlib.contextmanager
+def rig(out: Path, autopilot: str, rate_hz: float = 50.0, mock_args: tuple[str, ...] = (),
+        mav_port: int | None = None, companion_mav_port: int | None = None,
+        workers: int | None = None) -> Iterator[Rig]:
+    """Mock + companion + our peer. `companion_mav_port` lets a relay sit between the two."""
+    out.mkdir(parents=True, exist_ok=True)
+    mav_port = mav_port or free_port(socket.SOCK_DGRAM)
+    control_port, zenoh_port = free_port(), free_port()
+    flight_log = out / "flight.jsonl"
+    cfg = demo_config(zenoh_port, companion_mav_port or mav_port, rate_hz, workers)
+    cfg_path = out / "companion.toml"
+    cfg_path.write_text(config_to_toml(cfg))
+    py = sys.executable
+    mock = Child("mock", [py, "-m", "sitl_mock", "--autopilot", autopilot,
+                          "--endpoint", f"udpin:127.0.0.1:{mav_port}", "--log", str(flight_log),
+                          "--control", f"127.0.0.1:{control_port}", *mock_args], out / "mock.log")
+    companion = Child("companion", [py, "-m", "companion", "run", "--config", str(cfg_path)],
+                      out / "companion.log")
+    peer: Peer | None = None
+    try:
+        peer = _connect_peer(f"tcp/127.0.0.1:{zenoh_port}", companion)
+        yield Rig(out, autopilot, mock, companion, peer, flight_log, control_port, cfg)
+    finally:
+        if peer is not None:
+            peer.close()
+        companion.stop()
+        mock.stop()
+
+
+def _connect_peer(endpoint: str, companion: Child, timeout: float = 30.0) -> Peer:
+    """The companion needs a moment to import, open its Zenoh listener and hear the autopilot."""
+    deadline = time.monotonic() + timeout
+    while True:
+        if not companion.alive():
+            raise RuntimeError(f"companion exited early\n{companion.tail()}")
+        peer = Peer(endpoint, VEHICLE)
+        status = peer.query("status", timeout=1.0)
+        # answering is not enough: the autopilot's heartbeat must have arrived too
+        while status is not None and not status.get("link") and time.monotonic() < deadline:
+            time.sleep(0.2)
+            status = peer.query("status", timeout=1.0)
+        if status is not None and status.get("link"):
+            return peer
+        peer.close()
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"companion not up with a MAVLink link on {endpoint} within {timeout:.0f} s\n"
+                               f"{companion.tail()}")
+        time.sleep(0.3)
