@@ -49,6 +49,8 @@ class ZenohConfig:
 
 @dataclass(frozen=True)
 class MavlinkConfig:
+    # udpout:HOST:PORT (we send first), udpin:HOST:PORT, tcp:HOST:PORT,
+    # serial:/dev/ttyAMA0:921600 (or /dev/ttyAMA0:921600)
     url: str = "udpout:127.0.0.1:14540"
     heartbeat_hz: float = 1.0
     # No heartbeat from the autopilot for this long means the link is lost.
@@ -59,7 +61,9 @@ class MavlinkConfig:
 @dataclass(frozen=True)
 class SetpointConfig:
     rate_hz: float = 50.0
-    yaw_mode: str = "fixed"  # "fixed" | "velocity"
+    # "hold": keep the heading measured when the companion takes control;
+    # "fixed": always `yaw`; "velocity": face along the horizontal velocity.
+    yaw_mode: str = "hold"
     yaw: float = 0.0  # rad, NED heading used in fixed mode
     # Below this speed the along-velocity heading is ill-defined; keep the last one.
     yaw_min_speed: float = 0.3
@@ -86,7 +90,11 @@ class PlannerConfig:
     # How far ahead of "now" an in-flight replan splits the trajectory: the
     # planning latency budget plus a margin, so the piece flown never changes.
     split_ahead: float = 0.15
-    # Planner threads; one keeps planning serialised and the setpoint loop's GIL share high.
+    # "process": plan in a separate process (no GIL shared with the setpoint loop; a
+    # planner thread preempted while holding the GIL would stall setpoints on a busy
+    # computer). "thread": plan in a thread of the service process (less memory).
+    executor: str = "process"
+    # Planner workers; one keeps planning serialised.
     workers: int = 1
 
 
@@ -131,8 +139,9 @@ class Config:
 
 _CHOICES: dict[str, tuple[str, ...]] = {
     "zenoh.mode": ("peer", "client", "router"),
-    "setpoints.yaw_mode": ("fixed", "velocity"),
+    "setpoints.yaw_mode": ("hold", "fixed", "velocity"),
     "planner.method": ("iterative", "global"),
+    "planner.executor": ("process", "thread"),
 }
 _POSITIVE = {
     "mavlink.heartbeat_hz",

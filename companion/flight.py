@@ -95,7 +95,8 @@ def refuse_command(state: State, command: str, *, armed: bool, auto_arm: bool, h
             return f"cannot take off while {state.value}"
         return None
     if command == "start":
-        if not has_mission:
+        if not has_mission and state not in (S.PILOT, S.FAILSAFE):
+            # From PILOT/FAILSAFE, `start` without a mission takes control back and holds.
             return "no mission loaded"
         if not armed and not auto_arm:
             return "vehicle is disarmed; send 'arm' and 'takeoff' first (auto_arm is off)"

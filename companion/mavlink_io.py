@@ -89,6 +89,21 @@ def decode_mode(autopilot: str | None, mav_type: int, base_mode: int, custom_mod
     return str(mapping.get(custom_mode, f"Mode({custom_mode})"))
 
 
+_NETWORK = ("udpin:", "udpout:", "udp:", "udpbcast:", "tcp:", "tcpin:")
+
+
+def parse_url(url: str) -> tuple[str, int]:
+    """(device, baud) for pymavlink: network URLs as they are; `serial:/dev/ttyX:921600`
+    or `/dev/ttyX:921600` for a serial port (baud defaults to 57600)."""
+    if url.startswith(_NETWORK):
+        return url, 57600
+    device = url.removeprefix("serial:")
+    head, sep, tail = device.rpartition(":")
+    if sep and tail.isdigit():
+        return head, int(tail)
+    return device, 57600
+
+
 class MavlinkLink:
     def __init__(self, cfg: Config, on_message: Callable[[str, Any], None] | None = None) -> None:
         self.cfg = cfg
@@ -104,8 +119,10 @@ class MavlinkLink:
 
     def open(self, loop: asyncio.AbstractEventLoop) -> None:
         v = self.cfg.vehicle
+        device, baud = parse_url(self.cfg.mavlink.url)
         self.conn = mavutil.mavlink_connection(
-            self.cfg.mavlink.url,
+            device,
+            baud=baud,
             source_system=v.sysid,
             source_component=v.component,
             autoreconnect=True,

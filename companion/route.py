@@ -30,7 +30,7 @@ from planner_core import plan, verify
 from planner_core.bezier import split_segment, start_jet
 from planner_core.braking import braking_trajectory
 from planner_core.changes import ChangeError, ChangeSet, parse_polytope
-from planner_core.corridors import CorridorError
+from planner_core.corridors import CorridorError, polytope_vertices
 from planner_core.corridors import build_corridors as _build_corridors
 from planner_core.problem import Bounds, FloatArray, Polytope, Problem, Trajectory, rest_jet
 from planner_core.replan import Environment, ReplanOptions, replan
@@ -250,6 +250,8 @@ class Outcome:
     message: str = ""
     blocked_waypoint: int | None = None  # mission index of a blocked waypoint
     stats: dict[str, Any] = field(default_factory=dict)
+    blocked_segment: int | None = None  # route segment whose straight path crosses an obstacle
+    obstacle: int | None = None  # index of that obstacle in the list given to the planner
 
 
 def _plan_problem(problem: Problem, cfg: Config) -> tuple[Trajectory | None, str]:
@@ -284,7 +286,9 @@ def plan_route(
         wp, seg = getattr(exc, "waypoint", None), getattr(exc, "segment", None)
 
         def name(i: int) -> str:
-            return f"mission waypoint {int(labels[i])}" if labels[i] >= 0 else "the current position"
+            if labels[i] >= 0:
+                return f"mission waypoint {int(labels[i])}"
+            return "the current position" if i == 0 else "a detour point"
 
         blocked = None
         if seg is not None and 0 <= seg < len(labels) - 1:
@@ -295,7 +299,8 @@ def plan_route(
         else:
             what = "no free corridor"
         return Outcome(False, message=f"{what} (planner: {exc})", blocked_waypoint=blocked,
-                       stats={"plan_seconds": time.perf_counter() - t0})
+                       stats={"plan_seconds": time.perf_counter() - t0},
+                       blocked_segment=seg if blocked is None else None, obstacle=getattr(exc, "obstacle", None))
     except Exception as exc:  # a geometry bug must be a refusal, not a crash
         return Outcome(False, message=f"corridor construction failed: {exc!r}",
                        stats={"plan_seconds": time.perf_counter() - t0})
@@ -346,7 +351,7 @@ def start_mission(
         durations = allocate_durations(points, mission.bounds, jet[1])
     times = t_start + np.concatenate([[0.0], np.cumsum(durations)])
     all_obs = [*obstacles, *(p for _, p in mission.obstacles)]
-    return plan_route(mission, points, times, lab, jet, all_obs, cfg)
+    return plan_with_detours(mission, points, times, lab, jet, all_obs, cfg)
 
 
 def replan_remainder(
@@ -379,7 +384,98 @@ def replan_remainder(
     if new_times[1] - new_times[0] < min_first:
         new_times[1:] += min_first - (new_times[1] - new_times[0])
     all_obs = [*obstacles, *(p for _, p in route.mission.obstacles)]
-    return plan_route(route.mission, points, new_times, new_labels, jet, all_obs, cfg)
+    return plan_with_detours(route.mission, points, new_times, new_labels, jet, all_obs, cfg)
+
+
+def plan_with_detours(
+    mission: MissionSpec,
+    points: FloatArray,
+    times: FloatArray,
+    labels: FloatArray,
+    initial: FloatArray,
+    obstacles: Sequence[Polytope],
+    cfg: Config,
+) -> Outcome:
+    """plan_route, inserting detour points around obstacles that block straight legs."""
+    outcome = plan_route(mission, points, times, labels, initial, obstacles, cfg)
+    detours: list[Any] = []
+    for _ in range(MAX_DETOURS):
+        if outcome.ok or outcome.blocked_segment is None or outcome.obstacle is None:
+            break
+        detoured = detour(mission, points, times, labels, initial, obstacles, cfg,
+                          outcome.blocked_segment, outcome.obstacle)
+        if detoured is None:
+            break
+        outcome, points, times, labels = detoured
+        detours += outcome.stats.get("detour", [])
+    if outcome.ok and detours:
+        outcome.stats["detour"] = detours
+    return outcome
+
+
+MAX_DETOURS = 3
+DETOUR_MARGIN = 0.3
+
+
+def detour_candidates(a: FloatArray, b: FloatArray, obstacle: Polytope, radius: float) -> list[FloatArray]:
+    """Ways around an obstacle that sits across the straight path a -> b: left, right, over
+    and under it. Each is one or two points (abreast of the obstacle's near and far faces),
+    two radii plus a margin clear of it; shortest detour first."""
+    verts = polytope_vertices(obstacle)
+    length = float(np.linalg.norm(b - a))
+    d = (b - a) / max(length, 1e-9)
+    side = np.cross(d, [0.0, 0.0, 1.0])
+    if np.linalg.norm(side) < 1e-6:  # a vertical path: any horizontal direction will do
+        side = np.array([1.0, 0.0, 0.0])
+    side /= np.linalg.norm(side)
+    up = np.cross(side, d)
+    clear = 2.0 * radius + DETOUR_MARGIN
+    along = (verts - a) @ d
+    near, far = float(along.min()) - clear, float(along.max()) + clear
+    out = []
+    for n in (side, -side, up, -up):
+        lateral = float(np.max((verts - a) @ n)) + clear
+        pts = [a + n * lateral + d * s for s in (near, far) if 0.0 < s < length]
+        if not pts:
+            pts = [a + n * lateral + d * float(np.clip(along.mean(), 0.0, length))]
+        out.append(np.array(pts))
+    return sorted(out, key=lambda p: float(np.sum(np.linalg.norm(np.diff(np.vstack([a, p, b]), axis=0), axis=1))))
+
+
+def detour(
+    mission: MissionSpec,
+    points: FloatArray,
+    times: FloatArray,
+    labels: FloatArray,
+    initial: FloatArray,
+    obstacles: Sequence[Polytope],
+    cfg: Config,
+    segment: int,
+    obstacle: int,
+) -> tuple[Outcome, FloatArray, FloatArray, FloatArray] | None:
+    """Insert a synthetic waypoint around the obstacle that blocks `segment` and re-plan."""
+    if not 0 <= obstacle < len(obstacles):
+        return None
+    a, b = points[segment], points[segment + 1]
+    best: tuple[Outcome, FloatArray, FloatArray, FloatArray] | None = None
+    for cs in detour_candidates(a, b, obstacles[obstacle], mission.radius):
+        if np.any(cs < mission.map_lo + mission.radius) or np.any(cs > mission.map_hi - mission.radius):
+            continue
+        k = len(cs)
+        pts = np.insert(points, segment + 1, cs, axis=0)
+        lab = np.insert(labels, segment + 1, np.full(k, -1.0))
+        d = allocate_durations(pts[segment : segment + k + 2], mission.bounds,
+                               initial[1] if segment == 0 else None)
+        tms = np.insert(times, segment + 1, np.zeros(k))
+        tms[segment + 1 : segment + k + 2] = times[segment] + np.cumsum(d)
+        tms[segment + k + 2 :] = times[segment + 2 :] + (tms[segment + k + 1] - times[segment + 1])
+        outcome = plan_route(mission, pts, tms, lab, initial, obstacles, cfg)
+        if outcome.ok:
+            outcome.stats["detour"] = [c.round(3).tolist() for c in cs]
+            return outcome, pts, tms, lab
+        if best is None and outcome.blocked_segment is not None and outcome.blocked_segment > segment + k:
+            best = (outcome, pts, tms, lab)  # cleared this one; another obstacle further on
+    return best
 
 
 def brake(jet: FloatArray, bounds: Bounds, corridor: Polytope | None, t0: float) -> tuple[Trajectory | None, str]:
@@ -522,15 +618,30 @@ def trim(route: Route, t: float) -> Route:
 
 @dataclass(frozen=True)
 class LocalEdit:
-    """A planner_core edit in route indices plus how it renumbers the labels."""
+    """A planner_core edit in route indices plus how it renumbers the labels (picklable:
+    it crosses to the planner process)."""
 
     edits: tuple[Any, ...]
     description: str
-    relabel: Any  # (labels, wp: index map) -> labels
+    # ("same",) | ("insert", route index, mission index) | ("remove", route index) | ("append", first, count)
+    labels: tuple[Any, ...] = ("same",)
 
-
-def _same(labels: FloatArray, _wp: Any) -> FloatArray:
-    return labels
+    def relabel(self, labels: FloatArray, wp: Any) -> FloatArray:
+        """New labels; `wp` maps a route index before the split to one after it."""
+        kind = self.labels[0]
+        if kind == "insert":
+            k = wp(self.labels[1])
+            out = np.insert(labels, k, float(self.labels[2]))
+            out[k + 1 :] = np.where(out[k + 1 :] >= 0, out[k + 1 :] + 1, out[k + 1 :])
+            return out
+        if kind == "remove":
+            k = wp(self.labels[1])
+            out = np.delete(labels, k)
+            out[k:] = np.where(out[k:] >= 0, out[k:] - 1, out[k:])
+            return out
+        if kind == "append":
+            return np.concatenate([labels, self.labels[1] + np.arange(self.labels[2], dtype=float)])
+        return labels
 
 
 def local_edit(route: Route, change: dict[str, Any], t_split: float) -> LocalEdit:
@@ -541,14 +652,14 @@ def local_edit(route: Route, change: dict[str, Any], t_split: float) -> LocalEdi
         check_geofence([body["position"]], lo, hi, "move_waypoint.position")
         i = _route_index(route, body["index"], t_split, "move_waypoint")
         return LocalEdit((ch.MoveWaypoint(i, np.asarray(body["position"], dtype=float)),),
-                         f"moved waypoint {body['index']}", _same)
+                         f"moved waypoint {body['index']}")
     if "duration" in change:
         body = change["duration"]
         i = _route_index(route, body["index"] + 1, t_split, "duration")
         if i == 0 or route.labels[i - 1] != body["index"]:
             raise MessageError("duration.index", f"segment {body['index']} is being flown or already passed")
         return LocalEdit((ch.SetDuration(i - 1, float(body["value"])),),
-                         f"segment {body['index']} duration set to {body['value']} s", _same)
+                         f"segment {body['index']} duration set to {body['value']} s")
     if "insert_waypoint" in change:
         body = change["insert_waypoint"]
         check_geofence([body["position"]], lo, hi, "insert_waypoint.position")
@@ -557,27 +668,15 @@ def local_edit(route: Route, change: dict[str, Any], t_split: float) -> LocalEdi
         if i == 0:
             raise MessageError("insert_waypoint.index", f"cannot insert before mission waypoint {j}: it starts the route")
 
-        def relabel_insert(labels: FloatArray, wp: Any) -> FloatArray:
-            k = wp(i)
-            out = np.insert(labels, k, float(j))
-            out[k + 1 :] = np.where(out[k + 1 :] >= 0, out[k + 1 :] + 1, out[k + 1 :])
-            return out
-
         return LocalEdit((ch.InsertWaypoint(i, np.asarray(body["position"], dtype=float)),),
-                         f"inserted waypoint {j}", relabel_insert)
+                         f"inserted waypoint {j}", ("insert", i, j))
     if "remove_waypoint" in change:
         body = change["remove_waypoint"]
         i = _route_index(route, body["index"], t_split, "remove_waypoint")
         if i >= len(route.labels) - 1:
             raise MessageError("remove_waypoint.index", "cannot remove the final waypoint (send a new mission)")
 
-        def relabel_remove(labels: FloatArray, wp: Any) -> FloatArray:
-            k = wp(i)
-            out = np.delete(labels, k)
-            out[k:] = np.where(out[k:] >= 0, out[k:] - 1, out[k:])
-            return out
-
-        return LocalEdit((ch.RemoveWaypoint(i),), f"removed waypoint {body['index']}", relabel_remove)
+        return LocalEdit((ch.RemoveWaypoint(i),), f"removed waypoint {body['index']}", ("remove", i))
     if "append" in change:
         body = change["append"]
         new = np.asarray(body["waypoints"], dtype=float)
@@ -585,10 +684,8 @@ def local_edit(route: Route, change: dict[str, Any], t_split: float) -> LocalEdi
         d = None if "durations" not in body else np.asarray(body["durations"], dtype=float)
         nxt = float(np.max(route.labels)) + 1 if np.any(route.labels >= 0) else 0.0
 
-        def relabel_append(labels: FloatArray, _wp: Any) -> FloatArray:
-            return np.concatenate([labels, nxt + np.arange(len(new), dtype=float)])
-
-        return LocalEdit((ch.AppendWaypoints(new, d),), f"appended {len(new)} waypoints", relabel_append)
+        return LocalEdit((ch.AppendWaypoints(new, d),), f"appended {len(new)} waypoints",
+                         ("append", nxt, len(new)))
     raise MessageError("", "no change given")  # pragma: no cover - the schema requires one
 
 
@@ -631,3 +728,10 @@ def local_replan(
     if not report.ok:
         return Outcome(False, message="verification failed: " + report.summary(), stats=stats)
     return Outcome(True, Route(r.mission, p.waypoints, p.times, labels, p, traj), result.message, stats=stats)
+
+
+def warm_up(cfg: Config) -> bool:
+    """Plan and encode a tiny mission: imports and first-call caches are paid before flying."""
+    spec = mission_from_message({"id": "warm-up", "waypoints": [[1.0, 0.0, -1.0], [1.0, 1.0, -1.0]]}, cfg)
+    outcome = start_mission(spec, rest_jet(np.array([0.0, 0.0, -1.0])), 0.0, [], cfg)
+    return outcome.ok

@@ -22,10 +22,11 @@ import functools
 import json
 import logging
 import math
+import multiprocessing
 import os
 import sys
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import BrokenExecutor, Executor, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import replace
 from typing import Any
 
@@ -43,7 +44,7 @@ from companion.flight import (
 )
 from companion.frames import change_to_ned, obstacles_to_ned, scenario_to_ned
 from companion.mavlink_io import CommandFailed, MavlinkLink
-from companion.messages import MessageError, decode
+from companion.messages import MessageError, decode, warm_validators
 from companion.sdnotify import Notifier
 from companion.setpoints import (
     DeadlineScheduler,
@@ -102,7 +103,7 @@ class Service:
         self.flight = Flight()
         self.link = MavlinkLink(cfg, self._on_mavlink)
         self.zio: ZenohIO | None = None
-        self.pool = ThreadPoolExecutor(cfg.planner.workers, thread_name_prefix="planner")
+        self.pool: Executor = make_planner_pool(cfg)
         self.io_pool = ThreadPoolExecutor(1, thread_name_prefix="encode")
         self.decode_pool = ThreadPoolExecutor(1, thread_name_prefix="decode")
         self._traj_seq = 0
@@ -165,7 +166,13 @@ class Service:
 
     async def in_pool(self, fn: Any, *args: Any) -> Any:
         assert self.loop is not None
-        return await self.loop.run_in_executor(self.pool, fn, *args)
+        try:
+            return await self.loop.run_in_executor(self.pool, fn, *args)
+        except BrokenExecutor:
+            # The planner process died (OOM, signal): start a fresh one for the next request.
+            self.pool = make_planner_pool(self.cfg)
+            self.event("error", "the planner process died; restarted it (this request failed)")
+            raise
 
     def obstacle_list(self) -> list[Polytope]:
         return list(self.obstacles.values())
@@ -175,6 +182,7 @@ class Service:
     def take_control(self, position: np.ndarray, reason: str) -> None:
         """Start streaming a hold at a measured position, with a fresh time base."""
         self.t_base = time.monotonic()
+        self.yaw.reset(float(self.link.state.attitude[2]))
         self.active = hold_trajectory(position, 0.0)
         self.exit_requested = False
         self.streaming = True
@@ -539,7 +547,7 @@ class Service:
                 return
             known = [p for p in self.obstacle_list() if not any(p is q for q in new)]
             known += [p for _, p in self.route.mission.obstacles]
-            edit = rt.LocalEdit((rt_add_obstacles(new),), f"avoid obstacles {ids}", rt._same)
+            edit = rt.LocalEdit((rt_add_obstacles(new),), f"avoid obstacles {ids}")
             ok = await self._replan(edit, known, arrived, f"obstacles {ids}", hit=hit)
             if not ok:
                 return
@@ -585,10 +593,12 @@ class Service:
             self.route = outcome.route
             if self.flight.state is not S.STREAMING:
                 self.go(S.STREAMING, f"replanned: {edit.description}")
+            if outcome.stats.get("detour"):
+                method = "detour"
             self.event("replanned", f"{edit.description}: {method} replan verified in "
                        f"{self.replan_latency * 1000:.1f} ms, split at t={t_split:.3f} s",
                        method=method, split_time=round(t_split, 4), replan_ms=round(self.replan_latency * 1000, 2),
-                       resolved_jets=outcome.stats.get("resolved_jets"))
+                       resolved_jets=outcome.stats.get("resolved_jets"), detour=outcome.stats.get("detour"))
             return True
         await self._brake(f"{what}: no safe plan ({'; '.join(messages) or 'too close'})", arrived)
         return False
@@ -848,10 +858,11 @@ class Service:
         self.zio.open({"plan": self.query_plan, "status": self.query_status})
         self.link.open(self.loop)
         # First calls pay for imports and caches; pay them now, not during a flight.
-        await self.in_pool(warm_up, self.cfg)
+        await self.in_pool(rt.warm_up, self.cfg)
+        await self.loop.run_in_executor(self.io_pool, encode_trajectory, hold_trajectory(np.zeros(3), 0.0))
         # Start the helper threads now, so they do not inherit the loop's realtime priority.
         await self.loop.run_in_executor(self.io_pool, int, 0)
-        await self.loop.run_in_executor(self.decode_pool, int, 0)
+        await self.loop.run_in_executor(self.decode_pool, warm_validators)
         set_realtime(self.cfg.setpoints.realtime_priority)
         loops = [self.setpoint_loop(), self.heartbeat_loop(), self.telemetry_loop(), self.status_loop(), self.inbox_loop()]
         runners = [asyncio.create_task(c) for c in loops]
@@ -896,17 +907,17 @@ def set_realtime(priority: int) -> None:
     if priority <= 0:
         return
     try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+        # RESET_ON_FORK: processes started from this thread (a restarted planner) run normally.
+        os.sched_setscheduler(0, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(priority))
         log.info("event loop thread runs under SCHED_FIFO priority %d", priority)
     except (OSError, AttributeError) as exc:
         log.warning("realtime_priority %d not applied (%s); running with normal scheduling", priority, exc)
 
 
-def warm_up(cfg: Config) -> None:
-    spec = rt.mission_from_message({"id": "warm-up", "waypoints": [[1.0, 0.0, -1.0], [1.0, 1.0, -1.0]]}, cfg)
-    outcome = rt.start_mission(spec, rest_jet(np.array([0.0, 0.0, -1.0])), 0.0, [], cfg)
-    if outcome.route is not None:
-        encode_trajectory(outcome.route.trajectory)
+def make_planner_pool(cfg: Config) -> Executor:
+    if cfg.planner.executor == "process":
+        return ProcessPoolExecutor(cfg.planner.workers, mp_context=multiprocessing.get_context("spawn"))
+    return ThreadPoolExecutor(cfg.planner.workers, thread_name_prefix="planner")
 
 
 async def run(config: Config, *, stop: asyncio.Event | None = None) -> None:

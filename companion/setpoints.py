@@ -70,6 +70,11 @@ class YawPolicy:
         self.last = fixed
         self.min_speed = min_speed
 
+    def reset(self, measured_yaw: float) -> None:
+        """At take-control: start from the vehicle's heading unless the heading is fixed."""
+        if self.mode != "fixed" and math.isfinite(measured_yaw):
+            self.last = measured_yaw
+
     def __call__(self, velocity: FloatArray) -> float:
         if self.mode == "velocity" and math.hypot(velocity[0], velocity[1]) >= self.min_speed:
             self.last = math.atan2(velocity[1], velocity[0])

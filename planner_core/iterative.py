@@ -6,6 +6,11 @@ constrains the segment after the window and minimises integrated squared snap
 over the fully determined segments. Only the jet at j is committed. H = 1 is
 the paper's pass (one 12-unknown QP per waypoint).
 
+Hot path: with the dense backend and an integrated cost, each window QP goes
+through `window.WindowSolver` (stacked pre-scaled rows, lazy working set,
+LAPACK factor of the Hessian handed to daqp as H = I); anything it cannot
+settle falls back to the general `solve_jets`, which also drives recovery.
+
 Recovery when a window QP is infeasible: first backtrack into already
 committed jets and/or widen the window (re-solving earlier jets is allowed: the
 trajectory is not flown during planning), then stretch the durations of the

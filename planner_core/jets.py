@@ -132,8 +132,10 @@ def _bound_groups() -> tuple[NDArray[np.int64], int, int]:
 class ProblemCache:
     """Everything that depends only on durations, bounds and corridors, built once per problem.
 
-    Bound rows of all segments are built in one vectorised pass; corridor rows
-    per segment on first use.
+    Hull maps and limits are vectorised over segments; each segment's row
+    blocks are built on first use (the iterative pass stacks all segments'
+    rows itself, in `window.py`, so the general path only pays for the few
+    segments it touches).
     """
 
     def __init__(self, problem: Problem) -> None:

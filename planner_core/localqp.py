@@ -294,6 +294,22 @@ def _segment_mats(d: float, free0: bool, free1: bool) -> _SegmentMats:
     )
 
 
+def _solve_dense(
+    P: FloatArray, q: FloatArray, G: FloatArray, lo: FloatArray, hi: FloatArray, backend: str
+) -> tuple[FloatArray | None, str]:
+    """daqp called directly on arrays built here (already contiguous float64, limits clipped):
+    `solve_qp`'s conversions and result object cost as much as the solve at this size."""
+    if backend != "daqp":
+        res = solve_qp(P, q, G, lo, hi, backend)
+        return (res.x if res.ok else None), res.status.value
+    import daqp
+
+    x, _, flag, _ = daqp.solve(P, q, G, hi, lo, np.zeros(lo.size, dtype=np.int32), primal_tol=1e-10, iter_limit=2000)
+    if flag == 1 or flag == 2:
+        return np.asarray(x, dtype=np.float64), "optimal"
+    return None, "infeasible" if flag == -1 else "failed"
+
+
 def solve_derivatives(
     jets: Mapping[int, FloatArray],
     durations: Mapping[int, float],
@@ -361,17 +377,17 @@ def solve_derivatives(
     hi0 = np.clip(np.concatenate(hi_parts), -1e30, 1e30)
     lo_t, hi_t = _tighten(lo0, hi0)
     t0 = time.perf_counter()
-    res = solve_qp(P, q, G, lo_t, hi_t, backend)
+    x, status = _solve_dense(P, q, G, lo_t, hi_t, backend)
     qp_time = time.perf_counter() - t0
-    if not res.ok or res.x is None:
-        return LocalSolution(False, {}, f"QP {res.status.value} for jets {free}", qp_time, n, G.shape[0])
-    rv = G @ res.x
+    if x is None:
+        return LocalSolution(False, {}, f"QP {status} for jets {free}", qp_time, n, G.shape[0])
+    rv = G @ x
     viol = float(max(np.max(rv - hi0, initial=0.0), np.max(lo0 - rv, initial=0.0)))
     if viol > CHECK_TOL:
         return LocalSolution(False, {}, f"QP solution misses a row by {viol:.3g} for jets {free}", qp_time, n, G.shape[0])
     out: dict[int, FloatArray] = {}
     for j, p in pos.items():
         jet = np.array(jets[j], dtype=float)
-        jet[1:] = res.x[_NV * p : _NV * p + _NV].reshape(4, 3)
+        jet[1:] = x[_NV * p : _NV * p + _NV].reshape(4, 3)
         out[j] = jet
     return LocalSolution(True, out, "ok", qp_time, n, G.shape[0])

@@ -1,24 +1,29 @@
 """The iterative pass's hot path: one receding-window jet QP per waypoint, with few numpy calls.
 
 Same QP as `jets.solve_jets(..., open_end=True)` with the dense backend (same
-rows, same tightening, same cost, same exactness check); what differs is how
-it is put together:
+rows, same tightening, same cost); what differs is how it is put together:
 
-- every segment's hull rows are stacked once per problem into global arrays
-  with columns already scaled per jet, so a window's rows are one contiguous
-  slice `[r0, r1)` of them (roles 'b' | 'ab'... | 'half' are contiguous by the
-  [start only | both | end only] row order of `SegBlocks`);
+- every segment's hull rows are stacked into global arrays (filled in chunks
+  as the window reaches them) with columns already scaled per jet, so a
+  window's rows are one contiguous slice `[r0, r1)` of them (roles
+  'b' | 'ab'... | 'half' are contiguous by the [start only | both | end only]
+  row order of `SegBlocks`);
 - the cost Hessian blocks (free part of each segment, 24 x 24) and the
   position part of the gradient are precomputed for all segments;
-- daqp's setup costs ~rows x n^2, so only a working set of rows goes to the
-  solver: the rows active at the previous window plus those violated at the
-  guess; all rows are checked with one matmul and violated ones added
-  (a solution of the relaxation that is feasible for every row is optimal for
-  the full QP).
+- daqp factors H and forms G R^-1 in plain C at every call (~100 us at 48
+  unknowns, measured); here LAPACK factors H = L L' and daqp gets the
+  equivalent problem in u = L'x with H = I (~10x cheaper setup);
+- only a working set of rows goes to the solver: the rows active at the
+  previous window plus every row of the open-end segment (the last jet is
+  pushed against them: the cost does not see that segment); all rows are then
+  checked with one matmul and violated ones added (a solution of the
+  relaxation that is feasible for every row is optimal for the full QP).
+  Measured: one round in >90% of steps.
 
-A solve returns None when the QP is infeasible or the check fails; the
-caller then falls back to the general path (`solve_jets`), which also runs
-recovery and diagnosis.
+A solve returns None when the QP is infeasible or anything does not check;
+the caller then falls back to the general path (`solve_jets`), which also
+runs recovery and diagnosis. Nothing is returned that failed the check
+against the tightened rows (which implies the untightened ones).
 """
 
 from __future__ import annotations
@@ -35,6 +40,7 @@ from planner_core.jets import CHECK_TOL, NV, ProblemCache, _tighten
 
 FloatArray = NDArray[np.float64]
 
+CHUNK = 64  # segments per vectorised block of rows, filled as the window reaches them
 MAX_ROUNDS = 8  # working-set growth rounds before giving up on the fast path
 ADD_TOL = 1e-12  # relative: a row outside its tightened limit by more joins the working set
 _ORD = np.repeat(np.arange(1, 5), 3).astype(float)
@@ -53,7 +59,12 @@ def jet_scales(durations: FloatArray) -> FloatArray:
 
 
 class WindowSolver:
-    """Stacked, pre-scaled rows and cost blocks of one problem (built once, O(m))."""
+    """Stacked, pre-scaled rows and cost blocks of one problem.
+
+    Rows are filled in chunks of `CHUNK` segments as the window reaches them:
+    the same total work for a full pass, but a solver rebuilt after a duration
+    stretch only pays for the segments it still visits.
+    """
 
     def __init__(self, cache: ProblemCache, cost_order: int = 4) -> None:
         import daqp
@@ -64,10 +75,12 @@ class WindowSolver:
         self.cache = cache
         cs = jet_scales(cache.durations)
         self.cs = cs
-        self.off, self.n1, self.n2, self.ab, self.c0, self.lim = _stack_rows(cache, cs)
+        self._rows = _RowStore(cache, cs)
+        self.off, self.n1, self.n2 = self._rows.off, self._rows.n1, self._rows.n2
+        self.ab, self.c0, self.lim = self._rows.ab, self._rows.c0, self._rows.lim
         # working limits: tightened (for the solver), and tightened + ADD_TOL (to accept a row)
-        lo_t, hi_t = self.lim[0], self.lim[1]
-        self.limw = np.stack([lo_t, hi_t, lo_t - ADD_TOL * (1.0 + np.abs(lo_t)), hi_t + ADD_TOL * (1.0 + np.abs(hi_t))])
+        self.limw = np.empty_like(self.lim)
+        self._ready = [False] * (len(self.n1) // CHUNK + 1)
         self.active = np.zeros(self.c0.size, dtype=bool)  # rows active at the last solution
         self.sense = np.zeros(self.c0.size, dtype=np.int32)
         self._eyes: dict[int, FloatArray] = {}
@@ -93,6 +106,8 @@ class WindowSolver:
         nx = NV * nf
         off, n1, n2 = self.off, self.n1, self.n2
         sb = f0 - 1
+        if not (self._ready[sb // CHUNK] and self._ready[f1 // CHUNK]):
+            self._fill(sb // CHUNK, f1 // CHUNK)
         half = open_end and f1 < m - 2
         r0 = off[sb] + n1[sb]
         r1 = off[f1] + n1[f1] + (0 if half else n2[f1])
@@ -107,16 +122,16 @@ class WindowSolver:
             s = f0 + i
             G[off[s] - r0 : off[s + 1] - r0, NV * i : NV * i + 2 * NV] = ab[off[s] : off[s + 1]]
         G[off[f1] - r0 :, nx - NV :] = ab[off[f1] : r1, :NV]
-        const = self.c0[r0:r1].copy()
-        const[:kb] += ab[r0 : off[f0], :NV] @ (jets[sb, 1:].ravel() / cs[sb])
-        if f0 == 1 and not self._constants_hold(sb, jets[sb, 1:].ravel() / cs[sb], 0, n1[sb], side=0):
+        lims = self.limw[:, r0:r1] - self.c0[r0:r1]  # (4, nr): limits less the fixed positions' part
+        start = jets[sb, 1:].ravel() / cs[sb]
+        lims[:, :kb] -= ab[r0 : off[f0], :NV] @ start
+        if f0 == 1 and not self._constants_hold(sb, start, 0, n1[sb], side=0):
             return None
         if not half:
             end = jets[f1 + 1, 1:].ravel() / cs[f1 + 1]
-            const[off[f1] - r0 :] += ab[off[f1] : r1, NV:] @ end
+            lims[:, off[f1] - r0 :] -= ab[off[f1] : r1, NV:] @ end
             if not self._constants_hold(f1, end, n1[f1] + n2[f1], off[f1 + 1] - off[f1], side=1):
                 return None
-        lims = self.limw[:, r0:r1] - const
         # --- cost ---
         H = np.zeros((nx, nx))
         q = np.zeros(nx)
@@ -148,22 +163,24 @@ class WindowSolver:
         work = self.active[r0:r1].copy()
         if half:
             work[off[f1] - r0 :] = True
-        lo_t, hi_t, lo_x, hi_x = lims
+        lo_x, hi_x = lims[2], lims[3]
         eye = self._eye(nx)
         for _ in range(MAX_ROUNDS):
             idx = np.flatnonzero(work)
             gw = G[idx] @ lt
             nrm = np.maximum(np.sqrt(np.einsum("ij,ij->i", gw, gw)), 1e-300)
             gw /= nrm[:, None]
+            # daqp reads its arrays' buffers as C-contiguous: lims[:2, idx] would be F-ordered
+            hw = lims[1, idx] / nrm
+            lw = lims[0, idx] / nrm
             ts = perf_counter()
             u, _, flag, info = self._daqp_solve(
-                eye, f, gw, hi_t[idx] / nrm, lo_t[idx] / nrm, self.sense[: idx.size],
-                primal_tol=1e-10, iter_limit=2000,
+                eye, f, gw, hw, lw, self.sense[: idx.size], primal_tol=1e-10, iter_limit=2000
             )
             t_solve += perf_counter() - ts
             if flag != 1 and flag != 2:
                 return None
-            x = li.T @ u
+            x = lt @ u
             r = G @ x
             # hi_x < hi - 1e-6 (1 + |hi|): passing this check passes the untightened rows
             bad = (r > hi_x) | (r < lo_x)
@@ -179,6 +196,20 @@ class WindowSolver:
                 return None  # a working row missed by more than rounding: let the general path decide
             work |= bad
         return None
+
+    def _fill(self, k0: int, k1: int) -> None:
+        for k in range(k0, k1 + 1):
+            if self._ready[k]:
+                continue
+            segs = np.arange(k * CHUNK, min((k + 1) * CHUNK, len(self.n1)))
+            self._rows.fill(segs)
+            rows = slice(self.off[int(segs[0])], self.off[int(segs[-1]) + 1])
+            lo_t, hi_t = self.lim[0, rows], self.lim[1, rows]
+            self.limw[0, rows] = lo_t
+            self.limw[1, rows] = hi_t
+            self.limw[2, rows] = lo_t - ADD_TOL * (1.0 + np.abs(lo_t))
+            self.limw[3, rows] = hi_t + ADD_TOL * (1.0 + np.abs(hi_t))
+            self._ready[k] = True
 
     def _eye(self, n: int) -> FloatArray:
         eye = self._eyes.get(n)
@@ -211,31 +242,51 @@ class WindowSolver:
 def _stack_rows(
     cache: ProblemCache, cs: FloatArray
 ) -> tuple[list[int], list[int], list[int], FloatArray, FloatArray, FloatArray]:
-    """All segments' rows in `SegBlocks` order, stacked, vectorised over segments.
+    """All segments' rows in `SegBlocks` order, stacked: offsets per segment, n1, n2 per
+    segment, [A | B] (R, 24) with columns scaled by `cs`, c0 (R,), limits (4, R)."""
+    store = _RowStore(cache, cs)
+    store.fill(np.arange(len(store.n1)))
+    return store.off, store.n1, store.n2, store.ab, store.c0, store.lim
 
-    Returns row offsets per segment, n1, n2 per segment, [A | B] (R, 24) with
-    columns scaled by the jets' scales, c0 (R,), limits (4, R). Segments are
-    built in chunks of equal corridor size (one dense (g, rows, 24) block each,
-    then one row scatter): element-wise scatters were 5x slower, and chunks
-    small enough for the cache beat whole-problem temporaries by ~3x.
+
+class _RowStore:
+    """Stacked rows of every segment, filled on demand.
+
+    Segments are built in chunks of equal corridor size (one dense
+    (g, rows, 24) block each, then one row scatter): element-wise scatters
+    were 5x slower.
     """
-    problem = cache.problem
-    n_seg = problem.m - 1
-    polys = [problem.corridor(s) for s in range(n_seg)]
-    faces = np.array([0 if p is None else p.A.shape[0] for p in polys], dtype=np.int64)
-    perm = cache._bperm
-    nb = perm.size
-    bn1, bn2 = cache._bn1, cache._bn2
-    off = np.concatenate([[0], np.cumsum(nb + 8 * faces)])
-    n_rows = int(off[-1])
-    ab = np.empty((n_rows, 2 * NV))
-    c0 = np.empty(n_rows)
-    lim = np.empty((4, n_rows))
-    blim = np.stack([cache._blo_t, cache._bhi_t, cache._blo, cache._bhi])  # (4, 90)
-    hull = cache.hull
-    w = problem.waypoints
-    eye = np.eye(3)
-    for f, segs in _chunks(faces):
+
+    def __init__(self, cache: ProblemCache, cs: FloatArray) -> None:
+        problem = cache.problem
+        self.cache = cache
+        self.cs = cs
+        n_seg = problem.m - 1
+        self.polys = [problem.corridor(s) for s in range(n_seg)]
+        self.faces = np.array([0 if p is None else p.A.shape[0] for p in self.polys], dtype=np.int64)
+        nb = cache._bperm.size
+        off = np.concatenate([[0], np.cumsum(nb + 8 * self.faces)])
+        n_rows = int(off[-1])
+        self._off = off
+        self.off: list[int] = off.tolist()
+        self.n1: list[int] = (cache._bn1 + 4 * self.faces).tolist()
+        self.n2: list[int] = [cache._bn2] * n_seg
+        self.ab = np.empty((n_rows, 2 * NV))
+        self.c0 = np.empty(n_rows)
+        self.lim = np.empty((4, n_rows))
+
+    def fill(self, segments: NDArray[np.int64]) -> None:
+        faces = self.faces[segments]
+        for f in np.unique(faces).tolist():
+            self._fill_group(segments[faces == f], int(f))
+
+    def _fill_group(self, segs: NDArray[np.int64], f: int) -> None:
+        cache, cs = self.cache, self.cs
+        perm = cache._bperm
+        nb = perm.size
+        bn1 = cache._bn1
+        hull = cache.hull
+        w = cache.problem.waypoints
         g = segs.size
         nrow = nb + 8 * f
         # bound rows: [a-only | (corridor P1..P4) | both | end-only | (corridor P5..P8)]
@@ -244,6 +295,7 @@ def _stack_rows(
         blk = np.zeros((g, nrow, 2 * NV))
         cblk = np.empty((g, nrow))
         lblk = np.empty((4, g, nrow))
+        eye = np.eye(3)
         qb = hull[segs, 10:40]  # (g, 30, 10)
         ra = np.einsum("src,de->srdce", qb[:, :, 1:5], eye).reshape(g, nb, NV)[:, perm]
         rb = np.einsum("src,de->srdce", qb[:, :, 6:10], eye).reshape(g, nb, NV)[:, perm]
@@ -251,10 +303,12 @@ def _stack_rows(
         blk[:, bpos, NV:] = rb * cs[segs + 1, None, :]
         cb0 = qb[:, :, 0, None] * w[segs, None, :] + qb[:, :, 5, None] * w[segs + 1, None, :]
         cblk[:, bpos] = cb0.reshape(g, nb)[:, perm]
+        blim = np.stack([cache._blo_t, cache._bhi_t, cache._blo, cache._bhi])  # (4, 90)
         lblk[:, :, bpos] = blim[:, None, :]
         if f:
-            pa = np.stack([polys[s].A for s in segs.tolist()])  # type: ignore[union-attr]
-            pb = np.stack([polys[s].b for s in segs.tolist()])  # type: ignore[union-attr]
+            polys = [self.polys[s] for s in segs.tolist()]
+            pa = np.stack([p.A for p in polys if p is not None])  # (g, f, 3)
+            pb = np.stack([p.b for p in polys if p is not None])
             q = hull[segs]
             ka = slice(bn1, bn1 + 4 * f)
             kb = slice(nb + 4 * f, nrow)
@@ -271,21 +325,9 @@ def _stack_rows(
                 lblk[1, :, k] = hi_t
                 lblk[2, :, k] = -INF
                 lblk[3, :, k] = hi
-        rows = (off[segs, None] + np.arange(nrow)[None, :]).ravel()
-        ab[rows] = blk.reshape(-1, 2 * NV)
-        c0[rows] = cblk.ravel()
-        lim[:, rows] = lblk.reshape(4, -1)
-    n1 = (bn1 + 4 * faces).tolist()
-    n2 = [bn2] * n_seg
-    return off.tolist(), n1, n2, ab, c0, lim
+        rows = (self._off[segs, None] + np.arange(nrow)[None, :]).ravel()
+        self.ab[rows] = blk.reshape(-1, 2 * NV)
+        self.c0[rows] = cblk.ravel()
+        self.lim[:, rows] = lblk.reshape(4, -1)
 
 
-CHUNK = 64  # segments per vectorised block (temporaries stay in cache)
-
-
-def _chunks(faces: NDArray[np.int64]) -> list[tuple[int, NDArray[np.int64]]]:
-    out = []
-    for f in np.unique(faces).tolist():
-        segs = np.flatnonzero(faces == f)
-        out += [(int(f), segs[i : i + CHUNK]) for i in range(0, segs.size, CHUNK)]
-    return out

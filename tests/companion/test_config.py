@@ -65,3 +65,13 @@ def test_print_default_config_cli() -> None:
     out = subprocess.run([sys.executable, "-m", "companion", "--print-default-config"],
                          capture_output=True, text=True, check=True).stdout
     assert config_from_dict(tomllib.loads(out)) == Config()
+
+
+def test_mavlink_urls() -> None:
+    from companion.mavlink_io import parse_url
+
+    assert parse_url("udpout:127.0.0.1:14540") == ("udpout:127.0.0.1:14540", 57600)
+    assert parse_url("tcp:10.0.0.2:5760") == ("tcp:10.0.0.2:5760", 57600)
+    assert parse_url("serial:/dev/ttyAMA0:921600") == ("/dev/ttyAMA0", 921600)
+    assert parse_url("/dev/ttyACM0:115200") == ("/dev/ttyACM0", 115200)
+    assert parse_url("/dev/ttyACM0") == ("/dev/ttyACM0", 57600)

@@ -63,6 +63,7 @@ def test_arm_policy() -> None:
     assert "no mission" in refuse_command(S.READY, "start", armed=True, auto_arm=False, has_mission=False)
     assert refuse_command(S.IDLE, "start", armed=False, auto_arm=False, has_mission=True) is not None
     assert refuse_command(S.PILOT, "start", armed=True, auto_arm=False, has_mission=True) is None
+    assert refuse_command(S.FAILSAFE, "start", armed=True, auto_arm=False, has_mission=False) is None
     assert refuse_command(S.IDLE, "hold", armed=True, auto_arm=False, has_mission=True) is not None
     assert refuse_command(S.IDLE, "disarm", armed=False, auto_arm=False, has_mission=False) is not None
     assert refuse_command(S.STREAMING, "abort", armed=True, auto_arm=False, has_mission=True) is None

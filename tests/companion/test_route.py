@@ -63,7 +63,7 @@ def test_popup_obstacle_local_replan_keeps_prefix_and_clears_obstacle() -> None:
     ob = box([3.55, 0.8, -3], [4.3, 2.2, 0])
     assert rt.first_hit(r.trajectory, 1.0, [ob], 0.25) is not None
     t_now = 2.0
-    out = rt.local_replan(r, t_now, t_now + 0.15, rt.LocalEdit((AddObstacles((ob,)),), "avoid", rt._same), [], CFG)
+    out = rt.local_replan(r, t_now, t_now + 0.15, rt.LocalEdit((AddObstacles((ob,)),), "avoid"), [], CFG)
     assert out.ok and out.route is not None, out.message
     new = out.route.trajectory
     ts = np.linspace(t_now, t_now + 0.15, 30)
@@ -85,6 +85,7 @@ def test_change_edits_map_mission_indices_to_the_route() -> None:
     e = rt.local_edit(r, {"insert_waypoint": {"index": 2, "position": [2, 4, -1.5]}}, 1.2)
     labels = e.relabel(r.labels, lambda i: i)
     assert labels.tolist() == [-1, 0, 1, 2, 3]
+    assert e.labels == ("insert", 3, 2)
     e = rt.local_edit(r, {"remove_waypoint": {"index": 1}}, 1.2)
     assert e.relabel(r.labels, lambda i: i).tolist() == [-1, 0, 1]
     with pytest.raises(MessageError) as info:
@@ -109,3 +110,15 @@ def test_braking_stops_inside_the_corridor() -> None:
     end = traj.jet(traj.t_end)
     assert np.allclose(end[1:], 0, atol=1e-9)
     assert np.allclose(traj.jet(t), jet, atol=1e-9)
+
+
+def test_obstacle_across_the_path_gets_a_detour() -> None:
+    r = fly([[6, 0, -1.5], [6, 3, -1.5]], [0, 0, -1.5])
+    block = box([3.5, -0.6, -2.5], [4.3, 0.6, -0.5])  # across the straight leg
+    out = rt.replan_remainder(r, r.trajectory, 2.0, [block], CFG)
+    assert out.ok and out.route is not None, out.message
+    assert out.stats["detour"]
+    assert (out.route.labels == -1).sum() >= 2  # the split point and the detour point(s)
+    assert out.route.labels[-2:].tolist() == [0, 1]
+    assert rt.first_hit(out.route.trajectory, 2.0, [block], 0.25 - 1e-6) is None
+    assert np.allclose(out.route.trajectory.jet(2.0), r.trajectory.jet(2.0), atol=1e-9)

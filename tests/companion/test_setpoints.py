@@ -53,3 +53,16 @@ def test_hold_and_yaw() -> None:
         assert sp.yaw == 0.5  # too slow to define a heading: keep the last
     assert yaw(np.array([0.0, 1.0, 0.0])) == pytest.approx(np.pi / 2)
     assert YawPolicy("fixed", 0.2, 0.3)(np.array([1.0, 1.0, 0.0])) == 0.2
+
+
+def test_yaw_modes_start_from_the_measured_heading() -> None:
+    hold = YawPolicy("hold", 0.0, 0.3)
+    hold.reset(1.2)
+    assert hold(np.array([3.0, 0.0, 0.0])) == 1.2
+    fixed = YawPolicy("fixed", 0.4, 0.3)
+    fixed.reset(1.2)
+    assert fixed(np.array([0.0, 0.0, 0.0])) == 0.4
+    vel = YawPolicy("velocity", 0.0, 0.3)
+    vel.reset(-0.5)
+    assert vel(np.array([0.1, 0.0, 0.0])) == -0.5
+    assert vel(np.array([0.0, -2.0, 0.0])) == pytest.approx(-np.pi / 2)

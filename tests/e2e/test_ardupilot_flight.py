@@ -24,6 +24,8 @@ from e2e_rig import (
     tracking_rms,
 )
 
+from planner_core.io import trajectory_from_dict
+
 pytestmark = pytest.mark.slow
 
 
@@ -86,6 +88,18 @@ def test_change_moves_a_waypoint_in_flight(rig: Rig) -> None:
     rig.put("change", {"move_waypoint": {"index": 0, "position": [0.0, 3.0, -1.2]}})
     ev = rig.wait_event(lambda e: e["type"] == "rejected", 5, "passed waypoint rejected", mark)
     assert ev["field"] == "move_waypoint.index"
+
+
+def test_queryables_and_liveliness(rig: Rig) -> None:
+    replies = list(rig.session.get(rig.key("status"), timeout=5.0))
+    status = json.loads(replies[0].ok.payload.to_bytes())
+    assert status["vehicle"] == "e2e" and status["autopilot"] == "ardupilot"
+    replies = list(rig.session.get(rig.key("plan"), timeout=5.0))
+    plan = json.loads(replies[0].ok.payload.to_bytes())
+    assert plan["format"] == "bezier-trajectory/1" and plan["frame"] == "ned"
+    assert trajectory_from_dict(plan).n_segments == len(plan["segments"])
+    alive = list(rig.session.liveliness().get(rig.key("alive"), timeout=5.0))
+    assert [str(r.ok.key_expr) for r in alive] == [rig.key("alive")]
 
 
 def test_cli_send_reports_the_rejection(rig: Rig, tmp_path: Any) -> None:

@@ -12,6 +12,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[2]
 
 
@@ -42,3 +44,51 @@ def test_quick_demo_flies_and_reports(tmp_path: Path) -> None:
         assert (out / png).stat().st_size > 10_000
     log = [json.loads(line) for line in (out / "flight.jsonl").read_text().splitlines() if line.strip()]
     assert any(r["type"] == "setpoint" and r.get("applied") for r in log)
+
+
+def test_demo_scenarios_are_flyable_after_lifting_and_moving() -> None:
+    """The demo's adaptations of the paper's scenario 2: lifted 2 m, waypoint 2 moved, pop-up
+    obstacle shifted clear of the leg. Corridors must exist for the whole route, the shifted
+    obstacle must still cut the originally planned curve, and lifting must keep every obstacle
+    where it was relative to the waypoints."""
+    import numpy as np
+
+    from companion import demo
+    from planner_core import plan
+    from planner_core.corridors import CorridorError, build_corridors
+    from planner_core.problem import Bounds, Polytope, Problem
+
+    raw = demo.load_example("scenario2.json")
+    mission = demo.lifted_mission(raw, "s2")
+    popup = demo.lifted_obstacles(demo.clear_of_route(demo.load_example("scenario2_popup.json"), mission))
+    original = demo.lifted_obstacles(demo.load_example("scenario2_popup.json"))
+    change = demo.lifted_change(demo.load_example("scenario2_move.json"))
+
+    def polys(regions: list[dict[str, object]]) -> list[Polytope]:
+        return [Polytope(np.asarray(r["A"], float), np.asarray(r["b"], float)) for r in regions]
+
+    wps = np.asarray(mission["waypoints"], float)
+    assert np.allclose(wps - np.asarray(raw["waypoints"], float), [0, 0, demo.LIFT])
+    obstacles = polys(mission["obstacles"])
+    up = np.array([0.0, 0.0, demo.LIFT])
+    for lifted, region in zip(obstacles, raw["obstacles"], strict=True):
+        b = np.asarray(region["b"], float)  # boxes: A = [I; -I], b = [max; -min]
+        centre = (b[:3] - b[3:]) / 2
+        assert lifted.contains(centre + up)[0] and not lifted.contains(centre - up)[0]
+    box = (np.asarray(mission["map"]["min"], float), np.asarray(mission["map"]["max"], float))
+    moved = wps.copy()
+    moved[change["move_waypoint"]["index"]] = change["move_waypoint"]["position"]
+    radius = float(mission["vehicle_radius"])
+    with pytest.raises(CorridorError):  # the example's own box makes the route unflyable
+        build_corridors(moved, [*obstacles, *polys(original["add"])], box, radius)
+    corridors = build_corridors(moved, [*obstacles, *polys(popup["add"])], box, radius)
+    assert len(corridors) == len(wps) - 1
+    # ...and the shifted box still invalidates the curve planned before it popped up
+    problem = Problem.from_waypoints(wps, raw["durations"], Bounds.symmetric(7, 6.5, 6, 15),
+                                     tuple(build_corridors(wps, obstacles, box, radius)))
+    first = plan(problem)
+    assert first.ok and first.trajectory is not None
+    curve = first.trajectory.evaluate(np.linspace(0, first.trajectory.t_end, 4000))
+    (pop,) = polys(popup["add"])
+    inflated = Polytope(pop.A, pop.b + radius * np.linalg.norm(pop.A, axis=1))
+    assert inflated.contains(curve).any()

@@ -118,6 +118,26 @@ def test_blocked_waypoint_brakes_and_holds(rig: Rig) -> None:
     assert rig.state() == "HOLDING"
 
 
+def test_obstacle_across_the_path_is_flown_around(rig: Rig) -> None:
+    clear_obstacles(rig)
+    since = rig.mark()
+    t_start = rig.mock_time()
+    rig.put("mission", {"id": "px4-detour", "waypoints": [[0.0, -2.5, -1.5]]})
+    rig.wait_event(lambda e: e["type"] == "state" and e.get("to") == "STREAMING", 10, "streaming", since)
+    time.sleep(0.4)
+    obstacle = box([-0.6, -0.4, -2.5], [0.6, 0.4, -0.5])  # straight across the leg
+    mark = rig.mark()
+    rig.put("obstacles", {"add": [{"id": "gate", **obstacle}]})
+    ev = rig.wait_event(lambda e: e["type"] in ("replanned", "braking"), 10, "replan", mark)
+    assert ev["type"] == "replanned" and ev["method"] == "detour", ev
+    rig.wait_event(lambda e: e["type"] == "mission_complete" and e.get("mission") == "px4-detour", 30, "complete", since)
+    time.sleep(0.5)
+    log = rig.log()
+    track = np.array([r["pos"] for r in states(log, t_start, rig.mock_time())])
+    assert not np.any(inside(track, polytope(obstacle), RADIUS - 0.05))
+    assert np.linalg.norm(np.asarray(rig.control.state()["position"]) - [0.0, -2.5, -1.5]) <= 0.1
+
+
 def test_bad_messages_are_rejected_and_the_flight_continues(rig: Rig) -> None:
     clear_obstacles(rig)
     since = rig.mark()
@@ -200,3 +220,39 @@ def test_link_loss_failsafe_and_no_silent_resume(rig: Rig) -> None:
     assert any(m["from"] == "OFFBOARD" for m in modes)
     assert setpoints(log, t_pause + 3.5, rig.mock_time()) == []
     assert rig.control.state()["mode"] != "OFFBOARD"
+
+
+def test_start_retakes_control_then_hold_resume_abort_land(rig: Rig) -> None:
+    assert rig.state() == "FAILSAFE"
+    since = rig.mark()
+    rig.command("start")
+    rig.wait_event(lambda e: e["type"] == "state" and e.get("to") == "READY", 15, "back in control", since)
+    assert rig.control.state()["mode"] == "OFFBOARD"
+    rig.put("mission", {"id": "px4-hold", "waypoints": [[-2.0, 0.0, -1.5], [-2.0, 3.0, -1.5]]})
+    rig.wait_event(lambda e: e["type"] == "state" and e.get("to") == "STREAMING", 10, "streaming", since)
+    time.sleep(1.0)
+    mark = rig.mark()
+    rig.command("hold")
+    rig.wait_event(lambda e: e["type"] == "state" and e.get("to") == "HOLDING", 10, "held", mark)
+    time.sleep(0.3)
+    assert np.linalg.norm(rig.control.state()["velocity"]) < 0.1
+    mark = rig.mark()
+    rig.command("resume")
+    rig.wait_event(lambda e: e["type"] == "state" and e.get("to") == "STREAMING", 10, "resumed", mark)
+    time.sleep(0.5)
+    mark = rig.mark()
+    rig.command("abort")
+    rig.wait_event(lambda e: e["type"] == "aborted", 5, "aborted", mark)
+    rig.wait_event(lambda e: e["type"] == "state" and e.get("to") == "HOLDING", 10, "holding after abort", mark)
+    status = rig.wait_status(lambda s: s["mission"] is None, 3, "mission cleared")
+    assert status["pending_mission"] is None
+    mark = rig.mark()
+    rig.command("land")
+    rig.wait_event(lambda e: e["type"] == "state" and e.get("to") == "LANDING", 5, "landing", mark)
+    rig.wait_event(lambda e: e["type"] == "state" and e.get("to") == "IDLE", 30, "landed and disarmed", mark)
+    st = rig.control.state()
+    assert st["landed"] and not st["armed"]
+    mark = rig.mark()
+    rig.command("disarm")
+    ev = rig.wait_event(lambda e: e["type"] == "refused", 5, "disarm refused", mark)
+    assert "already disarmed" in ev["reason"]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from planner_core import Bounds, IterativeOptions, Polytope, Problem, iterative
+from planner_core import Bounds, IterativeOptions, Polytope, Problem, iterative, window
 from planner_core.iterative import plan_iterative
 from planner_core.jets import NV, ProblemCache, initial_jets, solve_jets
 from planner_core.window import WindowSolver, jet_scales
@@ -33,10 +33,13 @@ def _problem(seed: int, m: int) -> Problem:
     return Problem.from_waypoints(wps, durations, Bounds.symmetric(7, 6.5, 15, 60), tuple(cors))
 
 
-def test_stacked_rows_equal_segment_blocks() -> None:
+@pytest.mark.parametrize("chunk", [3, 64])
+def test_stacked_rows_equal_segment_blocks(chunk: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(window, "CHUNK", chunk)
     problem = _problem(3, 12)
     cache = ProblemCache(problem)
     fast = WindowSolver(cache)
+    fast._fill(0, (problem.m - 2) // chunk)
     cs = jet_scales(problem.durations)
     for s in range(problem.m - 1):
         blk = cache.blocks(s)
@@ -48,7 +51,9 @@ def test_stacked_rows_equal_segment_blocks() -> None:
         np.testing.assert_array_equal(fast.lim[:, rows], blk.lim)
 
 
-def test_window_solve_matches_general_solver() -> None:
+@pytest.mark.parametrize("chunk", [2, 64])
+def test_window_solve_matches_general_solver(chunk: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(window, "CHUNK", chunk)  # rows filled lazily across chunk borders
     problem = _problem(5, 14)
     cache = ProblemCache(problem)
     fast = WindowSolver(cache)
@@ -71,3 +76,24 @@ def test_fast_and_general_paths_plan_the_same_trajectory(monkeypatch: pytest.Mon
     slow = plan_iterative(problem, IterativeOptions(window=4))
     assert fast.ok and slow.ok and fast.trajectory is not None and slow.trajectory is not None
     np.testing.assert_allclose(fast.trajectory.control_points, slow.trajectory.control_points, atol=1e-6)
+
+
+def test_global_sparse_path_is_the_exact_optimum() -> None:
+    from planner_core import global_qp
+    from planner_core.constraints import integrated_cost
+    from planner_core.jets import trajectory_from_jets
+
+    problem = _problem(11, 9)
+    res = global_qp.plan_global(problem)
+    assert res.ok and res.trajectory is not None
+    assert res.stats["solved_by"].startswith("iterative warm start")
+    ref = solve_jets(problem, initial_jets(problem), list(range(1, problem.m - 1)), backend="daqp")
+    assert ref.ok
+    c_ref = integrated_cost(trajectory_from_jets(problem, ref.jets).control_points, problem.durations, 4)
+    assert abs(res.stats["integrated_snap"] - c_ref) <= 1e-7 * c_ref
+    # the OSQP fallback (no warm start) reaches the same optimum
+    cache = ProblemCache(problem)
+    qp = global_qp._GlobalQP(problem, cache, "snap")
+    x = global_qp._osqp_refined(qp, None)
+    assert x is not None and qp.violation(x) <= 1e-9
+    np.testing.assert_allclose(x, ref.jets[1:-1, 1:].ravel(), rtol=1e-6, atol=1e-6)
