@@ -302,12 +302,43 @@ def max_margin_normal(points: FloatArray, verts: FloatArray) -> FloatArray | Non
     sense = np.zeros(k, dtype=np.int32)  # fresh each call: daqp writes its active set back
     x, _, flag, _ = daqp.solve(_SVM_H, _SVM_F, rows, -np.ones(k), np.full(k, -1e30), sense)
     if flag == -1:
-        return None
+        # a very thin gap makes the SVM badly scaled, and daqp may call it infeasible:
+        # settle it with the closest-point pair, which is always well posed
+        return _closest_pair_normal(p, v)
     w = np.asarray(x[:3], dtype=float)
     norm = float(np.linalg.norm(w))
     if flag not in (1, 2) or not np.isfinite(norm) or norm == 0.0:
         return _fallback_normal(points, verts)
     return -w / norm
+
+
+def _closest_pair_normal(points: FloatArray, verts: FloatArray) -> FloatArray | None:
+    """Direction of the closest pair between two hulls; None when they touch or overlap.
+
+    min |P^T l - V^T u|^2 over the two simplices (l, u >= 0, sum 1 each), with
+    daqp's proximal regularisation for the singular Hessian. Safety never rests on
+    its accuracy: callers recompute the gap from the returned normal.
+    """
+    na, nb = points.shape[0], verts.shape[0]
+    m = np.concatenate([points, -verts]).T  # (3, na+nb)
+    h = m.T @ m
+    f = np.zeros(na + nb)
+    eq = np.zeros((2, na + nb))
+    eq[0, :na] = 1.0
+    eq[1, na:] = 1.0
+    n = na + nb
+    upper = np.concatenate([np.full(n, 1.0), np.ones(2)])
+    lower = np.concatenate([np.zeros(n), np.ones(2)])
+    sense = np.concatenate([np.zeros(n, dtype=np.int32), np.full(2, 5, dtype=np.int32)])
+    x, _, flag, _ = daqp.solve(h, f, eq, upper, lower, sense, eps_prox=-1.0)
+    if flag not in (1, 2):
+        return None
+    d = np.asarray(m @ np.asarray(x, dtype=float), dtype=float)  # p* - v*
+    norm = float(np.linalg.norm(d))
+    if norm <= 1e-12:
+        return None
+    normal = -d / norm
+    return normal if _gap(normal, points, verts) > 0.0 else None
 
 
 def _fallback_normal(points: FloatArray, verts: FloatArray) -> FloatArray | None:
