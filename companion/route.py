@@ -84,9 +84,15 @@ def bounds_from(obj: dict[str, Any] | None, cfg: Config) -> Bounds:
 
 def parse_region(obj: dict[str, Any], field_name: str) -> Polytope:
     try:
-        return parse_polytope({k: v for k, v in obj.items() if k != "id"}, field_name)
+        poly = parse_polytope({k: v for k, v in obj.items() if k != "id"}, field_name)
     except ChangeError as exc:
         raise MessageError(exc.field, exc.reason) from None
+    try:
+        # Corridors need bounded, non-empty obstacles: refuse others here, not mid-replan.
+        polytope_vertices(poly, field_name)
+    except ValueError as exc:
+        raise MessageError(field_name, str(exc).removeprefix(f"{field_name}: ")) from None
+    return poly
 
 
 def mission_from_message(obj: dict[str, Any], cfg: Config) -> MissionSpec:

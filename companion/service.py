@@ -554,7 +554,9 @@ class Service:
 
     async def _replan(self, edit: rt.LocalEdit, known: list[Polytope], arrived: float, what: str,
                       hit: float | None = None, remainder: tuple[Any, Any, Any] | None = None) -> bool:
-        """Local replan, then a full replan of the remainder, then braking. Holds plan_lock."""
+        """Local replan, then a full replan of the remainder, then (obstacles) braking or
+        (changes: the current plan is still safe) a rejection. Holds plan_lock."""
+        brake = remainder is None
         assert self.route is not None
         messages = []
         for attempt in range(3):
@@ -580,7 +582,7 @@ class Service:
             self.replan_latency = time.perf_counter() - t0
             if not outcome.ok or outcome.route is None:
                 messages.append(f"full replan: {outcome.message}")
-                if outcome.blocked_waypoint is not None:
+                if outcome.blocked_waypoint is not None and brake:
                     await self._brake(f"{what}: waypoint {outcome.blocked_waypoint} is blocked "
                                       f"({outcome.message})", arrived, blocked=outcome.blocked_waypoint)
                     return False
@@ -600,7 +602,10 @@ class Service:
                        method=method, split_time=round(t_split, 4), replan_ms=round(self.replan_latency * 1000, 2),
                        resolved_jets=outcome.stats.get("resolved_jets"), detour=outcome.stats.get("detour"))
             return True
-        await self._brake(f"{what}: no safe plan ({'; '.join(messages) or 'too close'})", arrived)
+        if brake:
+            await self._brake(f"{what}: no safe plan ({'; '.join(messages) or 'too close'})", arrived)
+        else:
+            self.reject("change", "", f"{what}: no verified plan ({'; '.join(messages)}); the current plan continues")
         return False
 
     async def _brake(self, reason: str, arrived: float | None, blocked: int | None = None) -> None:
@@ -644,8 +649,8 @@ class Service:
             edit = rt.local_edit(self.route, change, t_split)
             remainder = rt.apply_change(self.route, change, t_split, self.cfg)[:3]
             known = self.obstacle_list() + [p for _, p in self.route.mission.obstacles]
-            self.event("accepted", f"change: {edit.description}", key="change")
-            await self._replan(edit, known, arrived, f"change ({edit.description})", remainder=remainder)
+            if await self._replan(edit, known, arrived, f"change ({edit.description})", remainder=remainder):
+                self.event("accepted", f"change: {edit.description}", key="change")
 
     # commands ----------------------------------------------------------------
 

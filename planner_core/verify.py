@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from planner_core.bezier import bernstein_basis, end_jet, hodographs, start_jet
+from planner_core.bezier import bernstein_basis, end_jet, falling, hodographs, start_jet
 from planner_core.problem import DEGREE, ORDER_NAMES, FloatArray, Problem, Trajectory
 
 SAMPLES_PER_SEGMENT = 64
@@ -161,14 +161,21 @@ def _continuity(ctrl: FloatArray, d: FloatArray) -> Worst:
     if ctrl.shape[0] < 2:
         return _none()
     worst = Worst(0.0)
+    # Stored control points carry rounding of eps*|P|; a k-th difference scaled by
+    # n!/(n-k)!/D^k amplifies it, so far from the origin (long missions) the exact
+    # junction match is only good to that floor. Errors above the floor still count.
+    size = np.max(np.abs(ctrl), axis=1)  # (s, 3)
+    pair = np.maximum(size[:-1], size[1:])
+    dmin = np.minimum(d[:-1], d[1:])[:, None]
     for k in range(5):
         if k == 0:
             left, right = ctrl[:-1, -1], ctrl[1:, 0]
         else:
             left = hodographs(ctrl[:-1], k, d[:-1])[:, -1]
             right = hodographs(ctrl[1:], k, d[1:])[:, 0]
+        floor = 64.0 * np.finfo(float).eps * pair * 2.0**k * falling(DEGREE, k) / dmin**k
         scale = 1.0 + np.maximum(np.abs(left), np.abs(right))
-        rel = np.abs(left - right) / scale
+        rel = np.maximum(np.abs(left - right) - floor, 0.0) / scale
         j, a = np.unravel_index(int(np.argmax(rel)), rel.shape)
         if rel[j, a] > worst.value:
             worst = Worst(float(rel[j, a]), int(j) + 1, k, int(a))

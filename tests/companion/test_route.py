@@ -122,3 +122,14 @@ def test_obstacle_across_the_path_gets_a_detour() -> None:
     assert out.route.labels[-2:].tolist() == [0, 1]
     assert rt.first_hit(out.route.trajectory, 2.0, [block], 0.25 - 1e-6) is None
     assert np.allclose(out.route.trajectory.jet(2.0), r.trajectory.jet(2.0), atol=1e-9)
+
+
+@pytest.mark.parametrize(("region", "field", "words"), [
+    ({"A": [[1, 0, 0]], "b": [1]}, "add[0]", "unbounded"),
+    ({"A": np.vstack([np.eye(3), -np.eye(3)]).tolist(), "b": [-1, 1, 1, -1, 1, 1]}, "add[0]", "empty"),
+    ({"vertices": [[0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0]]}, "add[0].vertices", "collinear"),
+])
+def test_obstacles_must_be_bounded_and_solid(region: dict, field: str, words: str) -> None:
+    with pytest.raises(MessageError) as info:
+        rt.parse_region({"id": "o", **region}, "add[0]")
+    assert info.value.field == field and words in info.value.reason

@@ -150,6 +150,7 @@ def test_bad_messages_are_rejected_and_the_flight_continues(rig: Rig) -> None:
         ("mission", b'{"id": "x", "waypoints": [[0, 0, NaN]]}', "waypoints[0][2]", "non-finite"),
         ("mission", {"id": "x", "waypoints": [[0, 0]]}, "waypoints[0]", "too short"),
         ("obstacles", {"add": [{"id": "o", "A": [[1, 0, 0]], "b": [1, 2]}]}, "add[0].b", "expected 1"),
+        ("obstacles", {"add": [{"id": "half", "A": [[1, 0, 0]], "b": [1]}]}, "add[0]", "unbounded"),
         ("mission", b"[" + b"0," * (5 * 1024 * 1024) + b"0]", "", "exceeds the limit"),
         ("command", {"command": "fly"}, "command", "is not one of"),
         ("mission", {"id": "far", "waypoints": [[0, 0, -1], [100, 0, -1]]}, "waypoints[1]", "geofence"),
