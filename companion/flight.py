@@ -1,6 +1,6 @@
 """The flight state machine: pure logic, no sockets, no clock.
 
-States (see docs/zenoh.md for the diagram):
+States (see the README, "State machine", for the diagram):
 IDLE -> ARMING -> TAKEOFF -> READY -> STREAMING -> HOLDING, plus
 PILOT (someone else took control), BRAKING (no safe plan: stopping inside the
 current corridor), FAILSAFE (the autopilot left our mode on its own, or the

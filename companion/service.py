@@ -104,6 +104,8 @@ class Service:
         self.link = MavlinkLink(cfg, self._on_mavlink)
         self.zio: ZenohIO | None = None
         self.pool: Executor = make_planner_pool(cfg)
+        # Replans and braking never queue behind a long mission plan: their own worker.
+        self.urgent_pool: Executor = make_planner_pool(cfg, workers=1)
         self.io_pool = ThreadPoolExecutor(1, thread_name_prefix="encode")
         self.decode_pool = ThreadPoolExecutor(1, thread_name_prefix="decode")
         self._traj_seq = 0
@@ -164,13 +166,16 @@ class Service:
     def reject(self, key: str, field: str, reason: str, **extra: Any) -> None:
         self.event("rejected", f"{key}: {field + ': ' if field else ''}{reason}", key=key, field=field, reason=reason, **extra)
 
-    async def in_pool(self, fn: Any, *args: Any) -> Any:
+    async def in_pool(self, fn: Any, *args: Any, urgent: bool = False) -> Any:
         assert self.loop is not None
         try:
-            return await self.loop.run_in_executor(self.pool, fn, *args)
+            return await self.loop.run_in_executor(self.urgent_pool if urgent else self.pool, fn, *args)
         except BrokenExecutor:
             # The planner process died (OOM, signal): start a fresh one for the next request.
-            self.pool = make_planner_pool(self.cfg)
+            if urgent:
+                self.urgent_pool = make_planner_pool(self.cfg, workers=1)
+            else:
+                self.pool = make_planner_pool(self.cfg)
             self.event("error", "the planner process died; restarted it (this request failed)")
             raise
 
@@ -568,16 +573,17 @@ class Service:
             if hit is not None and t_split >= hit:
                 break
             t0 = time.perf_counter()
-            outcome = await self.in_pool(rt.local_replan, route, now, t_split, edit, known, self.cfg)
+            outcome = await self.in_pool(rt.local_replan, route, now, t_split, edit, known, self.cfg, urgent=True)
             method = "local"
             if not outcome.ok:
                 messages.append(f"local replan: {outcome.message}")
                 obstacles = self.obstacle_list()
                 if remainder is None:
-                    outcome = await self.in_pool(rt.replan_remainder, route, base, t_split, obstacles, self.cfg)
+                    outcome = await self.in_pool(rt.replan_remainder, route, base, t_split, obstacles, self.cfg,
+                                                 urgent=True)
                 else:
                     outcome = await self.in_pool(rt.replan_remainder, route, base, t_split, obstacles, self.cfg,
-                                                 *remainder)
+                                                 *remainder, urgent=True)
                 method = "remainder"
             self.replan_latency = time.perf_counter() - t0
             if not outcome.ok or outcome.route is None:
@@ -623,10 +629,14 @@ class Service:
         if corridor is None:
             corridor = rt.corridor_at(base, t_split)
         traj, why = await self.in_pool(rt.brake, jet, self.route.mission.bounds if self.route else
-                                       rt.bounds_from(None, self.cfg), corridor, t_split)
+                                       rt.bounds_from(None, self.cfg), corridor, t_split, urgent=True)
         if traj is None and corridor is not None:
+            # No stop fits the free corridor (e.g. already inside an inflated pop-up): the
+            # shortest dynamically verified stop beats an abrupt hold; say so.
             traj, why = await self.in_pool(rt.brake, jet, self.route.mission.bounds if self.route else
-                                           rt.bounds_from(None, self.cfg), None, t_split)
+                                           rt.bounds_from(None, self.cfg), None, t_split, urgent=True)
+            if traj is not None:
+                why = "no stop fits the free corridor; shortest stop within the dynamic bounds only"
         swapped = traj is not None and self.swap(rt.splice(base, traj), t_split, arrived, "braking")
         if not swapped:
             st = self.link.state
@@ -863,7 +873,7 @@ class Service:
         self.zio.open({"plan": self.query_plan, "status": self.query_status})
         self.link.open(self.loop)
         # First calls pay for imports and caches; pay them now, not during a flight.
-        await self.in_pool(rt.warm_up, self.cfg)
+        await asyncio.gather(self.in_pool(rt.warm_up, self.cfg), self.in_pool(rt.warm_up, self.cfg, urgent=True))
         await self.loop.run_in_executor(self.io_pool, encode_trajectory, hold_trajectory(np.zeros(3), 0.0))
         # Start the helper threads now, so they do not inherit the loop's realtime priority.
         await self.loop.run_in_executor(self.io_pool, int, 0)
@@ -890,6 +900,7 @@ class Service:
             self.link.close()
             self.zio.close()
             self.pool.shutdown(wait=False, cancel_futures=True)
+            self.urgent_pool.shutdown(wait=False, cancel_futures=True)
             self.io_pool.shutdown(wait=False, cancel_futures=True)
             self.decode_pool.shutdown(wait=False, cancel_futures=True)
 
@@ -919,10 +930,11 @@ def set_realtime(priority: int) -> None:
         log.warning("realtime_priority %d not applied (%s); running with normal scheduling", priority, exc)
 
 
-def make_planner_pool(cfg: Config) -> Executor:
+def make_planner_pool(cfg: Config, workers: int | None = None) -> Executor:
+    n = cfg.planner.workers if workers is None else workers
     if cfg.planner.executor == "process":
-        return ProcessPoolExecutor(cfg.planner.workers, mp_context=multiprocessing.get_context("spawn"))
-    return ThreadPoolExecutor(cfg.planner.workers, thread_name_prefix="planner")
+        return ProcessPoolExecutor(n, mp_context=multiprocessing.get_context("spawn"))
+    return ThreadPoolExecutor(n, thread_name_prefix="planner")
 
 
 async def run(config: Config, *, stop: asyncio.Event | None = None) -> None:
