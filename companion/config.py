@@ -84,7 +84,7 @@ class BoundsConfig:
 @dataclass(frozen=True)
 class PlannerConfig:
     method: str = "iterative"  # "iterative" | "global"
-    window: int = 3
+    window: int = 6  # jets per QP: planner_core.iterative.DEFAULT_WINDOW (measured)
     vehicle_radius: float = 0.3
     bounds: BoundsConfig = field(default_factory=BoundsConfig)
     # How far ahead of "now" an in-flight replan splits the trajectory: the

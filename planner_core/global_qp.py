@@ -5,7 +5,7 @@ cost = integrated squared snap (or jerk) over the whole trajectory. The
 Hessian is block-tridiagonal in the jets.
 
 Sparse path (backend "osqp", the default), fastest first:
-1. warm start: the iterative pass (window 4, ~1.05-1.15x the optimal cost) gives
+1. warm start: the iterative pass (window 6, ~1.01x the optimal cost) gives
    a feasible point whose tight rows are nearly the optimal active set;
 2. exact primal-dual active-set refinement (`qp.refine_active_set`: sparse KKT
    solves, add violated rows, drop wrong-sign multipliers) from that set; it

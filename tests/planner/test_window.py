@@ -71,9 +71,10 @@ def test_window_solve_matches_general_solver(chunk: int, monkeypatch: pytest.Mon
 
 def test_fast_and_general_paths_plan_the_same_trajectory(monkeypatch: pytest.MonkeyPatch) -> None:
     problem = _problem(7, 10)
-    fast = plan_iterative(problem)
+    opts = IterativeOptions()
+    fast = plan_iterative(problem, opts)
     monkeypatch.setattr(iterative, "_fast_solver", lambda cache, opts: None)
-    slow = plan_iterative(problem, IterativeOptions(window=4))
+    slow = plan_iterative(problem, opts)
     assert fast.ok and slow.ok and fast.trajectory is not None and slow.trajectory is not None
     np.testing.assert_allclose(fast.trajectory.control_points, slow.trajectory.control_points, atol=1e-6)
 
