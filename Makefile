@@ -30,8 +30,8 @@ test: lint typecheck pytest
 
 bench: $(STAMP)
 	$(PY) -m pip install --quiet -e '.[bench]'
-	$(PY) benchmarks/planner.py
-	$(PY) benchmarks/service.py
+	$(PY) benchmarks/planner.py --quality --minsnap --json out/bench_planner.json
+	$(PY) benchmarks/service.py --json out/bench_service.json
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .mypy_cache .ruff_cache out

@@ -158,6 +158,22 @@ def bench_quality() -> list[Row]:
     return rows
 
 
+def bench_minsnap(n_random: int = 5, n_fast: int = 2) -> list[Row]:
+    """Side by side with minsnap-trajectories (benchmarks/minsnap_compare.py; needs the bench extra)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from minsnap_compare import COLS, INSTALL_HINT, run, table
+
+    try:
+        import minsnap_trajectories  # noqa: F401
+    except ImportError:
+        print(INSTALL_HINT)
+        return []
+    rows = run(n_random, n_fast)
+    print("\nvs minsnap-trajectories, same waypoints and durations (violations > 0: outside bound/corridor)")
+    print(table(rows, COLS))
+    return rows
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sizes", type=int, nargs="+", default=[10, 100, 1000])
@@ -165,6 +181,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--window-sweep", action="store_true")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--quality", action="store_true", help="also run benchmarks/quality.py (~40 s)")
+    ap.add_argument("--minsnap", action="store_true",
+                    help="also compare with minsnap-trajectories (pip install -e '.[bench]'; ~90 s)")
     args = ap.parse_args(argv)
     out: dict[str, list[Row]] = {}
     if args.window_sweep:
@@ -182,6 +200,8 @@ def main(argv: list[str] | None = None) -> int:
         print(_table(out["replan"], ["m", "resolved_jets", "verified", "median_ms", "p95_ms", "qp_ms"]))
     if args.quality:
         out["quality"] = bench_quality()
+    if args.minsnap:
+        out["minsnap"] = bench_minsnap()
     if args.json:
         args.json.write_text(json.dumps(out, indent=1))
     return 0

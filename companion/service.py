@@ -106,6 +106,10 @@ class Service:
         self.pool: Executor = make_planner_pool(cfg)
         # Replans and braking never queue behind a long mission plan: their own worker.
         self.urgent_pool: Executor = make_planner_pool(cfg, workers=1)
+        # Local replans take a few ms: run them in this process (a thread; the short GIL
+        # switch interval keeps the setpoint loop on time) rather than pay the process pool's
+        # pickling and hand-offs, which cost more than the replan itself.
+        self.replan_pool = ThreadPoolExecutor(1, thread_name_prefix="replan")
         self.io_pool = ThreadPoolExecutor(1, thread_name_prefix="encode")
         self.decode_pool = ThreadPoolExecutor(1, thread_name_prefix="decode")
         self._traj_seq = 0
@@ -178,6 +182,10 @@ class Service:
                 self.pool = make_planner_pool(self.cfg)
             self.event("error", "the planner process died; restarted it (this request failed)")
             raise
+
+    async def loop_run(self, pool: Executor, fn: Any, *args: Any) -> Any:
+        assert self.loop is not None
+        return await self.loop.run_in_executor(pool, fn, *args)
 
     def obstacle_list(self) -> list[Polytope]:
         return list(self.obstacles.values())
@@ -573,7 +581,7 @@ class Service:
             if hit is not None and t_split >= hit:
                 break
             t0 = time.perf_counter()
-            outcome = await self.in_pool(rt.local_replan, route, now, t_split, edit, known, self.cfg, urgent=True)
+            outcome = await self.loop_run(self.replan_pool, rt.local_replan, route, now, t_split, edit, known, self.cfg)
             method = "local"
             if not outcome.ok:
                 messages.append(f"local replan: {outcome.message}")
@@ -875,6 +883,7 @@ class Service:
         # First calls pay for imports and caches; pay them now, not during a flight.
         await asyncio.gather(self.in_pool(rt.warm_up, self.cfg), self.in_pool(rt.warm_up, self.cfg, urgent=True))
         await self.loop.run_in_executor(self.io_pool, encode_trajectory, hold_trajectory(np.zeros(3), 0.0))
+        await self.loop.run_in_executor(self.replan_pool, rt.warm_up_replan, self.cfg)
         # Start the helper threads now, so they do not inherit the loop's realtime priority.
         await self.loop.run_in_executor(self.io_pool, int, 0)
         await self.loop.run_in_executor(self.decode_pool, warm_validators)
@@ -902,6 +911,7 @@ class Service:
             self.pool.shutdown(wait=False, cancel_futures=True)
             self.urgent_pool.shutdown(wait=False, cancel_futures=True)
             self.io_pool.shutdown(wait=False, cancel_futures=True)
+            self.replan_pool.shutdown(wait=False, cancel_futures=True)
             self.decode_pool.shutdown(wait=False, cancel_futures=True)
 
 

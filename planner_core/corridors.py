@@ -705,6 +705,8 @@ def update_corridors(
     new_obstacles: Sequence[Polytope],
     map_box: tuple[ArrayLike, ArrayLike] | None,
     radius: float,
+    *,
+    prune: bool = True,
 ) -> tuple[tuple[Polytope, ...], list[int]]:
     """Add pop-up obstacles to existing corridors, touching affected segments only.
 
@@ -714,18 +716,27 @@ def update_corridors(
     corridors get a maximum-margin plane per uncertified new obstacle and are
     pruned again; the others are returned as the very same objects. New
     obstacles are numbered after `obstacles` in errors.
+
+    prune=False (the in-flight fast path): affected corridors only get the new
+    planes appended, plus the cheap removal of parallel looser duplicates. The
+    region, containment and every certificate are exactly those of the pruned
+    result; planes that stopped being facets are kept (a few redundant QP rows),
+    which skips the vertex enumeration (~2 ms a corridor) and the preparation
+    of the old obstacles, which then are only counted.
     """
     wps = _validate_waypoints(waypoints)
     r = _validate_radius(radius)
     if len(corridors) != wps.shape[0] - 1:
         raise ValueError(f"corridors: expected {wps.shape[0] - 1} (one per segment), got {len(corridors)}")
-    old = _prepare_obstacles(obstacles)
     new = _prepare_obstacles(new_obstacles, first_index=len(obstacles))
-    everyone = _prepare_obstacles([*obstacles, *new_obstacles])
-    ctx = _context(wps, new, map_box, r, first_index=old.n, all_obs=everyone)
+    if prune:
+        everyone = _prepare_obstacles([*obstacles, *new_obstacles])
+        ctx = _context(wps, new, map_box, r, first_index=len(obstacles), all_obs=everyone)
+        full = _Context(wps, everyone, r, ctx.map_A, ctx.map_b, ctx.aux, 0)
+    else:
+        ctx = _context(wps, new, None, r, first_index=len(obstacles))
     _check_waypoints_clear(ctx)
     lower = np.maximum(_segment_point_distance(wps[:-1], wps[1:], new.centres) - new.radii, 0.0)
-    full = _Context(wps, everyone, r, ctx.map_A, ctx.map_b, ctx.aux, 0)
     out = list(corridors)
     changed: list[int] = []
     for j, corridor in enumerate(corridors):
@@ -734,6 +745,10 @@ def update_corridors(
             continue
         order = np.argsort(lower[j], kind="stable")
         A2, b2 = _add_planes(ctx, j, A, b, order, np.zeros(new.n, dtype=bool))
-        out[j] = _finish(full, A2, b2)
+        if prune:
+            out[j] = _finish(full, A2, b2)
+        else:
+            keep = _first_of_duplicates(A2, b2)
+            out[j] = Polytope(A=np.ascontiguousarray(A2[keep]), b=np.ascontiguousarray(b2[keep]))
         changed.append(j)
     return tuple(out), changed

@@ -422,8 +422,11 @@ def _rebuild_corridors(work: _Work) -> None:
         first = max(work.lock - 1, 0)
         try:
             current = tuple(c for c in work.corridors[first:] if c is not None)
+            # prune=False: same region and certificates, without a vertex enumeration per
+            # affected corridor (that was most of a pop-up replan's time)
             updated, changed = update_corridors(
-                work.wps[first:], current, env.obstacles, work.new_obstacles, env.map_box, env.radius
+                work.wps[first:], current, env.obstacles, work.new_obstacles, env.map_box, env.radius,
+                prune=False,
             )
         except CorridorError as exc:
             err = _corridor_error(exc, first)
