@@ -581,6 +581,7 @@ class Service:
             if hit is not None and t_split >= hit:
                 break
             t0 = time.perf_counter()
+            waited = time.monotonic() - arrived
             outcome = await self.loop_run(self.replan_pool, rt.local_replan, route, now, t_split, edit, known, self.cfg)
             method = "local"
             if not outcome.ok:
@@ -614,6 +615,8 @@ class Service:
             self.event("replanned", f"{edit.description}: {method} replan verified in "
                        f"{self.replan_latency * 1000:.1f} ms, split at t={t_split:.3f} s",
                        method=method, split_time=round(t_split, 4), replan_ms=round(self.replan_latency * 1000, 2),
+                       compute_ms=_r(float(outcome.stats.get("plan_seconds", math.nan)) * 1000, 2),
+                       before_replan_ms=round(waited * 1000, 2),
                        resolved_jets=outcome.stats.get("resolved_jets"), detour=outcome.stats.get("detour"))
             return True
         if brake:
