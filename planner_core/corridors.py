@@ -26,6 +26,7 @@ of segment j inside corridor j). With vehicle radius r, corridor j = {x : A x <=
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import lru_cache
@@ -159,14 +160,33 @@ def _vertices(A: FloatArray, b: FloatArray) -> FloatArray:
     return _unique_rows(np.concatenate(found), 10 * tol)
 
 
+_VERTEX_CACHE: OrderedDict[tuple[tuple[int, ...], bytes, bytes], FloatArray] = OrderedDict()
+_VERTEX_CACHE_SIZE = 256
+
+
 def polytope_vertices(poly: Polytope, name: str = "polytope") -> FloatArray:
-    """Vertices (k, 3) of a bounded, non-empty polytope; ValueError otherwise."""
+    """Vertices (k, 3) of a bounded, non-empty polytope; ValueError otherwise.
+
+    Results are cached by the exact bytes of (A, b) (read-only arrays): a pop-up
+    obstacle is checked when its message is parsed and again by the replan that
+    avoids it, and the vertex enumeration is a millisecond or two each time.
+    """
+    A0 = np.ascontiguousarray(poly.A, dtype=float)
+    b0 = np.ascontiguousarray(poly.b, dtype=float)
+    key = (A0.shape, A0.tobytes(), b0.tobytes())
+    hit = _VERTEX_CACHE.get(key)
+    if hit is not None:
+        return hit
     A, b = normalised(poly, name)
     if not _is_bounded(A):
         raise ValueError(f"{name}: polytope is unbounded (its planes do not enclose a region)")
     verts = _vertices(A, b)
     if verts.shape[0] == 0:
         raise ValueError(f"{name}: polytope is empty (its planes have no common point)")
+    verts.flags.writeable = False
+    _VERTEX_CACHE[key] = verts
+    while len(_VERTEX_CACHE) > _VERTEX_CACHE_SIZE:
+        _VERTEX_CACHE.popitem(last=False)
     return verts
 
 

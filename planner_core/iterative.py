@@ -226,6 +226,11 @@ def _recover(
         if new is not None:
             info.update(action="backtrack/widen", backtrack=back, window=opts.window + extra)
             return new, problem, cache, info
+    if opts.max_stretches < 1:
+        # nothing to stretch (local replans stretch on their own): skip the elastic LP, whose
+        # answer would go unused, and its scipy import in the companion process
+        info["action"] = "failed"
+        return None, problem, cache, info
     from planner_core.diagnose import elastic_segments
 
     # stretch the segments whose constraints the elastic LP has to relax; else the whole window
