@@ -18,11 +18,8 @@ from typing import Any
 
 import numpy as np
 
+from planner_core.cli import EXIT_INFEASIBLE, EXIT_INVALID, EXIT_OK, InputError, _err, _read_json
 from planner_core.problem import Problem, Trajectory
-
-EXIT_OK = 0
-EXIT_INVALID = 2
-EXIT_INFEASIBLE = 3
 
 
 def add_replan_parser(sub: Any) -> None:
@@ -34,19 +31,6 @@ def add_replan_parser(sub: Any) -> None:
     rp.add_argument("-o", "--output", type=Path, required=True)
     rp.add_argument("--max-widen", type=int, default=3, help="neighbour steps when the seed jets are infeasible")
     rp.add_argument("--max-stretch", type=int, default=2, help="duration stretches after widening fails")
-
-
-def _read(path: Path, what: str) -> Any:
-    try:
-        return json.loads(path.read_text())
-    except OSError as e:
-        raise ValueError(f"{what}: cannot read {path}: {e.strerror}") from e
-    except json.JSONDecodeError as e:
-        raise ValueError(f"{what}: {path}: invalid JSON ({e.msg} at line {e.lineno})") from e
-
-
-def _err(msg: str) -> None:
-    print(f"error: {msg}", file=sys.stderr)
 
 
 def problem_for(scenario_problem: Problem, traj: Trajectory) -> Problem:
@@ -90,10 +74,10 @@ def replan_command(args: argparse.Namespace) -> int:
         CorridorError = ValueError  # type: ignore[misc,assignment]
 
     try:
-        raw_scenario = _read(args.scenario, "scenario")
-        raw_traj = _read(args.trajectory, "trajectory")
-        raw_change = _read(args.change, "change")
-    except ValueError as e:
+        raw_scenario = _read_json(args.scenario, "scenario")
+        raw_traj = _read_json(args.trajectory, "trajectory")
+        raw_change = _read_json(args.change, "change")
+    except InputError as e:
         _err(f"invalid input: {e}")
         return EXIT_INVALID
     try:

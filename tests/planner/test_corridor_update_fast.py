@@ -4,7 +4,7 @@ pruned update."""
 from __future__ import annotations
 
 import numpy as np
-from hypothesis import assume, given, settings
+from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from planner_core.corridors import (
@@ -13,17 +13,13 @@ from planner_core.corridors import (
     polytope_vertices,
     update_corridors,
 )
-from tests.planner.test_corridors import FAST, clear_obstacles, random_scene
+from tests.planner.test_corridors import FAST, split_scene
 
 
 @settings(FAST, max_examples=12)
 @given(seed=st.integers(0, 2**32 - 1), m=st.integers(2, 6), r=st.sampled_from([0.1, 0.3]), use_map=st.booleans())
 def test_unpruned_update_keeps_region_and_certificates(seed: int, m: int, r: float, use_map: bool) -> None:
-    wps, obs, box = random_scene(seed, m, 8)
-    obs = clear_obstacles(wps, obs, r)
-    assume(len(obs) >= 2)
-    old, new = obs[: len(obs) // 2], obs[len(obs) // 2 :]
-    map_box = box if use_map else None
+    wps, old, new, map_box = split_scene(seed, m, r, use_map)
     before = build_corridors(wps, old, map_box, r)
     pruned, changed = update_corridors(wps, before, old, new, map_box, r)
     fast, changed_fast = update_corridors(wps, before, old, new, map_box, r, prune=False)

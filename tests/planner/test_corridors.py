@@ -155,6 +155,16 @@ def clear_obstacles(wps: np.ndarray, obs: list[Polytope], r: float) -> list[Poly
     ]
 
 
+def split_scene(
+    seed: int, m: int, r: float, use_map: bool
+) -> tuple[np.ndarray, list[Polytope], list[Polytope], tuple[np.ndarray, np.ndarray] | None]:
+    """A clear random scene whose obstacles are split into known ones and new (pop-up) ones."""
+    wps, obs, box = random_scene(seed, m, 8)
+    obs = clear_obstacles(wps, obs, r)
+    assume(len(obs) >= 2)
+    return wps, obs[: len(obs) // 2], obs[len(obs) // 2 :], (box if use_map else None)
+
+
 def map_faces(map_box: tuple[np.ndarray, np.ndarray] | None, r: float) -> tuple[np.ndarray, np.ndarray]:
     if map_box is None:
         return np.zeros((0, 3)), np.zeros(0)
@@ -382,11 +392,7 @@ def test_obstacle_behind_another_needs_no_plane() -> None:
 @settings(FAST, max_examples=12)
 @given(seed=st.integers(0, 2**32 - 1), m=st.integers(2, 6), r=st.sampled_from([0.1, 0.3]), use_map=st.booleans())
 def test_update_changes_only_affected_segments(seed: int, m: int, r: float, use_map: bool) -> None:
-    wps, obs, box = random_scene(seed, m, 8)
-    obs = clear_obstacles(wps, obs, r)
-    assume(len(obs) >= 2)
-    old, new = obs[: len(obs) // 2], obs[len(obs) // 2 :]
-    map_box = box if use_map else None
+    wps, old, new, map_box = split_scene(seed, m, r, use_map)
     before = build_corridors(wps, old, map_box, r)
     after, changed = update_corridors(wps, before, old, new, map_box, r)
     new_verts = [verts_of(o) for o in new]
@@ -397,7 +403,7 @@ def test_update_changes_only_affected_segments(seed: int, m: int, r: float, use_
         else:
             assert certified and after[j] is before[j]
             assert all(dist_polytopes(before[j], o, r + 0.5) >= r - 1e-6 for o in new)
-        check_corridor(after[j], wps[j], wps[j + 1], obs, r, map_box)
+        check_corridor(after[j], wps[j], wps[j + 1], [*old, *new], r, map_box)
 
 
 def test_update_reports_blocking_popup() -> None:
