@@ -10,6 +10,8 @@ $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -e '.[test,plot]'
+	# compile the planner's numba kernel into its cache once (~20 s), not in the first flight
+	$(PY) -c "from planner_core.iterative import warm_up; warm_up()"
 	touch $(STAMP)
 
 setup: $(STAMP)

@@ -11,9 +11,12 @@ of segment j inside corridor j). With vehicle radius r, corridor j = {x : A x <=
   plane with all vertices of O at signed distance >= r beyond it, so the ball of
   radius r around any corridor point misses O.
 - Room: an obstacle's plane has the maximum-margin normal between the segment
-  and the obstacle (hard-margin SVM, a 4-variable QP) and is pushed to the
-  obstacle side as far as safety allows: offset = min_v a.v - r. The segment
-  then keeps clearance gap - r >= r from it, where gap = min_v a.v - max_p a.p.
+  and the obstacle (the hard-margin SVM's normal, which for disjoint convex sets
+  is the direction of their closest pair: found in closed form over feature
+  pairs, many segments per obstacle at once, see `separations`) and is pushed
+  to the obstacle side as far as safety allows: offset = min_v a.v - r. The
+  segment then keeps clearance gap - r >= r from it, where gap = min_v a.v -
+  max_p a.p is recomputed from the normal (safety never rests on the solver).
 - Blocked: a segment is flyable only if the segment inflated by r and the
   obstacle inflated by r are disjoint (gap >= 2r); otherwise CorridorError.
   Obstacles already kept r beyond the shrunk map box count as outside the map.
@@ -384,6 +387,111 @@ def separation(points: FloatArray, verts: FloatArray) -> tuple[FloatArray | None
     return normal, _gap(normal, points, verts)
 
 
+# --- batched segment / polytope separation ----------------------------------------
+#
+# For two disjoint convex sets the hard-margin SVM normal is the direction of their
+# closest pair, and the margin is their distance. Between a segment and a polytope the
+# closest pair is found among a few feature pairs (segment vs edge or vertex, endpoint
+# vs facet), each a closed-form expression, so many segments against one obstacle are
+# a handful of array operations instead of one QP each. Every candidate is a pair of
+# points of the two sets, so a missed candidate could only cost room; the caller
+# recomputes the gap from the normal, which is what safety rests on.
+
+
+def _polytope_edges(verts: FloatArray, A: FloatArray, b: FloatArray) -> IntArray:
+    """(E, 2) vertex index pairs spanning the edges (a vertex on none alone, as (i, i)).
+
+    Two vertices on two common planes span a face of dimension <= 1, i.e. an edge;
+    a redundant plane can only add a chord, which is inside the polytope (harmless).
+    """
+    tol = 1e-7 * max(1.0, float(np.max(np.abs(verts))))
+    tight = (np.abs(verts @ A.T - b) <= tol).astype(np.intp)  # (V, F)
+    shared = tight @ tight.T
+    i, j = np.nonzero(np.triu(shared >= 2, 1))
+    covered = np.zeros(verts.shape[0], dtype=bool)
+    covered[i] = covered[j] = True
+    lonely = np.flatnonzero(~covered)
+    return np.concatenate([np.stack([i, j], axis=1), np.stack([lonely, lonely], axis=1)]).astype(np.intp)
+
+
+def _segment_pairs(p: FloatArray, d1: FloatArray, q: FloatArray, d2: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Closest points of every segment p_i + s d1_i (s, 3) to every segment q_e + t d2_e (E, 3).
+
+    Ericson, Real-Time Collision Detection, 5.1.9, with the degenerate cases (a
+    point for a segment, parallel segments) as array masks; the dot products of
+    all pairs are matmuls. Returns the two points of each pair, (s, E, 3) each.
+    """
+    a = np.einsum("sd,sd->s", d1, d1)[:, None]
+    e = np.einsum("ed,ed->e", d2, d2)[None, :]
+    c = np.einsum("sd,sd->s", d1, p)[:, None] - d1 @ q.T  # d1 . (p - q)
+    f = p @ d2.T - np.einsum("ed,ed->e", d2, q)[None, :]  # d2 . (p - q)
+    bb = d1 @ d2.T
+    tiny = 1e-300
+    a_ok, e_ok = a > tiny, e > tiny
+    safe_a, safe_e = np.where(a_ok, a, 1.0), np.where(e_ok, e, 1.0)
+    denom = a * e - bb * bb
+    general = denom > tiny
+    s = np.where(general, np.clip((bb * f - c * e) / np.where(general, denom, 1.0), 0.0, 1.0), 0.0)
+    t = (bb * s + f) / safe_e
+    s = np.where(t < 0.0, np.clip(-c / safe_a, 0.0, 1.0), np.where(t > 1.0, np.clip((bb - c) / safe_a, 0.0, 1.0), s))
+    t = np.clip(t, 0.0, 1.0)
+    # degenerate segments: a point against a segment (or a point)
+    s = np.where(a_ok, np.where(e_ok, s, np.clip(-c / safe_a, 0.0, 1.0)), 0.0)
+    t = np.where(e_ok, np.where(a_ok, t, np.clip(f / safe_e, 0.0, 1.0)), 0.0)
+    return p[:, None, :] + s[..., None] * d1[:, None, :], q[None, :, :] + t[..., None] * d2[None, :, :]
+
+
+def separations(
+    p0: FloatArray, p1: FloatArray, verts: FloatArray, A: FloatArray, b: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Max-margin normals and gaps between many segments and one obstacle.
+
+    p0, p1 (s, 3) segment ends; the obstacle by its vertices and unit-row planes.
+    Returns normals (s, 3) pointing from segment to obstacle (NaN rows where they
+    meet) and gaps (s,) = min_v a.v - max_p a.p (0 where they meet), as
+    `separation` would for each segment, but exact up to rounding (no QP).
+    """
+    s = p0.shape[0]
+    normals = np.full((s, 3), np.nan)
+    gaps = np.zeros(s)
+    if s == 0:
+        return normals, gaps
+    d1 = p1 - p0
+    edges = _polytope_edges(verts, A, b)
+    e0 = verts[edges[:, 0]]
+    # the segment against every edge (and lone vertex): (s, E)
+    x_seg, x_obs = _segment_pairs(p0, d1, e0, verts[edges[:, 1]] - e0)
+    dist = np.linalg.norm(x_obs - x_seg, axis=-1)
+    # each end against each facet it faces, where its foot lands on the facet: (s, 2F);
+    # A . foot = A . end - height (A a_f), so the feet themselves are not needed yet
+    ends = np.stack([p0, p1], axis=1)  # (s, 2, 3)
+    proj = ends @ A.T  # (s, 2, F)
+    height = proj - b
+    tol = 1e-12 * max(1.0, float(np.max(np.abs(verts))))
+    on = (height > 0.0) & np.all(proj[:, :, None, :] - height[..., None] * (A @ A.T) <= b + tol, axis=-1)
+    best = np.argmin(np.concatenate([dist, np.where(on, height, np.inf).reshape(s, -1)], axis=1), axis=1)
+    n_e = edges.shape[0]
+    rows = np.arange(s)
+    by_edge = best < n_e
+    which = np.where(by_edge, 0, best - n_e)
+    end, facet = which // A.shape[0], which % A.shape[0]
+    foot_end = ends[rows, end]
+    seg_pt = np.where(by_edge[:, None], x_seg[rows, np.minimum(best, n_e - 1)], foot_end)
+    obs_pt = np.where(
+        by_edge[:, None], x_obs[rows, np.minimum(best, n_e - 1)], foot_end - height[rows, end, facet][:, None] * A[facet]
+    )
+    diff = obs_pt - seg_pt
+    norm = np.linalg.norm(diff, axis=1)
+    n = diff / np.where(norm > 0.0, norm, 1.0)[:, None]
+    gap = np.min(n @ verts.T, axis=1) - np.maximum(np.sum(n * p0, axis=1), np.sum(n * p1, axis=1))
+    # disjoint sets: the closest pair's direction leaves a slab as wide as their distance;
+    # no direction leaves a positive one when they meet (a crossing segment lands here)
+    apart = (norm > 0.0) & (gap > 0.0)
+    normals[apart] = n[apart]
+    gaps[apart] = gap[apart]
+    return normals, gaps
+
+
 # --- obstacle set -----------------------------------------------------------------
 
 
@@ -618,11 +726,38 @@ def _blocked(ctx: _Context, j: int, k: int, gap: float) -> CorridorError:
     )
 
 
-def _obstacle_plane(ctx: _Context, j: int, k: int) -> tuple[FloatArray, float]:
+Separation = tuple[FloatArray | None, float]  # (unit normal or None if they meet, gap)
+
+
+def _separation_arrays(ctx: _Context, js: IntArray, ks: IntArray) -> tuple[FloatArray, FloatArray]:
+    """Max-margin normals (p, 3; NaN where they meet) and gaps (p,) of the pairs
+    (segment js[i], obstacle ks[i]), one batch per obstacle."""
+    normals = np.full((js.shape[0], 3), np.nan)
+    gaps = np.zeros(js.shape[0])
+    for k in np.unique(ks):
+        rows = np.flatnonzero(ks == k)
+        seg = js[rows]
+        A, b = ctx.obs.planes[int(k)]
+        normals[rows], gaps[rows] = separations(
+            ctx.waypoints[seg], ctx.waypoints[seg + 1], ctx.obs.verts[int(k)], A, b
+        )
+    return normals, gaps
+
+
+def _separations(ctx: _Context, js: IntArray, ks: IntArray) -> dict[tuple[int, int], Separation]:
+    normals, gaps = _separation_arrays(ctx, js, ks)
+    return {
+        (j, k): (None if np.isnan(n[0]) else n, g)
+        for j, k, n, g in zip(js.tolist(), ks.tolist(), normals, gaps.tolist(), strict=True)
+    }
+
+
+def _obstacle_plane(ctx: _Context, j: int, k: int, sep: Separation | None = None) -> tuple[FloatArray, float]:
     """The roomiest safe plane (unit a, offset) between segment j and obstacle k."""
-    seg = ctx.waypoints[j : j + 2]
     verts = ctx.obs.verts[k]
-    normal, gap = separation(seg, verts)
+    if sep is None:
+        sep = _separations(ctx, np.array([j]), np.array([k]))[(j, k)]
+    normal, gap = sep
     if normal is None or gap < 2.0 * ctx.radius:
         raise _blocked(ctx, j, k, gap)
     return normal, float(np.min(verts @ normal)) - ctx.radius
@@ -635,10 +770,12 @@ def _add_planes(
     b: FloatArray,
     candidates: IntArray,
     must: BoolArray,
+    seps: dict[tuple[int, int], Separation] | None = None,
 ) -> tuple[FloatArray, FloatArray]:
     """Add a plane for each candidate obstacle (nearest first) that needs one.
 
     must[k]: obstacle k gets its own plane even if already certified.
+    seps: separations computed beforehand in a batch (others are computed here).
     """
     certs = ctx.obs.margins(A, b)
     certified = np.any(certs >= ctx.radius - CERT_TOL, axis=1)
@@ -647,7 +784,7 @@ def _add_planes(
     for k in candidates:
         if certified[k] and not must[k]:
             continue
-        a, off = _obstacle_plane(ctx, j, int(k))
+        a, off = _obstacle_plane(ctx, j, int(k), None if seps is None else seps.get((j, int(k))))
         new_A.append(a)
         new_b.append(off)
         certified |= ctx.obs.margins(a[None, :], np.array([off]))[:, 0] >= ctx.radius - CERT_TOL
@@ -661,13 +798,18 @@ def _finish(ctx: _Context, A: FloatArray, b: FloatArray) -> Polytope:
     return Polytope(A=np.ascontiguousarray(A[keep]), b=np.ascontiguousarray(b[keep]))
 
 
-def _segment_corridor(ctx: _Context, j: int, lower: FloatArray, influence: float) -> Polytope:
+def _segment_corridor(
+    ctx: _Context,
+    j: int,
+    lower: FloatArray,
+    influence: float,
+    outside_map: BoolArray,
+    seps: dict[tuple[int, int], Separation],
+) -> Polytope:
     """Corridor of segment j; lower[k] bounds its distance to obstacle k from below."""
-    A, b = ctx.map_A, ctx.map_b
-    outside_map = np.any(ctx.obs.margins(A, b) >= ctx.radius - CERT_TOL, axis=1)
     order = np.argsort(lower, kind="stable")
     order = order[~outside_map[order]]
-    A, b = _add_planes(ctx, j, A, b, order, lower < influence)
+    A, b = _add_planes(ctx, j, ctx.map_A, ctx.map_b, order, lower < influence, seps)
     return _finish(ctx, A, b)
 
 
@@ -715,7 +857,13 @@ def build_corridors(
     reach = lengths + DEFAULT_INFLUENCE_MARGIN if influence is None else np.full_like(lengths, influence)
     # Anything within 2r could block the segment, so it must be examined.
     reach = np.maximum(reach, 2.0 * r + 1e-9)
-    return tuple(_segment_corridor(ctx, j, lower[j], float(reach[j])) for j in range(wps.shape[0] - 1))
+    outside_map = np.any(obs.margins(ctx.map_A, ctx.map_b) >= r - CERT_TOL, axis=1)
+    # every obstacle within reach of a segment gets a plane: all those separations in one batch
+    js, ks = np.nonzero((lower < reach[:, None]) & ~outside_map[None, :])
+    seps = _separations(ctx, js, ks)
+    return tuple(
+        _segment_corridor(ctx, j, lower[j], float(reach[j]), outside_map, seps) for j in range(wps.shape[0] - 1)
+    )
 
 
 def update_corridors(
@@ -742,7 +890,9 @@ def update_corridors(
     region, containment and every certificate are exactly those of the pruned
     result; planes that stopped being facets are kept (a few redundant QP rows),
     which skips the vertex enumeration (~2 ms a corridor) and the preparation
-    of the old obstacles, which then are only counted.
+    of the old obstacles, which then are only counted. It runs over all
+    affected corridors at once (same planes, order and errors as one corridor
+    at a time): a pop-up on map-box-only corridors affects every one of them.
     """
     wps = _validate_waypoints(waypoints)
     r = _validate_radius(radius)
@@ -756,19 +906,167 @@ def update_corridors(
     else:
         ctx = _context(wps, new, None, r, first_index=len(obstacles))
     _check_waypoints_clear(ctx)
-    lower = np.maximum(_segment_point_distance(wps[:-1], wps[1:], new.centres) - new.radii, 0.0)
+    A_all, b_all, starts = _stack_corridors(corridors)
     out = list(corridors)
     changed: list[int] = []
-    for j, corridor in enumerate(corridors):
-        A, b = normalised(corridor, f"corridors[{j}]")
-        if new.n == 0 or np.all(np.any(new.margins(A, b) >= r - CERT_TOL, axis=1)):
-            continue
+    if new.n == 0:
+        return tuple(out), changed
+    certified = _certified_by_corridors(new, A_all, b_all, starts, r)  # (n_new, corridors)
+    affected = np.flatnonzero(~np.all(certified, axis=0))
+    if affected.size == 0:
+        return tuple(out), changed
+    lower = np.maximum(_segment_point_distance(wps[:-1], wps[1:], new.centres) - new.radii, 0.0)
+    # the uncertified (segment, new obstacle) pairs need a plane, unless an earlier new plane of
+    # the same corridor certifies them: their separations, batched per obstacle
+    ks, js = np.nonzero(~certified[:, affected])
+    if not prune:
+        polys = _append_planes(ctx, affected, A_all, b_all, starts, certified, lower, (js, ks))
+        for j, poly in zip(affected.tolist(), polys, strict=True):
+            out[j] = poly
+        return tuple(out), affected.tolist()
+    seps = _separations(ctx, affected[js], ks)
+    for j in affected.tolist():
+        A, b = A_all[starts[j] : starts[j + 1]], b_all[starts[j] : starts[j + 1]]
         order = np.argsort(lower[j], kind="stable")
-        A2, b2 = _add_planes(ctx, j, A, b, order, np.zeros(new.n, dtype=bool))
-        if prune:
-            out[j] = _finish(full, A2, b2)
-        else:
-            keep = _first_of_duplicates(A2, b2)
-            out[j] = Polytope(A=np.ascontiguousarray(A2[keep]), b=np.ascontiguousarray(b2[keep]))
+        A2, b2 = _add_planes(ctx, j, A, b, order, np.zeros(new.n, dtype=bool), seps)
+        out[j] = _finish(full, A2, b2)
         changed.append(j)
     return tuple(out), changed
+
+
+def _stack_corridors(corridors: Sequence[Polytope]) -> tuple[FloatArray, FloatArray, IntArray]:
+    """Every corridor's unit rows stacked, and where each corridor starts (len + 1 offsets).
+
+    Checks as `normalised` does, naming the first bad corridor, without a Python pass
+    of array operations per corridor (a long mission has a thousand of them).
+    """
+    As = [np.asarray(c.A, dtype=float) for c in corridors]
+    bs = [np.asarray(c.b, dtype=float) for c in corridors]
+    for j, (A, b) in enumerate(zip(As, bs, strict=True)):
+        if A.ndim != 2 or A.shape[1] != 3 or b.shape != (A.shape[0],):
+            normalised(corridors[j], f"corridors[{j}]")  # raises, with the reason
+    counts = np.array([A.shape[0] for A in As], dtype=np.intp)
+    starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.intp)
+    A_all = np.concatenate(As) if As else np.zeros((0, 3))
+    b_all = np.concatenate(bs) if bs else np.zeros(0)
+    norms = np.linalg.norm(A_all, axis=1)
+    bad = ~(np.all(np.isfinite(A_all), axis=1) & np.isfinite(b_all)) | (norms <= 1e-12)
+    if np.any(bad):
+        j = int(np.searchsorted(starts, int(np.argmax(bad)), side="right") - 1)
+        normalised(corridors[j], f"corridors[{j}]")  # raises, with the reason
+    return A_all / norms[:, None], b_all / norms, starts
+
+
+def _certified_by_corridors(
+    obs: _Obstacles, A_all: FloatArray, b_all: FloatArray, starts: IntArray, radius: float
+) -> BoolArray:
+    """(n, corridors): some plane of the corridor keeps obstacle k radius away."""
+    n_cor = starts.shape[0] - 1
+    out = np.zeros((obs.n, n_cor), dtype=bool)
+    rows = obs.margins(A_all, b_all) >= radius - CERT_TOL  # (n, R)
+    nonempty = np.flatnonzero(starts[1:] > starts[:-1])
+    if nonempty.size:
+        out[:, nonempty] = np.logical_or.reduceat(rows, starts[nonempty], axis=1)
+    return out
+
+
+def _append_planes(
+    ctx: _Context,
+    affected: IntArray,
+    A_all: FloatArray,
+    b_all: FloatArray,
+    starts: IntArray,
+    certified: BoolArray,
+    lower: FloatArray,
+    pairs: tuple[IntArray, IntArray],
+) -> list[Polytope]:
+    """The unpruned update of every affected corridor at once: `_add_planes` (nearest new
+    obstacle first, a plane for each one still uncertified) then `_first_of_duplicates`,
+    as array operations over corridors; the only Python loop is over new obstacles.
+
+    pairs: (rows into `affected`, obstacles) of the uncertified pairs, whose separations
+    are computed here in one batch per obstacle; a plane is only ever needed for them.
+    """
+    obs, r = ctx.obs, ctx.radius
+    n_aff, n_new = affected.shape[0], obs.n
+    pa, pk = pairs
+    normals, gaps = _separation_arrays(ctx, affected[pa], pk)
+    pair_of = np.full((n_aff, n_new), -1, dtype=np.intp)
+    pair_of[pa, pk] = np.arange(pa.shape[0])
+    orders = np.argsort(lower[affected], axis=1, kind="stable")  # (n_aff, n_new), nearest first
+    cert = certified[:, affected].T.copy()  # (n_aff, n_new)
+    new_A = np.zeros((n_aff, n_new, 3))  # by round
+    new_b = np.zeros((n_aff, n_new))
+    added = np.zeros((n_aff, n_new), dtype=bool)
+    blocked_at = np.full(n_aff, n_new, dtype=np.intp)  # first round whose plane does not exist
+    every = np.arange(n_aff)
+    for i in range(n_new):
+        k = orders[:, i]
+        need = np.flatnonzero(~cert[every, k] & (blocked_at == n_new))
+        if need.size == 0:
+            continue
+        p = pair_of[need, k[need]]
+        n, g = normals[p], gaps[p]
+        bad = np.isnan(n[:, 0]) | (g < 2.0 * r)
+        blocked_at[need[bad]] = i
+        need, n, kk = need[~bad], n[~bad], k[need[~bad]]
+        off = _min_over_vertices(obs, n, kk) - r
+        new_A[need, i], new_b[need, i], added[need, i] = n, off, True
+        cert[need] |= (obs.margins(n, off) >= r - CERT_TOL).T
+    if np.any(blocked_at < n_new):
+        a = int(np.argmax(blocked_at < n_new))
+        k0 = int(orders[a, blocked_at[a]])
+        raise _blocked(ctx, int(affected[a]), k0, float(gaps[pair_of[a, k0]]))
+    A_pad, b_pad, valid = _padded_corridors(affected, A_all, b_all, starts, new_A, new_b, added)
+    keep = _first_of_duplicates_padded(A_pad, b_pad, valid)
+    return [
+        Polytope(A=np.ascontiguousarray(A_pad[a, keep[a]]), b=np.ascontiguousarray(b_pad[a, keep[a]]))
+        for a in range(n_aff)
+    ]
+
+
+def _min_over_vertices(obs: _Obstacles, normals: FloatArray, ks: IntArray) -> FloatArray:
+    """min over obstacle ks[i]'s vertices of normals[i] . v, for every i."""
+    out = np.empty(ks.shape[0])
+    for k in np.unique(ks):
+        rows = np.flatnonzero(ks == k)
+        out[rows] = np.min(normals[rows] @ obs.verts[int(k)].T, axis=1)
+    return out
+
+
+def _padded_corridors(
+    affected: IntArray,
+    A_all: FloatArray,
+    b_all: FloatArray,
+    starts: IntArray,
+    new_A: FloatArray,
+    new_b: FloatArray,
+    added: BoolArray,
+) -> tuple[FloatArray, FloatArray, BoolArray]:
+    """Each affected corridor's old rows then its added rows, padded: (n, K, 3), (n, K), valid."""
+    n_aff = affected.shape[0]
+    n_old = starts[affected + 1] - starts[affected]
+    total = n_old + added.sum(axis=1)
+    width = int(total.max()) if n_aff else 0
+    A_pad = np.zeros((n_aff, width, 3))
+    b_pad = np.zeros((n_aff, width))
+    owner = np.repeat(np.arange(n_aff), n_old)
+    pos = np.arange(owner.shape[0]) - np.repeat(np.cumsum(n_old) - n_old, n_old)
+    src = starts[affected][owner] + pos
+    A_pad[owner, pos], b_pad[owner, pos] = A_all[src], b_all[src]
+    a, i = np.nonzero(added)
+    slot = n_old[a] + np.cumsum(added, axis=1)[a, i] - 1
+    A_pad[a, slot], b_pad[a, slot] = new_A[a, i], new_b[a, i]
+    valid = np.arange(width)[None, :] < total[:, None]
+    return A_pad, b_pad, valid
+
+
+def _first_of_duplicates_padded(A: FloatArray, b: FloatArray, valid: BoolArray) -> BoolArray:
+    """`_first_of_duplicates` of every padded corridor at once: (n, K) rows to keep."""
+    bmax = np.max(np.where(valid, np.abs(b), 0.0), axis=1, initial=0.0)
+    tol = (1e-9 * np.maximum(1.0, bmax))[:, None, None]
+    same = (np.einsum("nkd,nld->nkl", A, A) >= 1.0 - 1e-12) & valid[:, None, :] & valid[:, :, None]
+    idx = np.arange(A.shape[1])
+    tighter = b[:, None, :] < b[:, :, None] - tol
+    equal_earlier = (np.abs(b[:, None, :] - b[:, :, None]) <= tol) & (idx[None, :] < idx[:, None])[None]
+    return np.asarray(valid & ~np.any(same & (tighter | equal_earlier), axis=2), dtype=bool)

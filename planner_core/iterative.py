@@ -28,10 +28,10 @@ import numpy as np
 
 from planner_core.constraints import integrated_cost
 from planner_core.jets import COSTS, ProblemCache, initial_jets, solve_jets, trajectory_from_jets
-from planner_core.problem import FloatArray, Problem
+from planner_core.problem import Bounds, FloatArray, Polytope, Problem
 from planner_core.qp import BACKENDS
 from planner_core.result import PlanResult, PlanStatus
-from planner_core.window import WindowSolver
+from planner_core.window import WindowSolver, kernel_unavailable
 
 __all__ = ["IterativeOptions", "plan_iterative", "solve_jets"]
 
@@ -49,6 +49,9 @@ class IterativeOptions:
     stretch_factor: float = 1.5
     max_stretches: int = 4  # per failure site; total factor <= 1.5**4 ~ 5
     diagnose: bool = True
+    # the compiled pass (window_kernel: block-tridiagonal Goldfarb-Idnani) settles the windows it
+    # can; False leaves every window to WindowSolver.solve + daqp (the reference it is tested against)
+    compiled: bool = True
 
     def __post_init__(self) -> None:
         if self.window < 1:
@@ -142,10 +145,23 @@ def plan_iterative(problem: Problem, options: IterativeOptions | None = None) ->
     stretched: dict[int, float] = {}
     original = problem
     j = 1
+    kernel_steps = 0
     while j <= m - 2:
+        if fast is not None and opts.compiled:
+            # compiled pass: commits jets j.. until a window it cannot settle (or the end)
+            times_j = np.zeros(m)
+            j_stop = fast.run(jets, guess, j, opts.window, times_j)
+            done = times_j[j:j_stop]
+            take = min(done.size, step_times.size - n_steps)
+            step_times[n_steps : n_steps + take] = done[:take]
+            n_steps += take
+            kernel_steps += j_stop - j
+            j = j_stop
+            if j > m - 2:
+                break
         t0 = time.perf_counter()
         new: FloatArray | None = None
-        if fast is not None:
+        if fast is not None and not opts.compiled:
             f1 = min(j + opts.window - 1, m - 2)
             d = fast.solve(jets, j, f1, True)
             if d is not None:
@@ -185,12 +201,25 @@ def plan_iterative(problem: Problem, options: IterativeOptions | None = None) ->
         "time_total": time.perf_counter() - t_start,
         "step_time_median": float(np.median(step_times)) if step_times.size else 0.0,
         "n_qp": int(step_times.size),
+        "n_compiled_steps": kernel_steps,  # settled by window_kernel; the rest by the general path
+        "compiled_unavailable": kernel_unavailable() if opts.compiled else "off (IterativeOptions.compiled)",
         "time_cache": t_cache,
         **timers.medians(),
         "recoveries": recoveries,
         "stretched_durations": _stretch_report(original, problem, stretched),
     }
     return PlanResult(PlanStatus.OK, replace(traj, stats=stats), "planned", None, stats)
+
+
+def warm_up() -> str | None:
+    """Compile the compiled pass now (or load it from numba's cache: ~20 s the first time on this
+    machine, ~0.3 s after), so that no plan pays it. Returns why it cannot run here, else None."""
+    eye = np.eye(3)
+    wps = np.array([[0.0, 0.0, 0.0], [2.0, 1.0, 0.0], [4.0, 0.0, 1.0], [6.0, 1.0, 1.0]])
+    box = Polytope(np.concatenate([eye, -eye]), np.full(6, 10.0))
+    problem = Problem.from_waypoints(wps, np.full(3, 2.0), Bounds.symmetric(7.0, 6.5, 15.0, 60.0), (box,) * 3)
+    plan_iterative(problem, IterativeOptions(window=2))
+    return kernel_unavailable()
 
 
 def _cost_note(cost: str, window: int) -> str:

@@ -14,14 +14,19 @@ Checks, each with the place of its worst case:
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
+from functools import cache
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
-from planner_core.bezier import bernstein_basis, end_jet, falling, hodographs, start_jet
+from planner_core.bezier import bernstein_basis, end_jet, falling, start_jet
 from planner_core.problem import DEGREE, ORDER_NAMES, FloatArray, Problem, Trajectory
 
 SAMPLES_PER_SEGMENT = 64
+# block sizes that keep sampling temporaries at 100-200 kB (cache sized, no page faults)
+_SEGMENT_BLOCK = 128
+_ROW_BLOCK = 240
 
 
 @dataclass(frozen=True)
@@ -112,8 +117,9 @@ def verify(traj: Trajectory, problem: Problem, tol: float = 1e-9, continuity_tol
     d = np.diff(traj.times)
     wp = _waypoints(traj, problem)
     bnd = _boundary(traj, problem)
-    cont = _continuity(ctrl, d)
-    bh, bs = _bounds(ctrl, d, traj.times, problem)
+    hods = _hodograph_stack(ctrl, d)
+    cont = _continuity(hods, d)
+    bh, bs = _bounds(hods, d, traj.times, problem)
     ch, cs = _corridors(ctrl, traj.times, problem)
     checks = [wp, bnd, bh, bs, ch, cs]
     ok = all(w.value <= tol for w in checks) and cont.value <= continuity_tol
@@ -157,22 +163,18 @@ def _boundary(traj: Trajectory, problem: Problem) -> Worst:
     return Worst(float(e1.max()), traj.n_segments - 1, int(k), int(a), traj.t_end)
 
 
-def _continuity(ctrl: FloatArray, d: FloatArray) -> Worst:
-    if ctrl.shape[0] < 2:
+def _continuity(hods: list[FloatArray], d: FloatArray) -> Worst:
+    if hods[0].shape[1] < 2:
         return _none()
     worst = Worst(0.0)
     # Stored control points carry rounding of eps*|P|; a k-th difference scaled by
     # n!/(n-k)!/D^k amplifies it, so far from the origin (long missions) the exact
     # junction match is only good to that floor. Errors above the floor still count.
-    size = np.max(np.abs(ctrl), axis=1)  # (s, 3)
+    size = np.max(np.abs(hods[0]), axis=0)  # (s, 3)
     pair = np.maximum(size[:-1], size[1:])
     dmin = np.minimum(d[:-1], d[1:])[:, None]
     for k in range(5):
-        if k == 0:
-            left, right = ctrl[:-1, -1], ctrl[1:, 0]
-        else:
-            left = hodographs(ctrl[:-1], k, d[:-1])[:, -1]
-            right = hodographs(ctrl[1:], k, d[1:])[:, 0]
+        left, right = hods[k][-1, :-1], hods[k][0, 1:]
         floor = 64.0 * np.finfo(float).eps * pair * 2.0**k * falling(DEGREE, k) / dmin**k
         scale = 1.0 + np.maximum(np.abs(left), np.abs(right))
         rel = np.maximum(np.abs(left - right) - floor, 0.0) / scale
@@ -182,41 +184,148 @@ def _continuity(ctrl: FloatArray, d: FloatArray) -> Worst:
     return worst
 
 
-def _bounds(ctrl: FloatArray, d: FloatArray, times: FloatArray, problem: Problem) -> tuple[Worst, Worst]:
+def _bounds(hods: list[FloatArray], d: FloatArray, times: FloatArray, problem: Problem) -> tuple[Worst, Worst]:
     lo, hi = problem.bounds.lo, problem.bounds.hi
-    hull = Worst(-np.inf)
-    samp = Worst(-np.inf)
-    u = np.linspace(0.0, 1.0, SAMPLES_PER_SEGMENT)
+    u = _sample_params(SAMPLES_PER_SEGMENT)
+    hull: tuple[float, int, int] = (-np.inf, 0, 1)  # value, segment, order
+    samp: tuple[float, int, int] = (-np.inf, 0, 1)
     for k in range(1, 5):
-        pts = hodographs(ctrl, k, d)  # (s, 10-k, 3)
-        v = np.maximum(pts - hi[k - 1], lo[k - 1] - pts)
-        s, i, a = np.unravel_index(int(np.argmax(v)), v.shape)
-        if v[s, i, a] > hull.value:
-            hull = Worst(float(v[s, i, a]), int(s), k, int(a))
-        vals = np.einsum("ti,sid->std", bernstein_basis(DEGREE - k, u), pts)
-        v = np.maximum(vals - hi[k - 1], lo[k - 1] - vals)
-        s, t, a = np.unravel_index(int(np.argmax(v)), v.shape)
-        if v[s, t, a] > samp.value:
-            samp = Worst(float(v[s, t, a]), int(s), k, int(a), float(times[s] + u[t] * d[s]))
-    return hull, samp
+        pts = hods[k]  # (10-k, s, 3)
+        hull = _better(hull, _box_excess(pts.max(axis=0), pts.min(axis=0), lo[k - 1], hi[k - 1]), k)
+        top, bottom = _sample_extremes(_sample_basis(DEGREE - k, SAMPLES_PER_SEGMENT), pts)
+        samp = _better(samp, _box_excess(top, bottom, lo[k - 1], hi[k - 1]), k)
+    # Only the winning (order, segment) is unravelled, in the same (segment, index,
+    # axis) order as an elementwise argmax would pick, so ties resolve as before.
+    hv, hs, hk = hull
+    _, ha = _first_max(_box_violation(hods[hk][:, hs], lo[hk - 1], hi[hk - 1]))
+    sv, ss, sk = samp
+    vals = _sample_basis(DEGREE - sk, SAMPLES_PER_SEGMENT) @ hods[sk][:, ss]
+    st, sa = _first_max(_box_violation(vals, lo[sk - 1], hi[sk - 1]))
+    return (Worst(hv, hs, hk, ha),
+            Worst(sv, ss, sk, sa, float(times[ss] + u[st] * d[ss])))
+
+
+def _sample_extremes(basis: FloatArray, pts: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Largest and smallest sample per (segment, axis) of the curves pts (n, s, 3).
+
+    Blocks of segments keep the (samples, 3*block) temporaries cache sized: one
+    whole-trajectory temporary costs more in page faults than the matmul itself.
+    """
+    n, s, _ = pts.shape
+    top = np.empty((s, 3))
+    bottom = np.empty((s, 3))
+    for a in range(0, s, _SEGMENT_BLOCK):
+        z = min(a + _SEGMENT_BLOCK, s)
+        vals = basis @ pts[:, a:z].reshape(n, 3 * (z - a))
+        top[a:z] = vals.max(axis=0).reshape(z - a, 3)
+        bottom[a:z] = vals.min(axis=0).reshape(z - a, 3)
+    return top, bottom
+
+
+def _box_excess(top: FloatArray, bottom: FloatArray, lo: FloatArray, hi: FloatArray) -> FloatArray:
+    """Per segment, the largest excess over the box given per-axis extremes (s, 3): (s,).
+
+    fl(x - h) is monotone in x, so max(x) - hi is exactly the max of x - hi:
+    reductions first, then differences on the small (s, 3) arrays.
+    """
+    out: FloatArray = np.maximum(top - hi, lo - bottom).max(axis=1)
+    return out
+
+
+def _box_violation(vals: FloatArray, lo: FloatArray, hi: FloatArray) -> FloatArray:
+    out: FloatArray = np.maximum(vals - hi, lo - vals)
+    return out
+
+
+def _better(best: tuple[float, int, int], per_segment: FloatArray, order: int) -> tuple[float, int, int]:
+    s = int(np.argmax(per_segment))
+    v = float(per_segment[s])
+    return (v, s, order) if v > best[0] else best
+
+
+def _first_max(v: FloatArray) -> tuple[int, int]:
+    i, a = np.unravel_index(int(np.argmax(v)), v.shape)
+    return int(i), int(a)
+
+
+def _hodograph_stack(ctrl: FloatArray, d: FloatArray) -> list[FloatArray]:
+    """Hodograph control points of orders 0..4 for all segments, each (10-k, s, 3).
+
+    Index-major layout: every per-order sampling is one (samples, 10-k) @ (10-k, 3s)
+    matmul.
+    """
+    out = [np.ascontiguousarray(ctrl.transpose(1, 0, 2))]  # (10, s, 3)
+    for k in range(1, 5):
+        # the hodograph of a degree-n curve: n / D times the differences of its points
+        h = out[-1][1:] - out[-1][:-1]
+        h *= ((DEGREE + 1 - k) / d)[None, :, None]
+        out.append(h)
+    return out
+
+
+@cache
+def _sample_params(n_samples: int) -> FloatArray:
+    out = np.linspace(0.0, 1.0, n_samples)
+    out.setflags(write=False)
+    return out
+
+
+@cache
+def _sample_basis(degree: int, n_samples: int) -> FloatArray:
+    out = bernstein_basis(degree, _sample_params(n_samples))
+    out.setflags(write=False)
+    return out
 
 
 def _corridors(ctrl: FloatArray, times: FloatArray, problem: Problem) -> tuple[Worst, Worst]:
-    hull = _none()
-    samp = _none()
     if problem.corridors is None:
-        return hull, samp
-    u = np.linspace(0.0, 1.0, SAMPLES_PER_SEGMENT)
-    basis = bernstein_basis(DEGREE, u)
-    for s, poly in enumerate(problem.corridors):
-        if poly is None or poly.A.shape[0] == 0:
-            continue
-        vh = poly.violation(ctrl[s])
-        if vh > hull.value:
-            hull = Worst(vh, s)
-        pts = basis @ ctrl[s]
-        viol = (pts @ poly.A.T - poly.b).max(axis=1)
-        t = int(np.argmax(viol))
-        if viol[t] > samp.value:
-            samp = Worst(float(viol[t]), s, time=float(times[s] + u[t] * (times[s + 1] - times[s])))
+        return _none(), _none()
+    used = [(s, p) for s, p in enumerate(problem.corridors) if p is not None and p.A.shape[0] > 0]
+    if not used:
+        return _none(), _none()
+    segs = np.fromiter((s for s, _ in used), dtype=np.intp, count=len(used))
+    counts = np.fromiter((p.A.shape[0] for _, p in used), dtype=np.intp, count=len(used))
+    A = np.concatenate([p.A for _, p in used])  # (R, 3): every plane of every corridor
+    b = np.concatenate([p.b for _, p in used])
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    hull_rows, samp_rows = _plane_extremes(ctrl, np.repeat(segs, counts), A)
+    # max before subtracting b: fl(x - b) is monotone in x, so this is exact
+    hull_seg = np.maximum.reduceat(hull_rows - b, starts)
+    samp_seg = np.maximum.reduceat(samp_rows - b, starts)
+    hull, samp = _none(), _none()
+    i = int(np.argmax(hull_seg))
+    if hull_seg[i] > hull.value:
+        hull = Worst(float(hull_seg[i]), int(segs[i]))
+    i = int(np.argmax(samp_seg))
+    if samp_seg[i] > samp.value:
+        s = int(segs[i])
+        rows = slice(int(starts[i]), int(starts[i] + counts[i]))
+        proj = _project(ctrl[np.full(int(counts[i]), s)], A[rows])
+        t = int(np.argmax((_sample_basis(DEGREE, SAMPLES_PER_SEGMENT) @ proj.T - b[rows]).max(axis=1)))
+        u = _sample_params(SAMPLES_PER_SEGMENT)
+        samp = Worst(float(samp_seg[i]), s, time=float(times[s] + u[t] * (times[s + 1] - times[s])))
     return hull, samp
+
+
+def _plane_extremes(ctrl: FloatArray, row_seg: NDArray[np.intp], A: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Per plane row r, the max of A[r] . x over segment row_seg[r]'s control points and samples.
+
+    a . x(u) is the Bézier curve of the projected control points a . P^j, so
+    the samples of every plane come from one Bernstein matmul per block of rows.
+    """
+    basis = _sample_basis(DEGREE, SAMPLES_PER_SEGMENT)
+    n_rows = A.shape[0]
+    hull = np.empty(n_rows)
+    samp = np.empty(n_rows)
+    for a in range(0, n_rows, _ROW_BLOCK):
+        z = min(a + _ROW_BLOCK, n_rows)
+        proj = _project(ctrl[row_seg[a:z]], A[a:z])  # (rows, 10)
+        hull[a:z] = proj.max(axis=1)
+        samp[a:z] = (basis @ proj.T).max(axis=0)
+    return hull, samp
+
+
+def _project(pts: FloatArray, A: FloatArray) -> FloatArray:
+    """pts (r, 10, 3) against one plane normal per row A (r, 3): (r, 10), fixed summation order."""
+    out: FloatArray = pts[:, :, 0] * A[:, None, 0] + pts[:, :, 1] * A[:, None, 1] + pts[:, :, 2] * A[:, None, 2]
+    return out

@@ -28,15 +28,17 @@ against the tightened rows (which implies the untightened ones).
 
 from __future__ import annotations
 
+from functools import lru_cache
 from time import perf_counter
+from types import ModuleType
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.linalg.lapack import dpotrf as _potrf
 from scipy.linalg.lapack import dtrtri as _trtri
 
-from planner_core.constraints import INF
-from planner_core.jets import CHECK_TOL, NV, ProblemCache, _tighten
+from planner_core.constraints import INF, cost_matrices
+from planner_core.jets import CHECK_TOL, MARGIN, NV, ProblemCache, _tighten
 
 FloatArray = NDArray[np.float64]
 
@@ -44,6 +46,33 @@ CHUNK = 64  # segments per vectorised block of rows, filled as the window reache
 MAX_ROUNDS = 8  # working-set growth rounds before giving up on the fast path
 ADD_TOL = 1e-12  # relative: a row outside its tightened limit by more joins the working set
 _ORD = np.repeat(np.arange(1, 5), 3).astype(float)
+
+
+@lru_cache(maxsize=1)
+def _kernel_or_reason() -> ModuleType | str:
+    """`window_kernel`, or why it cannot run here. numba needs memory it can make executable;
+    a W^X policy (systemd's MemoryDenyWriteExecute=yes, SELinux execmem) refuses it at import.
+    Without it every window takes the numpy + daqp path: same QPs, same checks, ~8x slower."""
+    try:
+        from planner_core import window_kernel
+    except (ImportError, OSError) as exc:
+        return f"{type(exc).__name__}: {exc}"
+    return window_kernel
+
+
+def kernel_unavailable() -> str | None:
+    """None when the compiled pass runs here, else the reason it does not."""
+    k = _kernel_or_reason()
+    return k if isinstance(k, str) else None
+
+
+def _kron3(a: FloatArray) -> FloatArray:
+    """(S, p, q) -> (S, 3p, 3q): kron(a[s], I3), index i*3 + axis (the jets' layout)."""
+    n, p, q = a.shape
+    out = np.zeros((n, p, 3, q, 3))
+    for d in range(3):
+        out[:, :, d, :, d] = a
+    return out.reshape(n, 3 * p, 3 * q)
 
 
 def jet_scales(durations: FloatArray) -> FloatArray:
@@ -78,6 +107,7 @@ class WindowSolver:
         self._rows = _RowStore(cache, cs)
         self.off, self.n1, self.n2 = self._rows.off, self._rows.n1, self._rows.n2
         self.ab, self.c0, self.lim = self._rows.ab, self._rows.c0, self._rows.lim
+        self.abt = np.empty((2 * NV, self.c0.size))  # rows as the contiguous axis: the kernel's full check
         # working limits: tightened (for the solver), and tightened + ADD_TOL (to accept a row)
         self.limw = np.empty_like(self.lim)
         self._ready = [False] * (len(self.n1) // CHUNK + 1)
@@ -86,17 +116,25 @@ class WindowSolver:
         self._eyes: dict[int, FloatArray] = {}
         self.times = (0.0, 0.0, 0.0)  # build, backend, check of the last successful solve (s)
         self.rows_used = 0
-        # cost: free part [start derivatives | end derivatives] of each segment, scaled
-        k30 = cache.cost30(cost_order)
-        fi = np.r_[3:15, 18:30]
+        # cost: free part [start derivatives | end derivatives] of each segment, scaled; built
+        # per axis (10 x 10) and spread over the 3 axes: the same cost for each
+        k10 = 2.0 * cost_matrices(cache.durations, cost_order)  # (S, 10, 10), Hessian of z'Kz
+        free = np.r_[1:5, 6:10]
         c24 = np.concatenate([cs[:-1], cs[1:]], axis=1)  # (S, 24)
-        self.k24 = k30[:, fi][:, :, fi] * c24[:, :, None] * c24[:, None, :]
+        self.k24 = _kron3(k10[:, free][:, :, free]) * c24[:, :, None] * c24[:, None, :]
         w = problem.waypoints
-        zpos = np.concatenate([w[:-1], w[1:]], axis=1)  # (S, 6)
-        self.qpos = np.einsum("sij,sj->si", k30[:, fi][:, :, [0, 1, 2, 15, 16, 17]], zpos) * c24
+        # position part of the gradient: K[free, 0] p0 + K[free, 5] p1, per axis
+        gpos = k10[:, free, 0, None] * w[:-1, None, :] + k10[:, free, 5, None] * w[1:, None, :]
+        self.qpos = gpos.reshape(-1, 2 * NV) * c24
         # gradient from a fixed neighbour's derivatives (unscaled columns: they multiply jets)
-        self.k_ba = k30[:, 18:30, 3:15] * cs[1:, :, None]  # end-jet rows x start-jet derivatives
-        self.k_ab = k30[:, 3:15, 18:30] * cs[:-1, :, None]
+        self.k_ba = _kron3(k10[:, 6:10, 1:5]) * cs[1:, :, None]  # end-jet rows x start-jet derivatives
+        self.k_ab = _kron3(k10[:, 1:5, 6:10]) * cs[:-1, :, None]
+        # per-waypoint Hessian/gradient sums of the two segments meeting there (index 0 and m-1 unused)
+        self.kdd = np.zeros((problem.m, NV, NV))
+        self.kdd[1:-1] = self.k24[:-1, NV:, NV:] + self.k24[1:, :NV, :NV]
+        self.qsum = np.zeros((problem.m, NV))
+        self.qsum[1:-1] = self.qpos[:-1, NV:] + self.qpos[1:, :NV]
+        self._idx: tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]] | None = None
 
     def solve(self, jets: FloatArray, f0: int, f1: int, open_end: bool) -> FloatArray | None:
         """Derivatives (f1-f0+1, 4, 3) of jets f0..f1 given the others in `jets`, or None."""
@@ -197,18 +235,36 @@ class WindowSolver:
             work |= bad
         return None
 
+    def run(self, jets: FloatArray, guess: FloatArray, j0: int, window: int, step_times: FloatArray) -> int:
+        """Compiled pass (`window_kernel.run_pass`) from waypoint j0: commits jets in place, writes
+        each window's solution to `guess` and each step's seconds to `step_times[j]`; returns the
+        first waypoint it could not settle (m-1 when none)."""
+        kernel = _kernel_or_reason()
+        if isinstance(kernel, str):
+            return j0
+        m = self.problem.m
+        self._fill(max(j0 - 1, 0) // CHUNK, (m - 2) // CHUNK)
+        if self._idx is None:
+            self._idx = (
+                np.asarray(self.off, dtype=np.int64),
+                np.asarray(self.n1, dtype=np.int64),
+                np.asarray(self.n2, dtype=np.int64),
+            )
+        off, n1, n2 = self._idx
+        return int(
+            kernel.run_pass(
+                j0, window, m, off, n1, n2, self.ab, self.abt, self.c0, self.limw, self.lim, self.cs,
+                self.k24, self.kdd, self.qpos, self.qsum, self.k_ba, self.k_ab, jets, guess, self.active,
+                step_times, CHECK_TOL,
+            )
+        )
+
     def _fill(self, k0: int, k1: int) -> None:
         for k in range(k0, k1 + 1):
             if self._ready[k]:
                 continue
-            segs = np.arange(k * CHUNK, min((k + 1) * CHUNK, len(self.n1)))
-            self._rows.fill(segs)
-            rows = slice(self.off[int(segs[0])], self.off[int(segs[-1]) + 1])
-            lo_t, hi_t = self.lim[0, rows], self.lim[1, rows]
-            self.limw[0, rows] = lo_t
-            self.limw[1, rows] = hi_t
-            self.limw[2, rows] = lo_t - ADD_TOL * (1.0 + np.abs(lo_t))
-            self.limw[3, rows] = hi_t + ADD_TOL * (1.0 + np.abs(hi_t))
+            segs = np.arange(k * CHUNK, min((k + 1) * CHUNK, len(self.n1)), dtype=np.int64)
+            self._rows.fill(segs, self.abt, self.limw)
             self._ready[k] = True
 
     def _eye(self, n: int) -> FloatArray:
@@ -271,14 +327,47 @@ class _RowStore:
         self.off: list[int] = off.tolist()
         self.n1: list[int] = (cache._bn1 + 4 * self.faces).tolist()
         self.n2: list[int] = [cache._bn2] * n_seg
+        # corridors flattened: faces of segment s are rows face_off[s]:face_off[s+1] of pa, pb
+        self._face_off = np.concatenate([[0], np.cumsum(self.faces)]).astype(np.int64)
+        planes = [p for p in self.polys if p is not None and p.A.shape[0]]
+        self._pa = np.concatenate([p.A for p in planes]) if planes else np.zeros((0, 3))
+        self._pb = np.concatenate([p.b for p in planes]) if planes else np.zeros(0)
+        self._blim = np.stack([cache._blo_t, cache._bhi_t, cache._blo, cache._bhi])
         self.ab = np.empty((n_rows, 2 * NV))
         self.c0 = np.empty(n_rows)
         self.lim = np.empty((4, n_rows))
 
-    def fill(self, segments: NDArray[np.int64]) -> None:
-        faces = self.faces[segments]
-        for f in np.unique(faces).tolist():
-            self._fill_group(segments[faces == f], int(f))
+    def fill(self, segments: NDArray[np.int64], abt: FloatArray | None = None, limw: FloatArray | None = None) -> None:
+        """Rows of `segments`; also their transpose into `abt` and working limits into `limw`
+        when given. Compiled (`window_kernel.fill_rows`) where numba runs, numpy otherwise."""
+        cache = self.cache
+        kernel = _kernel_or_reason()
+        if isinstance(kernel, str):
+            faces = self.faces[segments]
+            for f in np.unique(faces).tolist():
+                self._fill_group(segments[faces == f], int(f))
+            rows = (
+                np.concatenate([np.arange(self._off[s], self._off[s + 1]) for s in segments.tolist()])
+                if segments.size else np.zeros(0, dtype=np.int64)
+            )
+            if abt is not None and abt.shape[1]:
+                abt[:, rows] = self.ab[rows].T
+            if limw is not None and limw.shape[1]:
+                lo_t, hi_t = self.lim[0, rows], self.lim[1, rows]
+                limw[0, rows] = lo_t
+                limw[1, rows] = hi_t
+                limw[2, rows] = lo_t - ADD_TOL * (1.0 + np.abs(lo_t))
+                limw[3, rows] = hi_t + ADD_TOL * (1.0 + np.abs(hi_t))
+            return
+        if abt is None or abt.shape[1] == 0:
+            abt = np.empty((2 * NV, self.c0.size))  # callers that only want ab/c0/lim
+        if limw is None or limw.shape[1] == 0:
+            limw = np.empty((4, self.c0.size))
+        kernel.fill_rows(
+            segments, self._off, cache.hull, cache.problem.waypoints, self.cs, cache._bperm, int(cache._bn1),
+            self._blim, self._face_off, self._pa, self._pb, INF, MARGIN, self.ab, abt, self.c0, self.lim, limw,
+            ADD_TOL,
+        )
 
     def _fill_group(self, segs: NDArray[np.int64], f: int) -> None:
         cache, cs = self.cache, self.cs

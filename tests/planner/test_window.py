@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from planner_core import Bounds, IterativeOptions, Polytope, Problem, iterative, window
+from planner_core import Bounds, IterativeOptions, Polytope, Problem, iterative, verify, window
 from planner_core.iterative import plan_iterative
 from planner_core.jets import NV, ProblemCache, initial_jets, solve_jets
 from planner_core.window import WindowSolver, jet_scales
@@ -33,9 +33,11 @@ def _problem(seed: int, m: int) -> Problem:
     return Problem.from_waypoints(wps, durations, Bounds.symmetric(7, 6.5, 15, 60), tuple(cors))
 
 
-@pytest.mark.parametrize("chunk", [3, 64])
-def test_stacked_rows_equal_segment_blocks(chunk: int, monkeypatch: pytest.MonkeyPatch) -> None:
+@pytest.mark.parametrize(("chunk", "compiled"), [(3, True), (64, True), (3, False)])
+def test_stacked_rows_equal_segment_blocks(chunk: int, compiled: bool, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(window, "CHUNK", chunk)
+    if not compiled:  # as where numba cannot run: the numpy fill
+        monkeypatch.setattr(window, "_kernel_or_reason", lambda: "no JIT here")
     problem = _problem(3, 12)
     cache = ProblemCache(problem)
     fast = WindowSolver(cache)
@@ -49,6 +51,9 @@ def test_stacked_rows_equal_segment_blocks(chunk: int, monkeypatch: pytest.Monke
         np.testing.assert_allclose(fast.ab[rows, NV:], blk.B * cs[s + 1], rtol=1e-13, atol=1e-12)
         np.testing.assert_allclose(fast.c0[rows], blk.c0, rtol=1e-13, atol=1e-12)
         np.testing.assert_array_equal(fast.lim[:, rows], blk.lim)
+        np.testing.assert_array_equal(fast.abt[:, rows], fast.ab[rows].T)  # the kernel's copy
+        np.testing.assert_array_equal(fast.limw[:2, rows], blk.lim[:2])  # tightened, for the solver
+        assert np.all(fast.limw[3, rows] >= blk.lim[1]) and np.all(fast.limw[3, rows] - blk.lim[1] <= 1e-11 * (1 + np.abs(blk.lim[1])))
 
 
 @pytest.mark.parametrize("chunk", [2, 64])
@@ -98,3 +103,50 @@ def test_global_sparse_path_is_the_exact_optimum() -> None:
     x = global_qp._osqp_refined(qp, None)
     assert x is not None and qp.violation(x) <= 1e-9
     np.testing.assert_allclose(x, ref.jets[1:-1, 1:].ravel(), rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize(("seed", "h"), [(1, 2), (4, 4), (9, 6), (12, 3)])
+def test_compiled_pass_matches_daqp_window_by_window(seed: int, h: int) -> None:
+    """window_kernel (block-tridiagonal Goldfarb-Idnani) against WindowSolver.solve + daqp: the same
+    QP per window, so the same committed jets, and every window settled by the compiled pass."""
+    problem = _problem(seed, 24)
+    comp = plan_iterative(problem, IterativeOptions(window=h))
+    ref = plan_iterative(problem, IterativeOptions(window=h, compiled=False))
+    assert comp.ok and ref.ok and comp.trajectory is not None and ref.trajectory is not None
+    assert comp.stats["n_compiled_steps"] == problem.m - 2
+    assert ref.stats["n_compiled_steps"] == 0
+    scale = np.abs(ref.trajectory.control_points).max()
+    np.testing.assert_allclose(comp.trajectory.control_points, ref.trajectory.control_points, atol=1e-8 * scale)
+    rep = verify(comp.trajectory, problem)
+    assert rep.ok, rep.summary()
+
+
+def test_compiled_pass_hands_infeasible_windows_to_recovery() -> None:
+    """The paper's one-jet window is infeasible at some waypoints of this scene: the compiled pass
+    stops there, the general path recovers (backtrack/widen), and the pass resumes compiled."""
+    problem = _problem(3, 14)
+    res = plan_iterative(problem, IterativeOptions(window=1))
+    assert res.ok and res.trajectory is not None
+    n_rec = len(res.stats["recoveries"])
+    assert n_rec > 0
+    assert 0 < res.stats["n_compiled_steps"] < problem.m - 2
+    # every waypoint is settled by exactly one of the two paths
+    assert res.stats["n_compiled_steps"] + n_rec == problem.m - 2
+    rep = verify(res.trajectory, problem)
+    assert rep.ok, rep.summary()
+
+
+def test_without_the_kernel_every_window_takes_the_daqp_path(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Where numba cannot run (a W^X memory policy refuses its JIT), the planner still plans the
+    same verified trajectory, on the numpy + daqp path, and says why."""
+    problem = _problem(4, 16)
+    comp = plan_iterative(problem, IterativeOptions(window=4))
+    monkeypatch.setattr(window, "_kernel_or_reason", lambda: "OSError: cannot allocate executable memory")
+    slow = plan_iterative(problem, IterativeOptions(window=4))
+    assert comp.ok and slow.ok and comp.trajectory is not None and slow.trajectory is not None
+    assert comp.stats["compiled_unavailable"] is None and comp.stats["n_compiled_steps"] == problem.m - 2
+    assert slow.stats["n_compiled_steps"] == 0
+    assert "executable memory" in slow.stats["compiled_unavailable"]
+    scale = np.abs(comp.trajectory.control_points).max()
+    np.testing.assert_allclose(slow.trajectory.control_points, comp.trajectory.control_points, atol=1e-8 * scale)
+    assert verify(slow.trajectory, problem).ok

@@ -1,0 +1,564 @@
+"""Compiled receding-window pass: the iterative planner's hot loop without Python in it.
+
+Same QP per waypoint as `window.WindowSolver.solve` (same stacked, pre-scaled
+rows, same tightened limits, same cost blocks); what differs is the solver:
+
+- the Hessian of a window is block tridiagonal in its jets (segment s couples
+  jets s and s+1 only), so it is factored block by block (12 x 12 blocks,
+  ~2 k flops per window instead of ~60 k for a dense factor);
+- the QP is solved by the dual active-set method of Goldfarb and Idnani in its
+  range-space form: every step needs one block-tridiagonal solve H^-1 n and
+  a Cholesky factor of the small matrix S = N H^-1 N' of the active normals,
+  grown by one row per added constraint. Rows are sparse (24 of the window's
+  columns), so a slack costs 24 flops;
+- only a working set of rows is searched for violations (rows active at the
+  previous window and the open end's rows, as in `WindowSolver`), then every
+  row of the window is checked against its tightened limit; violated rows join
+  and the dual method simply goes on from where it stopped (its iterate stays
+  dual feasible when rows are added).
+
+A step that fails in any way (factorisation, infeasible, iteration cap, a row
+outside its limit after the solve) stops the pass at that waypoint; the caller
+settles it with the general path (which also recovers and diagnoses) and
+resumes. Nothing is committed that failed the check against the tightened
+rows, which implies the untightened ones.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import Any, TypeVar, cast
+
+import numpy as np
+from numba import njit as _njit
+from numba import objmode
+
+F = TypeVar("F", bound=Callable[..., Any])
+NV = 12
+MAX_ADDS = 400  # constraint additions per window before giving up (typical: ~10)
+MAX_ROUNDS = 8  # working-set growth rounds per window
+
+
+def _jit(fn: F, **kw: Any) -> F:
+    # numpy's error model: no zero-division branch in every inner loop (divisors are checked)
+    try:
+        return cast(F, _njit(cache=True, error_model="numpy", **kw)(fn))
+    except RuntimeError:  # no writable cache location (read-only install, no NUMBA_CACHE_DIR)
+        return cast(F, _njit(cache=False, error_model="numpy", **kw)(fn))
+
+
+def njit(fn: F) -> F:
+    """numba's decorator, typed, cached on disk so that each process does not compile again
+    (compiling everything here takes ~20 s; loading it from the cache ~0.3 s)."""
+    return _jit(fn)
+
+
+def njit_inline(fn: F) -> F:
+    """`njit`, inlined into its callers at the numba IR level (tiny helpers in the inner loops)."""
+    return _jit(fn, inline="always")
+
+
+@njit
+def _chol12(a: Any) -> bool:
+    """In-place lower Cholesky of a 12 x 12 block (upper part left as is)."""
+    n = a.shape[0]
+    for j in range(n):
+        d = a[j, j]
+        for k in range(j):
+            d -= a[j, k] * a[j, k]
+        if not d > 0.0:
+            return False
+        d = np.sqrt(d)
+        a[j, j] = d
+        for i in range(j + 1, n):
+            s = a[i, j]
+            for k in range(j):
+                s -= a[i, k] * a[j, k]
+            a[i, j] = s / d
+    return True
+
+
+@njit
+def _btd_factor(ld: Any, lo: Any, nf: int) -> bool:
+    """Block-tridiagonal Cholesky: `ld[i]` holds diagonal block i (in: H's, out: L's, lower),
+    `lo[i]` (i >= 1) holds H[i-1, i] on entry and L[i, i-1] on exit."""
+    if not _chol12(ld[0]):
+        return False
+    for i in range(1, nf):
+        e = lo[i]  # H[i-1, i]; L[i, i-1] = (L[i-1]^-1 H[i-1, i])'
+        p = ld[i - 1]
+        x = np.empty((NV, NV))
+        for c in range(NV):
+            for r in range(NV):
+                s = e[r, c]
+                for k in range(r):
+                    s -= p[r, k] * x[k, c]
+                x[r, c] = s / p[r, r]
+        d = ld[i]
+        for r in range(NV):
+            for c in range(NV):
+                e[r, c] = x[c, r]
+        for r in range(NV):
+            for c in range(r + 1):
+                s = 0.0
+                for k in range(NV):
+                    s += e[r, k] * e[c, k]
+                d[r, c] -= s
+        if not _chol12(d):
+            return False
+    return True
+
+
+@njit
+def _btd_solve(ld: Any, lo: Any, nf: int, b: Any, y: Any) -> None:
+    """y = H^-1 b with the factor of `_btd_factor`."""
+    for i in range(nf):
+        o = NV * i
+        for r in range(NV):
+            s = b[o + r]
+            if i > 0:
+                for k in range(NV):
+                    s -= lo[i, r, k] * y[o - NV + k]
+            for k in range(r):
+                s -= ld[i, r, k] * y[o + k]
+            y[o + r] = s / ld[i, r, r]
+    for i in range(nf - 1, -1, -1):
+        o = NV * i
+        for r in range(NV - 1, -1, -1):
+            s = y[o + r]
+            if i < nf - 1:
+                for k in range(NV):
+                    s -= lo[i + 1, k, r] * y[o + NV + k]
+            for k in range(r + 1, NV):
+                s -= ld[i, k, r] * y[o + k]
+            y[o + r] = s / ld[i, r, r]
+
+
+@njit_inline
+def _row_dot(ab: Any, r: int, ja: int, jb: int, x: Any) -> float:
+    """g_r' x over the window's columns: `ja`/`jb` = local index of the segment's start/end jet or -1.
+
+    Four partial sums: one chain of dependent adds is latency bound (~2x slower)."""
+    s0 = 0.0
+    s1 = 0.0
+    s2 = 0.0
+    s3 = 0.0
+    if ja >= 0:
+        o = NV * ja
+        for k in range(0, NV, 4):
+            s0 += ab[r, k] * x[o + k]
+            s1 += ab[r, k + 1] * x[o + k + 1]
+            s2 += ab[r, k + 2] * x[o + k + 2]
+            s3 += ab[r, k + 3] * x[o + k + 3]
+    if jb >= 0:
+        o = NV * jb
+        for k in range(0, NV, 4):
+            s0 += ab[r, NV + k] * x[o + k]
+            s1 += ab[r, NV + k + 1] * x[o + k + 1]
+            s2 += ab[r, NV + k + 2] * x[o + k + 2]
+            s3 += ab[r, NV + k + 3] * x[o + k + 3]
+    return (s0 + s1) + (s2 + s3)
+
+
+@njit_inline
+def _seg_rows(s: int, f0: int, f1: int, half: bool, off: Any, n1: Any, n2: Any) -> tuple[int, int, int, int]:
+    """Rows [ra, rb) of segment s in the window f0..f1, local index of its start/end jet (-1: fixed)."""
+    if s == f0 - 1:
+        return off[s] + n1[s], off[s + 1], -1, 0
+    if s < f1:
+        return off[s], off[s + 1], s - f0, s + 1 - f0
+    if half:
+        return off[s], off[s] + n1[s], f1 - f0, -1
+    return off[s], off[s] + n1[s] + n2[s], f1 - f0, -1
+
+
+@njit_inline
+def _block_dot(abt: Any, ra: int, rb: int, col: int, x: Any, o: int, out: Any, i0: int) -> None:
+    """out[i0 + r - ra] += sum_k abt[col + k, r] x[o + k] for rows r in [ra, rb): rows are the inner,
+    contiguous loop, so it vectorises without reassociating any sum."""
+    for k in range(NV):
+        c = x[o + k]
+        if c != 0.0:
+            for r in range(ra, rb):
+                out[i0 + r - ra] += abt[col + k, r] * c
+
+
+@njit
+def _chol_append(ls: Any, k: int, srow: Any) -> bool:
+    """Grow the Cholesky factor `ls` of S (k x k) by the row `srow` (k + 1 entries)."""
+    for j in range(k):
+        s = srow[j]
+        for i in range(j):
+            s -= ls[k, i] * ls[j, i]
+        ls[k, j] = s / ls[j, j]
+    d = srow[k]
+    for i in range(k):
+        d -= ls[k, i] * ls[k, i]
+    if not d > 1e-300:
+        return False
+    ls[k, k] = np.sqrt(d)
+    return True
+
+
+@njit
+def _chol_solve(ls: Any, k: int, w: Any, out: Any) -> None:
+    for i in range(k):
+        s = w[i]
+        for j in range(i):
+            s -= ls[i, j] * out[j]
+        out[i] = s / ls[i, i]
+    for i in range(k - 1, -1, -1):
+        s = out[i]
+        for j in range(i + 1, k):
+            s -= ls[j, i] * out[j]
+        out[i] = s / ls[i, i]
+
+
+@njit
+def _step(
+    f0: int, f1: int, half: bool, m: int,
+    off: Any, n1: Any, n2: Any, ab: Any, abt: Any, c0: Any, limw: Any, lim: Any, cs: Any,
+    k24: Any, kdd: Any, qpos: Any, qsum: Any, k_ba: Any, k_ab: Any, jets: Any, active: Any, ws: Any,
+    check_tol: float,
+) -> bool:
+    """Solve window f0..f1 into `ws` (its x: scaled derivatives); False on any doubt."""
+    (ld, lo, q, x, v, z, nvec, vmat, ls, w, rr, lam, act_r, act_sd, rowa, rowb,
+     lo_t, hi_t, lo_w, hi_w, cand, srow, clist, gv, xf) = ws
+    nf = f1 - f0 + 1
+    nx = NV * nf
+    sb = f0 - 1
+    r0 = off[sb] + n1[sb]
+    r1 = off[f1] + n1[f1] + (0 if half else n2[f1])
+    nr = r1 - r0
+    # constants: rows that depend only on a fixed jet must hold as they are
+    if f0 == 1:
+        for r in range(off[0], off[0] + n1[0]):
+            val = c0[r]
+            for k in range(NV):
+                val += ab[r, k] * jets[0, 1 + k // 3, k % 3] / cs[0, k]
+            if val > lim[3, r] + check_tol or val < lim[2, r] - check_tol:
+                return False
+    if not half:
+        for r in range(off[f1] + n1[f1] + n2[f1], off[f1 + 1]):
+            val = c0[r]
+            for k in range(NV):
+                val += ab[r, NV + k] * jets[f1 + 1, 1 + k // 3, k % 3] / cs[f1 + 1, k]
+            if val > lim[3, r] + check_tol or val < lim[2, r] - check_tol:
+                return False
+    # rows of the window: local start/end jet columns, limits less the fixed jets' part
+    for i in range(nr):
+        gv[i] = c0[r0 + i]
+    for k in range(NV):
+        xf[k] = jets[sb, 1 + k // 3, k % 3] / cs[sb, k]
+        xf[NV + k] = 0.0 if half else jets[f1 + 1, 1 + k // 3, k % 3] / cs[f1 + 1, k]
+    for s in range(sb, f1 + 1):
+        ra, rb, ja, jb = _seg_rows(s, f0, f1, half, off, n1, n2)
+        for r in range(ra, rb):
+            rowa[r - r0] = ja
+            rowb[r - r0] = jb
+        if ja < 0:
+            _block_dot(abt, ra, rb, 0, xf, 0, gv, ra - r0)
+        if jb < 0 and not half:
+            _block_dot(abt, ra, rb, NV, xf, NV, gv, ra - r0)
+    for i in range(nr):
+        r = r0 + i
+        lo_t[i] = limw[0, r] - gv[i]
+        hi_t[i] = limw[1, r] - gv[i]
+        lo_w[i] = limw[2, r] - gv[i]
+        hi_w[i] = limw[3, r] - gv[i]
+        cand[i] = active[r]
+    if half:
+        for i in range(off[f1] - r0, nr):
+            cand[i] = True
+    nc = 0
+    for i in range(nr):
+        if cand[i]:
+            clist[nc] = i
+            nc += 1
+    # cost: block-tridiagonal Hessian and gradient (per-waypoint sums precomputed)
+    for i in range(nf):
+        wp = f0 + i
+        last_half = half and i == nf - 1
+        for a in range(NV):
+            q[NV * i + a] = qpos[wp - 1, NV + a] if last_half else qsum[wp, a]
+            for b in range(NV):
+                ld[i, a, b] = k24[wp - 1, NV + a, NV + b] if last_half else kdd[wp, a, b]
+                if i > 0:
+                    lo[i, a, b] = k24[wp - 1, a, NV + b]
+    for a in range(NV):
+        g = 0.0
+        for b in range(NV):
+            g += k_ba[sb, a, b] * jets[sb, 1 + b // 3, b % 3]
+        q[a] += g
+    if not half:
+        o = nx - NV
+        for a in range(NV):
+            g = 0.0
+            for b in range(NV):
+                g += k_ab[f1, a, b] * jets[f1 + 1, 1 + b // 3, b % 3]
+            q[o + a] += g
+    if not _btd_factor(ld, lo, nf):
+        return False
+    # Goldfarb-Idnani from the unconstrained minimum
+    for i in range(nx):
+        nvec[i] = -q[i]
+    _btd_solve(ld, lo, nf, nvec, x)
+    for i in range(nx):
+        nvec[i] = 0.0
+    k = 0
+    adds = 0
+    rounds = 0
+    while True:
+        # most violated working row (violation per unit normal)
+        best = 0.0
+        p = -1
+        ps = 0
+        for ci in range(nc):
+            i = clist[ci]
+            gx = _row_dot(ab, r0 + i, rowa[i], rowb[i], x)
+            vl = lo_t[i] - gx
+            vh = gx - hi_t[i]
+            # a quarter of the final check's margin: what passes here passes there
+            tl = 0.25 * (lo_t[i] - lo_w[i])
+            th = 0.25 * (hi_w[i] - hi_t[i])
+            if vl > tl or vh > th:
+                nn = 0.0
+                r = r0 + i
+                if rowa[i] >= 0:
+                    for kk in range(NV):
+                        nn += ab[r, kk] * ab[r, kk]
+                if rowb[i] >= 0:
+                    for kk in range(NV):
+                        nn += ab[r, NV + kk] * ab[r, NV + kk]
+                nn = np.sqrt(nn)
+                if nn < 1e-300:
+                    return False  # a violated row with no free column: the constants broke it
+                sc = (vl if vl > tl else vh) / nn
+                if sc > best:
+                    best = sc
+                    p = i
+                    ps = 1 if vl > tl else -1
+        if p < 0:
+            # working set satisfied: check every row of the window, grow the set if needed
+            grew = False
+            for i in range(nr):
+                gv[i] = 0.0
+            for s in range(sb, f1 + 1):
+                ra, rb, ja, jb = _seg_rows(s, f0, f1, half, off, n1, n2)
+                if ja >= 0:
+                    _block_dot(abt, ra, rb, 0, x, NV * ja, gv, ra - r0)
+                if jb >= 0:
+                    _block_dot(abt, ra, rb, NV, x, NV * jb, gv, ra - r0)
+            for i in range(nr):
+                gx = gv[i]
+                if gx > hi_w[i] or gx < lo_w[i]:
+                    if cand[i]:
+                        return False  # missed by more than rounding: let the general path decide
+                    cand[i] = True
+                    clist[nc] = i
+                    nc += 1
+                    grew = True
+            if not grew:
+                break
+            rounds += 1
+            if rounds > MAX_ROUNDS:
+                return False
+            continue
+        adds += 1
+        if adds > MAX_ADDS:
+            return False
+        # normal n_p = sign * g_p (dense), v = H^-1 n_p
+        rp = r0 + p
+        ja, jb = rowa[p], rowb[p]
+        if ja >= 0:
+            for kk in range(NV):
+                nvec[NV * ja + kk] = ps * ab[rp, kk]
+        if jb >= 0:
+            for kk in range(NV):
+                nvec[NV * jb + kk] = ps * ab[rp, NV + kk]
+        _btd_solve(ld, lo, nf, nvec, v)
+        bp = lo_t[p] if ps > 0 else -hi_t[p]
+        lam_p = 0.0
+        while True:
+            # z = v - V' S^-1 N v (primal step direction), r = S^-1 N v (dual)
+            for j in range(k):
+                w[j] = act_sd[j] * _row_dot(ab, r0 + act_r[j], rowa[act_r[j]], rowb[act_r[j]], v)
+            _chol_solve(ls, k, w, rr)
+            for i in range(nx):
+                acc = v[i]
+                for j in range(k):
+                    acc -= vmat[j, i] * rr[j]
+                z[i] = acc
+            zn = ps * _row_dot(ab, rp, ja, jb, z)
+            nv_ = ps * _row_dot(ab, rp, ja, jb, v)
+            t1 = np.inf
+            drop = -1
+            for j in range(k):
+                if rr[j] > 0.0:
+                    t = lam[j] / rr[j]
+                    if t < t1:
+                        t1 = t
+                        drop = j
+            sp = ps * _row_dot(ab, rp, ja, jb, x) - bp
+            t2 = np.inf
+            if zn > 1e-13 * nv_:
+                t2 = max(-sp, 0.0) / zn
+            t = min(t1, t2)
+            if t == np.inf:
+                return False  # infeasible: the general path diagnoses it
+            if t2 < np.inf:
+                for i in range(nx):
+                    x[i] += t * z[i]
+            for j in range(k):
+                lam[j] -= t * rr[j]
+            lam_p += t
+            if t2 <= t1:
+                # full step: p joins the active set
+                for j in range(k):
+                    srow[j] = ps * _row_dot(ab, rp, ja, jb, vmat[j])
+                srow[k] = nv_
+                if not _chol_append(ls, k, srow):
+                    return False
+                for i in range(nx):
+                    vmat[k, i] = v[i]
+                act_r[k] = p
+                act_sd[k] = ps
+                lam[k] = lam_p
+                k += 1
+                break
+            # partial step: drop the blocking constraint, refactor S
+            for j in range(drop, k - 1):
+                act_r[j] = act_r[j + 1]
+                act_sd[j] = act_sd[j + 1]
+                lam[j] = lam[j + 1]
+                for i in range(nx):
+                    vmat[j, i] = vmat[j + 1, i]
+            k -= 1
+            for a in range(k):
+                ra = r0 + act_r[a]
+                for b in range(a + 1):
+                    srow[b] = act_sd[a] * _row_dot(ab, ra, rowa[act_r[a]], rowb[act_r[a]], vmat[b])
+                if not _chol_append(ls, a, srow):
+                    return False
+        for i in range(nx):
+            nvec[i] = 0.0
+    # commit: active flags for the next window, derivatives scaled back
+    for i in range(nr):
+        active[r0 + i] = False
+    for j in range(k):
+        if lam[j] > 0.0:
+            active[r0 + act_r[j]] = True
+    return True
+
+
+@njit
+def run_pass(
+    j0: int, window: int, m: int,
+    off: Any, n1: Any, n2: Any, ab: Any, abt: Any, c0: Any, limw: Any, lim: Any, cs: Any,
+    k24: Any, kdd: Any, qpos: Any, qsum: Any, k_ba: Any, k_ab: Any, jets: Any, guess: Any, active: Any,
+    step_times: Any, check_tol: float,
+) -> int:
+    """Steps j0 .. m-2; commits the jet at each j. Returns the first j it could not settle (m-1
+    when it settled all). `step_times[j]`: seconds spent on step j."""
+    hmax = window
+    nxm = NV * hmax
+    rmax = 0
+    for s in range(m - 1):
+        cnt = off[s + 1] - off[s]
+        if cnt > rmax:
+            rmax = cnt
+    nrm = rmax * (hmax + 2)
+    ws = (
+        np.zeros((hmax, NV, NV)), np.zeros((hmax, NV, NV)), np.zeros(nxm), np.zeros(nxm),
+        np.zeros(nxm), np.zeros(nxm), np.zeros(nxm), np.zeros((nxm + 1, nxm)),
+        np.zeros((nxm + 1, nxm + 1)), np.zeros(nxm + 1), np.zeros(nxm + 1),
+        np.zeros(nxm + 1), np.zeros(nxm + 1, dtype=np.int64), np.zeros(nxm + 1, dtype=np.int64),
+        np.zeros(nrm, dtype=np.int64), np.zeros(nrm, dtype=np.int64),
+        np.zeros(nrm), np.zeros(nrm), np.zeros(nrm), np.zeros(nrm), np.zeros(nrm, dtype=np.bool_),
+        np.zeros(nxm + 1), np.zeros(nrm, dtype=np.int64), np.zeros(nrm), np.zeros(2 * NV),
+    )
+    x = ws[3]
+    with objmode(t0="float64"):
+        t0 = time.perf_counter()
+    for j in range(j0, m - 1):
+        f1 = min(j + window - 1, m - 2)
+        half = f1 < m - 2
+        ok = _step(j, f1, half, m, off, n1, n2, ab, abt, c0, limw, lim, cs, k24, kdd, qpos, qsum, k_ba, k_ab,
+                   jets, active, ws, check_tol)
+        if not ok:
+            return j
+        for i in range(f1 - j + 1):
+            for k in range(NV):
+                guess[j + i, 1 + k // 3, k % 3] = x[NV * i + k] * cs[j + i, k]
+        for k in range(NV):
+            jets[j, 1 + k // 3, k % 3] = guess[j, 1 + k // 3, k % 3]
+        with objmode(t1="float64"):
+            t1 = time.perf_counter()
+        step_times[j] = t1 - t0
+        t0 = t1
+    return m - 1
+
+
+@njit
+def fill_rows(
+    segs: Any, off: Any, hull: Any, w: Any, cs: Any, perm: Any, bn1: int, blim: Any,
+    face_off: Any, pa: Any, pb: Any, inf: float, margin: float,
+    ab: Any, abt: Any, c0: Any, lim: Any, limw: Any, add_tol: float,
+) -> None:
+    """Stacked rows of the given segments, in the layout of `window._RowStore` (see there):
+    [start-only bounds | corridor P1..P4 | both | end-only bounds | corridor P5..P8]; columns
+    scaled by `cs`. Writes `ab`, its transpose `abt`, `c0`, limits `lim` (lo_t, hi_t, lo, hi) and
+    working limits `limw` (tightened, and tightened widened by `add_tol` relative)."""
+    nb = perm.size
+    for si in range(segs.size):
+        s = segs[si]
+        f = face_off[s + 1] - face_off[s]
+        base = off[s]
+        for r in range(base, off[s + 1]):
+            for k in range(2 * NV):
+                ab[r, k] = 0.0
+        for t in range(nb):
+            o = perm[t]
+            rr = o // 3
+            d = o % 3
+            r = base + t + (4 * f if t >= bn1 else 0)
+            for c in range(4):
+                ab[r, 3 * c + d] = hull[s, 10 + rr, 1 + c] * cs[s, 3 * c + d]
+                ab[r, NV + 3 * c + d] = hull[s, 10 + rr, 6 + c] * cs[s + 1, 3 * c + d]
+            c0[r] = hull[s, 10 + rr, 0] * w[s, d] + hull[s, 10 + rr, 5] * w[s + 1, d]
+            for k in range(4):
+                lim[k, r] = blim[k, t]
+        for i in range(4):
+            for fi in range(f):
+                face = face_off[s] + fi
+                hi = min(max(pb[face], -inf), inf)
+                hi_t = hi - margin * (1.0 + abs(hi)) if hi < inf else hi
+                for side in range(2):
+                    if side == 0:
+                        r = base + bn1 + i * f + fi
+                        qrow, qc, col, wp = 1 + i, 1, 0, s
+                    else:
+                        r = base + nb + 4 * f + i * f + fi
+                        qrow, qc, col, wp = 5 + i, 6, NV, s + 1
+                    dotw = 0.0
+                    for e in range(3):
+                        dotw += pa[face, e] * w[wp, e]
+                    for c in range(4):
+                        for e in range(3):
+                            ab[r, col + 3 * c + e] = hull[s, qrow, qc + c] * pa[face, e] * cs[wp, 3 * c + e]
+                    c0[r] = hull[s, qrow, qc - 1] * dotw
+                    lim[0, r] = -inf
+                    lim[1, r] = hi_t
+                    lim[2, r] = -inf
+                    lim[3, r] = hi
+        for k in range(2 * NV):
+            for r in range(base, off[s + 1]):
+                abt[k, r] = ab[r, k]
+        for r in range(base, off[s + 1]):
+            lo_t = lim[0, r]
+            hi_t = lim[1, r]
+            limw[0, r] = lo_t
+            limw[1, r] = hi_t
+            limw[2, r] = lo_t - add_tol * (1.0 + abs(lo_t))
+            limw[3, r] = hi_t + add_tol * (1.0 + abs(hi_t))
