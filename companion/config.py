@@ -96,6 +96,10 @@ class PlannerConfig:
     executor: str = "process"
     # Planner workers; one keeps planning serialised.
     workers: int = 1
+    # Fault injection for tests and drills: hold back the result of the full-replan fallback
+    # (after a failed local replan) this many seconds, as on an overloaded computer. The
+    # braking deadline must then stop the vehicle. 0 in flight.
+    fallback_delay: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -164,6 +168,9 @@ _POSITIVE = {
 }
 
 
+_NON_NEGATIVE = {"planner.fallback_delay"}
+
+
 def _convert(key: str, hint: Any, value: Any, default: Any) -> Any:
     if dataclasses.is_dataclass(default):
         if not isinstance(value, dict):
@@ -213,6 +220,8 @@ def _build(cls: type, table: dict[str, Any], prefix: str = "") -> Any:
             raise ConfigError(key, f"must be one of {', '.join(_CHOICES[key])}, got {value!r}")
         if key in _POSITIVE and value <= 0:
             raise ConfigError(key, f"must be > 0, got {value!r}")
+        if key in _NON_NEGATIVE and value < 0:
+            raise ConfigError(key, f"must be >= 0, got {value!r}")
         kwargs[f.name] = value
     return cls(**kwargs)
 

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -505,6 +505,106 @@ def brake(jet: FloatArray, bounds: Bounds, corridor: Polytope | None, t0: float)
     return result.trajectory, result.message
 
 
+# A snap-limited stop takes about a second even from a slow speed (measured: the braking QP's
+# durations grow 0.2 s * 1.5^k and slow stops land at k = 4), longer from speed.
+MIN_STOP_SECONDS = 1.0
+STOP_SAFETY_FACTOR = 1.5
+BRAKE_MARGIN_SECONDS = 0.1
+
+
+def stop_time_estimate(velocity: FloatArray, acceleration: FloatArray, bounds: Bounds) -> float:
+    """A generous estimate (s) of a verified stop from any of the states (n, 3): |v| / a_max
+    plus |a| / j_max on the worst axis, scaled, never below MIN_STOP_SECONDS."""
+
+    def limit(row: int) -> FloatArray:
+        lim = np.minimum(-bounds.lo[row], bounds.hi[row])
+        return np.where(np.isfinite(lim) & (lim > 0), lim, np.inf)
+
+    t_axis = np.abs(np.atleast_2d(velocity)) / limit(1) + np.abs(np.atleast_2d(acceleration)) / limit(2)
+    return float(max(MIN_STOP_SECONDS, STOP_SAFETY_FACTOR * float(np.max(t_axis))))
+
+
+def brake_deadline(traj: Trajectory, t_now: float, t_hit: float, bounds: Bounds) -> float:
+    """Latest trajectory time at which to start braking, given that `traj` enters an obstacle at
+    t_hit: the time to hit minus a stop (estimated from the states between now and the hit) and
+    a margin. It may lie in the past: brake at once then."""
+    ts = np.linspace(t_now, max(t_now, min(t_hit, traj.t_end)), 9)
+    stop = stop_time_estimate(traj.evaluate(ts, 1), traj.evaluate(ts, 2), bounds)
+    return t_hit - stop - BRAKE_MARGIN_SECONDS
+
+
+@dataclass(frozen=True)
+class StopPlan:
+    trajectory: Trajectory | None  # verified stop to rest, starting at `start` (None: none found)
+    start: float
+    message: str
+    in_free_space: bool  # False: only the dynamic bounds were respected (last resort)
+
+
+def plan_stop(
+    base: Trajectory,
+    starts: Sequence[float],
+    clock: Callable[[], float],
+    obstacles: Sequence[Polytope],
+    mission: MissionSpec | None,
+    bounds: Bounds,
+    lead: float,
+) -> StopPlan:
+    """A verified stop branching off `base` at the latest of `starts` that works.
+
+    `clock()` is the trajectory time now (this runs in a worker thread while `base` is being
+    flown): a start is never earlier than clock() + lead, and a stop whose computation ran past
+    its start (a busy computer) is planned again further ahead. Each start is tried inside a
+    free corridor around the vehicle that excludes every obstacle (inflated by the vehicle
+    radius), so the stop cannot enter one. If none works, the last resorts (`in_free_space`
+    False, and the message says so) are a stop as soon as possible inside the corridor of the
+    flown segment (planned before the newest obstacles), then within the dynamic bounds alone.
+    """
+    reasons: list[str] = []
+    tried: set[float] = set()
+    for want in sorted(starts, reverse=True):
+        for _ in range(3):
+            began = clock()
+            t_b = max(float(want), began + lead)
+            if round(t_b, 4) in tried:
+                break
+            tried.add(round(t_b, 4))
+            jet = _jet_at(base, t_b)
+            corridor = safe_corridor(jet[0], jet[1], obstacles, mission) if mission is not None else None
+            if corridor is None:
+                reasons.append(f"start t={t_b:.3f} s: no free corridor around the vehicle")
+                break
+            traj, why = brake(jet, bounds, corridor, t_b)
+            if traj is None:
+                reasons.append(f"start t={t_b:.3f} s: {why}")
+                break
+            if clock() <= t_b - 0.5 * lead:
+                return StopPlan(traj, t_b, why, True)
+            # Planned too slowly to be swapped in before its start: plan further ahead.
+            lead = max(lead, 2.0 * (clock() - began))
+    detail = "; ".join(reasons) or "no start given"
+    t_b = clock() + lead
+    jet = _jet_at(base, t_b)
+    flown = corridor_at(base, t_b)
+    if flown is not None:
+        traj, why = brake(jet, bounds, flown, t_b)
+        if traj is not None:
+            return StopPlan(traj, t_b, f"no stop fits a free corridor ({detail}); stopping inside the flown "
+                            "segment's corridor", False)
+    traj, why = brake(jet, bounds, None, t_b)
+    if traj is None:
+        return StopPlan(None, t_b, f"{detail}; without a corridor: {why}", False)
+    return StopPlan(traj, t_b, f"no stop fits a free corridor ({detail}); shortest stop within the "
+                    "dynamic bounds only", False)
+
+
+def _jet_at(traj: Trajectory, t: float) -> FloatArray:
+    jet = traj.jet(min(t, traj.t_end))
+    if t >= traj.t_end:
+        jet[1:] = 0.0
+    return jet
+
+
 def corridor_at(traj: Trajectory, t: float) -> Polytope | None:
     if traj.corridors is None:
         return None
@@ -839,3 +939,27 @@ def warm_up(cfg: Config) -> bool:
     spec = mission_from_message({"id": "warm-up", "waypoints": [[1.0, 0.0, -1.0], [1.0, 1.0, -1.0]]}, cfg)
     outcome = start_mission(spec, rest_jet(np.array([0.0, 0.0, -1.0])), 0.0, [], cfg)
     return outcome.ok
+
+
+def check_mission(
+    mission: MissionSpec,
+    initial: FloatArray,
+    t_start: float,
+    obstacles: Sequence[Polytope],
+    cfg: Config,
+) -> Outcome:
+    """start_mission's verdict without the route (which is large to send between processes)."""
+    return replace(start_mission(mission, initial, t_start, obstacles, cfg), route=None)
+
+
+def warm_up_brake(cfg: Config) -> bool:
+    """A stop from speed next to an obstacle: first-call costs of the braking path paid early."""
+    spec = mission_from_message({"id": "warm-up", "waypoints": [[3.0, 0.0, -1.5]]}, cfg)
+    outcome = start_mission(spec, rest_jet(np.array([0.0, 0.0, -1.5])), 0.0, [], cfg)
+    if not outcome.ok or outcome.route is None:
+        return False
+    traj = outcome.route.trajectory
+    eye = np.eye(3)
+    box = Polytope(np.vstack([eye, -eye]), np.array([2.6, 0.5, -1.0, -2.4, 0.5, 2.0]))
+    mid = 0.5 * (traj.t0 + traj.t_end)
+    return plan_stop(traj, [mid], lambda: traj.t0, [box], spec, spec.bounds, 0.05).trajectory is not None

@@ -10,7 +10,11 @@ Invariants:
 - a swap replaces `self.active` with a trajectory equal to the old one up to
   the split time (checked), so the piece being flown never changes;
 - trajectory time is `time.monotonic() - self.t_base`, fixed while we keep
-  control; replans keep it.
+  control; replans keep it;
+- after a pop-up obstacle on the flown path, either a verified replan is swapped
+  in or, by the braking deadline (time to hit minus a stop and a margin), a
+  verified stop planned in parallel; a nearer pop-up meanwhile brings the
+  deadline forward.
 """
 
 from __future__ import annotations
@@ -21,13 +25,16 @@ import contextlib
 import functools
 import json
 import logging
+import logging.handlers
 import math
 import multiprocessing
 import os
+import queue
 import sys
 import time
+from collections.abc import Callable
 from concurrent.futures import BrokenExecutor, Executor, ProcessPoolExecutor, ThreadPoolExecutor
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -48,6 +55,7 @@ from companion.messages import MessageError, decode, warm_validators
 from companion.sdnotify import Notifier
 from companion.setpoints import (
     DeadlineScheduler,
+    GcPacer,
     Setpoint,
     YawPolicy,
     hold_trajectory,
@@ -59,11 +67,17 @@ from planner_core import plan
 from planner_core.changes import AddObstacles
 from planner_core.io import trajectory_to_dict
 from planner_core.problem import Polytope, Problem, Trajectory, rest_jet
+from planner_core.window import disable_kernel
 
 log = logging.getLogger("companion")
 
 S = State
 MAV_LANDED_IN_AIR = 2
+INLINE_DECODE_BYTES = 4096
+# A stop planned for "now" starts this far ahead at least (its QPs take 15-30 ms).
+BRAKE_LEAD = 0.08
+# Start preparing the stop this long before the braking deadline if the replan is still out.
+BRAKE_PREPARE = 0.35
 
 
 def _r(x: float | None, nd: int = 4) -> float | None:
@@ -96,6 +110,65 @@ def encode_trajectory(traj: Trajectory) -> bytes:
     return text.replace('"segments":[]', '"segments":[' + ",".join(parts) + "]", 1).encode()
 
 
+@dataclass(frozen=True)
+class Replanned:
+    ok: bool
+    reason: str = ""
+    blocked: int | None = None  # mission index of a blocked waypoint
+    blocked_message: str = ""
+
+
+class StopGuard:
+    """A verified stop, planned (once started) for the braking deadline in the brake thread."""
+
+    def __init__(self, svc: Service, base: Trajectory, deadline: float, hit: float) -> None:
+        self.svc = svc
+        self.base = base
+        self.deadline = deadline
+        self.hit = hit
+        self.notes: list[str] = []
+        self.future: asyncio.Future[rt.StopPlan] | None = None
+
+    def tighten(self, deadline: float, hit: float, why: str) -> None:
+        """Another obstacle, nearer, arrived during the race: brake for it in time."""
+        if deadline >= self.deadline:
+            return
+        self.deadline, self.hit = deadline, min(self.hit, hit)
+        self.notes.append(why)
+        plan = self.ready()
+        if self.future is not None and (plan is None or plan.trajectory is None or plan.start > deadline):
+            self.future.cancel()  # planned for the later deadline (or still planning for it)
+            self.future = None
+
+    def start(self) -> None:
+        if self.future is None:
+            self.future = self.svc.stop_future(self.base, [self.deadline])
+
+    def ready(self) -> rt.StopPlan | None:
+        f = self.future
+        if f is None or not f.done() or f.cancelled() or f.exception() is not None:
+            return None
+        return f.result()
+
+    def start_time(self) -> float:
+        """When the stop starts: planned, or the deadline while it is not known yet."""
+        plan = self.ready()
+        return self.deadline if plan is None or plan.trajectory is None else plan.start
+
+    async def result(self) -> rt.StopPlan | None:
+        self.start()
+        assert self.future is not None
+        try:
+            return await self.future
+        except Exception as exc:  # a planner bug: the caller falls back to a fresh stop
+            log.exception("stop planning failed: %r", exc)
+            return None
+
+    def cancel(self) -> None:
+        if self.future is not None:
+            self.future.cancel()
+
+
 class Service:
     def __init__(self, cfg: Config, stop: asyncio.Event | None = None) -> None:
         self.cfg = cfg
@@ -103,15 +176,24 @@ class Service:
         self.flight = Flight()
         self.link = MavlinkLink(cfg, self._on_mavlink)
         self.zio: ZenohIO | None = None
+        if cfg.planner.executor == "process":
+            # missions are planned by worker processes (which use the compiled pass); what this
+            # process plans itself (local replans, stops) is a few jets at a time: the numpy
+            # path there keeps numba and LLVM (~70 MB resident) out of the service process
+            disable_kernel("companion service process: long plans run in the planner workers")
         self.pool: Executor = make_planner_pool(cfg)
         # Replans and braking never queue behind a long mission plan: their own worker.
-        self.urgent_pool: Executor = make_planner_pool(cfg, workers=1)
+        self.urgent_pool: Executor = make_planner_pool(cfg, workers=1, nice=URGENT_NICE)
         # Local replans take a few ms: run them in this process (a thread; the short GIL
         # switch interval keeps the setpoint loop on time) rather than pay the process pool's
         # pickling and hand-offs, which cost more than the replan itself.
         self.replan_pool = ThreadPoolExecutor(1, thread_name_prefix="replan")
         self.io_pool = ThreadPoolExecutor(1, thread_name_prefix="encode")
         self.decode_pool = ThreadPoolExecutor(1, thread_name_prefix="decode")
+        # Stops are planned here, never behind a replan (in the urgent process) that may be
+        # what is late: two threads, so a fresh stop need not wait for a prepared one.
+        self.brake_pool = ThreadPoolExecutor(2, thread_name_prefix="brake")
+        self.gc = GcPacer()
         self._traj_seq = 0
         self._traj_published = 0
         self._traj_bytes: bytes | None = None
@@ -145,6 +227,10 @@ class Service:
         self.periods: collections.deque[float] = collections.deque(maxlen=1000)
         self._status_dirty = True
         self._in_start = False
+        self._ordered: asyncio.Queue[tuple[str, bytes, float]] = asyncio.Queue()
+        self._ticked = asyncio.Event()
+        self._race: StopGuard | None = None  # the replan racing a braking deadline, if any
+        self._log_listener: logging.handlers.QueueListener | None = None
 
     # -- small helpers -------------------------------------------------------
 
@@ -177,7 +263,7 @@ class Service:
         except BrokenExecutor:
             # The planner process died (OOM, signal): start a fresh one for the next request.
             if urgent:
-                self.urgent_pool = make_planner_pool(self.cfg, workers=1)
+                self.urgent_pool = make_planner_pool(self.cfg, workers=1, nice=URGENT_NICE)
             else:
                 self.pool = make_planner_pool(self.cfg)
             self.event("error", "the planner process died; restarted it (this request failed)")
@@ -244,8 +330,36 @@ class Service:
         self.active = new
         if arrived is not None:
             self._latency_mark = (arrived, new, what)
+        self.send_now()
         self.publish_trajectory()
         return True
+
+    def send_now(self) -> None:
+        """One setpoint from the active trajectory at once, off the periodic grid (which is
+        kept as it is): a new plan reaches the autopilot without waiting up to a period for
+        the next tick. The periodic statistics ignore it."""
+        if not self.streaming or self.active is None or self.t_base is None:
+            return
+        now = time.monotonic()
+        try:
+            self.link.send_setpoint(sample(self.active, now - self.t_base, self.yaw))
+        except OSError as exc:  # the periodic loop reports a dead link; never fail a swap on it
+            log.warning("immediate setpoint not sent: %s", exc)
+            return
+        self._report_latency(now, immediate=True)
+
+    def _report_latency(self, now: float, immediate: bool) -> None:
+        mark = self._latency_mark
+        if mark is None or mark[1] is not self.active:
+            return
+        self._latency_mark = None
+        self.setpoint_latency = now - mark[0]
+        # sent_mono: CLOCK_MONOTONIC at the send (shared by every process on this machine), so a
+        # benchmark can find this setpoint in a capture and leave it out of period statistics.
+        self.event("latency", f"{mark[2]}: first setpoint of the new plan "
+                   f"{self.setpoint_latency * 1000:.1f} ms after the message",
+                   what=mark[2], latency_ms=round(self.setpoint_latency * 1000, 2),
+                   immediate=immediate, sent_mono=round(now, 6))
 
     def publish_trajectory(self) -> None:
         """Encode off the loop (json.dumps of a long plan holds the GIL), then publish."""
@@ -286,16 +400,20 @@ class Service:
                         log.warning("setpoint gap %.1f ms (deadline late by %.1f ms)", gap * 1000,
                                     (now - deadline) * 1000)
                 self.last_sp, self.last_sp_time = sp, now
-                mark = self._latency_mark
-                if mark is not None and mark[1] is self.active:
-                    self._latency_mark = None
-                    self.setpoint_latency = now - mark[0]
-                    self.event("latency", f"{mark[2]}: first setpoint of the new plan "
-                               f"{self.setpoint_latency * 1000:.1f} ms after the message",
-                               what=mark[2], latency_ms=round(self.setpoint_latency * 1000, 2))
+                self._report_latency(now, immediate=False)
                 self._progress(t)
             else:
                 self.last_sp = None
+            # Right after a send, the most slack until the next deadline: collect here, never
+            # wherever an allocation (in any thread) would have triggered it.
+            self.gc.after_send(time.monotonic(), deadline + 1.0 / rate)
+            self._ticked.set()  # wakes the waiters in after_tick(); they run once we sleep
+            self._ticked.clear()
+            if self.gc.last is not None:
+                gen, took = self.gc.last
+                self.gc.last = None
+                if took > 0.003:
+                    log.warning("garbage collection (generation %d) took %.1f ms", gen, took * 1000)
 
     def _progress(self, t: float) -> None:
         st = self.flight.state
@@ -313,10 +431,16 @@ class Service:
             self.check_link()
             await sleep_until(sched.next_deadline(time.monotonic()), spin=0.0)
 
+    async def after_tick(self) -> None:
+        """Wait for the moment right after the next setpoint tick, when the next deadline is
+        furthest away: periodic publishing done then cannot make a setpoint late."""
+        await self._ticked.wait()
+
     async def telemetry_loop(self) -> None:
         sched = DeadlineScheduler(time.monotonic(), 20.0)
         while not self.stop.is_set():
             await sleep_until(sched.next_deadline(time.monotonic()), spin=0.0)
+            await self.after_tick()
             st = self.link.state
             if st.has_position and self.zio is not None:
                 self.zio.publish("telemetry", {
@@ -334,6 +458,7 @@ class Service:
         last = 0.0
         while not self.stop.is_set():
             await asyncio.sleep(0.05)
+            await self.after_tick()
             now = time.monotonic()
             if self._status_dirty or now - last >= 0.5:
                 self._status_dirty = False
@@ -380,6 +505,7 @@ class Service:
             "setpoints_sent": self.link.sent_setpoints,
             "setpoint_gap_max_ms": round(self.setpoint_gap_max * 1000, 2),
             "setpoint_period_ms": period_stats(self.periods),
+            "gc_pause_max_ms": round(self.gc.worst * 1000, 2),
         }
 
     # -- autopilot reports ---------------------------------------------------
@@ -434,26 +560,47 @@ class Service:
     # -- inbound messages -------------------------------------------------------
 
     async def inbox_loop(self) -> None:
+        """Small obstacle messages (pop-ups) are handled at once; the rest keep their order in
+        `ordered_loop`, where one large mission may take a while to validate: a pop-up must not
+        wait behind it. (Obstacle updates do not depend on a mission being loaded first: a
+        mission is planned against the obstacles known when it is planned.)"""
         assert self.zio is not None
         while not self.stop.is_set():
             kind, payload, arrived = await self.zio.inbox.get()
-            lim = self.cfg.limits
-            try:
-                # JSON Schema validation is pure Python (~0.1 ms per waypoint): off the loop,
-                # in one thread so messages keep their order.
-                assert self.loop is not None
-                obj = await self.loop.run_in_executor(
-                    self.decode_pool, functools.partial(
-                        decode, kind, payload, max_bytes=lim.max_message_bytes,
-                        max_waypoints=lim.max_waypoints, max_obstacles=lim.max_obstacles))
-            except MessageError as exc:
-                self.reject(kind, exc.field, exc.reason, bytes=len(payload))
-                continue
-            handler = {"mission": self.on_mission, "obstacles": self.on_obstacles,
-                       "change": self.on_change, "command": self.on_command}[kind]
-            task = asyncio.create_task(self._guard(kind, handler(obj, arrived)))
-            self.tasks.append(task)
-            self.tasks = [t for t in self.tasks if not t.done()]
+            if kind == "obstacles" and len(payload) <= INLINE_DECODE_BYTES:
+                self._dispatch(kind, payload, arrived, self._decode(kind, payload))
+            else:
+                self._ordered.put_nowait((kind, payload, arrived))
+
+    async def ordered_loop(self) -> None:
+        while not self.stop.is_set():
+            kind, payload, arrived = await self._ordered.get()
+            job = functools.partial(self._decode, kind, payload)
+            # JSON Schema validation is pure Python (~0.1 ms per waypoint): large messages off
+            # the loop, small ones (a command: well under a millisecond) right here, which
+            # spares two thread hand-offs. One message at a time, so the order is kept.
+            assert self.loop is not None
+            obj = job() if len(payload) <= INLINE_DECODE_BYTES else \
+                await self.loop.run_in_executor(self.decode_pool, job)
+            self._dispatch(kind, payload, arrived, obj)
+
+    def _decode(self, kind: str, payload: bytes) -> dict[str, Any] | MessageError:
+        lim = self.cfg.limits
+        try:
+            return decode(kind, payload, max_bytes=lim.max_message_bytes,
+                          max_waypoints=lim.max_waypoints, max_obstacles=lim.max_obstacles)
+        except MessageError as exc:
+            return exc
+
+    def _dispatch(self, kind: str, payload: bytes, arrived: float, obj: dict[str, Any] | MessageError) -> None:
+        if isinstance(obj, MessageError):
+            self.reject(kind, obj.field, obj.reason, bytes=len(payload))
+            return
+        handler = {"mission": self.on_mission, "obstacles": self.on_obstacles,
+                   "change": self.on_change, "command": self.on_command}[kind]
+        task = asyncio.create_task(self._guard(kind, handler(obj, arrived)))
+        self.tasks.append(task)
+        self.tasks = [t for t in self.tasks if not t.done()]
 
     async def _guard(self, kind: str, coro: Any) -> None:
         try:
@@ -478,7 +625,10 @@ class Service:
         if st.has_position:
             jet = rest_jet(st.position)
             t0 = time.perf_counter()
-            outcome = await self.in_pool(rt.start_mission, spec, jet, 0.0, self.obstacle_list(), self.cfg)
+            # The check only needs the verdict: a 1000-waypoint route coming back would be
+            # unpickled here in one GIL-holding call of many milliseconds.
+            outcome = await self.in_pool(rt.check_mission, replace(spec, raw={}), jet, 0.0,
+                                         self.obstacle_list(), self.cfg)
             plan_ms = round((time.perf_counter() - t0) * 1000, 2)
             if not outcome.ok:
                 self._reject_outcome("mission", spec, outcome)
@@ -504,7 +654,8 @@ class Service:
                 if t_split >= base.t_end:
                     jet[1:] = 0.0
                 t0 = time.perf_counter()
-                outcome = await self.in_pool(rt.start_mission, spec, jet, t_split, self.obstacle_list(), self.cfg)
+                outcome = await self.in_pool(rt.start_mission, replace(spec, raw={}), jet, t_split,
+                                             self.obstacle_list(), self.cfg)
                 self.plan_latency = time.perf_counter() - t0
                 if not outcome.ok or outcome.route is None:
                     self._reject_outcome("mission", spec, outcome)
@@ -538,18 +689,35 @@ class Service:
             del self.obstacles[k]
         self.obstacles.update(added)
         note = f"; unknown ids ignored: {unknown}" if unknown else ""
-        self.event("accepted", f"obstacles: added {sorted(added)}, removed {sorted(removed)}{note}",
-                   key="obstacles", added=sorted(added), removed=sorted(removed))
+        announce = functools.partial(
+            self.event, "accepted", f"obstacles: added {sorted(added)}, removed {sorted(removed)}{note}",
+            key="obstacles", added=sorted(added), removed=sorted(removed))
         if added:
-            await self.avoid(list(added.values()), sorted(added), arrived)
+            # said once the replan is under way: the event costs time a pop-up does not have
+            await self.avoid(list(added.values()), sorted(added), arrived, announce)
+        else:
+            announce()
 
-    async def avoid(self, new: list[Polytope], ids: list[str], arrived: float) -> None:
+    async def avoid(self, new: list[Polytope], ids: list[str], arrived: float,
+                    announce: Callable[[], None] = lambda: None) -> None:
+        race = self._race
+        if race is not None and self.active is race.base and self.route is not None and self.t_base is not None:
+            # A replan for an earlier pop-up holds the lock until it is swapped in or its
+            # braking deadline: this obstacle may need the stop sooner.
+            now = self.now_t()
+            hit = rt.first_hit(self.active, now, new, self.route.mission.radius)
+            if hit is not None:
+                race.tighten(rt.brake_deadline(self.active, now, hit, self.route.mission.bounds), hit,
+                             f"deadline brought forward by obstacles {ids} (hit at t={hit:.2f} s)")
         async with self.plan_lock:
             if self.flight.state is not S.STREAMING or self.route is None or self.active is None:
+                announce()
                 return
             now = self.now_t()
             radius = self.route.mission.radius
             hit = rt.first_hit(self.active, now, new, radius)
+            if hit is None or hit < now + self.cfg.planner.split_ahead:
+                announce()
             if hit is None:
                 self.event("obstacles_clear", f"obstacles {ids}: the current trajectory stays clear; no replan",
                            obstacles=ids)
@@ -561,24 +729,89 @@ class Service:
             known = [p for p in self.obstacle_list() if not any(p is q for q in new)]
             known += [p for _, p in self.route.mission.obstacles]
             edit = rt.LocalEdit((rt_add_obstacles(new),), f"avoid obstacles {ids}")
-            ok = await self._replan(edit, known, arrived, f"obstacles {ids}", hit=hit)
-            if not ok:
+            await self._replan_or_brake(edit, known, arrived, f"obstacles {ids}", hit, announce)
+
+    async def _replan_or_brake(self, edit: rt.LocalEdit, known: list[Polytope], arrived: float, what: str,
+                               hit: float, announce: Callable[[], None]) -> None:
+        """Race the replan against the braking deadline: the latest start of a stop that ends
+        before the flown plan would enter the obstacle. A verified stop is prepared in parallel
+        (at once if the deadline is near, else when the local replan fails or runs late) and
+        swapped in at its start unless a verified replan was swapped in first."""
+        assert self.route is not None and self.active is not None
+        base, bounds, now = self.active, self.route.mission.bounds, self.now_t()
+        guard = StopGuard(self, base, hit, hit)
+        notes: list[str] = []
+        replan = asyncio.create_task(self._replan(edit, known, arrived, what, hit=hit, on_fallback=guard.start,
+                                                  notes=notes))
+        await asyncio.sleep(0)  # the replan is handed to its thread first; the rest overlaps it
+        guard.deadline = rt.brake_deadline(base, now, hit, bounds)
+        announce()
+        self._race = guard
+        try:
+            await self._race_deadline(guard, replan, notes, arrived, what)
+        finally:
+            self._race = None
+
+    async def _race_deadline(self, guard: StopGuard, replan: asyncio.Task[Replanned], notes: list[str],
+                             arrived: float, what: str) -> None:
+        # Swap with a few periods to spare: the loop may be late, and swap() refuses a split
+        # less than half a period ahead.
+        spare = 2.0 / self.cfg.setpoints.rate_hz
+        while not replan.done():
+            if self.flight.state not in AIRBORNE_CONTROL:  # e.g. a pilot took over meanwhile
+                replan.cancel()
+                guard.cancel()
                 return
+            wake = guard.start_time() - spare
+            if guard.future is None:
+                wake = min(wake, guard.deadline - BRAKE_PREPARE)
+            delay = wake - self.now_t()
+            if delay <= 0:
+                if guard.future is None:
+                    guard.start()
+                    continue
+                break
+            waiting: set[asyncio.Future[Any]] = {replan}
+            if guard.future is not None and not guard.future.done():
+                waiting.add(guard.future)
+            # at most a tick at a time: another pop-up may bring the deadline forward
+            await asyncio.wait(waiting, timeout=min(delay, spare / 2), return_when=asyncio.FIRST_COMPLETED)
+        if replan.done():
+            failed = None if replan.cancelled() else replan.exception()
+            if failed is not None:
+                log.error("replan failed: %r", failed)
+            result = Replanned(False, f"replan error: {failed!r}") if failed is not None else replan.result()
+            if result.ok:
+                guard.cancel()
+                return
+            why = (f"{what}: waypoint {result.blocked} is blocked ({result.blocked_message})"
+                   if result.blocked is not None else f"{what}: no safe plan ({result.reason})")
+            await self._brake(why, arrived, blocked=result.blocked, prepared=guard.ready())
+            return
+        replan.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await replan
+        pending = "; ".join([*notes, *guard.notes, "the replan is still running"])
+        await self._brake_at_deadline(guard, guard.hit, arrived,
+                                      f"{what}: no verified replan by the braking deadline t={guard.deadline:.2f} s "
+                                      f"(the plan enters the obstacle at t={guard.hit:.2f} s; {pending})")
 
     async def _replan(self, edit: rt.LocalEdit, known: list[Polytope], arrived: float, what: str,
-                      hit: float | None = None, remainder: tuple[Any, Any, Any] | None = None) -> bool:
-        """Local replan, then a full replan of the remainder, then (obstacles) braking or
-        (changes: the current plan is still safe) a rejection. Holds plan_lock."""
-        brake = remainder is None
+                      hit: float | None = None, remainder: tuple[Any, Any, Any] | None = None,
+                      on_fallback: Any = None, notes: list[str] | None = None) -> Replanned:
+        """Local replan, then a full replan of the remainder; swapped in if verified. The caller
+        holds plan_lock and decides what a failure means (braking, or a rejected change).
+        `notes` collects what failed so far, for a caller that gives up waiting."""
         assert self.route is not None
-        messages = []
+        messages = notes if notes is not None else []
         for attempt in range(3):
             if self.active is None or self.route is None or self.flight.state not in AIRBORNE_CONTROL:
-                return False
+                return Replanned(False, "no longer in control")
             base, route = self.active, self.route
             now = self.now_t()
             t_split = now + self.cfg.planner.split_ahead * (2 ** attempt)
             if hit is not None and t_split >= hit:
+                messages.append("too close to the obstacle to replan")
                 break
             t0 = time.perf_counter()
             waited = time.monotonic() - arrived
@@ -586,21 +819,20 @@ class Service:
             method = "local"
             if not outcome.ok:
                 messages.append(f"local replan: {outcome.message}")
+                if on_fallback is not None:
+                    on_fallback()
                 obstacles = self.obstacle_list()
-                if remainder is None:
-                    outcome = await self.in_pool(rt.replan_remainder, route, base, t_split, obstacles, self.cfg,
-                                                 urgent=True)
-                else:
-                    outcome = await self.in_pool(rt.replan_remainder, route, base, t_split, obstacles, self.cfg,
-                                                 *remainder, urgent=True)
+                extra = () if remainder is None else remainder
+                outcome = await self.in_pool(rt.replan_remainder, route, base, t_split, obstacles, self.cfg,
+                                             *extra, urgent=True)
+                if self.cfg.planner.fallback_delay > 0:
+                    await asyncio.sleep(self.cfg.planner.fallback_delay)
                 method = "remainder"
             self.replan_latency = time.perf_counter() - t0
             if not outcome.ok or outcome.route is None:
                 messages.append(f"full replan: {outcome.message}")
-                if outcome.blocked_waypoint is not None and brake:
-                    await self._brake(f"{what}: waypoint {outcome.blocked_waypoint} is blocked "
-                                      f"({outcome.message})", arrived, blocked=outcome.blocked_waypoint)
-                    return False
+                if outcome.blocked_waypoint is not None:
+                    return Replanned(False, "; ".join(messages), outcome.blocked_waypoint, outcome.message)
                 break
             if self.active is not base or self.route is not route:
                 continue
@@ -618,45 +850,75 @@ class Service:
                        compute_ms=_r(float(outcome.stats.get("plan_seconds", math.nan)) * 1000, 2),
                        before_replan_ms=round(waited * 1000, 2),
                        resolved_jets=outcome.stats.get("resolved_jets"), detour=outcome.stats.get("detour"))
-            return True
-        if brake:
-            await self._brake(f"{what}: no safe plan ({'; '.join(messages) or 'too close'})", arrived)
-        else:
-            self.reject("change", "", f"{what}: no verified plan ({'; '.join(messages)}); the current plan continues")
-        return False
+            return Replanned(True)
+        return Replanned(False, "; ".join(messages) or "too close")
 
-    async def _brake(self, reason: str, arrived: float | None, blocked: int | None = None) -> None:
-        """Fly a verified stop inside a free corridor; hold; say why."""
+    def stop_future(self, base: Trajectory, starts: list[float]) -> asyncio.Future[rt.StopPlan]:
+        """Plan a verified stop off `base` in the brake thread (see route.plan_stop)."""
+        assert self.loop is not None and self.t_base is not None
+        t_base = self.t_base
+        mission = self.route.mission if self.route is not None else None
+        obstacles = self.obstacle_list() + ([p for _, p in mission.obstacles] if mission else [])
+        bounds = mission.bounds if mission is not None else rt.bounds_from(None, self.cfg)
+        lead = max(BRAKE_LEAD, 3.0 / self.cfg.setpoints.rate_hz)
+        return self.loop.run_in_executor(self.brake_pool, rt.plan_stop, base, starts,
+                                         lambda: time.monotonic() - t_base, obstacles, mission, bounds, lead)
+
+    def _commit_stop(self, base: Trajectory, plan: rt.StopPlan | None, arrived: float | None) -> bool:
+        if plan is None or plan.trajectory is None or self.active is not base:
+            return False
+        return self.swap(rt.splice(base, plan.trajectory), plan.start, arrived, "braking")
+
+    async def _brake(self, reason: str, arrived: float | None, blocked: int | None = None,
+                     prepared: rt.StopPlan | None = None) -> None:
+        """Fly a verified stop inside a free corridor, starting as soon as one is planned; else
+        the `prepared` one if it still starts ahead; else hold at the measured position. Say why."""
         if self.active is None or self.t_base is None:
             return
         base = self.active
-        t_split = self.now_t() + 2.0 / self.cfg.setpoints.rate_hz
-        jet = base.jet(t_split)
-        mission = self.route.mission if self.route is not None else None
-        obstacles = self.obstacle_list() + ([p for _, p in mission.obstacles] if mission else [])
-        corridor = None
-        if mission is not None:
-            corridor = rt.safe_corridor(jet[0], jet[1], obstacles, mission)
-        if corridor is None:
-            corridor = rt.corridor_at(base, t_split)
-        traj, why = await self.in_pool(rt.brake, jet, self.route.mission.bounds if self.route else
-                                       rt.bounds_from(None, self.cfg), corridor, t_split, urgent=True)
-        if traj is None and corridor is not None:
-            # No stop fits the free corridor (e.g. already inside an inflated pop-up): the
-            # shortest dynamically verified stop beats an abrupt hold; say so.
-            traj, why = await self.in_pool(rt.brake, jet, self.route.mission.bounds if self.route else
-                                           rt.bounds_from(None, self.cfg), None, t_split, urgent=True)
-            if traj is not None:
-                why = "no stop fits the free corridor; shortest stop within the dynamic bounds only"
-        swapped = traj is not None and self.swap(rt.splice(base, traj), t_split, arrived, "braking")
+        try:
+            plan = await self.stop_future(base, [self.now_t()])
+        except Exception as exc:  # a planner bug must still end in a hold, not in flying on
+            log.exception("stop planning failed")
+            plan = rt.StopPlan(None, self.now_t(), f"stop planning failed: {exc!r}", False)
+        why = plan.message
+        swapped = self._commit_stop(base, plan, arrived)
+        if not swapped and self._commit_stop(base, prepared, arrived):
+            assert prepared is not None
+            swapped, plan, why = True, prepared, f"{why}; the stop prepared for the braking deadline instead"
         if not swapped:
-            st = self.link.state
-            self.active = hold_trajectory(st.position, self.now_t())
-            self.publish_trajectory()
+            self._hold_here()
             why = f"no verified braking trajectory ({why}); holding at the measured position"
         self.go(S.BRAKING, reason)
         self.event("braking", f"{reason}; braking to a stop and holding", reason=reason,
-                   blocked_waypoint=blocked, detail=why)
+                   blocked_waypoint=blocked, detail=why, **self._stop_fields(plan if swapped else None))
+
+    async def _brake_at_deadline(self, guard: StopGuard, hit: float, arrived: float, reason: str) -> None:
+        """The replan is late: swap in the prepared stop (planned for the deadline)."""
+        plan = await guard.result()
+        swap_time = self.now_t()
+        if not self._commit_stop(guard.base, plan, arrived):
+            await self._brake(reason + "; the prepared stop was not usable: "
+                              + ("none planned" if plan is None else plan.message), arrived)
+            return
+        assert plan is not None
+        self.go(S.BRAKING, reason)
+        self.event("braking", f"{reason}; braking to a stop and holding", reason=reason, blocked_waypoint=None,
+                   detail=plan.message, deadline=round(guard.deadline, 4), hit_time=round(hit, 4),
+                   swap_time=round(swap_time, 4), **self._stop_fields(plan))
+
+    @staticmethod
+    def _stop_fields(plan: rt.StopPlan | None) -> dict[str, Any]:
+        if plan is None or plan.trajectory is None:
+            return {}
+        return {"brake_start": round(plan.start, 4), "stop_time": round(plan.trajectory.t_end, 4),
+                "stop_position": _vec(plan.trajectory.control_points[-1, -1]), "in_free_space": plan.in_free_space}
+
+    def _hold_here(self) -> None:
+        """Hold at the measured position (verified by construction: it does not move)."""
+        self.active = hold_trajectory(self.link.state.position, self.now_t())
+        self.send_now()
+        self.publish_trajectory()
 
     # change ------------------------------------------------------------------
 
@@ -670,8 +932,13 @@ class Service:
             edit = rt.local_edit(self.route, change, t_split)
             remainder = rt.apply_change(self.route, change, t_split, self.cfg)[:3]
             known = self.obstacle_list() + [p for _, p in self.route.mission.obstacles]
-            if await self._replan(edit, known, arrived, f"change ({edit.description})", remainder=remainder):
+            what = f"change ({edit.description})"
+            result = await self._replan(edit, known, arrived, what, remainder=remainder)
+            if result.ok:
                 self.event("accepted", f"change: {edit.description}", key="change")
+            else:
+                # The current plan is still safe: a change that cannot be planned is refused.
+                self.reject("change", "", f"{what}: no verified plan ({result.reason}); the current plan continues")
 
     # commands ----------------------------------------------------------------
 
@@ -877,6 +1144,9 @@ class Service:
 
     async def run(self) -> None:
         self.loop = asyncio.get_running_loop()
+        # Log output (a file or journald on a busy disk) is written by a thread of its own;
+        # started before the realtime switch, so that thread runs at normal priority.
+        self._log_listener = log_off_loop()
         # The planner thread holds the GIL in pure-Python stretches; a short
         # switch interval bounds how long the setpoint loop can wait for it.
         sys.setswitchinterval(0.0005)
@@ -890,8 +1160,12 @@ class Service:
         # Start the helper threads now, so they do not inherit the loop's realtime priority.
         await self.loop.run_in_executor(self.io_pool, int, 0)
         await self.loop.run_in_executor(self.decode_pool, warm_validators)
+        await asyncio.gather(*(self.loop.run_in_executor(self.brake_pool, rt.warm_up_brake, self.cfg)
+                               for _ in range(2)))
         set_realtime(self.cfg.setpoints.realtime_priority)
-        loops = [self.setpoint_loop(), self.heartbeat_loop(), self.telemetry_loop(), self.status_loop(), self.inbox_loop()]
+        self.gc.start(time.monotonic())
+        loops = [self.setpoint_loop(), self.heartbeat_loop(), self.telemetry_loop(), self.status_loop(),
+                 self.inbox_loop(), self.ordered_loop()]
         runners = [asyncio.create_task(c) for c in loops]
         self.notifier.ready(f"vehicle {self.cfg.vehicle.id}: zenoh and mavlink up")
         self.event("started", f"companion for {self.cfg.vehicle.id} started", mavlink=self.cfg.mavlink.url)
@@ -916,6 +1190,9 @@ class Service:
             self.io_pool.shutdown(wait=False, cancel_futures=True)
             self.replan_pool.shutdown(wait=False, cancel_futures=True)
             self.decode_pool.shutdown(wait=False, cancel_futures=True)
+            self.brake_pool.shutdown(wait=False, cancel_futures=True)
+            self.gc.stop()
+            restore_logging(self._log_listener)
 
 
 def rt_add_obstacles(new: list[Polytope]) -> Any:
@@ -943,10 +1220,52 @@ def set_realtime(priority: int) -> None:
         log.warning("realtime_priority %d not applied (%s); running with normal scheduling", priority, exc)
 
 
-def make_planner_pool(cfg: Config, workers: int | None = None) -> Executor:
+def log_off_loop() -> logging.handlers.QueueListener | None:
+    """Route the root logger's handlers through a queue served by a listener thread: a log call
+    on the loop then only formats and enqueues, it never waits on a write."""
+    root = logging.getLogger()
+    handlers = [h for h in root.handlers if not isinstance(h, logging.handlers.QueueHandler)]
+    if not handlers:
+        return None
+    q: queue.SimpleQueue[logging.LogRecord] = queue.SimpleQueue()
+    listener = logging.handlers.QueueListener(q, *handlers, respect_handler_level=True)
+    for h in handlers:
+        root.removeHandler(h)
+    root.addHandler(logging.handlers.QueueHandler(q))
+    listener.start()
+    return listener
+
+
+def restore_logging(listener: logging.handlers.QueueListener | None) -> None:
+    if listener is None:
+        return
+    root = logging.getLogger()
+    for qh in [h for h in root.handlers if isinstance(h, logging.handlers.QueueHandler)]:
+        root.removeHandler(qh)
+    listener.stop()  # writes out what is still queued
+    for h in listener.handlers:
+        root.addHandler(h)
+
+
+# Nice increments (relative to the service's own, e.g. systemd's Nice=-5) of the planner
+# processes: mission planning yields the CPU to the setpoint loop's process on a busy computer;
+# the urgent worker (replans, the fallback after a failed local replan) less so, as it races a
+# braking deadline, but still behind the loop.
+PLANNER_NICE = 10
+URGENT_NICE = 3
+
+
+def background_priority(increment: int) -> None:
+    with contextlib.suppress(OSError):
+        os.nice(increment)
+
+
+def make_planner_pool(cfg: Config, workers: int | None = None, nice: int = PLANNER_NICE) -> Executor:
     n = cfg.planner.workers if workers is None else workers
     if cfg.planner.executor == "process":
-        return ProcessPoolExecutor(n, mp_context=multiprocessing.get_context("spawn"))
+        return ProcessPoolExecutor(n, mp_context=multiprocessing.get_context("spawn"),
+                                   initializer=background_priority, initargs=(nice,))
+    # Threads keep normal priority: a low-priority thread holding the GIL would hold it longer.
     return ThreadPoolExecutor(n, thread_name_prefix="planner")
 
 

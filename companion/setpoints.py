@@ -9,6 +9,7 @@ stale setpoints in a burst helps nobody) and the grid is kept.
 from __future__ import annotations
 
 import asyncio
+import gc
 import math
 import time
 from collections.abc import Callable
@@ -88,3 +89,64 @@ def sample(traj: Trajectory, t: float, yaw: YawPolicy) -> Setpoint:
         # Past the end the trajectory is at rest by construction; say so exactly.
         jet[1:] = 0.0
     return Setpoint(jet[0].copy(), jet[1].copy(), jet[2].copy(), yaw(jet[1]))
+
+
+class GcPacer:
+    """Garbage collection at the setpoint loop's pace.
+
+    CPython's automatic collection starts in whichever thread allocates past a threshold and
+    holds the GIL for the whole pass, so a pass over a big heap (a decoded 1000-waypoint
+    mission, its route) can land in the middle of a tick. `start()` freezes the start-up heap
+    (never scanned again) and turns automatic collection off; the loop then calls `after_send`
+    right after each setpoint, when the next deadline is furthest away: a young collection once
+    enough objects have piled up, an older one every few of those, a full one every
+    `full_every` seconds, each only with `slack` seconds left before the next deadline.
+    """
+
+    def __init__(self, young: int = 2000, full_every: float = 5.0, slack: float = 0.008,
+                 clock: Callable[[], float] = time.perf_counter) -> None:
+        self.young = young
+        self.full_every = full_every
+        self.slack = slack
+        self.clock = clock
+        self.enabled = False
+        self.last_full = -math.inf
+        self.worst = 0.0  # longest collection so far (s)
+        self.collections = [0, 0, 0]
+        self.last: tuple[int, float] | None = None  # (generation, seconds) of the latest collection
+
+    def start(self, now: float) -> None:
+        gc.collect()
+        gc.freeze()
+        gc.disable()
+        self.enabled = True
+        self.last_full = now
+
+    def stop(self) -> None:
+        if self.enabled:
+            self.enabled = False
+            gc.enable()
+
+    def due(self, now: float) -> int | None:
+        """The generation to collect now, or None."""
+        if now - self.last_full >= self.full_every:
+            return 2
+        young, older, _ = gc.get_count()
+        if young < self.young:
+            return None
+        return 1 if older >= 10 else 0
+
+    def after_send(self, now: float, next_deadline: float) -> None:
+        if not self.enabled or next_deadline - now < self.slack:
+            return
+        gen = self.due(now)
+        if gen is None:
+            return
+        t0 = self.clock()
+        gc.collect(gen)
+        took = self.clock() - t0
+        self.worst = max(self.worst, took)
+        self.last = (gen, took)
+        self.collections[gen] += 1
+        if gen == 2:
+            self.last_full = now

@@ -48,11 +48,27 @@ ADD_TOL = 1e-12  # relative: a row outside its tightened limit by more joins the
 _ORD = np.repeat(np.arange(1, 5), 3).astype(float)
 
 
-@lru_cache(maxsize=1)
+_kernel_off: list[str] = []  # set by disable_kernel: this process never loads numba
+
+
+def disable_kernel(reason: str) -> None:
+    """Plan without the compiled pass in this process from now on, and never import numba
+    (~70 MB resident): for a process that only replans a few jets at a time and hands long
+    plans to worker processes (the companion's main process)."""
+    _kernel_off[:] = [reason]
+
+
 def _kernel_or_reason() -> ModuleType | str:
-    """`window_kernel`, or why it cannot run here. numba needs memory it can make executable;
+    """`window_kernel`, or why it is not used here. numba needs memory it can make executable;
     a W^X policy (systemd's MemoryDenyWriteExecute=yes, SELinux execmem) refuses it at import.
     Without it every window takes the numpy + daqp path: same QPs, same checks, ~8x slower."""
+    if _kernel_off:
+        return _kernel_off[0]
+    return _load_kernel()
+
+
+@lru_cache(maxsize=1)
+def _load_kernel() -> ModuleType | str:
     try:
         from planner_core import window_kernel
     except (ImportError, OSError) as exc:

@@ -150,3 +150,20 @@ def test_without_the_kernel_every_window_takes_the_daqp_path(monkeypatch: pytest
     scale = np.abs(comp.trajectory.control_points).max()
     np.testing.assert_allclose(slow.trajectory.control_points, comp.trajectory.control_points, atol=1e-8 * scale)
     assert verify(slow.trajectory, problem).ok
+
+
+def test_a_process_can_plan_without_ever_loading_numba() -> None:
+    """The companion's service process plans small replans itself and leaves long plans to
+    worker processes: with the kernel disabled it plans, and numba (~70 MB) is never imported."""
+    import subprocess
+    import sys
+
+    code = (
+        "import sys\n"
+        "from planner_core.window import disable_kernel\n"
+        "disable_kernel('service process')\n"
+        "from planner_core.iterative import warm_up\n"
+        "print(warm_up(), 'numba' in sys.modules, 'llvmlite' in sys.modules)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
+    assert out.stdout.split() == ["service", "process", "False", "False"]
