@@ -136,18 +136,21 @@ class WindowSolver:
         # per axis (10 x 10) and spread over the 3 axes: the same cost for each
         k10 = 2.0 * cost_matrices(cache.durations, cost_order)  # (S, 10, 10), Hessian of z'Kz
         free = np.r_[1:5, 6:10]
-        c24 = np.concatenate([cs[:-1], cs[1:]], axis=1)  # (S, 24)
-        self.k24 = _kron3(k10[:, free][:, :, free]) * c24[:, :, None] * c24[:, None, :]
+        # column scales are the same on every axis (jet_scales): scale the 8 x 8 per-axis blocks,
+        # then spread them (kron with I3) once
+        c8 = np.concatenate([cs[:-1, ::3], cs[1:, ::3]], axis=1)  # (S, 8)
+        k8 = k10[:, free][:, :, free] * c8[:, :, None] * c8[:, None, :]
+        self.k24 = _kron3(k8)
         w = problem.waypoints
         # position part of the gradient: K[free, 0] p0 + K[free, 5] p1, per axis
         gpos = k10[:, free, 0, None] * w[:-1, None, :] + k10[:, free, 5, None] * w[1:, None, :]
-        self.qpos = gpos.reshape(-1, 2 * NV) * c24
+        self.qpos = (gpos * c8[:, :, None]).reshape(-1, 2 * NV)
         # gradient from a fixed neighbour's derivatives (unscaled columns: they multiply jets)
-        self.k_ba = _kron3(k10[:, 6:10, 1:5]) * cs[1:, :, None]  # end-jet rows x start-jet derivatives
-        self.k_ab = _kron3(k10[:, 1:5, 6:10]) * cs[:-1, :, None]
+        self.k_ba = _kron3(k10[:, 6:10, 1:5] * c8[:, 4:, None])  # end-jet rows x start-jet derivatives
+        self.k_ab = _kron3(k10[:, 1:5, 6:10] * c8[:, :4, None])
         # per-waypoint Hessian/gradient sums of the two segments meeting there (index 0 and m-1 unused)
         self.kdd = np.zeros((problem.m, NV, NV))
-        self.kdd[1:-1] = self.k24[:-1, NV:, NV:] + self.k24[1:, :NV, :NV]
+        self.kdd[1:-1] = _kron3(k8[:-1, 4:, 4:] + k8[1:, :4, :4])
         self.qsum = np.zeros((problem.m, NV))
         self.qsum[1:-1] = self.qpos[:-1, NV:] + self.qpos[1:, :NV]
         self._idx: tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]] | None = None
