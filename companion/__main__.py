@@ -116,6 +116,15 @@ def cmd_run(args: argparse.Namespace) -> int:
     faulthandler.register(signal.SIGUSR1, all_threads=True)
     from companion.service import run
 
+    if cfg.planner.executor == "process":
+        from planner_core.window import disable_kernel
+
+        # Missions are planned by worker processes (which use the compiled pass); what this
+        # process plans itself (local replans, stops) is a few jets at a time, so the numpy
+        # path there keeps numba and LLVM (~150 MB resident) out of the service process.
+        # Decided here, by the process entry point, not by Service: it is process-wide.
+        disable_kernel("companion service process: long plans run in the planner workers")
+
     async def main() -> None:
         stop = asyncio.Event()
         loop = asyncio.get_running_loop()

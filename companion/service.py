@@ -67,7 +67,6 @@ from planner_core import plan
 from planner_core.changes import AddObstacles
 from planner_core.io import trajectory_to_dict
 from planner_core.problem import Polytope, Problem, Trajectory, rest_jet
-from planner_core.window import disable_kernel
 
 log = logging.getLogger("companion")
 
@@ -176,11 +175,6 @@ class Service:
         self.flight = Flight()
         self.link = MavlinkLink(cfg, self._on_mavlink)
         self.zio: ZenohIO | None = None
-        if cfg.planner.executor == "process":
-            # missions are planned by worker processes (which use the compiled pass); what this
-            # process plans itself (local replans, stops) is a few jets at a time: the numpy
-            # path there keeps numba and LLVM (~70 MB resident) out of the service process
-            disable_kernel("companion service process: long plans run in the planner workers")
         self.pool: Executor = make_planner_pool(cfg)
         # Replans and braking never queue behind a long mission plan: their own worker.
         self.urgent_pool: Executor = make_planner_pool(cfg, workers=1, nice=URGENT_NICE)
