@@ -553,50 +553,67 @@ def fill_rows(
         s = segs[si]
         f = face_off[s + 1] - face_off[s]
         base = off[s]
-        for r in range(base, off[s + 1]):
-            for k in range(2 * NV):
-                ab[r, k] = 0.0
+        n = off[s + 1] - base
+        # this segment's rows as views: loops from 0 drop numba's negative-index tests
+        blk = ab[base : base + n]
+        blk[:, :] = 0.0
+        cz = c0[base : base + n]
+        hs = hull[s]
+        csa = cs[s]
+        csb = cs[s + 1]
+        wa = w[s]
+        wb = w[s + 1]
         for t in range(nb):
             o = perm[t]
             rr = o // 3
             d = o % 3
-            r = base + t + (4 * f if t >= bn1 else 0)
+            row = blk[t + (4 * f if t >= bn1 else 0)]
+            hr = hs[10 + rr]
             for c in range(4):
-                ab[r, 3 * c + d] = hull[s, 10 + rr, 1 + c] * cs[s, 3 * c + d]
-                ab[r, NV + 3 * c + d] = hull[s, 10 + rr, 6 + c] * cs[s + 1, 3 * c + d]
-            c0[r] = hull[s, 10 + rr, 0] * w[s, d] + hull[s, 10 + rr, 5] * w[s + 1, d]
-            for k in range(4):
-                lim[k, r] = blim[k, t]
+                row[3 * c + d] = hr[1 + c] * csa[3 * c + d]
+                row[NV + 3 * c + d] = hr[6 + c] * csb[3 * c + d]
+            cz[t + (4 * f if t >= bn1 else 0)] = hr[0] * wa[d] + hr[5] * wb[d]
+        for k in range(4):
+            lk = lim[k, base : base + n]
+            bk = blim[k]
+            for t in range(nb):
+                lk[t + (4 * f if t >= bn1 else 0)] = bk[t]
         for i in range(4):
             for fi in range(f):
                 face = face_off[s] + fi
                 hi = min(max(pb[face], -inf), inf)
                 hi_t = hi - margin * (1.0 + abs(hi)) if hi < inf else hi
+                pf = pa[face]
                 for side in range(2):
                     if side == 0:
-                        r = base + bn1 + i * f + fi
-                        qrow, qc, col, wp = 1 + i, 1, 0, s
+                        r = bn1 + i * f + fi
+                        hr = hs[1 + i]
+                        qc, col, wp, cw = 1, 0, wa, csa
                     else:
-                        r = base + nb + 4 * f + i * f + fi
-                        qrow, qc, col, wp = 5 + i, 6, NV, s + 1
-                    dotw = 0.0
-                    for e in range(3):
-                        dotw += pa[face, e] * w[wp, e]
+                        r = nb + 4 * f + i * f + fi
+                        hr = hs[5 + i]
+                        qc, col, wp, cw = 6, NV, wb, csb
+                    row = blk[r]
                     for c in range(4):
+                        hc = hr[qc + c]
                         for e in range(3):
-                            ab[r, col + 3 * c + e] = hull[s, qrow, qc + c] * pa[face, e] * cs[wp, 3 * c + e]
-                    c0[r] = hull[s, qrow, qc - 1] * dotw
-                    lim[0, r] = -inf
-                    lim[1, r] = hi_t
-                    lim[2, r] = -inf
-                    lim[3, r] = hi
+                            row[col + 3 * c + e] = hc * pf[e] * cw[3 * c + e]
+                    cz[r] = hr[qc - 1] * (pf[0] * wp[0] + pf[1] * wp[1] + pf[2] * wp[2])
+                    lim[0, base + r] = -inf
+                    lim[1, base + r] = hi_t
+                    lim[2, base + r] = -inf
+                    lim[3, base + r] = hi
         for k in range(2 * NV):
-            for r in range(base, off[s + 1]):
-                abt[k, r] = ab[r, k]
-        for r in range(base, off[s + 1]):
-            lo_t = lim[0, r]
-            hi_t = lim[1, r]
-            limw[0, r] = lo_t
-            limw[1, r] = hi_t
-            limw[2, r] = lo_t - add_tol * (1.0 + abs(lo_t))
-            limw[3, r] = hi_t + add_tol * (1.0 + abs(hi_t))
+            dst = abt[k, base : base + n]
+            for r in range(n):
+                dst[r] = blk[r, k]
+        l0, l1 = lim[0, base : base + n], lim[1, base : base + n]
+        w0, w1 = limw[0, base : base + n], limw[1, base : base + n]
+        w2, w3 = limw[2, base : base + n], limw[3, base : base + n]
+        for r in range(n):
+            lo_t = l0[r]
+            hi_t = l1[r]
+            w0[r] = lo_t
+            w1[r] = hi_t
+            w2[r] = lo_t - add_tol * (1.0 + abs(lo_t))
+            w3[r] = hi_t + add_tol * (1.0 + abs(hi_t))
