@@ -140,6 +140,7 @@ class WindowSolver:
         # then spread them (kron with I3) once
         c8 = np.concatenate([cs[:-1, ::3], cs[1:, ::3]], axis=1)  # (S, 8)
         k8 = k10[:, free][:, :, free] * c8[:, :, None] * c8[:, None, :]
+        self.k8 = k8  # per axis: the kernel works on H4 with H = H4 (x) I3
         self.k24 = _kron3(k8)
         w = problem.waypoints
         # position part of the gradient: K[free, 0] p0 + K[free, 5] p1, per axis
@@ -149,8 +150,8 @@ class WindowSolver:
         self.k_ba = _kron3(k10[:, 6:10, 1:5] * c8[:, 4:, None])  # end-jet rows x start-jet derivatives
         self.k_ab = _kron3(k10[:, 1:5, 6:10] * c8[:, :4, None])
         # per-waypoint Hessian/gradient sums of the two segments meeting there (index 0 and m-1 unused)
-        self.kdd = np.zeros((problem.m, NV, NV))
-        self.kdd[1:-1] = _kron3(k8[:-1, 4:, 4:] + k8[1:, :4, :4])
+        self.kdd = np.zeros((problem.m, 4, 4))  # per axis
+        self.kdd[1:-1] = k8[:-1, 4:, 4:] + k8[1:, :4, :4]
         self.qsum = np.zeros((problem.m, NV))
         self.qsum[1:-1] = self.qpos[:-1, NV:] + self.qpos[1:, :NV]
         self._idx: tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]] | None = None
@@ -273,7 +274,7 @@ class WindowSolver:
         return int(
             kernel.run_pass(
                 j0, window, m, off, n1, n2, self.ab, self.abt, self.c0, self.limw, self.lim, self.cs,
-                self.k24, self.kdd, self.qpos, self.qsum, self.k_ba, self.k_ab, jets, guess, self.active,
+                self.k8, self.kdd, self.qpos, self.qsum, self.k_ba, self.k_ab, jets, guess, self.active,
                 step_times, CHECK_TOL,
             )
         )
