@@ -44,7 +44,12 @@ from planner_core.window import _stack_rows
 FAST_EPS = 1e-3  # OSQP accuracy before refinement: the refinement makes it exact
 
 
-def plan_global(problem: Problem, cost: str = "snap", backend: str = "osqp", diagnose: bool = True) -> PlanResult:
+def plan_global(
+    problem: Problem, cost: str = "snap", backend: str = "osqp", diagnose: bool = True, warm_start: bool = True
+) -> PlanResult:
+    """The global QP (paper eq. 9). `warm_start` (default): start from the iterative pass and
+    refine exactly on its active set; False: one cold sparse OSQP solve, then the same exact
+    refinement (the paper's baseline, for comparisons)."""
     if cost not in ("snap", "jerk"):
         raise ValueError(f"cost: the global planner takes 'snap' or 'jerk', got {cost!r}")
     t0 = time.perf_counter()
@@ -53,7 +58,7 @@ def plan_global(problem: Problem, cost: str = "snap", backend: str = "osqp", dia
     jets = initial_jets(problem)
     how = "none"
     if m > 2:
-        solved = _solve_sparse(problem, cache, cost) if backend == "osqp" else None
+        solved = _solve_sparse(problem, cache, cost, warm_start) if backend == "osqp" else None
         if solved is not None:
             jets, how = solved
         else:
@@ -145,7 +150,9 @@ def _cost(problem: Problem, cache: ProblemCache, cost: str) -> tuple[sp.csc_matr
     return P, q
 
 
-def _solve_sparse(problem: Problem, cache: ProblemCache, cost: str) -> tuple[FloatArray, str] | None:
+def _solve_sparse(
+    problem: Problem, cache: ProblemCache, cost: str, warm_start: bool = True
+) -> tuple[FloatArray, str] | None:
     """Jets (m, 5, 3) of the exact global optimum, or None (the caller falls back)."""
     from planner_core.iterative import IterativeOptions, plan_iterative
 
@@ -153,8 +160,8 @@ def _solve_sparse(problem: Problem, cache: ProblemCache, cost: str) -> tuple[Flo
     if not qp.constants_ok:
         return None
     x0: FloatArray | None = None
-    warm = plan_iterative(problem, IterativeOptions(cost=cost, recover=False, diagnose=False))
-    if warm.ok and warm.trajectory is not None:
+    warm = plan_iterative(problem, IterativeOptions(cost=cost, recover=False, diagnose=False)) if warm_start else None
+    if warm is not None and warm.ok and warm.trajectory is not None:
         jets_it = _jets_of(warm.trajectory.control_points, problem)
         x0 = jets_it[1:-1, 1:].ravel()
         x = refine_active_set(qp.P, qp.q, qp.G, qp.lo_t, qp.hi_t, x0, np.zeros(qp.G.shape[0]), tol=1e-10)

@@ -97,6 +97,10 @@ def test_global_sparse_path_is_the_exact_optimum() -> None:
     assert ref.ok
     c_ref = integrated_cost(trajectory_from_jets(problem, ref.jets).control_points, problem.durations, 4)
     assert abs(res.stats["integrated_snap"] - c_ref) <= 1e-7 * c_ref
+    # the cold solve (the paper's baseline, for benchmarks) reaches the same optimum
+    cold = global_qp.plan_global(problem, warm_start=False)
+    assert cold.ok and cold.stats["solved_by"].startswith("osqp")
+    assert abs(cold.stats["integrated_snap"] - c_ref) <= 1e-7 * c_ref
     # the OSQP fallback (no warm start) reaches the same optimum
     cache = ProblemCache(problem)
     qp = global_qp._GlobalQP(problem, cache, "snap")
