@@ -244,6 +244,10 @@ def _ms(x: float | None) -> str:
     return "-" if x is None else f"{1e3 * x:.1f} ms"
 
 
+def _us(x: float | None) -> str:
+    return "-" if x is None else f"{1e6 * x:.0f} µs"
+
+
 def _peak(peaks: FloatArray | None, bounds: FloatArray | None, row: int) -> str:
     if peaks is None:
         return "-"
@@ -267,7 +271,7 @@ def summary_rows(result: MissionResult) -> list[tuple[str, str]]:
     rows = [
         ("result", "OK" if result.ok else f"FAILED: {_short(result.reason)}"),
         ("plan + verify (companion)", "-" if result.plan_ms is None else f"{result.plan_ms:.1f} ms"),
-        ("QPs / median QP time", f"{st.get('n_qp', '-')} / {_ms(_num(st.get('step_time_median')))}"),
+        ("window QPs / median step", f"{st.get('n_qp', '-')} / {_us(_num(st.get('step_time_median')))}"),
         ("verified", str(st.get("verified", "-"))),
         ("mission put -> streaming", "-" if result.plan_latency is None else f"{result.plan_latency:.2f} s"),
     ]
