@@ -49,7 +49,7 @@ def hodographs(ctrl: FloatArray, k: int, durations: FloatArray) -> FloatArray:
     """Order-k hodograph control points of many segments: (s, 10, 3) -> (s, 10-k, 3)."""
     n = ctrl.shape[-2] - 1
     scale = falling(n, k) / np.asarray(durations, dtype=float) ** k
-    out: FloatArray = np.einsum("ij,sjd->sid", _difference_matrix(k, n), ctrl) * scale[:, None, None]
+    out: FloatArray = np.matmul(_difference_matrix(k, n), ctrl) * scale[:, None, None]
     return out
 
 

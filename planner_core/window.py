@@ -141,7 +141,7 @@ class WindowSolver:
         c8 = np.concatenate([cs[:-1, ::3], cs[1:, ::3]], axis=1)  # (S, 8)
         k8 = k10[:, free][:, :, free] * c8[:, :, None] * c8[:, None, :]
         self.k8 = k8  # per axis: the kernel works on H4 with H = H4 (x) I3
-        self.k24 = _kron3(k8)
+        self._k24: FloatArray | None = None  # all axes, for `solve`: built on first use
         w = problem.waypoints
         # position part of the gradient: K[free, 0] p0 + K[free, 5] p1, per axis
         gpos = k10[:, free, 0, None] * w[:-1, None, :] + k10[:, free, 5, None] * w[1:, None, :]
@@ -155,6 +155,13 @@ class WindowSolver:
         self.qsum = np.zeros((problem.m, NV))
         self.qsum[1:-1] = self.qpos[:-1, NV:] + self.qpos[1:, :NV]
         self._idx: tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]] | None = None
+
+    @property
+    def k24(self) -> FloatArray:
+        """(S, 24, 24) cost blocks over the 3 axes: the numpy path's Hessian pieces."""
+        if self._k24 is None:
+            self._k24 = _kron3(self.k8)
+        return self._k24
 
     def solve(self, jets: FloatArray, f0: int, f1: int, open_end: bool) -> FloatArray | None:
         """Derivatives (f1-f0+1, 4, 3) of jets f0..f1 given the others in `jets`, or None."""
