@@ -28,7 +28,7 @@ from companion.messages import MessageError, check_geofence
 from planner_core import changes as ch
 from planner_core import plan, verify
 from planner_core.bezier import end_jet, split_segment, start_jet
-from planner_core.braking import braking_trajectory
+from planner_core.braking import braking_trajectory, stop_time_scale
 from planner_core.changes import ChangeError, ChangeSet, parse_polytope
 from planner_core.corridors import CorridorError, polytope_vertices
 from planner_core.corridors import build_corridors as _build_corridors
@@ -513,15 +513,9 @@ BRAKE_MARGIN_SECONDS = 0.1
 
 
 def stop_time_estimate(velocity: FloatArray, acceleration: FloatArray, bounds: Bounds) -> float:
-    """A generous estimate (s) of a verified stop from any of the states (n, 3): |v| / a_max
-    plus |a| / j_max on the worst axis, scaled, never below MIN_STOP_SECONDS."""
-
-    def limit(row: int) -> FloatArray:
-        lim = np.minimum(-bounds.lo[row], bounds.hi[row])
-        return np.where(np.isfinite(lim) & (lim > 0), lim, np.inf)
-
-    t_axis = np.abs(np.atleast_2d(velocity)) / limit(1) + np.abs(np.atleast_2d(acceleration)) / limit(2)
-    return float(max(MIN_STOP_SECONDS, STOP_SAFETY_FACTOR * float(np.max(t_axis))))
+    """A generous estimate (s) of a verified stop from any of the states (n, 3): the braking
+    planner's time scale (`stop_time_scale`), scaled, never below MIN_STOP_SECONDS."""
+    return float(max(MIN_STOP_SECONDS, STOP_SAFETY_FACTOR * stop_time_scale(velocity, acceleration, bounds)))
 
 
 def brake_deadline(traj: Trajectory, t_now: float, t_hit: float, bounds: Bounds) -> float:

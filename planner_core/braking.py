@@ -43,16 +43,21 @@ def _infeasible(message: str, **stats: object) -> PlanResult:
     return PlanResult(PlanStatus.INFEASIBLE, None, message, None, dict(stats))
 
 
-def _first_duration(jet: FloatArray, bounds: Bounds) -> float:
-    """A lower estimate of the stopping time, worst axis, at least 0.2 s: |v| / a_max
-    (braking) plus |a| / j_max (unwinding the current acceleration)."""
+def stop_time_scale(velocity: FloatArray, acceleration: FloatArray, bounds: Bounds) -> float:
+    """|v| / a_max (braking) plus |a| / j_max (unwinding the current acceleration), on the worst
+    axis of the worst of the states (n, 3) or (3,): the time scale of a stop from them."""
 
     def limit(row: int) -> FloatArray:
         lim = np.minimum(-bounds.lo[row], bounds.hi[row])
         return np.where(np.isfinite(lim) & (lim > 0), lim, np.inf)
 
-    t_axis = np.abs(jet[1]) / limit(1) + np.abs(jet[2]) / limit(2)
-    return float(max(0.2, 1.2 * float(np.max(t_axis))))
+    t_axis = np.abs(np.atleast_2d(velocity)) / limit(1) + np.abs(np.atleast_2d(acceleration)) / limit(2)
+    return float(np.max(t_axis))
+
+
+def _first_duration(jet: FloatArray, bounds: Bounds) -> float:
+    """A lower estimate of the stopping time, at least 0.2 s."""
+    return float(max(0.2, 1.2 * stop_time_scale(jet[1], jet[2], bounds)))
 
 
 def _try(

@@ -386,10 +386,11 @@ class _RowStore:
                 limw[2, rows] = lo_t - ADD_TOL * (1.0 + np.abs(lo_t))
                 limw[3, rows] = hi_t + ADD_TOL * (1.0 + np.abs(hi_t))
             return
-        if abt is None or abt.shape[1] == 0:
-            abt = np.empty((2 * NV, self.c0.size))  # callers that only want ab/c0/lim
-        if limw is None or limw.shape[1] == 0:
-            limw = np.empty((4, self.c0.size))
+        # callers that only want ab/c0/lim (the global QP) pass nothing: fill_rows skips them
+        if abt is None:
+            abt = np.empty((2 * NV, 0))
+        if limw is None:
+            limw = np.empty((4, 0))
         kernel.fill_rows(
             segments, self._off, cache.hull, cache.problem.waypoints, self.cs, cache._bperm, int(cache._bn1),
             self._blim, self._face_off, self._pa, self._pb, INF, MARGIN, self.ab, abt, self.c0, self.lim, limw,

@@ -562,8 +562,10 @@ def fill_rows(
     """Stacked rows of the given segments, in the layout of `window._RowStore` (see there):
     [start-only bounds | corridor P1..P4 | both | end-only bounds | corridor P5..P8]; columns
     scaled by `cs`. Writes `ab`, its transpose `abt`, `c0`, limits `lim` (lo_t, hi_t, lo, hi) and
-    working limits `limw` (tightened, and tightened widened by `add_tol` relative)."""
+    working limits `limw` (tightened, and tightened widened by `add_tol` relative); `abt` and
+    `limw` with no columns are skipped."""
     nb = perm.size
+    extras = abt.shape[1] > 0 and limw.shape[1] > 0
     for si in range(segs.size):
         s = segs[si]
         f = face_off[s + 1] - face_off[s]
@@ -618,6 +620,8 @@ def fill_rows(
                     lim[1, base + r] = hi_t
                     lim[2, base + r] = -inf
                     lim[3, base + r] = hi
+        if not extras:
+            continue
         for k in range(2 * NV):
             dst = abt[k, base : base + n]
             for r in range(n):
