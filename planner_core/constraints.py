@@ -59,7 +59,8 @@ def hull_maps(durations: FloatArray) -> FloatArray:
     # integer array exponent goes through pow() 400 times a segment: ~5x slower at m = 1000)
     lo = int(power.min())
     table = d[:, None] ** np.arange(lo, int(power.max()) + 1, dtype=float)[None, :]
-    out: FloatArray = q1[None, :, :] * table[:, power - lo]
+    # C order: the gather's result is not, and the compiled pass reads these maps row by row
+    out: FloatArray = np.multiply(q1[None, :, :], table[:, power - lo], order="C")
     return out
 
 

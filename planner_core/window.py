@@ -28,9 +28,11 @@ against the tightened rows (which implies the untightened ones).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from functools import lru_cache
 from time import perf_counter
 from types import ModuleType
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -71,9 +73,14 @@ def _kernel_or_reason() -> ModuleType | str:
 def _load_kernel() -> ModuleType | str:
     try:
         from planner_core import window_kernel
-    except (ImportError, OSError) as exc:
+
+        _clock[:] = [window_kernel.clock_gettime()]
+    except (ImportError, OSError, AttributeError) as exc:  # AttributeError: a libc without clock_gettime
         return f"{type(exc).__name__}: {exc}"
     return window_kernel
+
+
+_clock: list[Any] = []  # libc's clock_gettime, for the compiled pass's step times
 
 
 def kernel_unavailable() -> str | None:
@@ -123,7 +130,6 @@ class WindowSolver:
         self._rows = _RowStore(cache, cs)
         self.off, self.n1, self.n2 = self._rows.off, self._rows.n1, self._rows.n2
         self.ab, self.c0, self.lim = self._rows.ab, self._rows.c0, self._rows.lim
-        self.abt = np.empty((2 * NV, self.c0.size))  # rows as the contiguous axis: the kernel's full check
         # working limits: tightened (for the solver), and tightened + ADD_TOL (to accept a row)
         self.limw = np.empty_like(self.lim)
         self._ready = [False] * (len(self.n1) // CHUNK + 1)
@@ -154,7 +160,7 @@ class WindowSolver:
         self.kdd[1:-1] = k8[:-1, 4:, 4:] + k8[1:, :4, :4]
         self.qsum = np.zeros((problem.m, NV))
         self.qsum[1:-1] = self.qpos[:-1, NV:] + self.qpos[1:, :NV]
-        self._idx: tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]] | None = None
+        self._idx: _CompactRows | None = None
 
     @property
     def k24(self) -> FloatArray:
@@ -270,28 +276,27 @@ class WindowSolver:
         if isinstance(kernel, str):
             return j0
         m = self.problem.m
-        self._fill(max(j0 - 1, 0) // CHUNK, (m - 2) // CHUNK)
-        if self._idx is None:
-            self._idx = (
-                np.asarray(self.off, dtype=np.int64),
-                np.asarray(self.n1, dtype=np.int64),
-                np.asarray(self.n2, dtype=np.int64),
-            )
-        off, n1, n2 = self._idx
+        c = self._compact()
         return int(
             kernel.run_pass(
-                j0, window, m, off, n1, n2, self.ab, self.abt, self.c0, self.limw, self.lim, self.cs,
+                j0, window, m, c.off, c.n1, c.n2, self.cache.hull, self.cs, c.pr, c.pd, c.bn1, c.nb,
+                c.face_off, c.pa, self.problem.waypoints, c.b6, c.f6,
                 self.k8, self.kdd, self.qpos, self.qsum, self.k_ba, self.k_ab, jets, guess, self.active,
-                step_times, CHECK_TOL,
+                step_times, CHECK_TOL, _clock[0], np.zeros(2, dtype=np.int64),
             )
         )
+
+    def _compact(self) -> _CompactRows:
+        if self._idx is None:
+            self._idx = _compact_rows(self._rows)
+        return self._idx
 
     def _fill(self, k0: int, k1: int) -> None:
         for k in range(k0, k1 + 1):
             if self._ready[k]:
                 continue
             segs = np.arange(k * CHUNK, min((k + 1) * CHUNK, len(self.n1)), dtype=np.int64)
-            self._rows.fill(segs, self.abt, self.limw)
+            self._rows.fill(segs, self.limw)
             self._ready[k] = True
 
     def _eye(self, n: int) -> FloatArray:
@@ -364,9 +369,9 @@ class _RowStore:
         self.c0 = np.empty(n_rows)
         self.lim = np.empty((4, n_rows))
 
-    def fill(self, segments: NDArray[np.int64], abt: FloatArray | None = None, limw: FloatArray | None = None) -> None:
-        """Rows of `segments`; also their transpose into `abt` and working limits into `limw`
-        when given. Compiled (`window_kernel.fill_rows`) where numba runs, numpy otherwise."""
+    def fill(self, segments: NDArray[np.int64], limw: FloatArray | None = None) -> None:
+        """Rows of `segments`; also their working limits into `limw` when given. Compiled
+        (`window_kernel.fill_rows`) where numba runs, numpy otherwise."""
         cache = self.cache
         kernel = _kernel_or_reason()
         if isinstance(kernel, str):
@@ -377,8 +382,6 @@ class _RowStore:
                 np.concatenate([np.arange(self._off[s], self._off[s + 1]) for s in segments.tolist()])
                 if segments.size else np.zeros(0, dtype=np.int64)
             )
-            if abt is not None and abt.shape[1]:
-                abt[:, rows] = self.ab[rows].T
             if limw is not None and limw.shape[1]:
                 lo_t, hi_t = self.lim[0, rows], self.lim[1, rows]
                 limw[0, rows] = lo_t
@@ -386,14 +389,12 @@ class _RowStore:
                 limw[2, rows] = lo_t - ADD_TOL * (1.0 + np.abs(lo_t))
                 limw[3, rows] = hi_t + ADD_TOL * (1.0 + np.abs(hi_t))
             return
-        # callers that only want ab/c0/lim (the global QP) pass nothing: fill_rows skips them
-        if abt is None:
-            abt = np.empty((2 * NV, 0))
+        # callers that only want ab/c0/lim (the global QP) pass nothing: fill_rows skips it
         if limw is None:
             limw = np.empty((4, 0))
         kernel.fill_rows(
             segments, self._off, cache.hull, cache.problem.waypoints, self.cs, cache._bperm, int(cache._bn1),
-            self._blim, self._face_off, self._pa, self._pb, INF, MARGIN, self.ab, abt, self.c0, self.lim, limw,
+            self._blim, self._face_off, self._pa, self._pb, INF, MARGIN, self.ab, self.c0, self.lim, limw,
             ADD_TOL,
         )
 
@@ -448,3 +449,41 @@ class _RowStore:
         self.lim[:, rows] = lblk.reshape(4, -1)
 
 
+
+
+@dataclass(frozen=True)
+class _CompactRows:
+    """What the compiled pass builds rows from (see `window_kernel.run_pass`)."""
+
+    off: NDArray[np.int64]
+    n1: NDArray[np.int64]
+    n2: NDArray[np.int64]
+    pr: NDArray[np.int64]  # hodograph row (0..29) of each bound row, in stacking order
+    pd: NDArray[np.int64]  # its axis
+    bn1: int
+    nb: int
+    face_off: NDArray[np.int64]
+    pa: FloatArray
+    b6: FloatArray  # (6, nb) per bound row: lo_t, hi_t, lo, hi, lo_w, hi_w
+    f6: FloatArray  # (6, faces) the same per corridor face (lower limits -INF)
+
+
+def _widen(lo_t: FloatArray, hi_t: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Tightened limits widened by ADD_TOL: a row outside these joins the working set."""
+    return lo_t - ADD_TOL * (1.0 + np.abs(lo_t)), hi_t + ADD_TOL * (1.0 + np.abs(hi_t))
+
+
+def _compact_rows(store: _RowStore) -> _CompactRows:
+    cache = store.cache
+    perm = cache._bperm
+    blo_t, bhi_t = cache._blo_t, cache._bhi_t
+    b6 = np.stack([blo_t, bhi_t, cache._blo, cache._bhi, *_widen(blo_t, bhi_t)])
+    hi = np.clip(store._pb, -INF, INF)
+    lo = np.full(hi.shape, -INF)
+    lo_t, hi_t = _tighten(lo, hi)
+    f6 = np.stack([lo_t, hi_t, lo, hi, *_widen(lo_t, hi_t)])
+    return _CompactRows(
+        np.asarray(store.off, dtype=np.int64), np.asarray(store.n1, dtype=np.int64),
+        np.asarray(store.n2, dtype=np.int64), (perm // 3).astype(np.int64), (perm % 3).astype(np.int64),
+        int(cache._bn1), int(perm.size), store._face_off, np.ascontiguousarray(store._pa, dtype=float), b6, f6,
+    )

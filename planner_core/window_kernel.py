@@ -1,16 +1,21 @@
 """Compiled receding-window pass: the iterative planner's hot loop without Python in it.
 
-Same QP per waypoint as `window.WindowSolver.solve` (same stacked, pre-scaled
-rows, same tightened limits, same cost blocks); what differs is the solver:
+Same QP per waypoint as `window.WindowSolver.solve` (same rows, same tightened
+limits, same cost blocks); what differs is the solver and where rows live:
 
 - the Hessian of a window is block tridiagonal in its jets (segment s couples
-  jets s and s+1 only), so it is factored block by block (12 x 12 blocks,
-  ~2 k flops per window instead of ~60 k for a dense factor);
+  jets s and s+1 only), so it is factored block by block (per axis: 4 x 4
+  blocks, the Hessian being the same on each axis);
 - the QP is solved by the dual active-set method of Goldfarb and Idnani in its
   range-space form: every step needs one block-tridiagonal solve H^-1 n and
   a Cholesky factor of the small matrix S = N H^-1 N' of the active normals,
   grown by one row per added constraint. Rows are sparse (24 of the window's
   columns), so a slack costs 24 flops;
+- rows are not stored: a row joining the working set is built from its
+  segment's hull map, column scales and faces (`_materialize`), and the check of
+  every row of the window evaluates each segment's control and hodograph points
+  once and reads the rows off them (`_seg_check`). Stored densely, the rows
+  were ~60 MB at m = 1000 and filling them took longer than the solves;
 - only a working set of rows is searched for violations (rows active at the
   previous window and the open end's rows, as in `WindowSolver`), then every
   row of the window is checked against its tightened limit; violated rows join
@@ -26,13 +31,11 @@ rows, which implies the untightened ones.
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 from typing import Any, TypeVar, cast
 
 import numpy as np
 from numba import njit as _njit
-from numba import objmode
 
 F = TypeVar("F", bound=Callable[..., Any])
 NV = 12
@@ -215,20 +218,6 @@ def _seg_rows(s: int, f0: int, f1: int, half: bool, off: Any, n1: Any, n2: Any) 
     return off[s], off[s] + n1[s] + n2[s], f1 - f0, -1
 
 
-@njit_inline
-def _block_dot(abt: Any, ra: int, rb: int, col: int, x: Any, o: int, out: Any, i0: int) -> None:
-    """out[i0 + r - ra] += sum_k abt[col + k, r] x[o + k] for rows r in [ra, rb): rows are the inner,
-    contiguous loop, so it vectorises without reassociating any sum."""
-    n = rb - ra
-    dst = out[i0 : i0 + n]
-    for k in range(NV):
-        c = x[o + k]
-        if c != 0.0:
-            src = abt[col + k, ra:rb]
-            for r in range(n):
-                dst[r] += src[r] * c
-
-
 @njit
 def _chol_append(ls: Any, k: int, srow: Any) -> bool:
     """Grow the Cholesky factor `ls` of S (k x k) by the row `srow` (k + 1 entries)."""
@@ -260,16 +249,200 @@ def _chol_solve(ls: Any, k: int, w: Any, out: Any) -> None:
         out[i] = s / ls[i, i]
 
 
+
+CLOCK_MONOTONIC = 1  # Linux's id; time.perf_counter reads the same clock
+
+
+def clock_gettime() -> Any:
+    """libc's clock_gettime as a ctypes function, for `run_pass` to time its steps: numba calls it
+    directly (~50 ns). objmode around time.perf_counter took ~20 us a step, more than the step."""
+    import ctypes
+
+    fn = ctypes.CDLL(None).clock_gettime
+    fn.argtypes = [ctypes.c_int, ctypes.c_void_p]
+    fn.restype = ctypes.c_int
+    return fn
+
+
+@njit_inline
+def _now(clock: Any, ts: Any) -> float:
+    clock(CLOCK_MONOTONIC, ts.ctypes.data)
+    t: float = ts[0] + 1e-9 * ts[1]
+    return t
+
+
+@njit_inline
+def _row_loc(lr: int, bn1: int, nb: int, f: int) -> tuple[int, int, int]:
+    """Local row `lr` of a segment with f faces -> (kind, index, point): kind 0 a bound row
+    (index: its place among the bound rows), 1 / 2 a corridor row on P(1+point) / P(5+point)
+    (index: the face). Layout, as `window._RowStore` stacks them: [start-only bounds | corridor
+    on P1..P4 | both | end-only bounds | corridor on P5..P8]."""
+    if lr < bn1:
+        return 0, lr, 0
+    q = lr - bn1
+    if q < 4 * f:
+        return 1, q % f, q // f
+    t = lr - 4 * f
+    if t < nb:
+        return 0, t, 0
+    q = t - nb
+    return 2, q % f, q // f
+
+
+@njit_inline
+def _seg_points(s: int, ua: Any, ub: Any, hull: Any, w: Any, f: int, pts: Any) -> None:
+    """Control points P1..P8 (when the segment has faces) and hodograph points of segment s,
+    per axis, from its jets' derivatives (unscaled, (4, 3)): `ua` at the start, `ub` at the end.
+    Rows that do not involve a jet have zero coefficients for it, so any value of it gives them
+    exactly."""
+    k0 = 1 if f > 0 else 10
+    for k in range(k0, 40):
+        for d in range(3):
+            v = hull[s, k, 0] * w[s, d] + hull[s, k, 5] * w[s + 1, d]
+            for c in range(4):
+                v += hull[s, k, 1 + c] * ua[c, d] + hull[s, k, 6 + c] * ub[c, d]
+            pts[k, d] = v
+
+
+@njit_inline
+def _seg_check(
+    s: int, lra: int, lrb: int, ua: Any, ub: Any, klo: int, khi: int, tol: float, hull: Any, pr: Any,
+    pd: Any, bn1: int, nb: int, face_off: Any, pa: Any, w: Any, b6: Any, f6: Any, pts: Any, bad: Any,
+) -> int:
+    """Rows [lra, lrb) of segment s outside limits klo / khi (see `_lim`) by more than `tol`, given
+    its jets' derivatives: their local indices into `bad`, and their count. Each row reads a
+    hodograph point or dots a control point with a face; loops by region, so no row needs a
+    division to find its face."""
+    fo = face_off[s]
+    f = face_off[s + 1] - fo
+    _seg_points(s, ua, ub, hull, w, f, pts)
+    nbad = 0
+    for lr in range(max(lra, 0), min(lrb, bn1)):
+        v = pts[10 + pr[lr], pd[lr]]
+        if v > b6[khi, lr] + tol or v < b6[klo, lr] - tol:
+            bad[nbad] = lr
+            nbad += 1
+    c0, c1 = bn1 + 4 * f, nb + 4 * f
+    for lr in range(max(lra, c0), min(lrb, c1)):
+        t = lr - 4 * f
+        v = pts[10 + pr[t], pd[t]]
+        if v > b6[khi, t] + tol or v < b6[klo, t] - tol:
+            bad[nbad] = lr
+            nbad += 1
+    for side in range(2):
+        base = bn1 if side == 0 else c1
+        if lrb <= base or lra >= base + 4 * f:
+            continue
+        for i in range(4):
+            k = 1 + i if side == 0 else 5 + i
+            for fi in range(f):
+                lr = base + i * f + fi
+                if lr < lra or lr >= lrb:
+                    continue
+                face = fo + fi
+                v = pa[face, 0] * pts[k, 0] + pa[face, 1] * pts[k, 1] + pa[face, 2] * pts[k, 2]
+                if v > f6[khi, face] + tol or v < f6[klo, face] - tol:
+                    bad[nbad] = lr
+                    nbad += 1
+    return nbad
+
+
+@njit_inline
+def _jet_derivs(jets: Any, j: int, out: Any) -> None:
+    for c in range(4):
+        for d in range(3):
+            out[c, d] = jets[j, 1 + c, d]
+
+
+@njit_inline
+def _x_derivs(x: Any, i: int, cs: Any, s: int, out: Any) -> None:
+    """Unscaled derivatives of the window's local jet i (waypoint s) from its scaled unknowns."""
+    for c in range(4):
+        for d in range(3):
+            out[c, d] = x[NV * i + 3 * c + d] * cs[s, 3 * c + d]
+
+
+@njit
+def _materialize(
+    ids: Any, n: int, r0: int, rseg: Any, rowa: Any, rowb: Any, off: Any, hull: Any, cs: Any, pr: Any,
+    pd: Any, bn1: int, nb: int, face_off: Any, pa: Any, w: Any, b6: Any, f6: Any, xf: Any, wab: Any,
+    nrm: Any, lim4: Any,
+) -> None:
+    """Window rows ids[:n] join the working set: coefficients into wab[i] (24: start jet | end
+    jet, columns scaled by `cs`), norm over the free columns, limits less the constant part
+    (waypoints and fixed jets) into lim4[:, i] (lo_t, hi_t, lo_w, hi_w; `b6` per bound row and
+    `f6` per face hold lo_t, hi_t, lo, hi, lo_w, hi_w).
+
+    Rows are built when a window needs them (its working set) instead of stored: a row comes
+    from its segment's hull map (40 x 10), the column scales and its faces. Stored densely they
+    were ~60 MB at m = 1000, and filling them cost more than half the pass.
+
+    One call for many rows, the row code written out here: a call with this many array
+    arguments, even inlined, costs ~0.1 us (reference counting) against ~10 ns for the row."""
+    for ii in range(n):
+        i = ids[ii]
+        s = rseg[i]
+        fo = face_off[s]
+        kind, idx, pt = _row_loc(r0 + i - off[s], bn1, nb, face_off[s + 1] - fo)
+        for k in range(2 * NV):
+            wab[i, k] = 0.0
+        if kind == 0:
+            d = pd[idx]
+            r = 10 + pr[idx]
+            for c in range(4):
+                wab[i, 3 * c + d] = hull[s, r, 1 + c] * cs[s, 3 * c + d]
+                wab[i, NV + 3 * c + d] = hull[s, r, 6 + c] * cs[s + 1, 3 * c + d]
+            g = hull[s, r, 0] * w[s, d] + hull[s, r, 5] * w[s + 1, d]
+        elif kind == 1:
+            face = fo + idx
+            r = 1 + pt
+            for c in range(4):
+                hc = hull[s, r, 1 + c]
+                for e in range(3):
+                    wab[i, 3 * c + e] = hc * pa[face, e] * cs[s, 3 * c + e]
+            g = hull[s, r, 0] * (pa[face, 0] * w[s, 0] + pa[face, 1] * w[s, 1] + pa[face, 2] * w[s, 2])
+        else:
+            face = fo + idx
+            r = 5 + pt
+            for c in range(4):
+                hc = hull[s, r, 6 + c]
+                for e in range(3):
+                    wab[i, NV + 3 * c + e] = hc * pa[face, e] * cs[s + 1, 3 * c + e]
+            g = hull[s, r, 5] * (pa[face, 0] * w[s + 1, 0] + pa[face, 1] * w[s + 1, 1] + pa[face, 2] * w[s + 1, 2])
+        nn = 0.0
+        if rowa[i] < 0:
+            for k in range(NV):
+                g += wab[i, k] * xf[k]
+        else:
+            for k in range(NV):
+                nn += wab[i, k] * wab[i, k]
+        if rowb[i] < 0:
+            for k in range(NV):
+                g += wab[i, NV + k] * xf[NV + k]
+        else:
+            for k in range(NV):
+                nn += wab[i, NV + k] * wab[i, NV + k]
+        nrm[i] = np.sqrt(nn)
+        if kind == 0:
+            for k in range(4):
+                lim4[k, i] = b6[k if k < 2 else k + 2, idx] - g
+        else:
+            for k in range(4):
+                lim4[k, i] = f6[k if k < 2 else k + 2, fo + idx] - g
+
+
 @njit
 def _step(
     f0: int, f1: int, half: bool, m: int,
-    off: Any, n1: Any, n2: Any, ab: Any, abt: Any, c0: Any, limw: Any, lim: Any, cs: Any,
+    off: Any, n1: Any, n2: Any, hull: Any, cs: Any, pr: Any, pd: Any, bn1: int, nb: int, face_off: Any,
+    pa: Any, w: Any, b6: Any, f6: Any,
     k8: Any, kdd: Any, qpos: Any, qsum: Any, k_ba: Any, k_ab: Any, jets: Any, active: Any, ws: Any,
     check_tol: float,
 ) -> bool:
     """Solve window f0..f1 into `ws` (its x: scaled derivatives); False on any doubt."""
-    (ld, lo, q, x, v, z, nvec, vmat, ls, w, rr, lam, act_r, act_sd, rowa, rowb,
-     lo_t, hi_t, lo_w, hi_w, cand, srow, clist, gv, xf) = ws
+    (ld, lo, q, x, v, z, nvec, vmat, ls, w_, rr, lam, act_r, act_sd, rowa, rowb, rseg,
+     lim4, cand, srow, clist, bad, xf, wab, nrm, pts, ua, ub) = ws
+    lo_t, hi_t, lo_w, hi_w = lim4[0], lim4[1], lim4[2], lim4[3]
     nf = f1 - f0 + 1
     nx = NV * nf
     sb = f0 - 1
@@ -278,54 +451,37 @@ def _step(
     nr = r1 - r0
     # constants: rows that depend only on a fixed jet must hold as they are
     if f0 == 1:
-        for r in range(off[0], off[0] + n1[0]):
-            val = c0[r]
-            for k in range(NV):
-                val += ab[r, k] * jets[0, 1 + k // 3, k % 3] / cs[0, k]
-            if val > lim[3, r] + check_tol or val < lim[2, r] - check_tol:
-                return False
+        _jet_derivs(jets, 0, ua)
+        ub[:, :] = 0.0
+        if _seg_check(0, 0, n1[0], ua, ub, 2, 3, check_tol, hull, pr, pd, bn1, nb, face_off, pa, w, b6, f6,
+                      pts, bad):
+            return False
     if not half:
-        for r in range(off[f1] + n1[f1] + n2[f1], off[f1 + 1]):
-            val = c0[r]
-            for k in range(NV):
-                val += ab[r, NV + k] * jets[f1 + 1, 1 + k // 3, k % 3] / cs[f1 + 1, k]
-            if val > lim[3, r] + check_tol or val < lim[2, r] - check_tol:
-                return False
-    # rows of the window: local start/end jet columns, limits less the fixed jets' part
-    c0w = c0[r0:r1]
-    for i in range(nr):
-        gv[i] = c0w[i]
+        ua[:, :] = 0.0
+        _jet_derivs(jets, f1 + 1, ub)
+        if _seg_check(f1, n1[f1] + n2[f1], off[f1 + 1] - off[f1], ua, ub, 2, 3, check_tol, hull, pr, pd, bn1,
+                      nb, face_off, pa, w, b6, f6, pts, bad):
+            return False
     for k in range(NV):
         xf[k] = jets[sb, 1 + k // 3, k % 3] / cs[sb, k]
         xf[NV + k] = 0.0 if half else jets[f1 + 1, 1 + k // 3, k % 3] / cs[f1 + 1, k]
     for s in range(sb, f1 + 1):
         ra, rb, ja, jb = _seg_rows(s, f0, f1, half, off, n1, n2)
-        ra_w = rowa[ra - r0 : rb - r0]
-        rb_w = rowb[ra - r0 : rb - r0]
-        for i in range(rb - ra):
-            ra_w[i] = ja
-            rb_w[i] = jb
-        if ja < 0:
-            _block_dot(abt, ra, rb, 0, xf, 0, gv, ra - r0)
-        if jb < 0 and not half:
-            _block_dot(abt, ra, rb, NV, xf, NV, gv, ra - r0)
-    l0, l1, l2, l3 = limw[0, r0:r1], limw[1, r0:r1], limw[2, r0:r1], limw[3, r0:r1]
-    actw = active[r0:r1]
-    for i in range(nr):
-        g = gv[i]
-        lo_t[i] = l0[i] - g
-        hi_t[i] = l1[i] - g
-        lo_w[i] = l2[i] - g
-        hi_w[i] = l3[i] - g
-        cand[i] = actw[i]
-    if half:
-        for i in range(off[f1] - r0, nr):
-            cand[i] = True
+        for i in range(ra - r0, rb - r0):
+            rowa[i] = ja
+            rowb[i] = jb
+            rseg[i] = s
+    # working set: rows active at the previous window, and the open end's rows (the last jet is
+    # pushed against them: the cost does not see that segment)
+    hb = off[f1] - r0 if half else nr
     nc = 0
     for i in range(nr):
+        cand[i] = active[r0 + i] or i >= hb
         if cand[i]:
             clist[nc] = i
             nc += 1
+    _materialize(clist, nc, r0, rseg, rowa, rowb, off, hull, cs, pr, pd, bn1, nb, face_off, pa, w, b6, f6, xf,
+                 wab, nrm, lim4)
     # cost: block-tridiagonal Hessian (per axis, 4 x 4 blocks) and gradient; per-waypoint sums
     # precomputed
     for i in range(nf):
@@ -368,22 +524,14 @@ def _step(
         ps = 0
         for ci in range(nc):
             i = clist[ci]
-            gx = _row_dot(ab, r0 + i, rowa[i], rowb[i], x)
+            gx = _row_dot(wab, i, rowa[i], rowb[i], x)
             vl = lo_t[i] - gx
             vh = gx - hi_t[i]
             # a quarter of the final check's margin: what passes here passes there
             tl = 0.25 * (lo_t[i] - lo_w[i])
             th = 0.25 * (hi_w[i] - hi_t[i])
             if vl > tl or vh > th:
-                nn = 0.0
-                r = r0 + i
-                if rowa[i] >= 0:
-                    for kk in range(NV):
-                        nn += ab[r, kk] * ab[r, kk]
-                if rowb[i] >= 0:
-                    for kk in range(NV):
-                        nn += ab[r, NV + kk] * ab[r, NV + kk]
-                nn = np.sqrt(nn)
+                nn = nrm[i]
                 if nn < 1e-300:
                     return False  # a violated row with no free column: the constants broke it
                 sc = (vl if vl > tl else vh) / nn
@@ -394,23 +542,33 @@ def _step(
         if p < 0:
             # working set satisfied: check every row of the window, grow the set if needed
             grew = False
-            for i in range(nr):
-                gv[i] = 0.0
             for s in range(sb, f1 + 1):
                 ra, rb, ja, jb = _seg_rows(s, f0, f1, half, off, n1, n2)
                 if ja >= 0:
-                    _block_dot(abt, ra, rb, 0, x, NV * ja, gv, ra - r0)
+                    _x_derivs(x, ja, cs, s, ua)
+                else:
+                    _jet_derivs(jets, s, ua)
                 if jb >= 0:
-                    _block_dot(abt, ra, rb, NV, x, NV * jb, gv, ra - r0)
-            for i in range(nr):
-                gx = gv[i]
-                if gx > hi_w[i] or gx < lo_w[i]:
+                    _x_derivs(x, jb, cs, s + 1, ub)
+                elif half:
+                    ub[:, :] = 0.0  # the open end: its rows here do not involve it
+                else:
+                    _jet_derivs(jets, s + 1, ub)
+                os_ = off[s]
+                nbad = _seg_check(s, ra - os_, rb - os_, ua, ub, 4, 5, 0.0, hull, pr, pd, bn1, nb, face_off, pa, w,
+                                  b6, f6, pts, bad)
+                n0 = nc
+                for b in range(nbad):
+                    i = os_ + bad[b] - r0
                     if cand[i]:
                         return False  # missed by more than rounding: let the general path decide
                     cand[i] = True
                     clist[nc] = i
                     nc += 1
                     grew = True
+                if nc > n0:
+                    _materialize(clist[n0:], nc - n0, r0, rseg, rowa, rowb, off, hull, cs, pr, pd, bn1, nb, face_off,
+                                 pa, w, b6, f6, xf, wab, nrm, lim4)
             if not grew:
                 break
             rounds += 1
@@ -421,29 +579,28 @@ def _step(
         if adds > MAX_ADDS:
             return False
         # normal n_p = sign * g_p (dense), v = H^-1 n_p
-        rp = r0 + p
         ja, jb = rowa[p], rowb[p]
         if ja >= 0:
             for kk in range(NV):
-                nvec[NV * ja + kk] = ps * ab[rp, kk]
+                nvec[NV * ja + kk] = ps * wab[p, kk]
         if jb >= 0:
             for kk in range(NV):
-                nvec[NV * jb + kk] = ps * ab[rp, NV + kk]
+                nvec[NV * jb + kk] = ps * wab[p, NV + kk]
         _btd_solve(ld, lo, nf, nvec, v)
         bp = lo_t[p] if ps > 0 else -hi_t[p]
         lam_p = 0.0
         while True:
             # z = v - V' S^-1 N v (primal step direction), r = S^-1 N v (dual)
             for j in range(k):
-                w[j] = act_sd[j] * _row_dot(ab, r0 + act_r[j], rowa[act_r[j]], rowb[act_r[j]], v)
-            _chol_solve(ls, k, w, rr)
+                w_[j] = act_sd[j] * _row_dot(wab, act_r[j], rowa[act_r[j]], rowb[act_r[j]], v)
+            _chol_solve(ls, k, w_, rr)
             for i in range(nx):
                 acc = v[i]
                 for j in range(k):
                     acc -= vmat[j, i] * rr[j]
                 z[i] = acc
-            zn = ps * _row_dot(ab, rp, ja, jb, z)
-            nv_ = ps * _row_dot(ab, rp, ja, jb, v)
+            zn = ps * _row_dot(wab, p, ja, jb, z)
+            nv_ = ps * _row_dot(wab, p, ja, jb, v)
             t1 = np.inf
             drop = -1
             for j in range(k):
@@ -452,7 +609,7 @@ def _step(
                     if t < t1:
                         t1 = t
                         drop = j
-            sp = ps * _row_dot(ab, rp, ja, jb, x) - bp
+            sp = ps * _row_dot(wab, p, ja, jb, x) - bp
             t2 = np.inf
             if zn > 1e-13 * nv_:
                 t2 = max(-sp, 0.0) / zn
@@ -468,7 +625,7 @@ def _step(
             if t2 <= t1:
                 # full step: p joins the active set
                 for j in range(k):
-                    srow[j] = ps * _row_dot(ab, rp, ja, jb, vmat[j])
+                    srow[j] = ps * _row_dot(wab, p, ja, jb, vmat[j])
                 srow[k] = nv_
                 if not _chol_append(ls, k, srow):
                     return False
@@ -488,9 +645,9 @@ def _step(
                     vmat[j, i] = vmat[j + 1, i]
             k -= 1
             for a in range(k):
-                ra = r0 + act_r[a]
+                ia = act_r[a]
                 for b in range(a + 1):
-                    srow[b] = act_sd[a] * _row_dot(ab, ra, rowa[act_r[a]], rowb[act_r[a]], vmat[b])
+                    srow[b] = act_sd[a] * _row_dot(wab, ia, rowa[ia], rowb[ia], vmat[b])
                 if not _chol_append(ls, a, srow):
                     return False
         for i in range(nx):
@@ -508,12 +665,21 @@ def _step(
 @njit
 def run_pass(
     j0: int, window: int, m: int,
-    off: Any, n1: Any, n2: Any, ab: Any, abt: Any, c0: Any, limw: Any, lim: Any, cs: Any,
+    off: Any, n1: Any, n2: Any, hull: Any, cs: Any, pr: Any, pd: Any, bn1: int, nb: int, face_off: Any,
+    pa: Any, w: Any, b6: Any, f6: Any,
     k8: Any, kdd: Any, qpos: Any, qsum: Any, k_ba: Any, k_ab: Any, jets: Any, guess: Any, active: Any,
-    step_times: Any, check_tol: float,
+    step_times: Any, check_tol: float, clock: Any, ts: Any,
 ) -> int:
     """Steps j0 .. m-2; commits the jet at each j. Returns the first j it could not settle (m-1
-    when it settled all). `step_times[j]`: seconds spent on step j."""
+    when it settled all). `step_times[j]`: seconds spent on step j.
+
+    Rows: `hull` (S, 40, 10) maps each segment's [p0, start derivatives, p1, end derivatives] to
+    its control and hodograph points; `cs` the column scales; `pr`/`pd` the hodograph row and axis
+    of each bound row (in `_RowStore`'s order, `bn1` of them start-only, `nb` in all); corridor
+    faces `pa` (segment s: rows face_off[s]:face_off[s+1]); limits per bound row `b6` and per face
+    `f6` (6, .): lo_t, hi_t, lo, hi, lo_w, hi_w (see `_lim`); `off`/`n1`/`n2` the stacked row
+    offsets, for `active` (the rows active at the last solution). `clock`: libc's clock_gettime
+    (see `_now`), `ts` two int64 for its answer."""
     hmax = window
     nxm = NV * hmax
     rmax = 0
@@ -527,18 +693,18 @@ def run_pass(
         np.zeros(nxm), np.zeros(nxm), np.zeros(nxm), np.zeros((nxm + 1, nxm)),
         np.zeros((nxm + 1, nxm + 1)), np.zeros(nxm + 1), np.zeros(nxm + 1),
         np.zeros(nxm + 1), np.zeros(nxm + 1, dtype=np.int64), np.zeros(nxm + 1, dtype=np.int64),
-        np.zeros(nrm, dtype=np.int64), np.zeros(nrm, dtype=np.int64),
-        np.zeros(nrm), np.zeros(nrm), np.zeros(nrm), np.zeros(nrm), np.zeros(nrm, dtype=np.bool_),
-        np.zeros(nxm + 1), np.zeros(nrm, dtype=np.int64), np.zeros(nrm), np.zeros(2 * NV),
+        np.zeros(nrm, dtype=np.int64), np.zeros(nrm, dtype=np.int64), np.zeros(nrm, dtype=np.int64),
+        np.zeros((4, nrm)), np.zeros(nrm, dtype=np.bool_),
+        np.zeros(nxm + 1), np.zeros(nrm, dtype=np.int64), np.zeros(rmax, dtype=np.int64), np.zeros(2 * NV),
+        np.zeros((nrm, 2 * NV)), np.zeros(nrm), np.zeros((40, 3)), np.zeros((4, 3)), np.zeros((4, 3)),
     )
     x = ws[3]
-    with objmode(t0="float64"):
-        t0 = time.perf_counter()
+    t0 = _now(clock, ts)
     for j in range(j0, m - 1):
         f1 = min(j + window - 1, m - 2)
         half = f1 < m - 2
-        ok = _step(j, f1, half, m, off, n1, n2, ab, abt, c0, limw, lim, cs, k8, kdd, qpos, qsum, k_ba, k_ab,
-                   jets, active, ws, check_tol)
+        ok = _step(j, f1, half, m, off, n1, n2, hull, cs, pr, pd, bn1, nb, face_off, pa, w, b6, f6,
+                   k8, kdd, qpos, qsum, k_ba, k_ab, jets, active, ws, check_tol)
         if not ok:
             return j
         for i in range(f1 - j + 1):
@@ -546,26 +712,27 @@ def run_pass(
                 guess[j + i, 1 + k // 3, k % 3] = x[NV * i + k] * cs[j + i, k]
         for k in range(NV):
             jets[j, 1 + k // 3, k % 3] = guess[j, 1 + k // 3, k % 3]
-        with objmode(t1="float64"):
-            t1 = time.perf_counter()
+        t1 = _now(clock, ts)
         step_times[j] = t1 - t0
         t0 = t1
     return m - 1
+
 
 
 @njit
 def fill_rows(
     segs: Any, off: Any, hull: Any, w: Any, cs: Any, perm: Any, bn1: int, blim: Any,
     face_off: Any, pa: Any, pb: Any, inf: float, margin: float,
-    ab: Any, abt: Any, c0: Any, lim: Any, limw: Any, add_tol: float,
+    ab: Any, c0: Any, lim: Any, limw: Any, add_tol: float,
 ) -> None:
     """Stacked rows of the given segments, in the layout of `window._RowStore` (see there):
     [start-only bounds | corridor P1..P4 | both | end-only bounds | corridor P5..P8]; columns
-    scaled by `cs`. Writes `ab`, its transpose `abt`, `c0`, limits `lim` (lo_t, hi_t, lo, hi) and
-    working limits `limw` (tightened, and tightened widened by `add_tol` relative); `abt` and
-    `limw` with no columns are skipped."""
+    scaled by `cs`. Writes `ab`, `c0`, limits `lim` (lo_t, hi_t, lo, hi) and working limits `limw`
+    (tightened, and tightened widened by `add_tol` relative; skipped when it has no columns).
+    The numpy + daqp window path and the global QP read these; the compiled pass builds the
+    rows it needs itself (`_materialize`)."""
     nb = perm.size
-    extras = abt.shape[1] > 0 and limw.shape[1] > 0
+    extras = limw.shape[1] > 0
     for si in range(segs.size):
         s = segs[si]
         f = face_off[s + 1] - face_off[s]
@@ -622,10 +789,6 @@ def fill_rows(
                     lim[3, base + r] = hi
         if not extras:
             continue
-        for k in range(2 * NV):
-            dst = abt[k, base : base + n]
-            for r in range(n):
-                dst[r] = blk[r, k]
         l0, l1 = lim[0, base : base + n], lim[1, base : base + n]
         w0, w1 = limw[0, base : base + n], limw[1, base : base + n]
         w2, w3 = limw[2, base : base + n], limw[3, base : base + n]

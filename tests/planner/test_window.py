@@ -51,9 +51,54 @@ def test_stacked_rows_equal_segment_blocks(chunk: int, compiled: bool, monkeypat
         np.testing.assert_allclose(fast.ab[rows, NV:], blk.B * cs[s + 1], rtol=1e-13, atol=1e-12)
         np.testing.assert_allclose(fast.c0[rows], blk.c0, rtol=1e-13, atol=1e-12)
         np.testing.assert_array_equal(fast.lim[:, rows], blk.lim)
-        np.testing.assert_array_equal(fast.abt[:, rows], fast.ab[rows].T)  # the kernel's copy
         np.testing.assert_array_equal(fast.limw[:2, rows], blk.lim[:2])  # tightened, for the solver
         assert np.all(fast.limw[3, rows] >= blk.lim[1]) and np.all(fast.limw[3, rows] - blk.lim[1] <= 1e-11 * (1 + np.abs(blk.lim[1])))
+
+
+def test_compiled_pass_builds_the_stacked_rows() -> None:
+    """The compiled pass builds rows where it needs them (`_materialize`) and checks a segment's rows
+    from its control points (`_seg_check`): both must agree with the stacked rows."""
+    if window.kernel_unavailable() is not None:
+        pytest.skip(f"compiled pass unavailable: {window.kernel_unavailable()}")
+    from planner_core import window_kernel as wk
+
+    problem = _problem(3, 12)
+    cache = ProblemCache(problem)
+    fast = WindowSolver(cache)
+    fast._fill(0, (problem.m - 2) // window.CHUNK)  # the numpy path's stacked rows
+    c = fast._compact()
+    rng = np.random.default_rng(0)
+    pts = np.empty((40, 3))
+    bad = np.empty(200, dtype=np.int64)
+    for s in range(problem.m - 1):
+        n = fast.off[s + 1] - fast.off[s]
+        rows = slice(fast.off[s], fast.off[s + 1])
+        # every row of s built alone (both jets fixed at zero: constants only, no free column)
+        ids = np.arange(n, dtype=np.int64)
+        seg = np.full(n, s, dtype=np.int64)
+        fixed = np.full(n, -1, dtype=np.int64)
+        wab, nrm, lim4 = np.empty((n, 2 * NV)), np.empty(n), np.empty((4, n))
+        wk._materialize(ids, n, fast.off[s], seg, fixed, fixed, c.off, cache.hull, fast.cs, c.pr, c.pd, c.bn1,
+                        c.nb, c.face_off, c.pa, problem.waypoints, c.b6, c.f6, np.zeros(2 * NV), wab, nrm, lim4)
+        np.testing.assert_array_equal(wab, fast.ab[rows])
+        assert np.all(nrm == 0.0)
+        np.testing.assert_array_equal(lim4[:2], fast.lim[:2, rows] - fast.c0[rows])
+        np.testing.assert_array_equal(lim4[2:], fast.limw[2:, rows] - fast.c0[rows])
+        # jets at random: the rows outside their limits are exactly those the stacked rows say
+        for scale in (0.1, 3.0, 30.0):
+            xa, xb = scale * rng.normal(size=(4, 3)), scale * rng.normal(size=(4, 3))
+            x = np.concatenate([xa.ravel() / fast.cs[s], xb.ravel() / fast.cs[s + 1]])  # scaled unknowns
+            vals = fast.c0[rows] + fast.ab[rows] @ x
+            for lra, lrb in ((0, n), (fast.n1[s], n), (0, fast.n1[s]), (fast.n1[s] + fast.n2[s], n)):
+                nbad = wk._seg_check(s, lra, lrb, xa, xb, 2, 3, 0.0, cache.hull, c.pr, c.pd, c.bn1, c.nb,
+                                     c.face_off, c.pa, problem.waypoints, c.b6, c.f6, pts, bad)
+                lim = fast.lim[:, rows]
+                out = (vals > lim[3]) | (vals < lim[2])
+                # the two evaluations round differently: ignore rows within 1e-9 of a limit
+                near = (np.abs(vals - lim[3]) < 1e-9) | (np.abs(vals - lim[2]) < 1e-9)
+                want = {lr for lr in range(lra, lrb) if out[lr] and not near[lr]}
+                got = set(bad[:nbad].tolist())
+                assert want <= got and got - want <= {lr for lr in range(lra, lrb) if near[lr]}
 
 
 @pytest.mark.parametrize("chunk", [2, 64])
