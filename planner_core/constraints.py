@@ -59,9 +59,10 @@ def hull_maps(durations: FloatArray) -> FloatArray:
     # integer array exponent goes through pow() 400 times a segment: ~5x slower at m = 1000)
     lo = int(power.min())
     table = d[:, None] ** np.arange(lo, int(power.max()) + 1, dtype=float)[None, :]
-    # C order: the gather's result is not, and the compiled pass reads these maps row by row
-    out: FloatArray = np.multiply(q1[None, :, :], table[:, power - lo], order="C")
-    return out
+    # np.take gives C order (the compiled pass reads these maps row by row); fancy indexing did not
+    out: FloatArray = np.take(table, (power - lo).ravel(), axis=1)
+    out *= q1.ravel()
+    return out.reshape(d.size, *q1.shape)
 
 
 # bound rows are the hodograph rows 10..39 (orders 1..4)

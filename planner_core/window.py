@@ -152,15 +152,31 @@ class WindowSolver:
         # position part of the gradient: K[free, 0] p0 + K[free, 5] p1, per axis
         gpos = k10[:, free, 0, None] * w[:-1, None, :] + k10[:, free, 5, None] * w[1:, None, :]
         self.qpos = (gpos * c8[:, :, None]).reshape(-1, 2 * NV)
-        # gradient from a fixed neighbour's derivatives (unscaled columns: they multiply jets)
-        self.k_ba = _kron3(k10[:, 6:10, 1:5] * c8[:, 4:, None])  # end-jet rows x start-jet derivatives
-        self.k_ab = _kron3(k10[:, 1:5, 6:10] * c8[:, :4, None])
+        # gradient from a fixed neighbour's derivatives (unscaled columns: they multiply jets), per
+        # axis: end-jet rows x start-jet derivatives, and the reverse
+        self.kba4 = np.ascontiguousarray(k10[:, 6:10, 1:5] * c8[:, 4:, None])
+        self.kab4 = np.ascontiguousarray(k10[:, 1:5, 6:10] * c8[:, :4, None])
+        self._kba: FloatArray | None = None
+        self._kab: FloatArray | None = None
         # per-waypoint Hessian/gradient sums of the two segments meeting there (index 0 and m-1 unused)
         self.kdd = np.zeros((problem.m, 4, 4))  # per axis
         self.kdd[1:-1] = k8[:-1, 4:, 4:] + k8[1:, :4, :4]
         self.qsum = np.zeros((problem.m, NV))
         self.qsum[1:-1] = self.qpos[:-1, NV:] + self.qpos[1:, :NV]
         self._idx: _CompactRows | None = None
+
+    @property
+    def k_ba(self) -> FloatArray:
+        """(S, 12, 12) `kba4` over the 3 axes, for `solve`."""
+        if self._kba is None:
+            self._kba = _kron3(self.kba4)
+        return self._kba
+
+    @property
+    def k_ab(self) -> FloatArray:
+        if self._kab is None:
+            self._kab = _kron3(self.kab4)
+        return self._kab
 
     @property
     def k24(self) -> FloatArray:
@@ -281,7 +297,7 @@ class WindowSolver:
             kernel.run_pass(
                 j0, window, m, c.off, c.n1, c.n2, self.cache.hull, self.cs, c.pr, c.pd, c.bn1, c.nb,
                 c.face_off, c.pa, self.problem.waypoints, c.b6, c.f6,
-                self.k8, self.kdd, self.qpos, self.qsum, self.k_ba, self.k_ab, jets, guess, self.active,
+                self.k8, self.kdd, self.qpos, self.qsum, self.kba4, self.kab4, jets, guess, self.active,
                 step_times, CHECK_TOL, _clock[0], np.zeros(2, dtype=np.int64),
             )
         )
@@ -350,8 +366,8 @@ class _RowStore:
         self.cache = cache
         self.cs = cs
         n_seg = problem.m - 1
-        self.polys = [problem.corridor(s) for s in range(n_seg)]
-        self.faces = np.array([0 if p is None else p.A.shape[0] for p in self.polys], dtype=np.int64)
+        self.polys = list(problem.corridors) if problem.corridors is not None else [None] * n_seg
+        self.faces = np.array([0 if p is None else p.b.size for p in self.polys], dtype=np.int64)
         nb = cache._bperm.size
         off = np.concatenate([[0], np.cumsum(nb + 8 * self.faces)])
         n_rows = int(off[-1])

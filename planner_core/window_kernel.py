@@ -436,7 +436,7 @@ def _step(
     f0: int, f1: int, half: bool, m: int,
     off: Any, n1: Any, n2: Any, hull: Any, cs: Any, pr: Any, pd: Any, bn1: int, nb: int, face_off: Any,
     pa: Any, w: Any, b6: Any, f6: Any,
-    k8: Any, kdd: Any, qpos: Any, qsum: Any, k_ba: Any, k_ab: Any, jets: Any, active: Any, ws: Any,
+    k8: Any, kdd: Any, qpos: Any, qsum: Any, kba4: Any, kab4: Any, jets: Any, active: Any, ws: Any,
     check_tol: float,
 ) -> bool:
     """Solve window f0..f1 into `ws` (its x: scaled derivatives); False on any doubt."""
@@ -494,18 +494,21 @@ def _step(
                 ld[i, a, b] = k8[wp - 1, 4 + a, 4 + b] if last_half else kdd[wp, a, b]
                 if i > 0:
                     lo[i, a, b] = k8[wp - 1, a, 4 + b]
-    for a in range(NV):
-        g = 0.0
-        for b in range(NV):
-            g += k_ba[sb, a, b] * jets[sb, 1 + b // 3, b % 3]
-        q[a] += g
+    # gradient from the fixed neighbours' derivatives, per axis (4 x 4 blocks, the same on each)
+    for a in range(4):
+        for d in range(3):
+            g = 0.0
+            for c in range(4):
+                g += kba4[sb, a, c] * jets[sb, 1 + c, d]
+            q[3 * a + d] += g
     if not half:
         o = nx - NV
-        for a in range(NV):
-            g = 0.0
-            for b in range(NV):
-                g += k_ab[f1, a, b] * jets[f1 + 1, 1 + b // 3, b % 3]
-            q[o + a] += g
+        for a in range(4):
+            for d in range(3):
+                g = 0.0
+                for c in range(4):
+                    g += kab4[f1, a, c] * jets[f1 + 1, 1 + c, d]
+                q[o + 3 * a + d] += g
     if not _btd_factor(ld, lo, nf):
         return False
     # Goldfarb-Idnani from the unconstrained minimum
@@ -667,7 +670,7 @@ def run_pass(
     j0: int, window: int, m: int,
     off: Any, n1: Any, n2: Any, hull: Any, cs: Any, pr: Any, pd: Any, bn1: int, nb: int, face_off: Any,
     pa: Any, w: Any, b6: Any, f6: Any,
-    k8: Any, kdd: Any, qpos: Any, qsum: Any, k_ba: Any, k_ab: Any, jets: Any, guess: Any, active: Any,
+    k8: Any, kdd: Any, qpos: Any, qsum: Any, kba4: Any, kab4: Any, jets: Any, guess: Any, active: Any,
     step_times: Any, check_tol: float, clock: Any, ts: Any,
 ) -> int:
     """Steps j0 .. m-2; commits the jet at each j. Returns the first j it could not settle (m-1
@@ -704,7 +707,7 @@ def run_pass(
         f1 = min(j + window - 1, m - 2)
         half = f1 < m - 2
         ok = _step(j, f1, half, m, off, n1, n2, hull, cs, pr, pd, bn1, nb, face_off, pa, w, b6, f6,
-                   k8, kdd, qpos, qsum, k_ba, k_ab, jets, active, ws, check_tol)
+                   k8, kdd, qpos, qsum, kba4, kab4, jets, active, ws, check_tol)
         if not ok:
             return j
         for i in range(f1 - j + 1):
