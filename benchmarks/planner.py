@@ -221,7 +221,8 @@ def main(argv: list[str] | None = None) -> int:
         print(_table(rows, cols))
         out["replan"] = bench_replan(args.sizes)
         print("\nlocal replan, one moved waypoint (target <= 1 ms at any m)")
-        print(_table(out["replan"], ["m", "resolved_jets", "verified", "median_ms", "p95_ms", "qp_ms"]))
+        print(_table(out["replan"], ["m", "resolved_jets", "verified", "median_ms", "p95_ms", "min_ms", "qp_ms",
+                                     "cold_median_ms", "cold_p95_ms", "split_env_median_ms", "split_env_p95_ms"]))
     if args.quality:
         out["quality"] = bench_quality()
     if args.minsnap:

@@ -190,7 +190,7 @@ def _osqp_refined(qp: _GlobalQP, x0: FloatArray | None) -> FloatArray | None:
 
 def _jets_of(ctrl: FloatArray, problem: Problem) -> FloatArray:
     """Jets at the waypoints from control points (the start jet of each segment), vectorised."""
-    from planner_core.localqp import _jet_rows
+    from planner_core.certificate import _jet_rows
 
     d = problem.durations
     jets = initial_jets(problem)

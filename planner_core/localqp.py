@@ -7,6 +7,11 @@ of orders 1..4, corridor on P^1..P^8); rows that depend on fixed entries only
 are checked instead of handed to the solver, so a fixed half that already
 violates a (new) constraint is reported by name rather than as a bare
 "infeasible". Cost: integrated squared snap over the touched segments.
+
+`solve_derivatives` (a local replan's QP) and `certificate.certify_rebuilt`
+(its certificate) are the latency-critical path: everything that depends only on
+durations, free-jet pattern, face counts or bounds is built once and cached
+(read-only arrays), so a call is a few batched numpy products and one daqp solve.
 """
 
 from __future__ import annotations
@@ -15,13 +20,40 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from functools import lru_cache
+from math import prod
 
 import numpy as np
 from numpy.typing import NDArray
 
-from planner_core.bezier import hodograph_matrix, segment_from_jets
-from planner_core.constraints import KIND_BOUND, cost_matrices, hull_maps, segment_rows
-from planner_core.problem import DEGREE, JET_ORDER, ORDER_NAMES, Bounds, FloatArray, Polytope
+from planner_core.certificate import (
+    _HODO,
+    _INNER,
+    _LIM_IDX,
+    _N_HODO,
+    _ORDER_OF_ROW,
+    _POW_EXP,
+    _POW_LO,
+    _limits,
+    _power_table,
+    _read_only,
+)
+from planner_core.constraints import (
+    KIND_BOUND,
+    _unit_cost,
+    _unit_templates,
+    cost_matrices,
+    hull_maps,
+    segment_rows,
+)
+from planner_core.problem import (
+    DEGREE,
+    JET_ORDER,
+    N_CTRL,
+    ORDER_NAMES,
+    Bounds,
+    FloatArray,
+    Polytope,
+)
 from planner_core.qp import solve_qp
 
 BoolArray = NDArray[np.bool_]
@@ -152,108 +184,30 @@ def solve_local(
     return LocalSolution(True, out, "ok", qp_time, n, G.shape[0])
 
 
-@lru_cache(maxsize=4096)
-def _hodograph_stack(d: float) -> FloatArray:
-    """(30, 10): control points -> hodograph control points of orders 1..4, stacked."""
-    out = np.vstack([hodograph_matrix(k, d) for k in range(1, 5)])
-    out.setflags(write=False)
-    return out
-
-
-def hull_violation(
-    ctrl: FloatArray,
-    durations: FloatArray,
-    bounds: Bounds,
-    corridors: Sequence[Polytope | None],
-    tol: float = 1e-9,
-    labels: Sequence[int] | None = None,
-) -> str | None:
-    """First hull certificate failure of segments (s, 10, 3), or None when all pass.
-
-    Checks every hodograph control point of orders 1..4 against the bounds and
-    all 10 control points against the corridor. `labels` are the segments'
-    indices to name in the message (default 0..s-1).
-    """
-    names = list(range(ctrl.shape[0])) if labels is None else list(labels)
-    lo = bounds.lo[_ORDER_OF_ROW - 1]  # (30, 3)
-    hi = bounds.hi[_ORDER_OF_ROW - 1]
-    for i in range(ctrl.shape[0]):
-        h = _hodograph_stack(float(durations[i])) @ ctrl[i]  # (30, 3)
-        worst = np.maximum(h - hi, lo - h)
-        if float(worst.max()) > tol:
-            k = int(_ORDER_OF_ROW[int(np.argmax(worst.max(axis=1)))])
-            return f"{ORDER_NAMES[k]} bound exceeded by {float(worst.max()):.3g} on segment {names[i]}"
-        poly = corridors[i]
-        if poly is not None and poly.A.shape[0] > 0:
-            v = float((ctrl[i] @ poly.A.T - poly.b).max())
-            if v > tol:
-                return f"corridor violated by {v:.3g} on segment {names[i]}"
-    return None
-
-
-def build_segments(jets: Mapping[int, FloatArray], durations: Mapping[int, float], segments: Sequence[int]) -> FloatArray:
-    """Control points (len(segments), 10, 3) of the given segments from their end jets."""
-    return np.stack([segment_from_jets(jets[s], jets[s + 1], float(durations[s])) for s in segments])
-
-
 # --- fast path: free jets' derivative rows (the replanning case) --------------
 
 MARGIN = 1e-6  # relative tightening, as jets.py: the solution then meets the untightened rows
 CHECK_TOL = 1e-9
 _NV = 12  # velocity..snap x 3 axes per free jet
-
-
-@lru_cache(maxsize=1)
-def _jet_rows() -> tuple[FloatArray, FloatArray]:
-    """(5, 5) maps from P^0..P^4 (resp. P^5..P^9) to the unscaled start (end) jet."""
-    u0 = np.zeros((JET_ORDER, JET_ORDER))
-    u1 = np.zeros((JET_ORDER, JET_ORDER))
-    for k in range(JET_ORDER):
-        h = hodograph_matrix(k, 1.0) if k else np.eye(DEGREE + 1)
-        u0[k] = h[0, :JET_ORDER]
-        u1[k] = h[-1, JET_ORDER:]
-    u0.setflags(write=False)
-    u1.setflags(write=False)
-    return u0, u1
-
-
-_POWERS = -np.arange(JET_ORDER, dtype=float)
-
-
-def start_jet_fast(ctrl: FloatArray, duration: float) -> FloatArray:
-    """bezier.start_jet without the per-order Python loop."""
-    return np.asarray((_jet_rows()[0] @ ctrl[:JET_ORDER]) * (duration**_POWERS)[:, None])
-
-
-def end_jet_fast(ctrl: FloatArray, duration: float) -> FloatArray:
-    return np.asarray((_jet_rows()[1] @ ctrl[JET_ORDER:]) * (duration**_POWERS)[:, None])
-
-
-def _tighten(lo: FloatArray, hi: FloatArray) -> tuple[FloatArray, FloatArray]:
-    tlo = np.where(lo > -1e29, lo + MARGIN * (1.0 + np.abs(lo)), lo)
-    thi = np.where(hi < 1e29, hi - MARGIN * (1.0 + np.abs(hi)), hi)
-    return tlo, thi
+_INF = 1e30  # both QP backends' "no bound"
+_SIGN = np.array([[1.0], [-1.0]])  # row 0 lower limits, row 1 upper limits
 
 
 @dataclass(frozen=True)
-class _SegmentMats:
-    """Everything about one segment's QP block that depends only on its duration and free sides."""
+class _Layout:
+    """What a segment's QP block looks like for one choice of free sides, at every duration.
 
-    Q: FloatArray  # (40, 10) hull map per axis over (side*5 + order)
-    fixed: NDArray[np.bool_]  # (10,) entries held fixed
-    live_b: NDArray[np.bool_]  # (30,) hodograph points that depend on a free entry
-    order_live: NDArray[np.int64]  # bound row (order-1) of each live hodograph point
-    order_dead: NDArray[np.int64]
-    gb: dict[int, FloatArray]  # free side -> (3 * live points, 12) bound rows
-    live_c: NDArray[np.bool_]  # (8,) control points P^1..P^8 that depend on a free entry
-    qc: dict[int, FloatArray]  # free side -> (live points, 4) corridor coefficients per axis
-    pblk: dict[tuple[int, int], FloatArray]  # (side a, side b) -> (12, 12) cost Hessian block
-    kq: dict[int, FloatArray]  # free side -> (4, 10): cost gradient rows (times fixed entries)
+    `unit` holds every duration-scaled array of `_SegmentMats` at d = 1, flattened end to
+    end; `power` is the index of each entry's power of d in `_power_table`.
+    """
 
-
-_HODO = slice(DEGREE + 1, None)  # hull rows 10..39: hodographs of orders 1..4
-_INNER = slice(1, DEGREE)  # control points P^1..P^8
-_ORDER_OF_ROW = np.concatenate([np.full(DEGREE + 1 - k, k) for k in range(1, 5)])
+    unit: FloatArray
+    power: NDArray[np.int64]
+    parts: tuple[tuple[str, int, int, tuple[int, ...]], ...]
+    live_b: NDArray[np.int64]  # flat (point * 3 + axis) hodograph values that depend on a free entry
+    dead_b: NDArray[np.int64]
+    live_c: NDArray[np.int64]  # control-point rows (of the 40 hull rows) that depend on a free entry
+    dead_c: NDArray[np.int64]
 
 
 def _expand(blk: FloatArray, other: FloatArray) -> FloatArray:
@@ -263,35 +217,303 @@ def _expand(blk: FloatArray, other: FloatArray) -> FloatArray:
     return np.asarray((blk[:, None, :, None] * other[None, :, None, :]).reshape(r * f, c * a))
 
 
-@lru_cache(maxsize=4096)
-def _segment_mats(d: float, free0: bool, free1: bool) -> _SegmentMats:
-    Q = hull_maps(np.array([d]))[0]
-    K = cost_matrices(np.array([d]), 4)[0]
-    sides = [side for side, f in ((0, free0), (1, free1)) if f]
-    cols = {side: np.arange(side * JET_ORDER + 1, side * JET_ORDER + JET_ORDER) for side in sides}
+def _expand_power(p: NDArray[np.int64]) -> NDArray[np.int64]:
+    """The power of each entry of `_expand(blk, eye(3))` given blk's powers."""
+    return np.asarray(np.repeat(np.repeat(p, 3, axis=0), 3, axis=1), dtype=np.int64)
+
+
+@lru_cache(maxsize=4)
+def _free_layout(free0: bool, free1: bool) -> _Layout:
+    q1, hpow, _, _ = _unit_templates()
+    k1, kpow_f = _unit_cost(4)
+    kpow = kpow_f.astype(np.int64)
+    cols = {side: np.arange(side * JET_ORDER + 1, side * JET_ORDER + JET_ORDER) for side, f in ((0, free0), (1, free1)) if f}
     fixed = np.ones(2 * JET_ORDER, dtype=bool)
     for c in cols.values():
         fixed[c] = False
-    qb = Q[_HODO]
-    qi = Q[_INNER]
+    qb, qi = q1[_HODO], q1[_INNER]
     live_b = np.zeros(qb.shape[0], dtype=bool)
     live_c = np.zeros(qi.shape[0], dtype=bool)
     for c in cols.values():
         live_b |= np.any(qb[:, c] != 0.0, axis=1)
         live_c |= np.any(qi[:, c] != 0.0, axis=1)
     eye3 = np.eye(3)
-    return _SegmentMats(
-        Q=Q,
-        fixed=fixed,
-        live_b=live_b,
-        order_live=_ORDER_OF_ROW[live_b] - 1,
-        order_dead=_ORDER_OF_ROW[~live_b] - 1,
-        gb={side: _expand(qb[live_b][:, c], eye3) for side, c in cols.items()},
-        live_c=live_c,
-        qc={side: qi[live_c][:, c] for side, c in cols.items()},
-        pblk={(sa, sb): 2.0 * _expand(K[np.ix_(ca, cb)], eye3) for sa, ca in cols.items() for sb, cb in cols.items()},
-        kq={side: 2.0 * K[c] for side, c in cols.items()},
+    entries: list[tuple[str, FloatArray, NDArray[np.int64]]] = [("qfix", q1 * fixed, hpow)]
+    for sa, ca in cols.items():
+        entries.append((f"gb{sa}", _expand(qb[live_b][:, ca], eye3), _expand_power(hpow[_HODO][live_b][:, ca])))
+        entries.append((f"qc{sa}", qi[live_c][:, ca], hpow[_INNER][live_c][:, ca]))
+        entries.append((f"kq{sa}", 2.0 * k1[ca] * fixed, kpow[ca]))
+        for sb, cb in cols.items():
+            ix = np.ix_(ca, cb)
+            entries.append((f"p{sa}{sb}", 2.0 * _expand(k1[ix], eye3), _expand_power(kpow[ix])))
+    parts = []
+    start = 0
+    for name, arr, _ in entries:
+        parts.append((name, start, start + arr.size, arr.shape))
+        start += arr.size
+    axes = np.arange(3)
+    return _Layout(
+        unit=_read_only(np.concatenate([a.ravel() for _, a, _ in entries])),
+        power=np.concatenate([p.ravel() for _, _, p in entries]) - _POW_LO,
+        parts=tuple(parts),
+        live_b=(np.flatnonzero(live_b)[:, None] * 3 + axes).ravel(),
+        dead_b=(np.flatnonzero(~live_b)[:, None] * 3 + axes).ravel(),
+        live_c=np.flatnonzero(live_c) + 1,
+        dead_c=np.flatnonzero(~live_c) + 1,
     )
+
+
+@dataclass(frozen=True)
+class _SegmentMats:
+    """One segment's QP block at one duration, for one choice of free sides.
+
+    arrays: "qfix" (40, 10) hull map with the free entries' columns zeroed; per free side a,
+    "gb<a>" (3 * live points, 12) bound rows, "qc<a>" (live points, 4) corridor coefficients
+    per axis, "kq<a>" (4, 10) cost gradient rows (fixed entries only); per pair of free
+    sides, "p<a><b>" (12, 12) cost Hessian blocks.
+    """
+
+    layout: _Layout
+    arrays: dict[str, FloatArray]
+
+
+@lru_cache(maxsize=512)  # ~10 kB each: a few MB at most on the companion
+def _segment_mats(d: float, free0: bool, free1: bool) -> _SegmentMats:
+    lay = _free_layout(free0, free1)
+    flat = _read_only(lay.unit * _power_table(d).take(lay.power))
+    return _SegmentMats(lay, {name: flat[a:b].reshape(shape) for name, a, b, shape in lay.parts})
+
+
+@dataclass(frozen=True)
+class _Pattern:
+    """The shape of one local QP: which rows exist and where, for one choice of free jets and
+    corridor face counts, at any durations.
+
+    Row order: live bound rows, live corridor rows (segment, control point, face) --
+    the QP's rows, `n_live` of them -- then rows that depend on fixed entries only:
+    dead bound rows, dead corridor rows. Those are zero in G, never handed to the
+    solver, and checked with the solution in one pass.
+    """
+
+    n: int
+    jets: tuple[int, ...]  # offsets (from the first segment) of the jets the QP reads, in order
+    col_of: dict[int, int]  # jet offset -> its position in `jets`
+    n_bound: int
+    n_live: int
+    n_rows: int
+    n_dead_bound: int
+    live_b: NDArray[np.int64]  # hodograph values (of the 90 k) with a bound row in the QP
+    dead_b: NDArray[np.int64]
+    face_off: tuple[int, ...]  # per segment, offset of its (9, faces) corridor values in the flat vector
+    live_c: NDArray[np.int64]  # flat indices into the corridor values of the rows handed to the solver
+    dead_c: NDArray[np.int64]
+    corridor_blocks: tuple[tuple[int, int, int, int], ...]  # (segment, first row, column, free side)
+    uniform_col: int | None  # one free side per segment, all in these columns, one face count
+    # `_structure`'s numbers as one scatter-add: entry e of the segments' unit layouts, scaled by
+    # the power `power[e]` of its segment's duration table, adds into `dest[e]` of a flat buffer
+    unit: FloatArray
+    power: NDArray[np.int64]  # into the (k, 12) table of the segments' durations' powers, flattened
+    dest: NDArray[np.int64]  # buf_size (one past the end) for entries the QP does not use
+    buf_size: int
+    regions: dict[str, tuple[int, tuple[int, ...]]]  # name -> (offset, shape) in the buffer (_scatter_plan)
+
+
+@lru_cache(maxsize=256)
+def _pattern(n_free: int, pat: tuple[tuple[int, int, int, int], ...]) -> _Pattern:
+    """pat: per segment (offset from the first, position of its start jet among the free ones
+    or -1, same for its end jet, corridor faces)."""
+    k = len(pat)
+    jet_offs = sorted({o + e for o, *_ in pat for e in (0, 1)})
+    lives, deads, lcs, dcs = [], [], [], []
+    blocks: list[tuple[int, int, int, int]] = []  # (segment, rows, column, side)
+    face_off = []
+    fo = 0
+    for i, (_, p0, p1, faces) in enumerate(pat):
+        lay = _free_layout(p0 >= 0, p1 >= 0)
+        lives.append(i * 90 + lay.live_b)
+        deads.append(i * 90 + lay.dead_b)
+        face_off.append(fo)
+        if faces:
+            f = np.arange(faces)
+            lcs.append((fo + lay.live_c[:, None] * faces + f).ravel())
+            dcs.append((fo + lay.dead_c[:, None] * faces + f).ravel())
+            blocks.extend((i, lay.live_c.size * faces, _NV * p, side) for side, p in ((0, p0), (1, p1)) if p >= 0)
+        fo += DEGREE * faces
+    live_b = np.concatenate(lives)
+    placed = []  # corridor blocks' first rows: after the bound rows, segment after segment
+    r = live_b.size
+    last_seg = -1
+    for i, nrows, col, side in blocks:
+        if i != last_seg:
+            start, last_seg = r, i
+            r += nrows
+        placed.append((i, start, col, side))
+    empty = np.zeros(0, dtype=np.int64)
+    dead_b = np.concatenate(deads)
+    dead_c = np.concatenate(dcs) if dcs else empty
+    one_each = [i for i, *_ in placed] == list(range(k))
+    cols = {col for _, _, col, _ in placed}
+    same_points = len({_free_layout(p0 >= 0, p1 >= 0).live_c.size for _, p0, p1, _ in pat}) == 1
+    uniform = one_each and len(cols) == 1 and same_points and len({fc for *_, fc in pat}) == 1
+    n = _NV * n_free
+    col_of = {o: i for i, o in enumerate(jet_offs)}
+    unit, power, dest, size, regions = _scatter_plan(n_free, pat, col_of, r + dead_b.size + dead_c.size, placed)
+    return _Pattern(
+        n=n,
+        jets=tuple(jet_offs),
+        col_of=col_of,
+        n_bound=live_b.size,
+        n_live=r,
+        n_rows=r + dead_b.size + dead_c.size,
+        n_dead_bound=dead_b.size,
+        live_b=live_b,
+        dead_b=dead_b,
+        face_off=tuple(face_off),
+        live_c=np.concatenate(lcs) if lcs else empty,
+        dead_c=dead_c,
+        corridor_blocks=tuple(placed),
+        uniform_col=cols.pop() if uniform else None,
+        unit=unit,
+        power=power,
+        dest=dest,
+        buf_size=size,
+        regions=regions,
+    )
+
+
+_Regions = dict[str, tuple[int, tuple[int, ...]]]
+
+
+def _block_index(region: tuple[int, tuple[int, ...]], row0: int, col0: int, rows: int, cols: int) -> NDArray[np.int64]:
+    """Flat buffer indices of the (rows, cols) block at (row0, col0) of a 2-d region."""
+    off, shape = region
+    return np.asarray(off + (row0 + np.arange(rows))[:, None] * shape[-1] + col0 + np.arange(cols), dtype=np.int64)
+
+
+def _place(
+    dest: NDArray[np.int64], part: tuple[int, tuple[int, ...]], region: tuple[int, tuple[int, ...]], row0: int, col0: int
+) -> None:
+    """Send a layout part (its offset in the unit vector, its 2-d shape) to a block of a region."""
+    start, (rows, cols) = part
+    dest[start : start + rows * cols] = _block_index(region, row0, col0, rows, cols).ravel()
+
+
+def _scatter_plan(
+    n_free: int,
+    pat: tuple[tuple[int, int, int, int], ...],
+    col_of: dict[int, int],
+    n_rows: int,
+    blocks: list[tuple[int, int, int, int]],
+) -> tuple[FloatArray, NDArray[np.int64], NDArray[np.int64], int, _Regions]:
+    """Where each entry of each segment's `_SegmentMats` layout goes in `_structure`'s buffer.
+
+    Regions: "hodo" (30 k, 5 nj), "inner" (9 k, 5 nj), "grad" (4 n_free, 5 nj), "P" (n, n),
+    "G" (rows, n), then "qc<i>.<side>" per corridor block, one after the other ("qc": all
+    of them). Sums (P, grad) come out of the scatter-add; unused entries go one past the end.
+    """
+    k, n, nj = len(pat), _NV * n_free, len(col_of)
+    shapes: list[tuple[str, tuple[int, ...]]] = [
+        ("hodo", (k * _N_HODO, JET_ORDER * nj)),
+        ("inner", (k * DEGREE, JET_ORDER * nj)),
+        ("grad", ((JET_ORDER - 1) * n_free, JET_ORDER * nj)),
+        ("P", (n, n)),
+        ("G", (n_rows, n)),
+    ]
+    layouts = [_free_layout(p0 >= 0, p1 >= 0) for _, p0, p1, _ in pat]
+    parts = [{name: (a, shape) for name, a, _, shape in lay.parts} for lay in layouts]
+    shapes += [(f"qc{i}.{side}", parts[i][f"qc{side}"][1]) for i, _, _, side in blocks]
+    regions: _Regions = {}
+    size = 0
+    for name, shape in shapes:
+        regions[name] = (size, shape)
+        size += prod(shape)
+    qc0 = regions["G"][0] + prod(regions["G"][1])
+    regions["qc"] = (qc0, (size - qc0,))
+
+    units, powers, dests = [], [], []
+    r = 0
+    for i, ((o, p0, p1, _), lay, part) in enumerate(zip(pat, layouts, parts, strict=True)):
+        dest = np.full(lay.unit.size, size, dtype=np.int64)
+        c = JET_ORDER * col_of[o]  # the segment's two jets are adjacent in `jets`
+        qfix = np.full((N_CTRL + _N_HODO, 2 * JET_ORDER), size, dtype=np.int64)
+        qfix[:DEGREE] = _block_index(regions["inner"], DEGREE * i, c, DEGREE, 2 * JET_ORDER)
+        qfix[_HODO] = _block_index(regions["hodo"], _N_HODO * i, c, _N_HODO, 2 * JET_ORDER)
+        start = part["qfix"][0]
+        dest[start : start + qfix.size] = qfix.ravel()
+        sides = [(side, p) for side, p in ((0, p0), (1, p1)) if p >= 0]
+        nbi = 0
+        for sa, pa in sides:
+            _place(dest, part[f"kq{sa}"], regions["grad"], (JET_ORDER - 1) * pa, c)
+            _place(dest, part[f"gb{sa}"], regions["G"], r, _NV * pa)
+            nbi = part[f"gb{sa}"][1][0]
+            for sb, pb in sides:
+                _place(dest, part[f"p{sa}{sb}"], regions["P"], _NV * pa, _NV * pb)
+            if f"qc{i}.{sa}" in regions:
+                _place(dest, part[f"qc{sa}"], regions[f"qc{i}.{sa}"], 0, 0)
+        r += nbi
+        units.append(lay.unit)
+        powers.append(i * _POW_EXP.size + lay.power)
+        dests.append(dest)
+    return _read_only(np.concatenate(units)), np.concatenate(powers), np.concatenate(dests), size, regions
+
+
+@dataclass(frozen=True)
+class _Structure:
+    """The numbers of one local QP that depend only on its pattern and the durations.
+
+    Per call there remain the fixed jets' contribution (a few products with the
+    matrices here), the corridor rows' numbers (polytope-dependent) and the solve.
+    """
+
+    pat: _Pattern
+    hodo: FloatArray  # (30 k, 5 nj): fixed entries of the jets -> every segment's hodograph points
+    inner: FloatArray  # (9 k, 5 nj): same -> control points P^0..P^8
+    grad: FloatArray  # (4 n_free, 5 nj): same -> cost gradient, per axis
+    P: FloatArray  # (n, n)
+    G: FloatArray  # (rows, n): live bound rows filled, corridor rows zero, dead rows zero
+    qc: tuple[FloatArray, ...]  # per corridor block, (points, 4) coefficients per axis
+    uniform_qc: FloatArray | None  # (k, points, 4) when the pattern is uniform
+
+
+@lru_cache(maxsize=128)  # ~40 kB each for one free jet
+def _structure(n_free: int, pat: tuple[tuple[int, int, int, int], ...], ds: tuple[float, ...]) -> _Structure:
+    """ds: the segments' durations, in the order of `pat`. One scatter-add builds every number."""
+    pt = _pattern(n_free, pat)
+    table = np.power(np.array(ds)[:, None], _POW_EXP).ravel()
+    # float64: bincount with float weights sums them (P and grad entries shared by two segments)
+    sums = np.bincount(pt.dest, weights=pt.unit * table.take(pt.power), minlength=pt.buf_size + 1)
+    buf = _read_only(np.asarray(sums, dtype=np.float64))
+
+    def view(name: str) -> FloatArray:
+        off, shape = pt.regions[name]
+        return buf[off : off + prod(shape)].reshape(shape)
+
+    qc = tuple(view(f"qc{i}.{side}") for i, _, _, side in pt.corridor_blocks)
+    uniform_qc = None
+    if pt.uniform_col is not None:  # one block per segment, stored one after the other
+        off = pt.regions["qc"][0]
+        uniform_qc = buf[off : off + sum(q.size for q in qc)].reshape(len(qc), *qc[0].shape)
+    return _Structure(
+        pat=pt,
+        hodo=view("hodo"),
+        inner=view("inner"),
+        grad=view("grad"),
+        P=view("P"),
+        G=view("G"),
+        qc=qc,
+        uniform_qc=uniform_qc,
+    )
+
+
+@lru_cache(maxsize=64)
+def _bound_limits(bounds_key: bytes, k: int) -> tuple[FloatArray, bool]:
+    """(2, 90 k) lower / upper bound of every hodograph value of k segments; all finite?"""
+    lim = np.tile(np.frombuffer(bounds_key, dtype=np.float64)[_LIM_IDX], (1, k))
+    return _read_only(lim), bool(np.isfinite(lim).all())
+
+
+def _bounds_key(bounds: Bounds) -> bytes:
+    return np.concatenate((bounds.lo, bounds.hi), axis=None).tobytes()
 
 
 def _solve_dense(
@@ -310,6 +532,23 @@ def _solve_dense(
     return None, "infeasible" if flag == -1 else "failed"
 
 
+_MARGIN_SIGN = MARGIN * _SIGN
+
+
+def _tightened(lim: FloatArray, n_bound: int, infinite: NDArray[np.bool_] | None) -> FloatArray:
+    """The QP's limits (2, rows) moved inwards by MARGIN * (1 + |limit|), so that the solution
+    meets the untightened rows; rows without a limit (corridor lower limits, infinite
+    bounds) stay at +-_INF."""
+    t = np.abs(lim)
+    t += 1.0
+    t *= _MARGIN_SIGN
+    t += lim
+    t[0, n_bound:] = -_INF
+    if infinite is not None:
+        np.copyto(t[:, :n_bound], lim[:, :n_bound], where=infinite)
+    return t
+
+
 def solve_derivatives(
     jets: Mapping[int, FloatArray],
     durations: Mapping[int, float],
@@ -322,72 +561,107 @@ def solve_derivatives(
     """Velocity..snap of the `free` jets, all other jets fixed; every touching segment fully constrained.
 
     Same QP as jets.solve_jets (integrated squared snap, rows tightened by
-    MARGIN, solution checked against the untightened rows), assembled per
-    axis from per-duration cached blocks: it is the latency-critical step of
-    a local replan.
+    MARGIN, solution checked against the untightened rows). It is the
+    latency-critical step of a local replan: everything that depends only on
+    durations, face counts and bounds comes from caches (`_structure`,
+    `_bound_limits`); per call, a few products give the fixed jets' part, then
+    the corridor rows and the solve. Rows that depend on fixed entries only are
+    checked with the solution, not solved; a violated one is named (`_fixed_failure`).
     """
     free = sorted(free)
     pos = {j: i for i, j in enumerate(free)}
-    n = _NV * len(free)
     segs = sorted({s for j in free for s in (j - 1, j)})
-    g_parts: list[FloatArray] = []
-    lo_parts: list[FloatArray] = []
-    hi_parts: list[FloatArray] = []
-    P = np.zeros((n, n))
-    q = np.zeros(n)
-    for s in segs:
-        side_pos = {side: pos[j] for side, j in ((0, s), (1, s + 1)) if j in pos}
-        mats = _segment_mats(float(durations[s]), 0 in side_pos, 1 in side_pos)
-        Zf = np.concatenate([jets[s], jets[s + 1]]) * mats.fixed[:, None]  # (10, 3)
-        base = mats.Q @ Zf  # every hull point's value from the fixed entries
-        vb = base[_HODO]
-        live = mats.live_b
-        vdead = vb[~live]
-        over = np.maximum(vdead - bounds.hi[mats.order_dead], bounds.lo[mats.order_dead] - vdead)
-        if over.size and float(over.max()) > CHECK_TOL:
-            k = int(mats.order_dead[int(np.argmax(over.max(axis=1)))]) + 1
-            return LocalSolution(False, {}, f"{ORDER_NAMES[k]} bound of segment {s} violated by "
-                                 f"{float(over.max()):.3g} by jets held fixed", 0.0, n, 0)
-        vlive = vb[live]
-        g = np.zeros((vlive.size, n))
-        for side, p in side_pos.items():
-            g[:, _NV * p : _NV * p + _NV] = mats.gb[side]
-        g_parts.append(g)
-        lo_parts.append((bounds.lo[mats.order_live] - vlive).ravel())
-        hi_parts.append((bounds.hi[mats.order_live] - vlive).ravel())
-        poly = corridor_of(s)
-        if poly is not None and poly.A.shape[0]:
-            vc = base[_INNER] @ poly.A.T - poly.b  # (8, faces): <= 0 wanted
-            lc = mats.live_c
-            if not lc.all() and float(vc[~lc].max()) > CHECK_TOL:
-                return LocalSolution(False, {}, f"corridor of segment {s} violated by "
-                                     f"{float(vc[~lc].max()):.3g} by jets held fixed", 0.0, n, 0)
-            gc = np.zeros((int(lc.sum()) * poly.A.shape[0], n))
-            for side, p in side_pos.items():
-                gc[:, _NV * p : _NV * p + _NV] = _expand(mats.qc[side], poly.A)
-            g_parts.append(gc)
-            lo_parts.append(np.full(gc.shape[0], -1e30))
-            hi_parts.append(-vc[lc].ravel())
-        for sa, pa in side_pos.items():
-            q[_NV * pa : _NV * pa + _NV] += (mats.kq[sa] @ Zf).ravel()
-            for sb, pb in side_pos.items():
-                P[_NV * pa : _NV * pa + _NV, _NV * pb : _NV * pb + _NV] += mats.pblk[(sa, sb)]
-    G = np.vstack(g_parts)
-    lo0 = np.clip(np.concatenate(lo_parts), -1e30, 1e30)
-    hi0 = np.clip(np.concatenate(hi_parts), -1e30, 1e30)
-    lo_t, hi_t = _tighten(lo0, hi0)
+    s0 = segs[0]
+    polys = [corridor_of(s) for s in segs]
+    faces = [0 if p is None else int(p.A.shape[0]) for p in polys]
+    st = _structure(
+        len(free),
+        tuple((s - s0, pos.get(s, -1), pos.get(s + 1, -1), f) for s, f in zip(segs, faces, strict=True)),
+        tuple(float(durations[s]) for s in segs),
+    )
+    pt = st.pat
+    n, k, nb, nl = pt.n, len(segs), pt.n_bound, pt.n_live
+    limits, finite = _bound_limits(_bounds_key(bounds), k)
+    J = np.array([jets[s0 + o] for o in pt.jets]).reshape(-1, 3)  # (5 nj, 3)
+    room = limits - st.hodo.dot(J).reshape(-1)  # (2, 90 k): limit - value of every hodograph point
+    vi = st.inner.dot(J)  # (9 k, 3): P^0..P^8 of every segment from the fixed entries
+    G = st.G.copy()
+    if pt.uniform_col is not None and st.uniform_qc is not None:  # one free side per segment, one face count
+        col, cq = pt.uniform_col, st.uniform_qc
+        present = [p for p in polys if p is not None]  # all of them, as the pattern says
+        A = np.array([p.A for p in present])  # (k, F, 3)
+        vc = (vi.reshape(k, DEGREE, 3) @ A.transpose(0, 2, 1) - np.array([p.b for p in present])[:, None, :]).ravel()
+        expanded = cq[:, :, None, :, None] * A[:, None, :, None, :]  # (k, points, F, 4, 3)
+        G[nb:nl, col : col + _NV] = expanded.reshape(-1, _NV)
+    else:
+        vc = np.empty(pt.face_off[-1] + DEGREE * faces[-1])
+        for i, poly in enumerate(polys):
+            if faces[i] and poly is not None:
+                o = pt.face_off[i]
+                vc[o : o + DEGREE * faces[i]] = (vi[DEGREE * i : DEGREE * (i + 1)].dot(poly.A.T) - poly.b).ravel()
+        for (i, r0, col, _), qc in zip(pt.corridor_blocks, st.qc, strict=True):
+            poly = polys[i]
+            assert poly is not None  # blocks exist only for segments with faces
+            G[r0 : r0 + qc.shape[0] * faces[i], col : col + _NV] = _expand(qc, poly.A)
+    lim = np.empty((2, pt.n_rows))  # lower, upper
+    lim[:, :nb] = room[:, pt.live_b]
+    lim[0, nb:nl] = -_INF
+    lim[1, nb:nl] = -vc[pt.live_c]
+    dc = nl + pt.n_dead_bound
+    lim[:, nl:dc] = room[:, pt.dead_b]
+    lim[0, dc:] = -_INF
+    lim[1, dc:] = -vc[pt.dead_c]
+    infinite = None
+    if not finite:
+        np.minimum(lim, _INF, out=lim)
+        np.maximum(lim, -_INF, out=lim)
+        infinite = np.abs(lim[:, :nb]) >= _INF
+    tight = _tightened(lim[:, :nl], nb, infinite)
+    q = st.grad.dot(J).ravel()
     t0 = time.perf_counter()
-    x, status = _solve_dense(P, q, G, lo_t, hi_t, backend)
+    x, status = _solve_dense(st.P.copy(), q, G[:nl], tight[0], tight[1], backend)
     qp_time = time.perf_counter() - t0
     if x is None:
-        return LocalSolution(False, {}, f"QP {status} for jets {free}", qp_time, n, G.shape[0])
-    rv = G @ x
-    viol = float(max(np.max(rv - hi0, initial=0.0), np.max(lo0 - rv, initial=0.0)))
-    if viol > CHECK_TOL:
-        return LocalSolution(False, {}, f"QP solution misses a row by {viol:.3g} for jets {free}", qp_time, n, G.shape[0])
+        fixed = _fixed_failure(jets, durations, bounds, corridor_of, segs, pos, n)
+        return fixed or LocalSolution(False, {}, f"QP {status} for jets {free}", qp_time, n, nl)
+    viol = max(float(((lim - G.dot(x)) * _SIGN).max()), 0.0)  # lo - Gx and Gx - hi, every row
+    if not viol <= CHECK_TOL:  # NaN fails too
+        fixed = _fixed_failure(jets, durations, bounds, corridor_of, segs, pos, n)
+        return fixed or LocalSolution(False, {}, f"QP solution misses a row by {viol:.3g} for jets {free}", qp_time, n, nl)
     out: dict[int, FloatArray] = {}
     for j, p in pos.items():
         jet = np.array(jets[j], dtype=float)
-        jet[1:] = x[_NV * p : _NV * p + _NV].reshape(4, 3)
+        jet[1:] = x[_NV * p : _NV * p + _NV].reshape(JET_ORDER - 1, 3)
         out[j] = jet
-    return LocalSolution(True, out, "ok", qp_time, n, G.shape[0])
+    return LocalSolution(True, out, "ok", qp_time, n, nl)
+
+
+def _fixed_failure(
+    jets: Mapping[int, FloatArray],
+    durations: Mapping[int, float],
+    bounds: Bounds,
+    corridor_of: CorridorOf,
+    segs: Sequence[int],
+    pos: Mapping[int, int],
+    n: int,
+) -> LocalSolution | None:
+    """The first row (segments in order, bounds before corridor) that fixed jets already violate, named."""
+    lim = _limits(bounds)
+    for s in segs:
+        mt = _segment_mats(float(durations[s]), s in pos, s + 1 in pos)
+        lay = mt.layout
+        base = mt.arrays["qfix"] @ np.concatenate([jets[s], jets[s + 1]])
+        v = base[_HODO].ravel()[lay.dead_b]
+        over = np.maximum(v - lim[1].ravel()[lay.dead_b], lim[0].ravel()[lay.dead_b] - v)
+        if over.size and not float(over.max()) <= CHECK_TOL:
+            i = int(np.argmax(over)) if not np.isnan(over).any() else int(np.flatnonzero(np.isnan(over))[0])
+            k = int(_ORDER_OF_ROW[int(lay.dead_b[i]) // 3])
+            return LocalSolution(False, {}, f"{ORDER_NAMES[k]} bound of segment {s} violated by "
+                                 f"{float(over[i]):.3g} by jets held fixed", 0.0, n, 0)
+        poly = corridor_of(s)
+        if poly is not None and poly.A.shape[0] and lay.dead_c.size:
+            worst = float((base[lay.dead_c] @ poly.A.T - poly.b).max())
+            if not worst <= CHECK_TOL:
+                return LocalSolution(False, {}, f"corridor of segment {s} violated by "
+                                     f"{worst:.3g} by jets held fixed", 0.0, n, 0)
+    return None

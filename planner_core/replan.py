@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from planner_core.bezier import split_segment
+from planner_core.certificate import certify_rebuilt, end_jet_of, segment_ctrl, start_jet_of
 from planner_core.changes import (
     AddObstacles,
     AppendWaypoints,
@@ -50,13 +51,7 @@ from planner_core.changes import (
     as_change_set,
     parse_change,
 )
-from planner_core.localqp import (
-    build_segments,
-    end_jet_fast,
-    hull_violation,
-    solve_derivatives,
-    start_jet_fast,
-)
+from planner_core.localqp import solve_derivatives
 from planner_core.problem import JET_ORDER, FloatArray, Polytope, Problem, Trajectory, rest_jet
 from planner_core.result import PlanStatus
 
@@ -142,7 +137,7 @@ def split_at(traj: Trajectory, t: float) -> Trajectory:
     u = (t - float(traj.times[s])) / float(traj.times[s + 1] - traj.times[s])
     left, right = split_segment(traj.control_points[s], u)
     ctrl = np.concatenate([traj.control_points[:s], left[None], right[None], traj.control_points[s + 1 :]])
-    times = np.insert(traj.times, k, t)
+    times = np.concatenate((traj.times[:k], [t], traj.times[k:]))  # np.insert's generality costs ~30 us
     corridors = None if traj.corridors is None else (*traj.corridors[: s + 1], *traj.corridors[s:])
     return Trajectory(times, ctrl, corridors, dict(traj.stats))
 
@@ -156,7 +151,7 @@ def split_problem_at(problem: Problem, traj: Trajectory, t: float) -> tuple[Prob
     new_traj = split_at(traj, t)
     k, _ = _split_index(traj.times, float(t))
     s = k - 1
-    wps = np.insert(problem.waypoints, k, new_traj.control_points[k, 0], axis=0)
+    wps = np.concatenate((problem.waypoints[:k], new_traj.control_points[k, :1], problem.waypoints[k:]))
     corridors = None if problem.corridors is None else (*problem.corridors[: s + 1], *problem.corridors[s:])
     new_problem = Problem(wps, new_traj.times.copy(), problem.bounds, problem.initial, problem.final, corridors)
     return new_problem, new_traj, k
@@ -178,10 +173,12 @@ class _Work:
         self.times = problem.times.copy()
         self.initial = problem.initial.copy()
         self.final = problem.final.copy()
-        self.corridors: list[Polytope | None] | None = None if problem.corridors is None else list(problem.corridors)
+        # the problem's tuple until an edit writes to it (`writable_corridors`): a move copies no O(m) list
+        self.corridors: Sequence[Polytope | None] | None = problem.corridors
         self.old_ctrl = traj.control_points
-        self.old_dur = np.diff(traj.times)
+        self.old_times = traj.times
         self.src = np.arange(traj.n_segments)  # kept segment -> old index; -1: rebuild
+        self.touched: set[int] = set()  # segments with src -1 while the layout is unchanged
         self.geo = np.zeros(traj.n_segments, dtype=bool)  # corridor to rebuild from the environment
         self.over: dict[int, FloatArray] = {}  # jets that differ from / are not in the old trajectory
         self.seeds: set[int] = set()
@@ -202,11 +199,14 @@ class _Work:
             return self.over[i]
         if i < self.m - 1 and self.src[i] >= 0:
             o = int(self.src[i])
-            return start_jet_fast(self.old_ctrl[o], float(self.old_dur[o]))
+            return start_jet_of(self.old_ctrl[o], self._old_duration(o))
         if i > 0 and self.src[i - 1] >= 0:
             o = int(self.src[i - 1])
-            return end_jet_fast(self.old_ctrl[o], float(self.old_dur[o]))
+            return end_jet_of(self.old_ctrl[o], self._old_duration(o))
         raise AssertionError(f"jet {i} is neither kept nor overridden")
+
+    def _old_duration(self, o: int) -> float:
+        return float(self.old_times[o + 1] - self.old_times[o])
 
     def touch(self, s: int) -> None:
         """Segment s will be rebuilt: remember its end jets first."""
@@ -214,6 +214,23 @@ class _Work:
             if i not in self.over:
                 self.over[i] = self.jet(i)
         self.src[s] = -1
+        self.touched.add(s)
+
+    def writable_corridors(self) -> list[Polytope | None]:
+        if self.corridors is None:
+            self.corridors = [None] * (self.m - 1)
+        elif not isinstance(self.corridors, list):
+            self.corridors = list(self.corridors)
+        return self.corridors
+
+    def corridor_tuple(self) -> tuple[Polytope | None, ...] | None:
+        return None if self.corridors is None else tuple(self.corridors)  # no copy while still a tuple
+
+    def rebuilt(self) -> list[int]:
+        """Segments marked for rebuilding, in order (O(change) while the layout is unchanged)."""
+        if self.same_layout:
+            return sorted(self.touched)
+        return [int(s) for s in np.flatnonzero(self.src < 0)]
 
     def seed(self, *jets: int) -> None:
         self.seeds.update(j for j in jets if self.free_ok(j))
@@ -252,9 +269,7 @@ class _Work:
         self.seed(s, s + 1)
 
     def set_corridor(self, s: int, poly: Polytope | None) -> None:
-        if self.corridors is None:
-            self.corridors = [None] * (self.m - 1)
-        self.corridors[s] = poly
+        self.writable_corridors()[s] = poly
         if poly is None or self.src[s] < 0:
             return
         v = poly.violation(self.old_ctrl[int(self.src[s])])
@@ -291,7 +306,8 @@ class _Work:
         self.geo = np.insert(self.geo, i, True)
         self.geo[s] = True
         if self.corridors is not None:
-            self.corridors.insert(i, self.corridors[s])
+            corr = self.writable_corridors()
+            corr.insert(i, corr[s])
         self.seed(i)
 
     def remove(self, i: int, corridor: Polytope | None) -> None:
@@ -309,9 +325,10 @@ class _Work:
         self.src = np.delete(self.src, i)
         self.geo = np.delete(self.geo, i)
         if self.corridors is not None:
-            del self.corridors[i]
+            corr = self.writable_corridors()
+            del corr[i]
             if corridor is not None:
-                self.corridors[i - 1] = corridor
+                corr[i - 1] = corridor
             elif self.env is not None:
                 self.geo[i - 1] = True
             else:
@@ -341,14 +358,14 @@ class _Work:
         if edit.corridors is not None:
             if self.corridors is None:
                 self.corridors = [None] * (m_old - 1)
-            self.corridors.extend(edit.corridors)
+            self.writable_corridors().extend(edit.corridors)
         elif self.corridors is not None:
             if self.env is None:
                 raise ChangeError(
                     "append.corridors",
                     "the problem has corridors: give one per new segment or the scenario's obstacles",
                 )
-            self.corridors.extend([None] * k)
+            self.writable_corridors().extend([None] * k)
         self.seed(*range(last, self.m - 1))
 
     def add_obstacles(self, obstacles: tuple[Polytope, ...]) -> None:
@@ -401,27 +418,29 @@ def _rebuild_corridors(work: _Work) -> None:
         return
     from planner_core.corridors import CorridorError, build_corridors, update_corridors
 
-    if work.corridors is None:
-        work.corridors = [None] * (work.m - 1)
+    corridors = work.writable_corridors() if work.corridors is None else work.corridors
     obstacles = (*env.obstacles, *work.new_obstacles)
-    missing = np.array([c is None for c in work.corridors], dtype=bool)
-    missing[: max(work.lock - 1, 0)] = False  # the past keeps whatever it had
+    missing = np.zeros(work.m - 1, dtype=bool)
+    # identity scan first (`None in` would call Polytope.__eq__ per entry); indices only when needed
+    if [c for c in corridors if c is None]:
+        missing[[i for i, c in enumerate(corridors) if c is None]] = True
+        missing[: max(work.lock - 1, 0)] = False  # the past keeps whatever it had
     for s in (int(i) for i in np.flatnonzero(work.geo | missing)):
-        old = work.corridors[s]
+        old = corridors[s]  # entries before s are the only ones written so far
         if not work.new_obstacles and old is not None and float((work.wps[s : s + 2] @ old.A.T - old.b).max()) < 0.0:
             # the old corridor holds the new straight segment: keeping it is safe (the QP keeps
             # the curve inside) and skips a corridor build, the slow part of a geometric change.
             # With new obstacles a fresh build is roomier than the old corridor cut by a new plane.
             continue
         try:
-            work.corridors[s] = build_corridors(work.wps[s : s + 2], obstacles, env.map_box, env.radius)[0]
+            work.writable_corridors()[s] = build_corridors(work.wps[s : s + 2], obstacles, env.map_box, env.radius)[0]
         except CorridorError as exc:
             raise _corridor_error(exc, s) from exc
     if work.new_obstacles:
         # segments before the one being flown (the one ending at the split) are the past
         first = max(work.lock - 1, 0)
         try:
-            current = tuple(c for c in work.corridors[first:] if c is not None)
+            current = tuple(c for c in work.writable_corridors()[first:] if c is not None)
             # prune=False: same region and certificates, without a vertex enumeration per
             # affected corridor (that was most of a pop-up replan's time)
             updated, changed = update_corridors(
@@ -447,7 +466,7 @@ def _segments_of(free: set[int], m: int) -> set[int]:
 
 def _widen(free: set[int], work: _Work) -> set[int]:
     if not free:
-        base = {j for s in np.flatnonzero(work.src < 0) for j in (int(s), int(s) + 1)}
+        base = {j for s in work.rebuilt() for j in (s, s + 1)}
         return {j for j in base if work.free_ok(j)}
     return free | {n for j in free for n in (j - 1, j + 1) if work.free_ok(n)}
 
@@ -496,7 +515,7 @@ def _solve_iterative(work: _Work, free: set[int], opts: ReplanOptions) -> tuple[
         raise _Infeasible(f"iterative pass over jets {min(free)}..{max(free)}: {res.message}")
     ctrl = res.trajectory.control_points
     d = np.diff(sub.times)
-    return {j: start_jet_fast(ctrl[j - lo], float(d[j - lo])) for j in free}, elapsed
+    return {j: start_jet_of(ctrl[j - lo], float(d[j - lo])) for j in free}, elapsed
 
 
 def _solve_general(work: _Work, free: set[int], opts: ReplanOptions) -> tuple[dict[int, FloatArray], float]:
@@ -514,46 +533,28 @@ def _solve_general(work: _Work, free: set[int], opts: ReplanOptions) -> tuple[di
 
 def _assemble(work: _Work, solved: dict[int, FloatArray], free: set[int]) -> tuple[Trajectory, list[int]]:
     m = work.m
-    rebuild_mask = work.src < 0
-    for s in _segments_of(free, m):
-        rebuild_mask[s] = True
-    rebuild = [int(s) for s in np.flatnonzero(rebuild_mask)]
-    durations = np.diff(work.times)
-    needed = {i for s in rebuild for i in (s, s + 1)}
-    jets = {i: solved[i] if i in solved else work.jet(i) for i in needed}
+    rebuild = sorted(set(work.rebuilt()) | _segments_of(free, m))
+    times = work.times
     if work.same_layout:  # a plain copy (memcpy) is much cheaper than a gather at large m
         ctrl = work.old_ctrl.copy()
     else:
         ctrl = np.empty((m - 1, 10, 3))
-        keep = ~rebuild_mask
+        keep = np.ones(m - 1, dtype=bool)
+        keep[rebuild] = False
         ctrl[keep] = work.old_ctrl[work.src[keep]]
-    if rebuild:
-        ctrl[rebuild] = build_segments(jets, {s: float(durations[s]) for s in rebuild}, rebuild)
-    corridors = None if work.corridors is None else tuple(work.corridors)
-    return Trajectory(work.times.copy(), ctrl, corridors), rebuild
+    for s in rebuild:
+        j0 = solved[s] if s in solved else work.jet(s)
+        j1 = solved[s + 1] if s + 1 in solved else work.jet(s + 1)
+        ctrl[s] = segment_ctrl(j0, j1, float(times[s + 1] - times[s]))
+    return Trajectory(times.copy(), ctrl, work.corridor_tuple()), rebuild
 
 
 def _certify(traj: Trajectory, work: _Work, rebuild: list[int]) -> str | None:
     """Hull certificate of the rebuilt segments and C^4 continuity with their neighbours."""
-    if not rebuild:
-        return None
-    idx = np.asarray(rebuild)
-    ctrl = traj.control_points
-    d = np.diff(traj.times)
-    corr = [None if traj.corridors is None else traj.corridors[s] for s in rebuild]
-    msg = hull_violation(ctrl[idx], d[idx], work.bounds, corr, labels=rebuild)
-    if msg is not None:
-        return msg
-    for s in rebuild:
-        for j in (s, s + 1):
-            if j < 0 or j > work.m - 1:
-                continue
-            left = end_jet_fast(ctrl[j - 1], float(d[j - 1])) if j > 0 else work.initial
-            right = start_jet_fast(ctrl[j], float(d[j])) if j < work.m - 1 else work.final
-            err = np.abs(left - right) / (1.0 + np.abs(left) + np.abs(right))
-            if float(err.max()) > CONTINUITY_TOL:
-                return f"continuity broken at waypoint {j} (relative error {float(err.max()):.3g})"
-    return None
+    return certify_rebuilt(
+        traj.control_points, traj.times, rebuild, work.bounds, traj.corridors, work.initial, work.final,
+        continuity_tol=CONTINUITY_TOL,
+    )
 
 
 def _apply(work: _Work, edits: Sequence[Edit], split: bool) -> None:
@@ -615,9 +616,11 @@ def replan(
     cs = as_change_set(change)
     if traj.n_segments != problem.m - 1:
         raise ChangeError("trajectory", f"has {traj.n_segments} segments, the problem {problem.m - 1}")
-    if not np.array_equal(traj.times, problem.times):
+    if traj.times is not problem.times and not (
+        traj.times.shape == problem.times.shape and bool((traj.times == problem.times).all())
+    ):
         # the planner may have stretched durations: the trajectory's times are what is flown
-        if not np.all(np.diff(traj.times) > 0):
+        if not bool((traj.times[1:] > traj.times[:-1]).all()):
             raise ChangeError("trajectory", "times are not strictly increasing")
         problem = Problem(problem.waypoints, traj.times.copy(), problem.bounds, problem.initial, problem.final,
                           problem.corridors)
@@ -641,8 +644,7 @@ def replan(
         return ReplanResult(
             PlanStatus.INFEASIBLE, None, given, (), str(exc), stats, opts.environment, exc.diagnosis
         )
-    corridors = None if work.corridors is None else tuple(work.corridors)
-    new_problem = Problem(work.wps, work.times, work.bounds, work.initial, work.final, corridors)
+    new_problem = Problem(work.wps, work.times, work.bounds, work.initial, work.final, traj_new.corridors)
     stats["time_s"] = time.perf_counter() - t_start
     resolved = tuple(sorted(free))
     traj_new = Trajectory(traj_new.times, traj_new.control_points, traj_new.corridors, dict(stats))
@@ -652,9 +654,9 @@ def replan(
 
 def _search(work: _Work, opts: ReplanOptions, stats: dict[str, Any]) -> tuple[Trajectory, set[int]]:
     """Seeds first; widen one neighbour per step; then stretch the touched durations."""
-    _check_waypoints_in_corridors(work)
     attempts = 0
     last = ""
+    checked = False
     for stretch in range(opts.max_stretch + 1):
         if stretch:
             if not work.stretch(opts.stretch_factor):
@@ -674,6 +676,13 @@ def _search(work: _Work, opts: ReplanOptions, stats: dict[str, Any]) -> tuple[Tr
                 last = f"certificate failed: {failure}"
             except _Infeasible as exc:
                 last = str(exc)
+            if not checked:
+                # A waypoint outside its corridor fails every attempt (the certificate checks
+                # P^0 and P^9): name it now instead of widening and stretching in vain. Checked
+                # only after a failure, off the success path; nothing has stretched yet, so the
+                # touched segments are the edit's own.
+                _check_waypoints_in_corridors(work)
+                checked = True
             wider = _widen(free, work)
             if wider == free:
                 break
@@ -688,16 +697,16 @@ def _search(work: _Work, opts: ReplanOptions, stats: dict[str, Any]) -> tuple[Tr
 def _check_waypoints_in_corridors(work: _Work) -> None:
     if work.corridors is None:
         return
-    for s in np.flatnonzero(work.src < 0):
-        poly = work.corridors[int(s)]
-        if poly is None:
+    for s in work.rebuilt():
+        poly = work.corridors[s]
+        if poly is None or poly.A.shape[0] == 0:
             continue
-        for i in (int(s), int(s) + 1):
-            v = float((poly.A @ work.wps[i] - poly.b).max()) if poly.A.shape[0] else -np.inf
+        over = (work.wps[s : s + 2] @ poly.A.T - poly.b).max(axis=1)  # both ends at once
+        for i, v in zip((s, s + 1), over.tolist(), strict=True):
             if v > 1e-9:
                 raise _Infeasible(
                     f"waypoint {i} at {work.wps[i].tolist()} is outside the corridor of segment {s} (by {v:.3g})",
-                    {"kind": "corridor", "segment": int(s), "waypoint": i},
+                    {"kind": "corridor", "segment": s, "waypoint": i},
                 )
 
 

@@ -35,7 +35,7 @@ def add_replan_parser(sub: Any) -> None:
 
 def problem_for(scenario_problem: Problem, traj: Trajectory) -> Problem:
     """The scenario's problem if the trajectory still solves it, else the trajectory's own."""
-    from planner_core.localqp import end_jet_fast, start_jet_fast
+    from planner_core.certificate import end_jet_fast, start_jet_fast
 
     same = (
         scenario_problem.m == traj.n_segments + 1

@@ -363,7 +363,7 @@ def test_stretching_recovers_when_widening_is_not_allowed() -> None:
 
 
 def test_hull_violation_names_the_failure(planned2) -> None:  # type: ignore[no-untyped-def]
-    from planner_core.localqp import hull_violation
+    from planner_core.certificate import hull_violation
 
     problem, traj = planned2
     d = np.diff(traj.times)
