@@ -290,24 +290,36 @@ def _row_loc(lr: int, bn1: int, nb: int, f: int) -> tuple[int, int, int]:
 
 
 @njit_inline
-def _seg_points(s: int, ua: Any, ub: Any, hull: Any, w: Any, f: int, pts: Any) -> None:
+def _seg_points(s: int, ua: Any, ub: Any, hull: Any, w: Any, f: int, nz: Any, need_a: bool, need_b: bool,
+                pts: Any) -> None:
     """Control points P1..P8 (when the segment has faces) and hodograph points of segment s,
     per axis, from its jets' derivatives (unscaled, (4, 3)): `ua` at the start, `ub` at the end.
-    Rows that do not involve a jet have zero coefficients for it, so any value of it gives them
-    exactly."""
+
+    Points that involve the start jet only (no nonzero in the end jet's run of `nz[k]`) are
+    computed when `need_a`, the others when `need_b`: the first and the last segment of a window
+    need one kind each."""
+    jm = pts[40:50]  # rows 40..49: the 10 x 3 [p0; start derivatives; p1; end derivatives]
+    for d in range(3):
+        jm[0, d] = w[s, d]
+        jm[5, d] = w[s + 1, d]
+        for c in range(4):
+            jm[1 + c, d] = ua[c, d]
+            jm[6 + c, d] = ub[c, d]
     k0 = 1 if f > 0 else 10
     for k in range(k0, 40):
+        if not (need_b if nz[k, 3] > nz[k, 2] else need_a):
+            continue
         for d in range(3):
-            v = hull[s, k, 0] * w[s, d] + hull[s, k, 5] * w[s + 1, d]
-            for c in range(4):
-                v += hull[s, k, 1 + c] * ua[c, d] + hull[s, k, 6 + c] * ub[c, d]
+            v = 0.0
+            for c in range(10):  # a fixed trip count unrolls; the nonzero runs alone measured slower
+                v += hull[s, k, c] * jm[c, d]
             pts[k, d] = v
 
 
 @njit_inline
 def _seg_check(
     s: int, lra: int, lrb: int, ua: Any, ub: Any, klo: int, khi: int, tol: float, hull: Any, pr: Any,
-    pd: Any, bn1: int, nb: int, face_off: Any, pa: Any, w: Any, b6: Any, f6: Any, pts: Any, bad: Any,
+    pd: Any, bn1: int, nb: int, face_off: Any, pa: Any, w: Any, b6: Any, f6: Any, nz: Any, pts: Any, bad: Any,
 ) -> int:
     """Rows [lra, lrb) of segment s outside limits klo / khi (see `_lim`) by more than `tol`, given
     its jets' derivatives: their local indices into `bad`, and their count. Each row reads a
@@ -315,7 +327,8 @@ def _seg_check(
     division to find its face."""
     fo = face_off[s]
     f = face_off[s + 1] - fo
-    _seg_points(s, ua, ub, hull, w, f, pts)
+    n1 = bn1 + 4 * f  # rows [0, n1) involve the start jet only
+    _seg_points(s, ua, ub, hull, w, f, nz, lra < n1, lrb > n1, pts)
     nbad = 0
     for lr in range(max(lra, 0), min(lrb, bn1)):
         v = pts[10 + pr[lr], pd[lr]]
@@ -441,7 +454,7 @@ def _step(
 ) -> bool:
     """Solve window f0..f1 into `ws` (its x: scaled derivatives); False on any doubt."""
     (ld, lo, q, x, v, z, nvec, vmat, ls, w_, rr, lam, act_r, act_sd, rowa, rowb, rseg,
-     lim4, cand, srow, clist, bad, xf, wab, nrm, pts, ua, ub) = ws
+     lim4, cand, srow, clist, bad, xf, wab, nrm, pts, ua, ub, nz) = ws
     lo_t, hi_t, lo_w, hi_w = lim4[0], lim4[1], lim4[2], lim4[3]
     nf = f1 - f0 + 1
     nx = NV * nf
@@ -454,13 +467,13 @@ def _step(
         _jet_derivs(jets, 0, ua)
         ub[:, :] = 0.0
         if _seg_check(0, 0, n1[0], ua, ub, 2, 3, check_tol, hull, pr, pd, bn1, nb, face_off, pa, w, b6, f6,
-                      pts, bad):
+                      nz, pts, bad):
             return False
     if not half:
         ua[:, :] = 0.0
         _jet_derivs(jets, f1 + 1, ub)
         if _seg_check(f1, n1[f1] + n2[f1], off[f1 + 1] - off[f1], ua, ub, 2, 3, check_tol, hull, pr, pd, bn1,
-                      nb, face_off, pa, w, b6, f6, pts, bad):
+                      nb, face_off, pa, w, b6, f6, nz, pts, bad):
             return False
     for k in range(NV):
         xf[k] = jets[sb, 1 + k // 3, k % 3] / cs[sb, k]
@@ -559,7 +572,7 @@ def _step(
                     _jet_derivs(jets, s + 1, ub)
                 os_ = off[s]
                 nbad = _seg_check(s, ra - os_, rb - os_, ua, ub, 4, 5, 0.0, hull, pr, pd, bn1, nb, face_off, pa, w,
-                                  b6, f6, pts, bad)
+                                  b6, f6, nz, pts, bad)
                 n0 = nc
                 for b in range(nbad):
                     i = os_ + bad[b] - r0
@@ -666,6 +679,32 @@ def _step(
 
 
 @njit
+def _nonzero_runs(hull: Any) -> Any:
+    """(40, 4): per hull row, the bounds of its nonzero run among columns 0..4 and among 5..9
+    (the pattern is structural: the same for every segment; d > 0 only scales entries)."""
+    nz = np.zeros((40, 4), dtype=np.int64)
+    if hull.shape[0] == 0:
+        return nz
+    for k in range(40):
+        for side in range(2):
+            lo, hi = 5 * side + 5, 5 * side
+            for c in range(5 * side, 5 * side + 5):
+                if hull[0, k, c] != 0.0:
+                    lo = min(lo, c)
+                    hi = c + 1
+            if hi <= lo:
+                lo, hi = 5 * side, 5 * side
+            for c in range(lo, hi):
+                if hull[0, k, c] == 0.0:
+                    hi = -1  # not one run: take the whole side
+            if hi < 0:
+                lo, hi = 5 * side, 5 * side + 5
+            nz[k, 2 * side] = lo
+            nz[k, 2 * side + 1] = hi
+    return nz
+
+
+@njit
 def run_pass(
     j0: int, window: int, m: int,
     off: Any, n1: Any, n2: Any, hull: Any, cs: Any, pr: Any, pd: Any, bn1: int, nb: int, face_off: Any,
@@ -699,7 +738,8 @@ def run_pass(
         np.zeros(nrm, dtype=np.int64), np.zeros(nrm, dtype=np.int64), np.zeros(nrm, dtype=np.int64),
         np.zeros((4, nrm)), np.zeros(nrm, dtype=np.bool_),
         np.zeros(nxm + 1), np.zeros(nrm, dtype=np.int64), np.zeros(rmax, dtype=np.int64), np.zeros(2 * NV),
-        np.zeros((nrm, 2 * NV)), np.zeros(nrm), np.zeros((40, 3)), np.zeros((4, 3)), np.zeros((4, 3)),
+        np.zeros((nrm, 2 * NV)), np.zeros(nrm), np.zeros((50, 3)), np.zeros((4, 3)), np.zeros((4, 3)),
+        _nonzero_runs(hull),
     )
     x = ws[3]
     t0 = _now(clock, ts)

@@ -68,7 +68,8 @@ def test_compiled_pass_builds_the_stacked_rows() -> None:
     fast._fill(0, (problem.m - 2) // window.CHUNK)  # the numpy path's stacked rows
     c = fast._compact()
     rng = np.random.default_rng(0)
-    pts = np.empty((40, 3))
+    pts = np.empty((50, 3))
+    nz = wk._nonzero_runs(cache.hull)
     bad = np.empty(200, dtype=np.int64)
     for s in range(problem.m - 1):
         n = fast.off[s + 1] - fast.off[s]
@@ -91,7 +92,7 @@ def test_compiled_pass_builds_the_stacked_rows() -> None:
             vals = fast.c0[rows] + fast.ab[rows] @ x
             for lra, lrb in ((0, n), (fast.n1[s], n), (0, fast.n1[s]), (fast.n1[s] + fast.n2[s], n)):
                 nbad = wk._seg_check(s, lra, lrb, xa, xb, 2, 3, 0.0, cache.hull, c.pr, c.pd, c.bn1, c.nb,
-                                     c.face_off, c.pa, problem.waypoints, c.b6, c.f6, pts, bad)
+                                     c.face_off, c.pa, problem.waypoints, c.b6, c.f6, nz, pts, bad)
                 lim = fast.lim[:, rows]
                 out = (vals > lim[3]) | (vals < lim[2])
                 # the two evaluations round differently: ignore rows within 1e-9 of a limit
