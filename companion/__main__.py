@@ -103,6 +103,15 @@ def cmd_watch(args: argparse.Namespace) -> int:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    from companion import rtsched
+
+    try:
+        # First, before anything starts a thread: realtime scheduling from the service manager
+        # (CPUSchedulingPolicy=) is kept for the setpoint thread only.
+        inherited = rtsched.reserve()
+    except rtsched.RealtimeError as exc:
+        print(f"scheduling: {exc}", file=sys.stderr)
+        return 2
     try:
         cfg = load_config(args.config) if args.config else Config()
     except (ConfigError, OSError) as exc:
@@ -110,6 +119,9 @@ def cmd_run(args: argparse.Namespace) -> int:
         return 2
     logging.basicConfig(level=logging.INFO if not args.quiet else logging.WARNING,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    if inherited is not None:
+        logging.getLogger("companion").info("started under SCHED_%s: kept for the setpoint thread only",
+                                            inherited.upper())
     import faulthandler
 
     # `kill -USR1 PID` dumps every thread's stack: how to see where a stuck service is.

@@ -67,9 +67,10 @@ class SetpointConfig:
     yaw: float = 0.0  # rad, NED heading used in fixed mode
     # Below this speed the along-velocity heading is ill-defined; keep the last one.
     yaw_min_speed: float = 0.3
-    # > 0: run the event loop thread under SCHED_FIFO at this priority (needs
-    # CAP_SYS_NICE; a warning and normal scheduling otherwise) so a busy
-    # computer cannot delay setpoints. Planner threads keep normal priority.
+    # > 0: the setpoint thread (only it: ~50 µs of work a tick) asks for SCHED_FIFO
+    # at this priority (needs CAP_SYS_NICE or RLIMIT_RTPRIO; a warning and normal
+    # scheduling otherwise). The systemd unit's CPUSchedulingPolicy=fifo does the
+    # same without any capability (see companion/rtsched.py and docs/deploy.md).
     realtime_priority: int = 0
 
 
@@ -90,7 +91,7 @@ class PlannerConfig:
     # How far ahead of "now" an in-flight replan splits the trajectory: the
     # planning latency budget plus a margin, so the piece flown never changes.
     split_ahead: float = 0.15
-    # "process": plan in a separate process (no GIL shared with the setpoint loop; a
+    # "process": plan in a separate process (no GIL shared with the setpoint thread; a
     # planner thread preempted while holding the GIL would stall setpoints on a busy
     # computer). "thread": plan in a thread of the service process (less memory).
     executor: str = "process"

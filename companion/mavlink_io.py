@@ -1,9 +1,10 @@
 """MAVLink 2 link to the autopilot (pymavlink), driven by the asyncio loop.
 
 The connection's file descriptor is registered with `loop.add_reader`, so
-decoding happens on the loop thread between setpoint ticks; sending is a
-non-blocking sendto. No extra thread means no GIL hand-off on the setpoint
-path, which keeps jitter low (measured in benchmarks/service.py).
+decoding happens on the loop thread; sending is a non-blocking sendto. Periodic
+setpoints are sent from the setpoint thread (companion.setpoints.SetpointSender),
+everything else from the loop: sends are serialised by a lock, as pymavlink's
+packet sequence counter is not thread-safe.
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import math
 import os
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -113,6 +115,7 @@ class MavlinkLink:
         self._loop: asyncio.AbstractEventLoop | None = None
         self._acks: dict[int, asyncio.Future[int]] = {}
         self._boot = time.monotonic()
+        self._send_lock = threading.Lock()
         self.sent_setpoints = 0
 
     # -- lifecycle -----------------------------------------------------------
@@ -143,7 +146,7 @@ class MavlinkLink:
     # -- receive -------------------------------------------------------------
 
     def _readable(self) -> None:
-        for _ in range(200):  # bounded so a flood cannot starve the setpoint loop
+        for _ in range(200):  # bounded so a flood cannot starve the loop
             try:
                 msg = self.conn.recv_msg()
             except (OSError, ValueError):
@@ -193,13 +196,15 @@ class MavlinkLink:
     # -- send ----------------------------------------------------------------
 
     def send_heartbeat(self) -> None:
-        self.conn.mav.heartbeat_send(
-            mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE
-        )
+        with self._send_lock:
+            self.conn.mav.heartbeat_send(
+                mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE
+            )
 
     def send_setpoint(self, sp: Setpoint) -> None:
+        """Thread-safe (called from the setpoint thread and, for a swap, from the loop)."""
         p, v, a = sp.position, sp.velocity, sp.acceleration
-        self.conn.mav.set_position_target_local_ned_send(
+        msg = self.conn.mav.set_position_target_local_ned_encode(
             int((time.monotonic() - self._boot) * 1000) & 0xFFFFFFFF,
             self.cfg.vehicle.sysid,
             self.cfg.vehicle.autopilot_component,
@@ -211,7 +216,9 @@ class MavlinkLink:
             float(sp.yaw),
             0.0,
         )
-        self.sent_setpoints += 1
+        with self._send_lock:
+            self.conn.mav.send(msg)
+            self.sent_setpoints += 1
 
     async def command(self, command: int, *params: float, timeout: float | None = None) -> int:
         """COMMAND_LONG and wait for its COMMAND_ACK; returns MAV_RESULT."""
@@ -222,9 +229,10 @@ class MavlinkLink:
         if old is not None and not old.done():
             old.cancel()
         self._acks[command] = fut
-        self.conn.mav.command_long_send(
-            self.cfg.vehicle.sysid, self.cfg.vehicle.autopilot_component, command, 0, *p
-        )
+        with self._send_lock:
+            self.conn.mav.command_long_send(
+                self.cfg.vehicle.sysid, self.cfg.vehicle.autopilot_component, command, 0, *p
+            )
         try:
             return await asyncio.wait_for(fut, timeout or self.cfg.mavlink.command_timeout)
         except TimeoutError:

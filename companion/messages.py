@@ -97,15 +97,37 @@ def _points(value: Any) -> bool:
     return ok and not any(isinstance(x, bool) for p in value for x in p)
 
 
-def _schema_view(kind: str, obj: Any) -> Any:
-    """The message with long, well-formed point lists cut to one point for the schema walk.
+def _numbers(value: Any) -> bool:
+    """A non-empty list of JSON numbers (int or float, not bool)."""
+    return isinstance(value, list) and bool(value) and all(type(x) in (int, float) for x in value)
 
-    JSON Schema validation is pure Python (~0.1 ms per waypoint); a valid (n, 3) array
-    is checked with numpy instead. Malformed arrays are left whole so the schema names the
-    exact element at fault.
+
+def _region_view(region: Any) -> Any:
+    """An obstacle region with its well-formed arrays cut to the schema's minimum length."""
+    if not isinstance(region, dict):
+        return region
+    out = dict(region)
+    if len(region.get("A") or ()) > 1 and _points(region["A"]):
+        out["A"] = region["A"][:1]
+    if len(region.get("b") or ()) > 1 and _numbers(region["b"]):
+        out["b"] = region["b"][:1]
+    if len(region.get("vertices") or ()) > 4 and _points(region["vertices"]):
+        out["vertices"] = region["vertices"][:4]  # the schema's minItems
+    return out
+
+
+def _schema_view(kind: str, obj: Any) -> Any:
+    """The message with long, well-formed point lists cut short for the schema walk.
+
+    JSON Schema validation is pure Python (~0.1 ms per waypoint, ~0.2 ms per plane of an
+    obstacle: a pop-up's whole message took 1-2 ms); a valid (n, 3) array is checked with
+    numpy instead. Malformed arrays are left whole so the schema names the exact element at
+    fault. (A's and b's lengths are compared on the whole message afterwards.)
     """
     if not isinstance(obj, dict):
         return obj
+    if kind == "obstacles" and isinstance(obj.get("add"), list):
+        return {**obj, "add": [_region_view(r) for r in obj["add"]]}
     if kind == "mission" and len(obj.get("waypoints") or ()) > 1 and _points(obj["waypoints"]):
         return {**obj, "waypoints": obj["waypoints"][:1]}
     if kind == "change" and isinstance(obj.get("append"), dict):

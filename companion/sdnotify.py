@@ -4,7 +4,7 @@ The service unit (systemd/bezier-companion@.service) is ``Type=notify`` with ``W
 systemd waits for ``READY=1`` and restarts the service when ``WATCHDOG=1`` stops arriving.
 Outside systemd ($NOTIFY_SOCKET unset) every call is a cheap no-op, so callers never branch.
 
-Usage from the setpoint loop::
+Usage (the service pings as its setpoint ticks are handled on the event loop)::
 
     notifier = Notifier()
     notifier.ready("streaming to autopilot")   # once Zenoh and MAVLink are up

@@ -1,11 +1,11 @@
 """The companion service: one asyncio loop per vehicle.
 
 Zenoh in (mission, obstacles, change, command) -> validation -> planning in a
-worker thread -> verified trajectory -> absolute-deadline setpoint loop ->
+worker thread -> verified trajectory -> absolute-deadline setpoint thread ->
 MAVLink out. Telemetry comes back over MAVLink and goes out on Zenoh.
 
 Invariants:
-- the setpoint loop samples `self.active`, which is only ever a verified
+- the setpoint thread samples `self.active`, which is only ever a verified
   trajectory or a hold at a measured position;
 - a swap replaces `self.active` with a trajectory equal to the old one up to
   the split time (checked), so the piece being flown never changes;
@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 
 from companion import route as rt
+from companion import rtsched
 from companion.config import Config
 from companion.flight import (
     AIRBORNE_CONTROL,
@@ -55,11 +56,15 @@ from companion.messages import MessageError, decode, warm_validators
 from companion.sdnotify import Notifier
 from companion.setpoints import (
     DeadlineScheduler,
+    Feed,
     GcPacer,
     Setpoint,
+    SetpointSender,
+    Tick,
     YawPolicy,
     hold_trajectory,
     sample,
+    sampler,
     sleep_until,
 )
 from companion.zenoh_io import ZenohIO, encode
@@ -179,7 +184,7 @@ class Service:
         # Replans and braking never queue behind a long mission plan: their own worker.
         self.urgent_pool: Executor = make_planner_pool(cfg, workers=1, nice=URGENT_NICE)
         # Local replans take a few ms: run them in this process (a thread; the short GIL
-        # switch interval keeps the setpoint loop on time) rather than pay the process pool's
+        # switch interval keeps the setpoint thread on time) rather than pay the process pool's
         # pickling and hand-offs, which cost more than the replan itself.
         self.replan_pool = ThreadPoolExecutor(1, thread_name_prefix="replan")
         self.io_pool = ThreadPoolExecutor(1, thread_name_prefix="encode")
@@ -194,10 +199,14 @@ class Service:
         self.notifier = Notifier()
         self.yaw = YawPolicy(cfg.setpoints.yaw_mode, cfg.setpoints.yaw, cfg.setpoints.yaw_min_speed)
         self.loop: asyncio.AbstractEventLoop | None = None
-        # control
-        self.streaming = False
-        self.t_base: float | None = None
-        self.active: Trajectory | None = None
+        # control (the three properties below feed the setpoint thread)
+        self._streaming = False
+        self._t_base: float | None = None
+        self._active: Trajectory | None = None
+        self.sender = SetpointSender(cfg.setpoints.rate_hz, self.link.send_setpoint, self.yaw,
+                                     self._tick_from_thread, self._sender_failed,
+                                     priority=cfg.setpoints.realtime_priority)
+        self._sender_failure: asyncio.Future[None] | None = None
         self.route: rt.Route | None = None
         self.pending: rt.MissionSpec | None = None
         self.obstacles: dict[str, Polytope] = {}
@@ -225,6 +234,41 @@ class Service:
         self._ticked = asyncio.Event()
         self._race: StopGuard | None = None  # the replan racing a braking deadline, if any
         self._log_listener: logging.handlers.QueueListener | None = None
+
+    # -- what the setpoint thread flies ------------------------------------------
+
+    @property
+    def streaming(self) -> bool:
+        return self._streaming
+
+    @streaming.setter
+    def streaming(self, value: bool) -> None:
+        self._streaming = value
+        self._feed()
+
+    @property
+    def t_base(self) -> float | None:
+        return self._t_base
+
+    @t_base.setter
+    def t_base(self, value: float | None) -> None:
+        self._t_base = value
+        self._feed()
+
+    @property
+    def active(self) -> Trajectory | None:
+        return self._active
+
+    @active.setter
+    def active(self, value: Trajectory | None) -> None:
+        self._active = value
+        self._feed()
+
+    def _feed(self) -> None:
+        """One immutable snapshot for the setpoint thread, replaced in one assignment, so it
+        never samples one trajectory on another's time base."""
+        a, t = self._active, self._t_base
+        self.sender.feed = Feed(a, t) if self._streaming and a is not None and t is not None else None
 
     # -- small helpers -------------------------------------------------------
 
@@ -274,6 +318,7 @@ class Service:
 
     def take_control(self, position: np.ndarray, reason: str) -> None:
         """Start streaming a hold at a measured position, with a fresh time base."""
+        self.streaming = False  # no tick may pair the old plan with the new time base
         self.t_base = time.monotonic()
         self.yaw.reset(float(self.link.state.attitude[2]))
         self.active = hold_trajectory(position, 0.0)
@@ -312,11 +357,14 @@ class Service:
             now = self.now_t()
             if t_split <= now + 0.5 / self.cfg.setpoints.rate_hz:
                 return False
+            # single-time samplers: Trajectory.evaluate/jet cost ~0.5 ms a call, on the
+            # pop-up's critical path
+            so, sn = sampler(old), sampler(new)
             ts = np.linspace(now, t_split, 8)
-            if not np.allclose(old.evaluate(ts), new.evaluate(ts), atol=1e-6):
+            if not np.allclose([so.jet(t)[0] for t in ts], [sn.jet(t)[0] for t in ts], atol=1e-6):
                 log.error("swap refused: new trajectory differs from the flown one before the split")
                 return False
-            jo, jn = old.jet(t_split), new.jet(t_split)
+            jo, jn = so.jet(t_split), sn.jet(t_split)
             if not np.allclose(jo, jn, rtol=1e-6, atol=1e-6):
                 log.error("swap refused: jets differ at the split")
                 return False
@@ -342,9 +390,9 @@ class Service:
             return
         self._report_latency(now, immediate=True)
 
-    def _report_latency(self, now: float, immediate: bool) -> None:
+    def _report_latency(self, now: float, immediate: bool, sampled: Trajectory | None = None) -> None:
         mark = self._latency_mark
-        if mark is None or mark[1] is not self.active:
+        if mark is None or mark[1] is not (self.active if sampled is None else sampled):
             return
         self._latency_mark = None
         self.setpoint_latency = now - mark[0]
@@ -375,39 +423,55 @@ class Service:
 
     # -- loops -----------------------------------------------------------------
 
-    async def setpoint_loop(self) -> None:
-        rate = self.cfg.setpoints.rate_hz
-        sched = DeadlineScheduler(time.monotonic(), rate)
-        while not self.stop.is_set():
-            deadline = sched.next_deadline(time.monotonic())
-            now = await sleep_until(deadline)
-            self.notifier.watchdog()
-            if self.streaming and self.active is not None and self.t_base is not None:
-                t = now - self.t_base
-                sp = sample(self.active, t, self.yaw)
-                self.link.send_setpoint(sp)
-                if self.last_sp is not None:
-                    gap = now - self.last_sp_time
-                    self.periods.append(gap)
-                    self.setpoint_gap_max = max(self.setpoint_gap_max, gap)
-                    if gap > 0.04:
-                        log.warning("setpoint gap %.1f ms (deadline late by %.1f ms)", gap * 1000,
-                                    (now - deadline) * 1000)
-                self.last_sp, self.last_sp_time = sp, now
-                self._report_latency(now, immediate=False)
-                self._progress(t)
-            else:
-                self.last_sp = None
-            # Right after a send, the most slack until the next deadline: collect here, never
-            # wherever an allocation (in any thread) would have triggered it.
-            self.gc.after_send(time.monotonic(), deadline + 1.0 / rate)
-            self._ticked.set()  # wakes the waiters in after_tick(); they run once we sleep
-            self._ticked.clear()
-            if self.gc.last is not None:
-                gen, took = self.gc.last
-                self.gc.last = None
-                if took > 0.003:
-                    log.warning("garbage collection (generation %d) took %.1f ms", gen, took * 1000)
+    def _tick_from_thread(self, tick: Tick) -> None:
+        """Called by the setpoint thread after each tick: the rest happens on the loop."""
+        loop = self.loop
+        if loop is not None:
+            with contextlib.suppress(RuntimeError):  # the loop is closing
+                loop.call_soon_threadsafe(self._on_tick, tick)
+
+    def _sender_failed(self, exc: BaseException) -> None:
+        loop, fut = self.loop, self._sender_failure
+        if loop is None or fut is None:
+            return
+
+        def fail() -> None:
+            if not fut.done():
+                fut.set_exception(RuntimeError(f"the setpoint thread failed: {exc!r}"))
+
+        with contextlib.suppress(RuntimeError):
+            loop.call_soon_threadsafe(fail)
+
+    def _on_tick(self, tick: Tick) -> None:
+        """Bookkeeping of one setpoint tick, on the loop, right after the send."""
+        # Both the thread and the loop must be alive for systemd's watchdog to be fed.
+        self.notifier.watchdog()
+        if tick.error is not None:
+            log.warning("setpoint not sent: %s", tick.error)
+        feed = tick.feed
+        if feed is not None and tick.setpoint is not None:
+            if tick.gap is not None:
+                self.periods.append(tick.gap)
+                self.setpoint_gap_max = max(self.setpoint_gap_max, tick.gap)
+                if tick.gap > 0.04:
+                    log.warning("setpoint gap %.1f ms (deadline late by %.1f ms)", tick.gap * 1000,
+                                (tick.now - tick.deadline) * 1000)
+            self.last_sp, self.last_sp_time = tick.setpoint, tick.now
+            self._report_latency(tick.now, immediate=False, sampled=feed.trajectory)
+            if feed.trajectory is self.active and feed.t_base == self.t_base:
+                self._progress(tick.now - feed.t_base)
+        else:
+            self.last_sp = None
+        # Right after a send, the most slack until the next deadline: collect here, never
+        # wherever an allocation (in any thread) would have triggered it.
+        self.gc.after_send(time.monotonic(), tick.next_deadline)
+        self._ticked.set()  # wakes the waiters in after_tick(); they run once we sleep
+        self._ticked.clear()
+        if self.gc.last is not None:
+            gen, took = self.gc.last
+            self.gc.last = None
+            if took > 0.003:
+                log.warning("garbage collection (generation %d) took %.1f ms", gen, took * 1000)
 
     def _progress(self, t: float) -> None:
         st = self.flight.state
@@ -473,7 +537,7 @@ class Service:
             progress = float(np.clip((t - r.times[0]) / max(r.t_end - r.times[0], 1e-9), 0.0, 1.0))
             time_to_go = max(r.t_end - t, 0.0)
         if self.streaming and self.active is not None and st.has_position and self.t_base is not None:
-            ref = self.active.evaluate(self.now_t())
+            ref = sampler(self.active).jet(self.now_t())[0]
             self.tracking_error = float(np.linalg.norm(st.position - ref))
         elif not self.streaming:
             self.tracking_error = None
@@ -1138,11 +1202,10 @@ class Service:
 
     async def run(self) -> None:
         self.loop = asyncio.get_running_loop()
-        # Log output (a file or journald on a busy disk) is written by a thread of its own;
-        # started before the realtime switch, so that thread runs at normal priority.
+        # Log output (a file or journald on a busy disk) is written by a thread of its own.
         self._log_listener = log_off_loop()
-        # The planner thread holds the GIL in pure-Python stretches; a short
-        # switch interval bounds how long the setpoint loop can wait for it.
+        # The loop and the helper threads hold the GIL in pure-Python stretches; a short
+        # switch interval bounds how long the setpoint thread can wait for it.
         sys.setswitchinterval(0.0005)
         self.zio = ZenohIO(self.cfg, self.loop)
         self.zio.open({"plan": self.query_plan, "status": self.query_status})
@@ -1151,16 +1214,19 @@ class Service:
         await asyncio.gather(self.in_pool(rt.warm_up, self.cfg), self.in_pool(rt.warm_up, self.cfg, urgent=True))
         await self.loop.run_in_executor(self.io_pool, encode_trajectory, hold_trajectory(np.zeros(3), 0.0))
         await self.loop.run_in_executor(self.replan_pool, rt.warm_up_replan, self.cfg)
-        # Start the helper threads now, so they do not inherit the loop's realtime priority.
+        # Start the helper threads now: no thread start during a flight.
         await self.loop.run_in_executor(self.io_pool, int, 0)
         await self.loop.run_in_executor(self.decode_pool, warm_validators)
         await asyncio.gather(*(self.loop.run_in_executor(self.brake_pool, rt.warm_up_brake, self.cfg)
                                for _ in range(2)))
-        set_realtime(self.cfg.setpoints.realtime_priority)
         self.gc.start(time.monotonic())
-        loops = [self.setpoint_loop(), self.heartbeat_loop(), self.telemetry_loop(), self.status_loop(),
+        self._sender_failure = self.loop.create_future()
+        self.sender.start(rtsched.starter())
+        log.info("setpoint thread: %.0f Hz, %s scheduling", self.cfg.setpoints.rate_hz, self.sender.scheduling)
+        loops = [self.heartbeat_loop(), self.telemetry_loop(), self.status_loop(),
                  self.inbox_loop(), self.ordered_loop()]
         runners = [asyncio.create_task(c) for c in loops]
+        runners.append(asyncio.ensure_future(self._sender_failure))
         self.notifier.ready(f"vehicle {self.cfg.vehicle.id}: zenoh and mavlink up")
         self.event("started", f"companion for {self.cfg.vehicle.id} started", mavlink=self.cfg.mavlink.url)
         try:
@@ -1172,6 +1238,7 @@ class Service:
         finally:
             self.notifier.stopping()
             self.streaming = False
+            self.sender.stop()
             for t in [*runners, *self.tasks, *([self.task] if self.task else [])]:
                 t.cancel()
             await asyncio.gather(*runners, *self.tasks, return_exceptions=True)
@@ -1202,18 +1269,6 @@ def period_stats(periods: collections.deque[float]) -> dict[str, float] | None:
             "max": round(float(p.max()), 3), "n": len(p)}
 
 
-def set_realtime(priority: int) -> None:
-    """SCHED_FIFO for the calling (event loop) thread only; threads created later inherit it."""
-    if priority <= 0:
-        return
-    try:
-        # RESET_ON_FORK: processes started from this thread (a restarted planner) run normally.
-        os.sched_setscheduler(0, os.SCHED_FIFO | os.SCHED_RESET_ON_FORK, os.sched_param(priority))
-        log.info("event loop thread runs under SCHED_FIFO priority %d", priority)
-    except (OSError, AttributeError) as exc:
-        log.warning("realtime_priority %d not applied (%s); running with normal scheduling", priority, exc)
-
-
 def log_off_loop() -> logging.handlers.QueueListener | None:
     """Route the root logger's handlers through a queue served by a listener thread: a log call
     on the loop then only formats and enqueues, it never waits on a write."""
@@ -1242,7 +1297,7 @@ def restore_logging(listener: logging.handlers.QueueListener | None) -> None:
 
 
 # Nice increments (relative to the service's own, e.g. systemd's Nice=-5) of the planner
-# processes: mission planning yields the CPU to the setpoint loop's process on a busy computer;
+# processes: mission planning yields the CPU to the service's process on a busy computer;
 # the urgent worker (replans, the fallback after a failed local replan) less so, as it races a
 # braking deadline, but still behind the loop.
 PLANNER_NICE = 10

@@ -137,16 +137,18 @@ def test_exposure_parser_sees_a_weak_unit(tmp_path: Path) -> None:
 
 # --- runtime emulation of the sandbox ---------------------------------------------------------
 
-# seccomp rules equivalent to systemd's MemoryDenyWriteExecute=yes and to
-# RestrictAddressFamilies=AF_INET AF_INET6 AF_UNIX AF_NETLINK (systemd's src/shared/seccomp-util.c).
+# seccomp rules equivalent to systemd's MemoryDenyWriteExecute=yes, to
+# RestrictAddressFamilies=AF_INET AF_INET6 AF_UNIX AF_NETLINK and to RestrictRealtime=yes
+# (systemd's src/shared/seccomp-util.c).
 SANDBOX = textwrap.dedent(
     r'''
     import ctypes, errno, os, platform, socket, struct, sys
 
-    ARCHES = {  # audit arch, mmap, mprotect, pkey_mprotect, shmat, socket
-        "x86_64": (0xC000003E, 9, 10, 329, 30, 41),
-        "aarch64": (0xC00000B7, 222, 226, 288, 196, 198),
+    ARCHES = {  # audit arch, mmap, mprotect, pkey_mprotect, shmat, socket, sched_setscheduler
+        "x86_64": (0xC000003E, 9, 10, 329, 30, 41, 144),
+        "aarch64": (0xC00000B7, 222, 226, 288, 196, 198, 119),
     }
+    SCHED_OTHER, SCHED_BATCH, SCHED_IDLE = 0, 3, 5
     ALLOWED_FAMILIES = (socket.AF_UNIX, socket.AF_INET, socket.AF_INET6, socket.AF_NETLINK)
     PROT_WRITE, PROT_EXEC, SHM_EXEC = 0x2, 0x4, 0o100000
     RET_ALLOW = 0x7FFF0000
@@ -155,8 +157,9 @@ SANDBOX = textwrap.dedent(
         return 0x00050000 | e
 
     def program():
-        arch, mmap_nr, mprotect_nr, pkey_nr, shmat_nr, socket_nr = ARCHES[platform.machine()]
+        arch, mmap_nr, mprotect_nr, pkey_nr, shmat_nr, socket_nr, sched_nr = ARCHES[platform.machine()]
         wx = os.environ.get("EMULATE_MDWE", "1") == "1"
+        rt = os.environ.get("EMULATE_RESTRICT_REALTIME", "0") == "1"
         arg = lambda i: 16 + 8 * i  # low 32 bits of seccomp_data.args[i] (little endian)
         ops = [  # (code, k, jump-if-true label, jump-if-false label); None = next instruction
             ("ld", 4, None, None), ("jeq", arch, None, "allow"),
@@ -164,11 +167,16 @@ SANDBOX = textwrap.dedent(
             ("jeq", mmap_nr, "mmap" if wx else "allow", None),
             ("jeq", mprotect_nr, "exec" if wx else "allow", None),
             ("jeq", pkey_nr, "exec" if wx else "allow", None), ("jeq", shmat_nr, "shm" if wx else "allow", None),
-            ("jeq", socket_nr, "sock", None), ("ret", RET_ALLOW, None, None),
+            ("jeq", socket_nr, "sock", None), ("jeq", sched_nr, "sched" if rt else "allow", None),
+            ("ret", RET_ALLOW, None, None),
             ("mmap:ld", arg(2), None, None), ("and", PROT_WRITE | PROT_EXEC, None, None),
             ("jeq", PROT_WRITE | PROT_EXEC, "eperm", "allow"),
             ("exec:ld", arg(2), None, None), ("jset", PROT_EXEC, "eperm", "allow"),
             ("shm:ld", arg(2), None, None), ("jset", SHM_EXEC, "eperm", "allow"),
+            # RestrictRealtime=: only the normal policies may be set (so one can leave a realtime
+            # policy set by the service manager, never acquire one)
+            ("sched:ld", arg(1), None, None), ("jeq", SCHED_OTHER, "allow", None),
+            ("jeq", SCHED_BATCH, "allow", None), ("jeq", SCHED_IDLE, "allow", "eperm"),
             ("sock:ld", arg(0), None, None),
         ] + [("jeq", f, "allow", None) for f in ALLOWED_FAMILIES] + [
             ("ret", errno_ret(errno.EAFNOSUPPORT), None, None),
@@ -493,13 +501,79 @@ def _free_port(kind: int) -> int:
         return int(s.getsockname()[1])
 
 
+def _fifo_permitted() -> bool:
+    chrt = shutil.which("chrt")
+    return chrt is not None and subprocess.run([chrt, "-f", "1", "true"], capture_output=True).returncode == 0
+
+
+def _thread_policies(pid: int) -> dict[int, tuple[str, str]]:
+    """tid -> (thread name, scheduling policy) for a process and all its descendants."""
+    out: dict[int, tuple[str, str]] = {}
+    todo = [pid]
+    while todo:
+        p = todo.pop()
+        with contextlib.suppress(OSError):
+            for task in Path(f"/proc/{p}/task").iterdir():
+                tid = int(task.name)
+                with contextlib.suppress(OSError):
+                    name = (task / "comm").read_text().strip()
+                    policy = os.sched_getscheduler(tid)
+                    todo += [int(c) for c in (task / "children").read_text().split()]
+                    out[tid] = (name, {os.SCHED_FIFO: "fifo", os.SCHED_RR: "rr"}.get(policy, "normal"))
+    return out
+
+
+def test_unit_grants_fifo_that_the_service_keeps_for_its_setpoint_thread() -> None:
+    """CPUSchedulingPolicy= is set by systemd before the sandbox: the service gets SCHED_FIFO
+    without a capability and cannot acquire it again (RestrictRealtime=yes); it must be able
+    to leave it (sched_setscheduler allowed), and its setpoint thread must inherit it (so no
+    CPUSchedulingResetOnFork=yes)."""
+    d = _directives(UNIT.read_text())
+    assert d["CPUSchedulingPolicy"] == ["fifo"]
+    priority = int(d["CPUSchedulingPriority"][-1])
+    assert 1 <= priority < 50  # below the kernel's interrupt threads
+    assert d.get("CPUSchedulingResetOnFork", ["no"])[-1] in ("no", "false", "0")
+    assert d["RestrictRealtime"] == ["yes"] and d["CapabilityBoundingSet"] == [""]
+    assert d["AmbientCapabilities"] == [""] and "LimitRTPRIO" not in d
+    assert any("sched_setscheduler" in v.split() for v in d["SystemCallFilter"] if not v.startswith("~"))
+
+
+@pytest.mark.skipif(sys.platform != "linux" or not _fifo_permitted(), reason="needs Linux and SCHED_FIFO")
+def test_restrict_realtime_emulation_lets_a_policy_be_left_never_acquired(tmp_path: Path) -> None:
+    sandbox = tmp_path / "sandbox.py"
+    sandbox.write_text(SANDBOX)
+    probe = tmp_path / "probe.py"
+    probe.write_text(textwrap.dedent("""
+        import json, os
+        out = {"start": os.sched_getscheduler(0)}
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+        out["left"] = os.sched_getscheduler(0)
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+            out["acquire"] = "allowed"
+        except PermissionError:
+            out["acquire"] = "EPERM"
+        print("REPORT " + json.dumps(out))
+    """))
+    env = dict(os.environ, EMULATE_MDWE="0", EMULATE_RESTRICT_REALTIME="1")
+    proc = subprocess.run(["chrt", "-f", "3", sys.executable, str(sandbox), str(probe)], env=env,
+                          capture_output=True, text=True, timeout=60)
+    line = next(x for x in proc.stdout.splitlines() if x.startswith("REPORT "))
+    out = json.loads(line[len("REPORT "):])
+    # as root (CAP_SYS_NICE) the last call would succeed without the rule: the rule refused it
+    assert out == {"start": os.SCHED_FIFO, "left": os.SCHED_OTHER, "acquire": "EPERM"}, proc.stderr
+
+
 @pytest.mark.skipif(sys.platform != "linux", reason="seccomp is Linux-only")
 def test_companion_runs_sandboxed_and_speaks_sd_notify(tmp_path: Path) -> None:
-    """The service as systemd would run it: sandbox rules, NOTIFY_SOCKET and WATCHDOG_USEC set.
+    """The service as systemd would run it: sandbox rules, NOTIFY_SOCKET and WATCHDOG_USEC set,
+    and (where this machine permits it) started under the unit's SCHED_FIFO with
+    RestrictRealtime= in force.
 
-    It must come up (READY=1), keep pinging the watchdog from its setpoint loop, plan a mission
-    sent over Zenoh, stay inside the unit's syscall filter (when strace is there to tell), and
-    stop cleanly on SIGTERM (STOPPING=1, exit 0).
+    It must come up (READY=1), keep pinging the watchdog as its setpoints go out, plan a mission
+    sent over Zenoh, run no thread but its setpoint thread realtime (planner processes
+    included), stay inside the unit's syscall filter (when strace is there to tell), and stop
+    cleanly on SIGTERM (STOPPING=1, exit 0).
     """
     from companion.config import config_to_toml
     from companion.demo_rig import Child, Peer, demo_config
@@ -511,16 +585,21 @@ def test_companion_runs_sandboxed_and_speaks_sd_notify(tmp_path: Path) -> None:
     sandbox = tmp_path / "sandbox.py"
     sandbox.write_text(SANDBOX)
     notify, address = _receiver(tmp_path, abstract=True)
-    env = dict(os.environ, NOTIFY_SOCKET=address, WATCHDOG_USEC="2000000", **_unit_environment())
+    env = dict(os.environ, NOTIFY_SOCKET=address, WATCHDOG_USEC="2000000", EMULATE_RESTRICT_REALTIME="1",
+               **_unit_environment())
     summary = tmp_path / "strace.txt"
     tracer = [STRACE, "-f", "-c", "-o", str(summary)] if STRACE and ANALYZE else []
+    fifo = _fifo_permitted()
+    priority = _directives(UNIT.read_text())["CPUSchedulingPriority"][-1]
+    scheduler = ["chrt", "-f", priority] if fifo else []  # what CPUSchedulingPolicy=fifo does
     mock = Child("mock", [sys.executable, "-m", "sitl_mock", "--endpoint", f"udpin:127.0.0.1:{mav_port}"],
                  tmp_path / "mock.log")
     proc = subprocess.Popen(
-        [*tracer, sys.executable, str(sandbox), "-m", "companion", "run", "--config", str(cfg_path)],
+        [*scheduler, *tracer, sys.executable, str(sandbox), "-m", "companion", "run", "--config", str(cfg_path)],
         env=env, cwd=ROOT, stdout=(tmp_path / "companion.log").open("wb"), stderr=subprocess.STDOUT,
     )
     received: list[dict[str, str]] = []
+    policies: dict[int, tuple[str, str]] = {}
     peer: Peer | None = None
     try:
         notify.settimeout(60)
@@ -542,6 +621,7 @@ def test_companion_runs_sandboxed_and_speaks_sd_notify(tmp_path: Path) -> None:
             fields = _fields(notify)
             received.append(fields)
             pings += fields.get("WATCHDOG") == "1"
+        policies = _thread_policies(proc.pid)
     finally:
         if peer is not None:
             peer.close()
@@ -572,6 +652,13 @@ def test_companion_runs_sandboxed_and_speaks_sd_notify(tmp_path: Path) -> None:
     assert accepted is not None and accepted["type"] == "accepted", log[-3000:]
     assert code == 0, log[-3000:]
     assert any(f.get("STOPPING") == "1" for f in received), received
+    if fifo:
+        # the tracer (when there) keeps the policy it was started with; the service's own tree
+        # has exactly one realtime thread, the setpoint thread; the planner processes exist
+        service = {tid: v for tid, v in policies.items() if v[0] != "strace"}
+        assert [v for v in service.values() if v[1] != "normal"] == [("setpoints", "fifo")], policies
+        assert f"setpoint thread: 50 Hz, fifo {priority} scheduling" in log, log[-3000:]
+        assert len(service) > 10, policies
     if tracer:
         used = _traced_syscalls(summary.read_text())
         assert used - _unit_syscall_allowlist() - {"seccomp"} == set()

@@ -73,3 +73,44 @@ def test_geofence_names_the_first_offender() -> None:
         check_geofence([[0, 0, -1], [0, 0, -1], [5, 0, -1]], [-1, -1, -2], [1, 1, 0], "waypoints")
     assert info.value.field == "waypoints[2]"
     assert "geofence" in info.value.reason
+
+
+def _decode(kind: str, obj: dict) -> dict:
+    return decode(kind, json.dumps(obj).encode(), max_bytes=1 << 20, max_waypoints=100, max_obstacles=10)
+
+
+def _box_planes() -> tuple[list[list[float]], list[float]]:
+    eye = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+    return eye + [[-x for x in row] for row in eye], [1.0, 2.0, 3.0, 1.0, 2.0, 3.0]
+
+
+@pytest.mark.parametrize(("region", "field", "words"), [
+    # the long, well-formed arrays skip the schema walk; a malformed one is walked whole,
+    # so the schema still names the exact element at fault
+    ({"A": "planes", "b": [1, 2, 3, 1, 2, True]}, "add[0].b[5]", "not of type 'number'"),
+    ({"A": "planes-bad-row", "b": [1, 2, 3, 1, 2, 3]}, "add[0].A[4]", "too short"),
+    ({"A": "planes-bad-value", "b": [1, 2, 3, 1, 2, 3]}, "add[0].A[3][1]", "not of type 'number'"),
+    ({"A": "planes", "b": [1, 2, 3]}, "add[0].b", "expected 6"),
+    ({"vertices": [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 1], [1, "x", 0]]},
+     "add[0].vertices[5][1]", "not of type 'number'"),
+    ({"vertices": [[0, 0, 0], [1, 0, 0], [0, 1, 0]]}, "add[0].vertices", "too short"),
+])
+def test_obstacle_arrays_are_checked_whole(region: dict, field: str, words: str) -> None:
+    planes, _ = _box_planes()
+    if region.get("A") == "planes":
+        region = {**region, "A": planes}
+    elif region.get("A") == "planes-bad-row":
+        region = {**region, "A": [*planes[:4], [1.0, 0.0], planes[5]]}
+    elif region.get("A") == "planes-bad-value":
+        region = {**region, "A": [*planes[:3], [0.0, None, 1.0], *planes[4:]]}
+    with pytest.raises(MessageError) as exc:
+        _decode("obstacles", {"add": [{"id": "o", **region}]})
+    assert exc.value.field == field and words in exc.value.reason, (exc.value.field, exc.value.reason)
+
+
+def test_long_obstacles_pass_whole() -> None:
+    planes, b = _box_planes()
+    cube = [[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)]
+    msg = {"frame": "enu", "remove": ["old"],
+           "add": [{"id": "p", "A": planes, "b": b}, {"id": "v", "vertices": cube}]}
+    assert _decode("obstacles", msg) == msg

@@ -1,7 +1,9 @@
 from __future__ import annotations
 
 import asyncio
+import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -66,3 +68,138 @@ def test_yaw_modes_start_from_the_measured_heading() -> None:
     vel.reset(-0.5)
     assert vel(np.array([0.1, 0.0, 0.0])) == -0.5
     assert vel(np.array([0.0, -2.0, 0.0])) == pytest.approx(-np.pi / 2)
+
+
+# -- the fast sampler -----------------------------------------------------------------------
+
+
+def test_sampler_agrees_with_trajectory_jet_and_is_at_rest_past_the_end() -> None:
+    from companion.setpoints import Sampler
+    from tests.companion.test_route import fly
+
+    traj = fly([[3.0, 0.0, -1.5], [3.0, 3.0, -2.0], [0.0, 3.0, -1.5]], [0.0, 0.0, -1.5], t0=2.0).trajectory
+    s = Sampler(traj)
+    scale = np.max(np.abs(np.stack([traj.jet(t) for t in np.linspace(traj.t0, traj.t_end, 50)])), axis=(0, 2))
+    # inside, on every boundary, and clamped outside the span
+    ts = np.concatenate([np.linspace(traj.t0 - 1.0, traj.t_end + 1.0, 997), traj.times])
+    for t in ts:
+        ref = traj.jet(t)
+        got = s.jet(float(t))
+        assert np.all(np.abs(got - ref) <= 1e-12 * (1.0 + scale[:, None])), (t, got - ref)
+        three = s.jet3(float(t))
+        assert np.all(np.abs(three[0] - got[0]) <= 1e-12 * (1.0 + scale[0]))
+        if t >= traj.t_end:
+            assert not three[1:].any()  # exactly at rest past the end
+        else:
+            assert np.all(np.abs(three[1:] - got[1:3]) <= 1e-12 * (1.0 + scale[1:3, None]))
+    yaw = YawPolicy("hold", 0.0, 0.3)
+    sp = sample(traj, 3.0, yaw)
+    assert np.array_equal(sp.position, s.jet3(3.0)[0]) and np.array_equal(sp.acceleration, s.jet3(3.0)[2])
+
+
+# -- the setpoint thread ------------------------------------------------------------------------
+
+
+class _Recorder:
+    def __init__(self) -> None:
+        self.sent: list[tuple[float, object]] = []
+        self.ticks: list[object] = []
+        self.failures: list[BaseException] = []
+        self.ready = threading.Event()
+
+    def send(self, sp: object) -> None:
+        self.sent.append((time.monotonic(), sp))
+
+    def on_tick(self, tick: object) -> None:
+        self.ticks.append(tick)
+        if len(self.ticks) >= 20:
+            self.ready.set()
+
+
+def test_sender_sends_on_the_absolute_grid_and_only_with_a_feed() -> None:
+    from companion.setpoints import Feed, SetpointSender, Tick
+
+    rec = _Recorder()
+    hold = hold_trajectory(np.array([1.0, -2.0, -3.0]), 0.0)
+    sender = SetpointSender(100.0, rec.send, YawPolicy("fixed", 0.25, 0.3), rec.on_tick, rec.failures.append)
+    sender.start()
+    try:
+        assert rec.ready.wait(10.0)
+        sender.feed = Feed(hold, time.monotonic())
+        n = len(rec.ticks)
+        while len(rec.ticks) < n + 20:
+            time.sleep(0.01)
+    finally:
+        sender.stop()
+    ticks: list[Tick] = list(rec.ticks)  # type: ignore[arg-type]
+    t0 = ticks[0].deadline
+    ks = [round((tk.deadline - t0) * 100.0) for tk in ticks]
+    assert ks == sorted(set(ks))  # one tick per deadline, in order, never two on one
+    for tk in ticks:
+        assert tk.deadline == pytest.approx(t0 + round((tk.deadline - t0) * 100.0) / 100.0, abs=1e-9)
+        assert tk.now >= tk.deadline  # never early
+        assert tk.next_deadline > tk.deadline
+    fed = [tk for tk in ticks if tk.feed is not None]
+    assert fed and len(rec.sent) == len(fed) and not rec.failures
+    assert all(tk.setpoint is not None and np.allclose(tk.setpoint.position, [1.0, -2.0, -3.0], rtol=0, atol=1e-12)
+               for tk in fed)
+    assert all(sp.yaw == 0.25 for _, sp in rec.sent)  # type: ignore[attr-defined]
+    # periods are measured between periodic sends only, from the second one on
+    assert fed[0].gap is None and all(tk.gap is not None and tk.gap > 0 for tk in fed[1:])
+    assert all(tk.setpoint is None for tk in ticks if tk.feed is None)
+
+
+def test_sender_reports_a_crash_and_stops() -> None:
+    from companion.setpoints import Feed, SetpointSender
+
+    rec = _Recorder()
+
+    def broken(sp: object) -> None:
+        raise RuntimeError("boom")
+
+    sender = SetpointSender(200.0, broken, YawPolicy("hold", 0.0, 0.3), rec.on_tick, rec.failures.append)
+    sender.feed = Feed(hold_trajectory(np.zeros(3), 0.0), time.monotonic())
+    sender.start()
+    deadline = time.monotonic() + 10.0
+    while not rec.failures and time.monotonic() < deadline:
+        time.sleep(0.01)
+    sender.stop()
+    assert len(rec.failures) == 1 and "boom" in repr(rec.failures[0])
+
+
+def test_sender_survives_a_refused_send() -> None:
+    from companion.setpoints import Feed, SetpointSender
+
+    rec = _Recorder()
+    calls = []
+
+    def refusing(sp: object) -> None:
+        calls.append(sp)
+        raise OSError("network unreachable")
+
+    sender = SetpointSender(200.0, refusing, YawPolicy("hold", 0.0, 0.3), rec.on_tick, rec.failures.append)
+    sender.feed = Feed(hold_trajectory(np.zeros(3), 0.0), time.monotonic())
+    sender.start()
+    try:
+        assert rec.ready.wait(10.0)
+    finally:
+        sender.stop()
+    assert not rec.failures and len(calls) >= 20
+    assert all(isinstance(tk.error, OSError) for tk in rec.ticks)  # type: ignore[attr-defined]
+
+
+@pytest.mark.skipif(not Path("/proc/self/task").is_dir(), reason="Linux only")
+def test_sender_thread_is_named_and_normal_unless_asked() -> None:
+    from companion.setpoints import SetpointSender
+
+    rec = _Recorder()
+    sender = SetpointSender(100.0, rec.send, YawPolicy("hold", 0.0, 0.3), rec.on_tick, rec.failures.append)
+    sender.start()
+    try:
+        assert rec.ready.wait(10.0)
+        assert sender.native_id is not None
+        comm = Path(f"/proc/self/task/{sender.native_id}/comm").read_text().strip()
+    finally:
+        sender.stop()
+    assert comm == "setpoints"
+    assert sender.scheduling == "normal"
