@@ -360,7 +360,15 @@ def start_mission(
         jet[1] = clip_velocity(jet[1], mission.bounds)
         points = np.vstack([jet[0], wps])
         lab = np.concatenate([[-1.0], labels])
-    if mission.durations is not None and mission.start != "first_waypoint":
+    # Already at waypoint 0 (a mission that starts where the vehicle is): the vehicle's position
+    # stands for it. A lead segment of (nearly) zero length has a duration that its end jets
+    # cannot fill without huge snap, and its plan fails verification at the start.
+    at_first = mission.start != "first_waypoint" and len(wps) >= 2 and (
+        float(np.linalg.norm(jet[0] - wps[0])) <= cfg.safety.arrival_tolerance)
+    if at_first:
+        points = np.vstack([jet[0], wps[1:]])
+        lab = labels
+    if mission.durations is not None and mission.start != "first_waypoint" and not at_first:
         lead = allocate_durations(points[:2], mission.bounds, jet[1])
         durations = np.concatenate([lead, mission.durations])
     elif mission.durations is not None:
@@ -898,7 +906,7 @@ def verify_against(old: Route, traj: Trajectory, problem: Problem, tol: float = 
         return None
     # windows: runs of segments to verify, grown by one neighbour each side, merged
     lo_hi: list[list[int]] = []
-    for s in idx:
+    for s in idx.tolist():
         lo, hi = max(int(s) - 1, 0), min(int(s) + 1, m - 2)
         if lo_hi and lo <= lo_hi[-1][1] + 1:
             lo_hi[-1][1] = max(lo_hi[-1][1], hi)

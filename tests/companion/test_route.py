@@ -35,6 +35,25 @@ def test_mission_starts_at_the_current_state_and_is_verified() -> None:
     assert r.trajectory.t0 == 1.0
 
 
+@pytest.mark.parametrize("durations", [None, [4.0, 3.0]])
+def test_mission_from_where_the_vehicle_already_is(durations: list[float] | None) -> None:
+    """Waypoint 0 at the vehicle's position (within the arrival tolerance): no zero-length lead
+    segment (its plan failed verification at the start); the current position stands for it."""
+    msg: dict = {"id": "m", "waypoints": [[0, 0, -3], [3, 0, -3], [3, 3, -3]]}
+    if durations is not None:
+        msg["durations"] = durations
+    spec = rt.mission_from_message(msg, CFG)
+    for start in ([0, 0, -3], [0.1, 0, -3]):
+        out = rt.start_mission(spec, rest_jet(np.asarray(start, dtype=float)), 1.0, [], CFG)
+        assert out.ok and out.route is not None, out.message
+        r = out.route
+        assert r.labels.tolist() == [0, 1, 2]
+        assert verify(r.trajectory, r.problem).ok
+        assert np.allclose(r.trajectory.evaluate(1.0), start)
+        if durations is not None:
+            assert np.allclose(np.diff(r.times), durations)
+
+
 def test_start_first_waypoint_requires_being_there() -> None:
     spec = rt.mission_from_message({"id": "m", "start": "first_waypoint", "waypoints": [[0, 0, -1], [2, 0, -1]]}, CFG)
     far = rt.start_mission(spec, rest_jet(np.array([1.0, 0, -1])), 0.0, [], CFG)
