@@ -11,7 +11,7 @@ same ones again.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from functools import lru_cache
 
 import numpy as np
@@ -36,7 +36,6 @@ from planner_core.problem import (
 # costs a few numpy calls instead of building matrices in Python loops.
 _POW_LO = -7
 _POW_EXP = np.arange(_POW_LO, 5, dtype=float)
-_POWERS = -np.arange(JET_ORDER, dtype=float)
 _ORDER_OF_ROW = np.concatenate([np.full(DEGREE + 1 - k, k) for k in range(1, 5)])
 # (2, 90): index of each hodograph value's lower (upper) bound in the 24 entries of (lo, hi) flattened
 _LIM_IDX = np.stack([((_ORDER_OF_ROW - 1)[:, None] * 3 + np.arange(3)).ravel() + 12 * side for side in (0, 1)])
@@ -125,23 +124,6 @@ def _ctrl_map(d: float) -> FloatArray:
 def segment_ctrl(jet0: FloatArray, jet1: FloatArray, duration: float) -> FloatArray:
     """bezier.segment_from_jets through a cached per-duration (10, 10) map."""
     return np.asarray(_ctrl_map(duration).dot(np.concatenate((jet0, jet1))))
-
-
-def build_segments(jets: Mapping[int, FloatArray], durations: Mapping[int, float], segments: Sequence[int]) -> FloatArray:
-    """Control points (len(segments), 10, 3) of the given segments from their end jets."""
-    out = np.empty((len(segments), N_CTRL, 3))
-    for i, s in enumerate(segments):
-        out[i] = segment_ctrl(jets[s], jets[s + 1], float(durations[s]))
-    return out
-
-
-def start_jet_fast(ctrl: FloatArray, duration: float) -> FloatArray:
-    """bezier.start_jet without the per-order Python loop."""
-    return np.asarray((_jet_rows()[0] @ ctrl[:JET_ORDER]) * (duration**_POWERS)[:, None])
-
-
-def end_jet_fast(ctrl: FloatArray, duration: float) -> FloatArray:
-    return np.asarray((_jet_rows()[1] @ ctrl[JET_ORDER:]) * (duration**_POWERS)[:, None])
 
 
 # --- certificate ---------------------------------------------------------------

@@ -35,7 +35,7 @@ def add_replan_parser(sub: Any) -> None:
 
 def problem_for(scenario_problem: Problem, traj: Trajectory) -> Problem:
     """The scenario's problem if the trajectory still solves it, else the trajectory's own."""
-    from planner_core.certificate import end_jet_fast, start_jet_fast
+    from planner_core.certificate import end_jet_of, start_jet_of
 
     same = (
         scenario_problem.m == traj.n_segments + 1
@@ -51,8 +51,8 @@ def problem_for(scenario_problem: Problem, traj: Trajectory) -> Problem:
     d = np.diff(traj.times)
     return Problem(
         traj.waypoints, traj.times.copy(), scenario_problem.bounds,
-        start_jet_fast(traj.control_points[0], float(d[0])),
-        end_jet_fast(traj.control_points[-1], float(d[-1])),
+        start_jet_of(traj.control_points[0], float(d[0])),
+        end_jet_of(traj.control_points[-1], float(d[-1])),
         traj.corridors,
     )
 

@@ -23,9 +23,9 @@ from planner_core.jets import solve_jets
 from planner_core.localqp import solve_derivatives
 from planner_core.planning import plan
 from planner_core.problem import Bounds, Polytope, Problem, Trajectory
-from planner_core.replan import Environment, ReplanOptions, ReplanResult, jets_of, replan
+from planner_core.replan import Environment, ReplanOptions, jets_of, replan
 from planner_core.result import PlanStatus
-from planner_core.verify import verify
+from tests.planner.test_replan import _ok
 
 OFFSET = np.array([0.3, -0.2, 0.1])
 
@@ -38,28 +38,21 @@ def _mission(m: int, seed: int) -> Problem:
     return Problem.from_waypoints(wps, rng.uniform(1.8, 2.6, m - 1), Bounds.symmetric(7.0, 6.5, 40.0, 400.0), corridors)
 
 
-@pytest.fixture(scope="module")
-def planned() -> tuple[Problem, Trajectory]:
-    problem = _mission(12, seed=4)
+def _planned(m: int, seed: int) -> tuple[Problem, Trajectory]:
+    problem = _mission(m, seed=seed)
     res = plan(problem)
     assert res.ok and res.trajectory is not None, res.message
     return replace(problem, times=res.trajectory.times.copy()), res.trajectory
+
+
+@pytest.fixture(scope="module")
+def planned() -> tuple[Problem, Trajectory]:
+    return _planned(12, seed=4)
 
 
 @pytest.fixture(scope="module")
 def planned_large() -> tuple[Problem, Trajectory]:
-    problem = _mission(80, seed=5)
-    res = plan(problem)
-    assert res.ok and res.trajectory is not None, res.message
-    return replace(problem, times=res.trajectory.times.copy()), res.trajectory
-
-
-def _ok(res: ReplanResult) -> Trajectory:
-    assert res.status is PlanStatus.OK, res.message
-    assert res.trajectory is not None
-    report = verify(res.trajectory, res.problem)
-    assert report.ok, report.summary()
-    return res.trajectory
+    return _planned(80, seed=5)
 
 
 def _local_qp(
