@@ -17,10 +17,10 @@ $(STAMP): pyproject.toml
 setup: $(STAMP)
 
 demo: $(STAMP)
-	$(PY) -m companion demo
+	$(PY) -m demo
 
 lint: $(STAMP)
-	$(PY) -m ruff check planner_core companion sitl_mock tests benchmarks examples
+	$(PY) -m ruff check planner_core companion sitl_mock demo tests benchmarks examples
 
 typecheck: $(STAMP)
 	$(PY) -m mypy planner_core

@@ -35,7 +35,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from planner_core import corridors as cor
-from planner_core.io import load_scenario
+from planner_core.formats.io import load_scenario
 from planner_core.problem import Polytope
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples"

@@ -35,8 +35,8 @@ from quality import faster, random_scenario, snap_cost, table
 
 from planner_core import IterativeOptions, Problem, Trajectory, verify
 from planner_core.bezier import bernstein_basis, hodographs
+from planner_core.formats.io import load_scenario
 from planner_core.global_qp import plan_global
-from planner_core.io import load_scenario
 from planner_core.iterative import plan_iterative
 from planner_core.problem import DEGREE
 

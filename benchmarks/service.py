@@ -302,7 +302,7 @@ def run_rate(rate: float, flight: float, out: Path, popups: int, load: bool,
 
 def _run_rate(rate: float, flight: float, out: Path, popups: int, load: bool,
               workers: int | None, realtime: int, nice: int) -> dict[str, Any]:
-    from companion.demo_rig import rig
+    from demo.rig import rig
 
     out.mkdir(parents=True, exist_ok=True)
     mock_port, relay_port = _free_udp(), _free_udp()
@@ -440,7 +440,7 @@ class _EventLog:
 
 
 def _one_popup(peer: Any, events: _EventLog, i: int) -> Popup:
-    from companion.demo import trajectory_of
+    from demo.run import trajectory_of
 
     latest = peer.latest.get("trajectory")
     status = peer.query("status", timeout=1.0) or {}
@@ -509,7 +509,7 @@ def started_under_fifo(priority: int) -> Iterator[None]:
     if subprocess.run(["chrt", "-f", str(priority), "true"], capture_output=True).returncode != 0:
         raise RuntimeError(f"SCHED_FIFO {priority} is not permitted here (needs CAP_SYS_NICE); "
                            "run with --realtime 0")
-    from companion import demo_rig
+    from demo import rig as demo_rig
 
     original = demo_rig.Child.__init__
 

@@ -28,7 +28,7 @@ KEYS = ("mission", "obstacles", "change", "command")
 def _client_session(args: argparse.Namespace) -> Any:
     import zenoh
 
-    from companion.zenoh_io import zenoh_config
+    from companion.wire.zenoh import zenoh_config
 
     zc = ZenohConfig(
         mode="client" if args.connect else "peer",
@@ -129,7 +129,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     from companion.service import run
 
     if cfg.planner.executor == "process":
-        from planner_core.window import disable_kernel
+        from planner_core import disable_kernel
 
         # Missions are planned by worker processes (which use the compiled pass); what this
         # process plans itself (local replans, stops) is a few jets at a time, so the numpy
@@ -174,16 +174,19 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("--telemetry", action="store_true")
     w.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (0: never)")
     _add_client_args(w)
-    sub.add_parser("demo", help="a scripted demo flight against the mock autopilot", add_help=False)
+    sub.add_parser("demo", help="a scripted demo flight against the mock autopilot (= python -m demo)",
+                   add_help=False)
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] == "demo":
-        from companion.demo import main as demo_main
+        # the demo lives in the top-level `demo` package (a client of the service); this
+        # subcommand is kept as an alias of `python -m demo`
+        from demo.run import main as demo_main
 
-        return int(demo_main(argv[1:]) or 0)
+        return int(demo_main(argv[1:], prog="python -m companion demo") or 0)
     args = build_parser().parse_args(argv)
     if args.print_default_config:
         sys.stdout.write(config_to_toml())

@@ -1,13 +1,18 @@
-"""The flight state machine: pure logic, no sockets, no clock.
+"""The flight state machine: the vehicle's situation as the companion sees it, in one place.
 
-States (see the README, "State machine", for the diagram):
+Pure logic, no sockets, no clock. `Flight` owns the state and every flag about the
+vehicle's situation (airborne, link lost/seen, an exit or a disarm we asked for, a `start`
+in progress); the rest of the service asks it and tells it, never keeps a copy.
+
+States (README, "State machine"):
 IDLE -> ARMING -> TAKEOFF -> READY -> STREAMING -> HOLDING, plus
-PILOT (someone else took control), BRAKING (no safe plan: stopping inside the
-current corridor), FAILSAFE (the autopilot left our mode on its own, or the
-link was lost) and LANDING (the autopilot lands at our request).
+PILOT (someone else took control), BRAKING (stopping inside a free corridor),
+FAILSAFE (the autopilot left our mode on its own, or the link was lost) and
+LANDING (the autopilot lands at our request).
 
-Every transition is returned as an event dict with its reason; illegal
-transitions raise, so a bug shows up as an error instead of a silent jump.
+READY means "in our mode and holding": on the ground (armed, not yet taken off) or in
+the air; `airborne` says which. Every transition is returned as an event dict with its
+reason; an illegal transition raises, so a bug shows as an error instead of a silent jump.
 """
 
 from __future__ import annotations
@@ -33,23 +38,29 @@ class State(enum.Enum):
 S = State
 _ANY_EXIT = {S.IDLE, S.PILOT, S.FAILSAFE}
 ALLOWED: dict[State, set[State]] = {
-    S.IDLE: {S.ARMING, S.PILOT, S.FAILSAFE},
-    S.ARMING: {S.TAKEOFF, S.READY} | _ANY_EXIT,
+    # IDLE -> LANDING: a restart that finds the vehicle in the air can still land it.
+    S.IDLE: {S.ARMING, S.PILOT, S.FAILSAFE, S.LANDING},
+    S.ARMING: {S.TAKEOFF, S.READY, S.LANDING} | _ANY_EXIT,
     S.TAKEOFF: {S.READY, S.HOLDING, S.LANDING} | _ANY_EXIT,
-    S.READY: {S.TAKEOFF, S.STREAMING, S.HOLDING, S.LANDING} | _ANY_EXIT,
+    S.READY: {S.TAKEOFF, S.STREAMING, S.HOLDING, S.BRAKING, S.LANDING} | _ANY_EXIT,
     S.STREAMING: {S.HOLDING, S.BRAKING, S.LANDING} | _ANY_EXIT,
     S.HOLDING: {S.TAKEOFF, S.STREAMING, S.BRAKING, S.LANDING} | _ANY_EXIT,
     S.BRAKING: {S.HOLDING, S.STREAMING, S.LANDING} | _ANY_EXIT,
     S.LANDING: _ANY_EXIT,
-    S.PILOT: {S.ARMING, S.FAILSAFE, S.IDLE},
-    S.FAILSAFE: {S.ARMING, S.PILOT, S.IDLE},
+    S.PILOT: {S.ARMING, S.FAILSAFE, S.IDLE, S.LANDING},
+    S.FAILSAFE: {S.ARMING, S.PILOT, S.IDLE, S.LANDING},
 }
 
 # States in which the companion commands the vehicle with setpoints.
 CONTROLLING = frozenset({S.ARMING, S.TAKEOFF, S.READY, S.STREAMING, S.HOLDING, S.BRAKING})
 # States in which the vehicle is in our mode (OFFBOARD/GUIDED) by our request.
 IN_OUR_MODE = frozenset({S.TAKEOFF, S.READY, S.STREAMING, S.HOLDING, S.BRAKING})
-AIRBORNE_CONTROL = frozenset({S.READY, S.STREAMING, S.HOLDING, S.BRAKING})
+# States in which we hold or fly a plan; with `airborne`, a mission may be flown.
+HOLDING_CONTROL = frozenset({S.READY, S.STREAMING, S.HOLDING, S.BRAKING})
+# Not ours: someone else (a pilot, the autopilot's failsafe) flies; we never stream.
+NOT_OURS = frozenset({S.IDLE, S.PILOT, S.FAILSAFE, S.LANDING})
+
+COMMANDS = ("arm", "takeoff", "start", "hold", "resume", "land", "abort", "disarm")
 
 
 class IllegalTransition(RuntimeError):
@@ -59,6 +70,12 @@ class IllegalTransition(RuntimeError):
 @dataclass
 class Flight:
     state: State = S.IDLE
+    airborne: bool = False  # the vehicle is (or may be) in the air
+    seen_link: bool = False  # an autopilot heartbeat has arrived since start
+    link_lost: bool = False  # no heartbeat for the link timeout (until one arrives)
+    exit_requested: bool = False  # we asked the autopilot to leave our mode (land)
+    disarm_requested: bool = False  # we asked for the disarm (it is not a failsafe)
+    starting: bool = False  # a `start` sequence is running (its takeoff must not fly the pending mission)
     history: list[dict[str, Any]] = field(default_factory=list)
 
     def can(self, to: State) -> bool:
@@ -79,9 +96,26 @@ class Flight:
     def controlling(self) -> bool:
         return self.state in CONTROLLING
 
+    @property
+    def flying_ours(self) -> bool:
+        """In the air, in our mode, holding or flying a plan: a mission or a change may fly."""
+        return self.state in HOLDING_CONTROL and self.airborne
 
-def refuse_command(state: State, command: str, *, armed: bool, auto_arm: bool, has_mission: bool) -> str | None:
-    """Why `command` is refused in `state` (None: accepted)."""
+    def landed(self) -> None:
+        """The vehicle is on the ground (disarmed, or the autopilot says so)."""
+        self.airborne = False
+
+    def refuse(self, command: str, *, armed: bool, auto_arm: bool, has_mission: bool,
+               reported_in_air: bool = False) -> str | None:
+        """Why `command` is refused now (None: accepted). `reported_in_air`: the autopilot's
+        landed state says "in air"."""
+        return refuse_command(self.state, command, armed=armed, auto_arm=auto_arm, has_mission=has_mission,
+                              airborne=self.airborne or reported_in_air, reported_in_air=reported_in_air)
+
+
+def refuse_command(state: State, command: str, *, armed: bool, auto_arm: bool, has_mission: bool,
+                   airborne: bool = False, reported_in_air: bool = False) -> str | None:
+    """Why `command` is refused in `state` (None: accepted). The table is in the README."""
     if command == "arm":
         if armed and state in CONTROLLING:
             return "already armed and in control"
@@ -95,29 +129,39 @@ def refuse_command(state: State, command: str, *, armed: bool, auto_arm: bool, h
             return f"cannot take off while {state.value}"
         return None
     if command == "start":
-        if not has_mission and state not in (S.PILOT, S.FAILSAFE):
-            # From PILOT/FAILSAFE, `start` without a mission takes control back and holds.
+        # From PILOT/FAILSAFE (or IDLE with the vehicle in the air, after a restart),
+        # `start` without a mission takes control back and holds.
+        takes_back = state in (S.PILOT, S.FAILSAFE) or (state is S.IDLE and armed and airborne)
+        if not has_mission and not takes_back:
             return "no mission loaded"
         if not armed and not auto_arm:
             return "vehicle is disarmed; send 'arm' and 'takeoff' first (auto_arm is off)"
         if state in (S.ARMING, S.TAKEOFF, S.LANDING):
             return f"busy ({state.value})"
         return None
-    if command in ("hold", "resume"):
-        if state not in AIRBORNE_CONTROL:
-            return f"not in control ({state.value})"
+    if command == "hold":
+        if state not in HOLDING_CONTROL or not airborne:
+            return f"not flying under our control ({state.value}{'' if airborne else ', on the ground'})"
+        return None
+    if command == "resume":
+        if state not in HOLDING_CONTROL or not airborne:
+            return f"not flying under our control ({state.value}{'' if airborne else ', on the ground'})"
+        if not has_mission:
+            return "no mission to resume"
         return None
     if command == "land":
+        if state is S.LANDING:
+            return "already landing"
         if not armed:
-            return "vehicle is disarmed"
-        if state in (S.LANDING, S.PILOT):
-            return f"cannot land while {state.value}"
+            return "vehicle is disarmed (on the ground)"
         return None
     if command == "abort":
         return None
     if command == "disarm":
         if not armed:
             return "already disarmed"
+        if reported_in_air:
+            return "vehicle is in the air (land first)"
         return None
     return f"unknown command {command!r}"
 

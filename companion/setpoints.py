@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import gc
 import logging
 import math
 import os
@@ -19,9 +18,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
-import numpy as np
-
-from planner_core.problem import FloatArray, Trajectory
+from planner_core import FloatArray, Trajectory, sampler
 
 # The default asyncio selector rounds timeouts to 1 ms; sleeping to slightly
 # before the deadline and spinning the rest keeps jitter well under 1 ms.
@@ -63,12 +60,6 @@ class Setpoint:
     yaw: float
 
 
-def hold_trajectory(position: FloatArray, t: float) -> Trajectory:
-    """A verified-by-construction hold: all control points at a measured position."""
-    ctrl = np.repeat(np.asarray(position, dtype=float).reshape(1, 1, 3), 10, axis=1)
-    return Trajectory(times=np.array([t, t + 1.0]), control_points=ctrl, corridors=None, stats={"hold": True})
-
-
 class YawPolicy:
     def __init__(self, mode: str, fixed: float, min_speed: float) -> None:
         self.mode = mode
@@ -86,162 +77,10 @@ class YawPolicy:
         return self.last
 
 
-def _elevation(n: int) -> FloatArray:
-    """(n+2, n+1) degree elevation n -> n+1 of a Bézier curve (exact: the same curve)."""
-    e = np.zeros((n + 2, n + 1))
-    i = np.arange(n + 2)
-    e[i[1:], i[:-1]] = i[1:] / (n + 1)
-    e[i[:-1], i[:-1]] = 1.0 - i[:-1] / (n + 1)
-    return e
-
-
-_DEG = 9
-_BINOM = np.array([math.comb(_DEG, k) for k in range(_DEG + 1)], dtype=float)
-_POW = np.arange(_DEG + 1, dtype=float)
-
-
-def _raise_to_degree(k: int) -> FloatArray:
-    """(10, 10-k): the order-k hodograph's control points (degree 9-k) raised to degree 9,
-    times n!/(n-k)!, applied to the k-th differences of the control points."""
-    m = np.eye(_DEG + 1 - k)
-    for n in range(_DEG - k, _DEG):
-        m = _elevation(n) @ m
-    return m * math.perm(_DEG, k)
-
-
-_RAISE = [_raise_to_degree(k) for k in range(5)]
-
-
-class Sampler:
-    """Position .. snap of one trajectory at single times, fast.
-
-    The setpoint thread evaluates the active trajectory once per tick; the general
-    `Trajectory.jet` (five vectorised evaluations over the whole trajectory) costs ~0.5 ms
-    there, CPU a busy computer does not have. Each segment's hodographs of orders 0-4 are
-    raised to degree 9 once, on first use, as one (10, 15) matrix (differences first, so a
-    segment at rest gives exact zeros); a sample is then one Bernstein basis vector times
-    that matrix (~15 µs).
-    """
-
-    def __init__(self, traj: Trajectory) -> None:
-        self.traj = traj
-        self.times = traj.times
-        self.t0 = float(traj.times[0])
-        self.t_end = float(traj.times[-1])
-        self._last = len(traj.times) - 2
-        self._segments: dict[int, FloatArray] = {}
-
-    def _segment(self, s: int) -> FloatArray:
-        m = self._segments.get(s)
-        if m is None:
-            ctrl = self.traj.control_points[s]
-            d = float(self.times[s + 1] - self.times[s])
-            m = np.hstack([_RAISE[k] @ np.diff(ctrl, k, axis=0) / d**k for k in range(5)])
-            self._segments[s] = m
-        return m
-
-    def _eval(self, t: float, cols: int) -> FloatArray:
-        tc = min(max(t, self.t0), self.t_end)
-        s = min(max(int(np.searchsorted(self.times, tc, side="right")) - 1, 0), self._last)
-        t_lo, t_hi = float(self.times[s]), float(self.times[s + 1])
-        u = min(max((tc - t_lo) / (t_hi - t_lo), 0.0), 1.0)
-        basis = _BINOM * u**_POW * (1.0 - u) ** (_DEG - _POW)
-        out: FloatArray = (basis @ self._segment(s)[:, :cols]).reshape(cols // 3, 3)
-        return out
-
-    def jet(self, t: float) -> FloatArray:
-        """(5, 3) position .. snap at t clamped to the span, as `Trajectory.jet`."""
-        return self._eval(t, 15)
-
-    def jet3(self, t: float) -> FloatArray:
-        """(3, 3): position, velocity, acceleration at t (clamped to the span; at rest past it)."""
-        out = self._eval(t, 9)
-        if t >= self.t_end:
-            # Past the end the trajectory is at rest by construction; say so exactly.
-            out[1:] = 0.0
-        return out
-
-
-_samplers: list[Sampler] = []
-
-
-def sampler(traj: Trajectory) -> Sampler:
-    """The Sampler of `traj`, kept for the last few trajectories (the active one and the one
-    being swapped in); by identity, as trajectories are immutable."""
-    for sm in _samplers:
-        if sm.traj is traj:
-            return sm
-    sm = Sampler(traj)
-    _samplers.insert(0, sm)
-    del _samplers[3:]
-    return sm
-
-
 def sample(traj: Trajectory, t: float, yaw: YawPolicy) -> Setpoint:
     """Position, velocity and acceleration at trajectory time t (clamped to its span)."""
     jet = sampler(traj).jet3(t)
     return Setpoint(jet[0], jet[1], jet[2], yaw(jet[1]))
-
-
-class GcPacer:
-    """Garbage collection at the setpoint thread's pace.
-
-    CPython's automatic collection starts in whichever thread allocates past a threshold and
-    holds the GIL for the whole pass, so a pass over a big heap (a decoded 1000-waypoint
-    mission, its route) can land in the middle of a tick. `start()` freezes the start-up heap
-    (never scanned again) and turns automatic collection off; the loop then calls `after_send`
-    right after each setpoint, when the next deadline is furthest away: a young collection once
-    enough objects have piled up, an older one every few of those, a full one every
-    `full_every` seconds, each only with `slack` seconds left before the next deadline.
-    """
-
-    def __init__(self, young: int = 2000, full_every: float = 5.0, slack: float = 0.008,
-                 clock: Callable[[], float] = time.perf_counter) -> None:
-        self.young = young
-        self.full_every = full_every
-        self.slack = slack
-        self.clock = clock
-        self.enabled = False
-        self.last_full = -math.inf
-        self.worst = 0.0  # longest collection so far (s)
-        self.collections = [0, 0, 0]
-        self.last: tuple[int, float] | None = None  # (generation, seconds) of the latest collection
-
-    def start(self, now: float) -> None:
-        gc.collect()
-        gc.freeze()
-        gc.disable()
-        self.enabled = True
-        self.last_full = now
-
-    def stop(self) -> None:
-        if self.enabled:
-            self.enabled = False
-            gc.enable()
-
-    def due(self, now: float) -> int | None:
-        """The generation to collect now, or None."""
-        if now - self.last_full >= self.full_every:
-            return 2
-        young, older, _ = gc.get_count()
-        if young < self.young:
-            return None
-        return 1 if older >= 10 else 0
-
-    def after_send(self, now: float, next_deadline: float) -> None:
-        if not self.enabled or next_deadline - now < self.slack:
-            return
-        gen = self.due(now)
-        if gen is None:
-            return
-        t0 = self.clock()
-        gc.collect(gen)
-        took = self.clock() - t0
-        self.worst = max(self.worst, took)
-        self.last = (gen, took)
-        self.collections[gen] += 1
-        if gen == 2:
-            self.last_full = now
 
 
 # -- the setpoint thread ---------------------------------------------------------------

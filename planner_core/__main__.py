@@ -1,5 +1,5 @@
 import sys
 
-from planner_core.cli import main
+from planner_core.formats.cli import main
 
 sys.exit(main())

@@ -30,16 +30,12 @@ from typing import Any
 
 import numpy as np
 
+from planner_core.errors import FieldError
 from planner_core.problem import FloatArray, Polytope
 
 
-class ChangeError(ValueError):
+class ChangeError(FieldError):
     """Invalid change description; `.field` names the offending entry."""
-
-    def __init__(self, field: str, reason: str) -> None:
-        super().__init__(f"{field}: {reason}")
-        self.field = field
-        self.reason = reason
 
 
 @dataclass(frozen=True)

@@ -39,6 +39,7 @@ import daqp
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from planner_core.errors import FieldError
 from planner_core.problem import FloatArray, Polytope
 
 IntArray = NDArray[np.intp]
@@ -51,8 +52,13 @@ _DET_TOL = 1e-12  # unit normals: |det| below this means three planes share no s
 _CHUNK = 20000  # triples per vectorised batch (bounds memory for big hulls)
 
 
-class CorridorError(ValueError):
-    """No safe convex corridor exists; names the segment/waypoint/obstacle at fault."""
+class CorridorError(FieldError):
+    """No safe convex corridor exists; names the segment/waypoint/obstacle at fault.
+
+    A `FieldError` whose message is the description given (unchanged), whose
+    `.reason` is that description and whose `.field` is "segments[j]" for a
+    blocked segment, else "waypoints[i]" for a waypoint at fault, else "corridors".
+    """
 
     def __init__(
         self,
@@ -62,7 +68,13 @@ class CorridorError(ValueError):
         waypoint: int | None = None,
         obstacle: int | None = None,
     ) -> None:
-        super().__init__(message)
+        if segment is not None:
+            where = f"segments[{segment}]"
+        elif waypoint is not None:
+            where = f"waypoints[{waypoint}]"
+        else:
+            where = "corridors"
+        super().__init__(where, message, message=message)
         self.segment = segment
         self.waypoint = waypoint
         self.obstacle = obstacle

@@ -35,7 +35,6 @@ from typing import Any
 
 import numpy as np
 
-from planner_core.bezier import split_segment
 from planner_core.certificate import certify_rebuilt, end_jet_of, segment_ctrl, start_jet_of
 from planner_core.changes import (
     AddObstacles,
@@ -54,6 +53,7 @@ from planner_core.changes import (
 from planner_core.localqp import solve_derivatives
 from planner_core.problem import JET_ORDER, FloatArray, Polytope, Problem, Trajectory, rest_jet
 from planner_core.result import PlanStatus
+from planner_core.trajectory import split_at
 
 __all__ = [
     "ChangeError",
@@ -63,7 +63,7 @@ __all__ = [
     "ReplanResult",
     "parse_change",
     "replan",
-    "split_at",
+    "split_inside",
     "split_problem_at",
 ]
 
@@ -125,21 +125,22 @@ def _split_index(times: FloatArray, t: float) -> tuple[int, bool]:
     return k, True
 
 
-def split_at(traj: Trajectory, t: float) -> Trajectory:
-    """The same curve with one more segment boundary at t (exact de Casteljau split)."""
+def split_inside(traj: Trajectory, t: float) -> Trajectory:
+    """The same curve with one more segment boundary at t, strictly inside the span.
+
+    The surgery is `planner_core.trajectory.split_at`; this only refuses the cases where
+    no new boundary would be made: ValueError when t is not strictly inside the span or
+    lies within TIME_EPS of an existing waypoint time.
+    """
     t = float(t)
     if not traj.times[0] < t < traj.times[-1]:
         raise ValueError(f"t: {t} is not inside the trajectory span ({traj.t0}, {traj.t_end})")
     k, needed = _split_index(traj.times, t)
     if not needed:
         raise ValueError(f"t: {t} coincides with the time of waypoint {k}")
-    s = k - 1
-    u = (t - float(traj.times[s])) / float(traj.times[s + 1] - traj.times[s])
-    left, right = split_segment(traj.control_points[s], u)
-    ctrl = np.concatenate([traj.control_points[:s], left[None], right[None], traj.control_points[s + 1 :]])
-    times = np.concatenate((traj.times[:k], [t], traj.times[k:]))  # np.insert's generality costs ~30 us
-    corridors = None if traj.corridors is None else (*traj.corridors[: s + 1], *traj.corridors[s:])
-    return Trajectory(times, ctrl, corridors, dict(traj.stats))
+    new, at = split_at(traj, t)
+    assert at == k and new is not traj  # |t - times| > TIME_EPS: always a fresh boundary at k
+    return new
 
 
 def split_problem_at(problem: Problem, traj: Trajectory, t: float) -> tuple[Problem, Trajectory, int]:
@@ -148,7 +149,7 @@ def split_problem_at(problem: Problem, traj: Trajectory, t: float) -> tuple[Prob
     The split waypoint's jet is the trajectory's own jet there, pinned: replan
     never frees it, so the piece being flown does not change.
     """
-    new_traj = split_at(traj, t)
+    new_traj = split_inside(traj, t)
     k, _ = _split_index(traj.times, float(t))
     s = k - 1
     wps = np.concatenate((problem.waypoints[:k], new_traj.control_points[k, :1], problem.waypoints[k:]))

@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from planner_core.bezier import bernstein_basis, end_jet, falling, start_jet
-from planner_core.problem import DEGREE, ORDER_NAMES, FloatArray, Problem, Trajectory
+from planner_core.problem import DEGREE, ORDER_NAMES, FloatArray, Polytope, Problem, Trajectory
 
 SAMPLES_PER_SEGMENT = 64
 # block sizes that keep sampling temporaries at 100-200 kB (cache sized, no page faults)
@@ -124,6 +124,82 @@ def verify(traj: Trajectory, problem: Problem, tol: float = 1e-9, continuity_tol
     checks = [wp, bnd, bh, bs, ch, cs]
     ok = all(w.value <= tol for w in checks) and cont.value <= continuity_tol
     return VerifyReport(ok, tol, continuity_tol, wp, bnd, cont, bh, bs, ch, cs)
+
+
+
+def _same_polytope(a: Polytope | None, b: Polytope | None) -> bool:
+    if a is b:
+        return True
+    if a is None or b is None:
+        return False
+    return a.A.shape == b.A.shape and bool(np.array_equal(a.A, b.A)) and bool(np.array_equal(a.b, b.b))
+
+
+def verify_changed(
+    old_traj: Trajectory, old_problem: Problem, traj: Trajectory, problem: Problem, tol: float = 1e-9
+) -> str | None:
+    """Verify a local replan of the verified (`old_traj`, `old_problem`) independently of the
+    planner's own certificate, but only where it can differ (None if it passes, else why).
+
+    A new segment whose control points and duration are bit-identical to a segment of the
+    verified old trajectory, under the same bounds, needs no new bound check: only a corridor
+    check when its corridor changed (pop-ups add planes to many corridors). Every other
+    segment is verified with `verify` in a window that includes one neighbour on each side,
+    so its junctions get verify's continuity check; windows at either end of the trajectory
+    check the problem's initial/final jets. Waypoints and times are checked everywhere.
+    """
+    m = problem.m
+    ctrl = traj.control_points
+    if ctrl.shape[0] != m - 1 or traj.times.shape != (m,) or not np.all(np.diff(traj.times) > 0):
+        return "segments or times do not match the problem"
+    if float(np.max(np.abs(traj.times - problem.times))) > 1e-9 * (1.0 + float(np.max(np.abs(problem.times)))):
+        return "times differ from the problem's"
+    ends = np.concatenate([ctrl[:, 0], ctrl[-1:, -1]])
+    if float(np.max(np.abs(ends - problem.waypoints))) > tol:
+        return "a segment does not start or end at its waypoint"
+    same_bounds = bool(np.array_equal(old_problem.bounds.lo, problem.bounds.lo)
+                       and np.array_equal(old_problem.bounds.hi, problem.bounds.hi))
+    old_d = np.diff(old_traj.times)
+    old_cors = old_problem.corridors or (None,) * old_traj.n_segments
+    known: dict[bytes, list[Polytope | None]] = {}
+    if same_bounds:
+        for s in range(old_traj.n_segments):
+            key = old_traj.control_points[s].tobytes() + old_d[s].tobytes()
+            known.setdefault(key, []).append(old_cors[s])
+    d = np.diff(traj.times)
+    cors = problem.corridors or (None,) * (m - 1)
+    full = np.ones(m - 1, dtype=bool)
+    for s in range(m - 1):
+        seen = known.get(ctrl[s].tobytes() + d[s].tobytes())
+        if seen is None:
+            continue
+        full[s] = False
+        c = cors[s]
+        if c is not None and not any(_same_polytope(c, o) for o in seen) and c.A.shape[0]:
+            v = float(np.max(ctrl[s] @ c.A.T - c.b))
+            if v > tol:
+                return f"segment {s} leaves its corridor by {v:.3g}"
+    idx = np.flatnonzero(full)
+    if idx.size == 0:
+        return None
+    # windows: runs of segments to verify, grown by one neighbour each side, merged
+    lo_hi: list[list[int]] = []
+    for s in idx.tolist():
+        lo, hi = max(int(s) - 1, 0), min(int(s) + 1, m - 2)
+        if lo_hi and lo <= lo_hi[-1][1] + 1:
+            lo_hi[-1][1] = max(lo_hi[-1][1], hi)
+        else:
+            lo_hi.append([lo, hi])
+    for lo, hi in lo_hi:
+        initial = problem.initial if lo == 0 else start_jet(ctrl[lo], float(d[lo]))
+        final = problem.final if hi == m - 2 else end_jet(ctrl[hi], float(d[hi]))
+        sub_cors = None if problem.corridors is None else tuple(problem.corridors[lo : hi + 1])
+        sub = Problem(problem.waypoints[lo : hi + 2], problem.times[lo : hi + 2], problem.bounds, initial, final, sub_cors)
+        piece = Trajectory(traj.times[lo : hi + 2], ctrl[lo : hi + 1], sub_cors, traj.stats)
+        report = verify(piece, sub, tol=tol)
+        if not report.ok:
+            return f"segments {lo}..{hi}: {report.summary()}"
+    return None
 
 
 def _structure(traj: Trajectory, problem: Problem) -> str:

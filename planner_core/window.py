@@ -60,6 +60,16 @@ def disable_kernel(reason: str) -> None:
     _kernel_off[:] = [reason]
 
 
+def use_compiled_kernel(enabled: bool, reason: str = "disabled by the caller") -> None:
+    """Process-wide: allow the compiled pass (the default) or, with `enabled=False`, plan
+    without it and never import numba (`disable_kernel(reason)`). Per plan, the same choice
+    is `IterativeOptions.compiled`."""
+    if enabled:
+        _kernel_off.clear()
+    else:
+        disable_kernel(reason)
+
+
 def _kernel_or_reason() -> ModuleType | str:
     """`window_kernel`, or why it is not used here. numba needs memory it can make executable;
     a W^X policy (systemd's MemoryDenyWriteExecute=yes, SELinux execmem) refuses it at import.

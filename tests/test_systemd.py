@@ -576,7 +576,7 @@ def test_companion_runs_sandboxed_and_speaks_sd_notify(tmp_path: Path) -> None:
     cleanly on SIGTERM (STOPPING=1, exit 0).
     """
     from companion.config import config_to_toml
-    from companion.demo_rig import Child, Peer, demo_config
+    from demo.rig import Child, Peer, demo_config
 
     mav_port, zenoh_port = _free_port(socket.SOCK_DGRAM), _free_port(socket.SOCK_STREAM)
     cfg = demo_config(zenoh_port, mav_port)

@@ -4,7 +4,7 @@ import numpy as np
 from hypothesis import given
 from hypothesis import strategies as st
 
-from companion.frames import (
+from companion.wire.frames import (
     P,
     change_to_ned,
     obstacles_to_ned,

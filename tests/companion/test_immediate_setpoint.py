@@ -8,39 +8,39 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from companion import route as rt
-from companion.config import Config
-from companion.service import Service
-from companion.setpoints import Setpoint
+from companion.braking import plan_stop
+from companion.control import Control
+from companion.route import Route
+from companion.setpoints import Feed, Setpoint, YawPolicy
+from planner_core import splice
 from tests.companion.test_route import fly
 
 
+class Target:
+    feed: Feed | None = None
+
+
 @pytest.fixture
-def svc() -> Iterator[Service]:
-    s = Service(Config())
+def svc() -> Iterator[Control]:
     sent: list[tuple[float, Setpoint]] = []
-    s.link.send_setpoint = lambda sp: sent.append((time.monotonic(), sp))  # type: ignore[method-assign]
+    s = Control(Target(), lambda sp: sent.append((time.monotonic(), sp)), YawPolicy("fixed", 0.0, 0.5), 50.0)
     s.sent = sent  # type: ignore[attr-defined]
     yield s
-    for pool in (s.pool, s.urgent_pool, s.replan_pool, s.io_pool, s.decode_pool, s.brake_pool):
-        pool.shutdown(wait=False, cancel_futures=True)
 
 
-def flying(s: Service) -> rt.Route:
+def flying(s: Control) -> Route:
     r = fly([[0.0, 6.0, -1.5]], [0.0, 0.0, -1.5], t0=0.0)
-    s.t_base = time.monotonic() - 1.0  # one second into the trajectory
-    s.active = r.trajectory
-    s.streaming = True
+    s._set(r.trajectory, time.monotonic() - 1.0, True)  # one second into the trajectory
     return r
 
 
-def test_a_swap_sends_one_setpoint_from_the_new_plan_at_once(svc: Service) -> None:
+def test_a_swap_sends_one_setpoint_from_the_new_plan_at_once(svc: Control) -> None:
     r = flying(svc)
-    now = svc.now_t()
+    now = svc.now()
     t_split = now + 0.3
-    stop = rt.plan_stop(r.trajectory, [t_split], lambda: now, [], r.mission, r.mission.bounds, 0.05)
+    stop = plan_stop(r.trajectory, [t_split], lambda: now, [], r.mission, r.mission.bounds, 0.05)
     assert stop.trajectory is not None
-    new = rt.splice(r.trajectory, stop.trajectory)
+    new = splice(r.trajectory, stop.trajectory)
     arrived = time.monotonic() - 0.004
     assert svc.swap(new, stop.start, arrived, "test")
     sent = svc.sent  # type: ignore[attr-defined]
@@ -55,17 +55,17 @@ def test_a_swap_sends_one_setpoint_from_the_new_plan_at_once(svc: Service) -> No
     assert svc._latency_mark is None and svc.last_sp is None and len(svc.periods) == 0
 
 
-def test_a_refused_swap_sends_nothing(svc: Service) -> None:
+def test_a_refused_swap_sends_nothing(svc: Control) -> None:
     r = flying(svc)
-    now = svc.now_t()
-    moved = rt.splice(r.trajectory, r.trajectory)  # same plan...
+    now = svc.now()
+    moved = splice(r.trajectory, r.trajectory)  # same plan...
     shifted = type(moved)(moved.times, moved.control_points + 0.01, moved.corridors, moved.stats)  # ...moved 1 cm
     assert not svc.swap(shifted, now + 0.3, time.monotonic(), "test")
     assert svc.sent == [] and svc.active is r.trajectory  # type: ignore[attr-defined]
 
 
-def test_nothing_is_sent_when_not_streaming(svc: Service) -> None:
+def test_nothing_is_sent_when_not_streaming(svc: Control) -> None:
     flying(svc)
-    svc.streaming = False
+    svc.pause()
     svc.send_now()
     assert svc.sent == []  # type: ignore[attr-defined]

@@ -4,7 +4,7 @@ import json
 
 import pytest
 
-from companion.messages import KINDS, MessageError, check_geofence, decode, schema
+from companion.wire.messages import KINDS, MessageError, check_geofence, decode, schema
 
 
 def rejected(kind: str, payload: bytes | dict, max_bytes: int = 1 << 20) -> MessageError:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 
 from companion.config import Config
-from companion.service import PLANNER_NICE, URGENT_NICE, make_planner_pool
+from companion.runtime import PLANNER_NICE, URGENT_NICE, make_planner_pool
 
 
 def test_planner_processes_are_niced_below_the_service() -> None:

@@ -8,7 +8,10 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from companion import route as rt
+from companion.edits import LocalEdit
+from companion.mission import local_replan, trim
+from companion.route import Outcome, Route
+from planner_core import first_hit, inflate, verify_changed
 from planner_core.changes import AddObstacles
 from planner_core.problem import Polytope, Trajectory
 from planner_core.verify import verify
@@ -20,7 +23,7 @@ def brute_first_hit(traj, t_from, obstacles, radius, dt=0.01):  # type: ignore[n
     pts = traj.evaluate(ts)
     inside = np.zeros(len(ts), dtype=bool)
     for ob in obstacles:
-        inside |= rt.inflate(ob, radius).contains(pts, tol=-rt.INSIDE_EPS)
+        inside |= inflate(ob, radius).contains(pts, tol=-1e-9)
     return float(ts[int(np.argmax(inside))]) if np.any(inside) else None
 
 
@@ -34,15 +37,15 @@ def test_first_hit_equals_sampling_every_segment() -> None:
         ob = box((c - h).tolist(), (c + h).tolist())
         t_from = float(rng.uniform(r.trajectory.t0, r.trajectory.t_end))
         expect = brute_first_hit(r.trajectory, t_from, [ob], 0.25)
-        assert rt.first_hit(r.trajectory, t_from, [ob], 0.25) == expect
+        assert first_hit(r.trajectory, t_from, [ob], 0.25) == expect
         hits += expect is not None
     assert hits > 5  # the comparison saw real hits, not only misses
 
 
-def popup_replan() -> tuple[rt.Route, rt.Outcome, Polytope]:
+def popup_replan() -> tuple[Route, Outcome, Polytope]:
     r = fly([[3, 0, -1.5], [3, 3, -1.5], [0, 3, -1.5], [0, 0, -1.5]], [0, 0, -1.5])
     ob = box([3.55, 0.8, -3], [4.3, 2.2, 0])
-    out = rt.local_replan(r, 2.0, 2.15, rt.LocalEdit((AddObstacles((ob,)),), "avoid"), [], CFG)
+    out = local_replan(trim(r, 2.0), 2.15, LocalEdit((AddObstacles((ob,)),), "avoid"), [], CFG)
     assert out.ok and out.route is not None, out.message
     return r, out, ob
 
@@ -50,15 +53,15 @@ def popup_replan() -> tuple[rt.Route, rt.Outcome, Polytope]:
 def test_incremental_verification_agrees_with_full_verify() -> None:
     r, out, _ = popup_replan()
     assert out.route is not None
-    old = rt.trim(r, 2.0)
-    assert rt.verify_against(old, out.route.trajectory, out.route.problem) is None
+    old = trim(r, 2.0)
+    assert verify_changed(old.trajectory, old.problem, out.route.trajectory, out.route.problem) is None
     assert verify(out.route.trajectory, out.route.problem).ok
 
 
 def test_incremental_verification_catches_a_bad_kept_corridor() -> None:
     r, out, _ = popup_replan()
     assert out.route is not None and out.route.problem.corridors is not None
-    old = rt.trim(r, 2.0)
+    old = trim(r, 2.0)
     p, traj = out.route.problem, out.route.trajectory
     # a segment copied bit-for-bit from the old plan, under a corridor that cuts it
     s = next(k for k in range(traj.n_segments) if any(
@@ -69,14 +72,14 @@ def test_incremental_verification_catches_a_bad_kept_corridor() -> None:
     cors[s] = cut
     bad = replace(p, corridors=tuple(cors))
     assert not verify(traj, bad).ok
-    assert rt.verify_against(old, traj, bad) is not None
+    assert verify_changed(old.trajectory, old.problem, traj, bad) is not None
 
 
 @pytest.mark.parametrize("what", ["control_point", "time"])
 def test_incremental_verification_catches_a_changed_segment(what: str) -> None:
     r, out, _ = popup_replan()
     assert out.route is not None
-    old = rt.trim(r, 2.0)
+    old = trim(r, 2.0)
     p, traj = out.route.problem, out.route.trajectory
     ctrl = traj.control_points.copy()
     times = traj.times.copy()
@@ -88,4 +91,4 @@ def test_incremental_verification_catches_a_changed_segment(what: str) -> None:
         p = replace(p, times=times)
     bad = Trajectory(times, ctrl, traj.corridors, traj.stats)
     assert not verify(bad, p).ok
-    assert rt.verify_against(old, bad, p) is not None
+    assert verify_changed(old.trajectory, old.problem, bad, p) is not None

@@ -3,10 +3,19 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from companion import route as rt
+from companion.braking import brake, corridor_at
 from companion.config import config_from_dict
-from companion.messages import MessageError
-from companion.setpoints import hold_trajectory
+from companion.edits import LocalEdit, Refused, resolve
+from companion.mission import local_replan, replan_remainder, start_mission, trim
+from companion.route import Route
+from companion.wire.messages import (
+    MessageError,
+    change_from_message,
+    mission_from_message,
+    parse_region,
+)
+from planner_core import first_hit, splice, split_at
+from planner_core import hold as hold_trajectory
 from planner_core.changes import AddObstacles
 from planner_core.problem import Polytope, rest_jet
 from planner_core.verify import verify
@@ -20,9 +29,9 @@ def box(lo: list[float], hi: list[float]) -> Polytope:
     return Polytope(np.vstack([eye, -eye]), np.concatenate([hi, -np.asarray(lo)]))
 
 
-def fly(waypoints: list[list[float]], start: list[float], t0: float = 1.0, obstacles: tuple = ()) -> rt.Route:
-    spec = rt.mission_from_message({"id": "m", "waypoints": waypoints}, CFG)
-    out = rt.start_mission(spec, rest_jet(np.asarray(start, dtype=float)), t0, list(obstacles), CFG)
+def fly(waypoints: list[list[float]], start: list[float], t0: float = 1.0, obstacles: tuple = ()) -> Route:
+    spec = mission_from_message({"id": "m", "waypoints": waypoints}, CFG)
+    out = start_mission(spec, rest_jet(np.asarray(start, dtype=float)), t0, list(obstacles), CFG)
     assert out.ok and out.route is not None, out.message
     return out.route
 
@@ -42,9 +51,9 @@ def test_mission_from_where_the_vehicle_already_is(durations: list[float] | None
     msg: dict = {"id": "m", "waypoints": [[0, 0, -3], [3, 0, -3], [3, 3, -3]]}
     if durations is not None:
         msg["durations"] = durations
-    spec = rt.mission_from_message(msg, CFG)
+    spec = mission_from_message(msg, CFG)
     for start in ([0, 0, -3], [0.1, 0, -3]):
-        out = rt.start_mission(spec, rest_jet(np.asarray(start, dtype=float)), 1.0, [], CFG)
+        out = start_mission(spec, rest_jet(np.asarray(start, dtype=float)), 1.0, [], CFG)
         assert out.ok and out.route is not None, out.message
         r = out.route
         assert r.labels.tolist() == [0, 1, 2]
@@ -55,23 +64,23 @@ def test_mission_from_where_the_vehicle_already_is(durations: list[float] | None
 
 
 def test_start_first_waypoint_requires_being_there() -> None:
-    spec = rt.mission_from_message({"id": "m", "start": "first_waypoint", "waypoints": [[0, 0, -1], [2, 0, -1]]}, CFG)
-    far = rt.start_mission(spec, rest_jet(np.array([1.0, 0, -1])), 0.0, [], CFG)
+    spec = mission_from_message({"id": "m", "start": "first_waypoint", "waypoints": [[0, 0, -1], [2, 0, -1]]}, CFG)
+    far = start_mission(spec, rest_jet(np.array([1.0, 0, -1])), 0.0, [], CFG)
     assert not far.ok and "waypoint 0" in far.message
-    near = rt.start_mission(spec, rest_jet(np.array([0.05, 0, -1])), 0.0, [], CFG)
+    near = start_mission(spec, rest_jet(np.array([0.05, 0, -1])), 0.0, [], CFG)
     assert near.ok and near.route is not None and near.route.labels.tolist() == [0, 1]
 
 
 def test_splice_keeps_the_flown_piece_and_fills_waits_with_a_hold() -> None:
     hold = hold_trajectory(np.array([0.0, 0, -1.5]), 0.0)
     r = fly([[3, 0, -1.5]], [0, 0, -1.5], t0=2.5)  # starts after the hold's span ended
-    spliced = rt.splice(hold, r.trajectory)
+    spliced = splice(hold, r.trajectory)
     ts = np.linspace(0, 2.5, 50)
     assert np.allclose(spliced.evaluate(ts), [0, 0, -1.5])
     ts = np.linspace(2.5, r.trajectory.t_end, 50)
     assert np.array_equal(spliced.evaluate(ts), r.trajectory.evaluate(ts))
     # A split inside a segment is exact (de Casteljau).
-    split, k = rt.split_at(r.trajectory, 3.3)
+    split, k = split_at(r.trajectory, 3.3)
     ts = np.linspace(r.trajectory.t0, r.trajectory.t_end, 300)
     assert np.allclose(split.evaluate(ts), r.trajectory.evaluate(ts), atol=1e-12)
     assert split.times[k] == 3.3
@@ -80,40 +89,49 @@ def test_splice_keeps_the_flown_piece_and_fills_waits_with_a_hold() -> None:
 def test_popup_obstacle_local_replan_keeps_prefix_and_clears_obstacle() -> None:
     r = fly([[3, 0, -1.5], [3, 3, -1.5], [0, 3, -1.5]], [0, 0, -1.5])
     ob = box([3.55, 0.8, -3], [4.3, 2.2, 0])
-    assert rt.first_hit(r.trajectory, 1.0, [ob], 0.25) is not None
+    assert first_hit(r.trajectory, 1.0, [ob], 0.25) is not None
     t_now = 2.0
-    out = rt.local_replan(r, t_now, t_now + 0.15, rt.LocalEdit((AddObstacles((ob,)),), "avoid"), [], CFG)
+    out = local_replan(trim(r, t_now), t_now + 0.15, LocalEdit((AddObstacles((ob,)),), "avoid"), [], CFG)
     assert out.ok and out.route is not None, out.message
     new = out.route.trajectory
     ts = np.linspace(t_now, t_now + 0.15, 30)
     assert np.max(np.abs(new.evaluate(ts) - r.trajectory.evaluate(ts))) <= 1e-12
-    assert rt.first_hit(new, t_now, [ob], 0.25 - 1e-6) is None
+    assert first_hit(new, t_now, [ob], 0.25 - 1e-6) is None
     assert len(out.route.labels) == out.route.problem.m
 
 
 def test_blocked_waypoint_is_named_in_mission_indices() -> None:
     r = fly([[3, 0, -1.5], [3, 3, -1.5], [0, 3, -1.5]], [0, 0, -1.5])
     wall = box([2.5, 2.5, -3], [3.5, 3.5, 0])
-    out = rt.replan_remainder(r, r.trajectory, 2.0, [wall], CFG)
+    out = replan_remainder(r, r.trajectory, 2.0, [wall], CFG)
     assert not out.ok and out.blocked_waypoint == 1
     assert "mission waypoint 1 is blocked" in out.message
 
 
+def local_edit(r: Route, change: dict, t_split: float) -> LocalEdit:
+    """The change read as the service reads it (wire, then edits.resolve); a refusal raised."""
+    resolved = resolve(r, change_from_message(change, CFG), t_split)
+    if isinstance(resolved, Refused):
+        raise MessageError(resolved.field, resolved.reason)
+    assert resolved.local is not None
+    return resolved.local
+
+
 def test_change_edits_map_mission_indices_to_the_route() -> None:
     r = fly([[3, 0, -1.5], [3, 3, -1.5], [0, 3, -1.5]], [0, 0, -1.5])
-    e = rt.local_edit(r, {"insert_waypoint": {"index": 2, "position": [2, 4, -1.5]}}, 1.2)
+    e = local_edit(r, {"insert_waypoint": {"index": 2, "position": [2, 4, -1.5]}}, 1.2)
     labels = e.relabel(r.labels, lambda i: i)
     assert labels.tolist() == [-1, 0, 1, 2, 3]
     assert e.labels == ("insert", 3, 2)
-    e = rt.local_edit(r, {"remove_waypoint": {"index": 1}}, 1.2)
+    e = local_edit(r, {"remove_waypoint": {"index": 1}}, 1.2)
     assert e.relabel(r.labels, lambda i: i).tolist() == [-1, 0, 1]
     with pytest.raises(MessageError) as info:
-        rt.local_edit(r, {"move_waypoint": {"index": 7, "position": [0, 0, -1]}}, 1.2)
+        local_edit(r, {"move_waypoint": {"index": 7, "position": [0, 0, -1]}}, 1.2)
     assert info.value.field == "move_waypoint.index"
     with pytest.raises(MessageError) as info:
-        rt.local_edit(r, {"move_waypoint": {"index": 0, "position": [0, 500, -1]}}, 1.2)
-    assert info.value.field == "move_waypoint.position[0]"
-    out = rt.local_replan(r, 1.5, 1.65, rt.local_edit(r, {"move_waypoint": {"index": 2, "position": [0, 3.5, -1.5]}}, 1.65), [], CFG)
+        local_edit(r, {"move_waypoint": {"index": 0, "position": [0, 500, -1]}}, 1.2)
+    assert info.value.field == "move_waypoint.position"
+    out = local_replan(trim(r, 1.5), 1.65, local_edit(trim(r, 1.5), {"move_waypoint": {"index": 2, "position": [0, 3.5, -1.5]}}, 1.65), [], CFG)
     assert out.ok and out.route is not None, out.message
     assert np.allclose(out.route.waypoints[out.route.labels == 2], [0, 3.5, -1.5])
 
@@ -123,8 +141,8 @@ def test_braking_stops_inside_the_corridor() -> None:
     t = 0.5 * (r.trajectory.t0 + r.trajectory.t_end)
     jet = r.trajectory.jet(t)
     assert np.linalg.norm(jet[1]) > 0.5
-    corridor = rt.corridor_at(r.trajectory, t)
-    traj, why = rt.brake(jet, r.mission.bounds, corridor, t)
+    corridor = corridor_at(r.trajectory, t)
+    traj, why = brake(jet, r.mission.bounds, corridor, t)
     assert traj is not None, why
     end = traj.jet(traj.t_end)
     assert np.allclose(end[1:], 0, atol=1e-9)
@@ -134,12 +152,12 @@ def test_braking_stops_inside_the_corridor() -> None:
 def test_obstacle_across_the_path_gets_a_detour() -> None:
     r = fly([[6, 0, -1.5], [6, 3, -1.5]], [0, 0, -1.5])
     block = box([3.5, -0.6, -2.5], [4.3, 0.6, -0.5])  # across the straight leg
-    out = rt.replan_remainder(r, r.trajectory, 2.0, [block], CFG)
+    out = replan_remainder(r, r.trajectory, 2.0, [block], CFG)
     assert out.ok and out.route is not None, out.message
     assert out.stats["detour"]
     assert (out.route.labels == -1).sum() >= 2  # the split point and the detour point(s)
     assert out.route.labels[-2:].tolist() == [0, 1]
-    assert rt.first_hit(out.route.trajectory, 2.0, [block], 0.25 - 1e-6) is None
+    assert first_hit(out.route.trajectory, 2.0, [block], 0.25 - 1e-6) is None
     assert np.allclose(out.route.trajectory.jet(2.0), r.trajectory.jet(2.0), atol=1e-9)
 
 
@@ -150,5 +168,5 @@ def test_obstacle_across_the_path_gets_a_detour() -> None:
 ])
 def test_obstacles_must_be_bounded_and_solid(region: dict, field: str, words: str) -> None:
     with pytest.raises(MessageError) as info:
-        rt.parse_region({"id": "o", **region}, "add[0]")
+        parse_region({"id": "o", **region}, "add[0]")
     assert info.value.field == field and words in info.value.reason

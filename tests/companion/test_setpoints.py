@@ -8,7 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from companion.setpoints import DeadlineScheduler, YawPolicy, hold_trajectory, sample, sleep_until
+from companion.setpoints import DeadlineScheduler, YawPolicy, sample, sleep_until
+from planner_core import hold as hold_trajectory
 
 
 def test_kth_deadline_is_t0_plus_k_over_rate_without_drift() -> None:
@@ -74,7 +75,7 @@ def test_yaw_modes_start_from_the_measured_heading() -> None:
 
 
 def test_sampler_agrees_with_trajectory_jet_and_is_at_rest_past_the_end() -> None:
-    from companion.setpoints import Sampler
+    from planner_core import Sampler
     from tests.companion.test_route import fly
 
     traj = fly([[3.0, 0.0, -1.5], [3.0, 3.0, -2.0], [0.0, 3.0, -1.5]], [0.0, 0.0, -1.5], t0=2.0).trajectory

@@ -9,29 +9,31 @@ from collections.abc import Iterator
 import numpy as np
 import pytest
 
-from companion import route as rt
-from companion.setpoints import GcPacer
+from companion.braking import BRAKE_MARGIN_SECONDS, MIN_STOP_SECONDS, brake_deadline, plan_stop
+from companion.route import Route
+from companion.runtime import GcPacer
+from planner_core import Bounds, first_hit, inflate, splice
 from planner_core.problem import Polytope, Trajectory
 from tests.companion.test_route import box, fly
 
 RADIUS = 0.25
 
 
-def across() -> tuple[rt.Route, Polytope, float]:
+def across() -> tuple[Route, Polytope, float]:
     """A straight leg and a box across it: (route, obstacle, time the leg enters it inflated)."""
     r = fly([[0.0, 6.0, -1.5]], [0.0, 0.0, -1.5], t0=0.0)
     ob = box([-0.8, 4.4, -2.5], [0.8, 5.0, -0.5])
-    hit = rt.first_hit(r.trajectory, 0.0, [ob], RADIUS)
+    hit = first_hit(r.trajectory, 0.0, [ob], RADIUS)
     assert hit is not None
     return r, ob, hit
 
 
 def enters(traj: Trajectory, ob: Polytope, t0: float) -> bool:
     ts = np.linspace(t0, traj.t_end, 2000)
-    return bool(np.any(rt.inflate(ob, RADIUS).contains(traj.evaluate(ts), tol=-1e-9)))
+    return bool(np.any(inflate(ob, RADIUS).contains(traj.evaluate(ts), tol=-1e-9)))
 
 
-def within_bounds(traj: Trajectory, bounds: rt.Bounds) -> bool:
+def within_bounds(traj: Trajectory, bounds: Bounds) -> bool:
     ts = np.linspace(traj.t0, traj.t_end, 400)
     for order in (1, 2):
         d = traj.evaluate(ts, order)
@@ -43,13 +45,13 @@ def within_bounds(traj: Trajectory, bounds: rt.Bounds) -> bool:
 def test_deadline_leaves_a_stop_before_the_hit_and_a_stop_from_it_stays_clear() -> None:
     r, ob, hit = across()
     now = 0.5
-    deadline = rt.brake_deadline(r.trajectory, now, hit, r.mission.bounds)
-    assert now < deadline <= hit - rt.MIN_STOP_SECONDS - rt.BRAKE_MARGIN_SECONDS
-    plan = rt.plan_stop(r.trajectory, [deadline], lambda: now, [ob], r.mission, r.mission.bounds, 0.08)
+    deadline = brake_deadline(r.trajectory, now, hit, r.mission.bounds)
+    assert now < deadline <= hit - MIN_STOP_SECONDS - BRAKE_MARGIN_SECONDS
+    plan = plan_stop(r.trajectory, [deadline], lambda: now, [ob], r.mission, r.mission.bounds, 0.08)
     stop = plan.trajectory
     assert stop is not None and plan.in_free_space
     assert plan.start == pytest.approx(deadline)  # the latest start asked for was feasible
-    spliced = rt.splice(r.trajectory, stop)
+    spliced = splice(r.trajectory, stop)
     ts = np.linspace(now, deadline, 50)
     assert np.allclose(spliced.evaluate(ts), r.trajectory.evaluate(ts), atol=1e-9)
     assert np.allclose(stop.jet(stop.t0), r.trajectory.jet(deadline), atol=1e-6)
@@ -61,7 +63,7 @@ def test_deadline_leaves_a_stop_before_the_hit_and_a_stop_from_it_stays_clear() 
 def test_stop_never_starts_before_the_clock_plus_lead() -> None:
     r, ob, hit = across()
     late = hit - 0.9  # the deadline has passed: brake as soon as possible
-    plan = rt.plan_stop(r.trajectory, [late - 0.5], lambda: late, [ob], r.mission, r.mission.bounds, 0.08)
+    plan = plan_stop(r.trajectory, [late - 0.5], lambda: late, [ob], r.mission, r.mission.bounds, 0.08)
     assert plan.trajectory is not None
     assert plan.start >= late + 0.08 - 1e-12
     if plan.in_free_space:
@@ -75,7 +77,7 @@ def test_a_stop_planned_too_slowly_is_planned_again_further_ahead() -> None:
     def clock() -> float:
         return float(next(ticks))
 
-    plan = rt.plan_stop(r.trajectory, [1.0], clock, [ob], r.mission, r.mission.bounds, 0.05)
+    plan = plan_stop(r.trajectory, [1.0], clock, [ob], r.mission, r.mission.bounds, 0.05)
     assert plan.trajectory is not None
     # the first attempt (start 1.05) finished at 1.12, after its start: not returned
     assert plan.start > 1.12
@@ -86,7 +88,7 @@ def test_no_free_corridor_falls_back_to_a_dynamic_stop_and_says_so() -> None:
     t = 2.0
     here = r.trajectory.evaluate(np.array([t + 0.1]))[0]
     engulfing = box((here - 1.0).tolist(), (here + 1.0).tolist())  # the vehicle is inside it
-    plan = rt.plan_stop(r.trajectory, [t], lambda: t, [engulfing], r.mission, r.mission.bounds, 0.08)
+    plan = plan_stop(r.trajectory, [t], lambda: t, [engulfing], r.mission, r.mission.bounds, 0.08)
     assert plan.trajectory is not None
     # inside the obstacle there is no free corridor: the flown segment's corridor (no pop-ups
     # in it) or the bounds alone, and the plan says so

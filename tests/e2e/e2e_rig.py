@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from planner_core.io import trajectory_from_dict
+from planner_core.formats.io import trajectory_from_dict
 from planner_core.problem import Polytope, Trajectory
 from sitl_mock.control import ControlClient
 

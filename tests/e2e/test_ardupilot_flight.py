@@ -24,7 +24,7 @@ from e2e_rig import (
     tracking_rms,
 )
 
-from planner_core.io import trajectory_from_dict
+from planner_core.formats.io import trajectory_from_dict
 
 pytestmark = pytest.mark.slow
 

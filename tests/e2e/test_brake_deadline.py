@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from e2e_rig import RADIUS, Rig, box, inside, polytope, states
 
-from companion.route import BRAKE_MARGIN_SECONDS, MIN_STOP_SECONDS
+from companion.braking import BRAKE_MARGIN_SECONDS, MIN_STOP_SECONDS
 
 pytestmark = pytest.mark.slow
 

@@ -1,4 +1,5 @@
-"""Smoke test of `python -m companion demo --quick`: the whole chain flies one short mission.
+"""Smoke test of `python -m companion demo --quick` (an alias of `python -m demo`): the whole
+chain flies one short mission.
 
 Real processes (mock autopilot, companion service), a real Zenoh peer on loopback, real MAVLink
 over UDP. The demo itself judges the flight; this test checks its verdict and the numbers behind
@@ -53,7 +54,7 @@ def test_demo_scenarios_are_flyable_after_lifting_and_moving() -> None:
     where it was relative to the waypoints."""
     import numpy as np
 
-    from companion import demo
+    from demo import run as demo
     from planner_core import plan
     from planner_core.corridors import CorridorError, build_corridors
     from planner_core.problem import Bounds, Polytope, Problem

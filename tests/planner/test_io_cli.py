@@ -13,7 +13,12 @@ import numpy as np
 import pytest
 
 from planner_core import plan
-from planner_core.io import ScenarioError, load_scenario, trajectory_from_dict, trajectory_to_dict
+from planner_core.formats.io import (
+    ScenarioError,
+    load_scenario,
+    trajectory_from_dict,
+    trajectory_to_dict,
+)
 from planner_core.qp import solve_qp
 
 ROOT = Path(__file__).resolve().parents[2]

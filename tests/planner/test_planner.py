@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 from planner_core import Bounds, IterativeOptions, PlanStatus, Polytope, Problem, plan, verify
 from planner_core.constraints import integrated_cost
-from planner_core.io import load_scenario
+from planner_core.formats.io import load_scenario
 from planner_core.jets import initial_jets, solve_jets
 from planner_core.qp import QPStatus
 

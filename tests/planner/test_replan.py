@@ -28,7 +28,7 @@ from planner_core.changes import (
     box,
     parse_change,
 )
-from planner_core.io import load_scenario, trajectory_from_dict, trajectory_to_dict
+from planner_core.formats.io import load_scenario, trajectory_from_dict, trajectory_to_dict
 from planner_core.planning import plan
 from planner_core.problem import Bounds, Polytope, Problem, Trajectory
 from planner_core.replan import (
@@ -36,8 +36,10 @@ from planner_core.replan import (
     ReplanOptions,
     ReplanResult,
     replan,
-    split_at,
     split_problem_at,
+)
+from planner_core.replan import (
+    split_inside as split_at,
 )
 from planner_core.result import PlanStatus
 from planner_core.verify import verify
@@ -506,7 +508,7 @@ def test_braking_infeasible_cases() -> None:
 
 
 def test_cli_replan(tmp_path: Path, planned2) -> None:  # type: ignore[no-untyped-def]
-    from planner_core.cli import main
+    from planner_core.formats.cli import main
 
     _, traj = planned2
     traj_path = tmp_path / "traj.json"

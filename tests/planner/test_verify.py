@@ -11,7 +11,7 @@ import pytest
 
 from planner_core import Bounds, Polytope, Problem, Trajectory, plan, verify
 from planner_core.bezier import bernstein_basis, hodographs
-from planner_core.io import load_scenario
+from planner_core.formats.io import load_scenario
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
 

@@ -18,7 +18,14 @@ from typing import Any
 
 import numpy as np
 
-from planner_core.cli import EXIT_INFEASIBLE, EXIT_INVALID, EXIT_OK, InputError, _err, _read_json
+from planner_core.formats.cli import (
+    EXIT_INFEASIBLE,
+    EXIT_INVALID,
+    EXIT_OK,
+    InputError,
+    _err,
+    _read_json,
+)
 from planner_core.problem import Problem, Trajectory
 
 
@@ -59,7 +66,7 @@ def problem_for(scenario_problem: Problem, traj: Trajectory) -> Problem:
 
 def replan_command(args: argparse.Namespace) -> int:
     from planner_core.changes import ChangeError, parse_change
-    from planner_core.io import (
+    from planner_core.formats.io import (
         ScenarioError,
         load_scenario,
         trajectory_from_dict,

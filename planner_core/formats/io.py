@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from planner_core.errors import FieldError
 from planner_core.problem import DEGREE, Bounds, FloatArray, Polytope, Problem, Trajectory, rest_jet
 
 TRAJECTORY_FORMAT = "bezier-trajectory/1"
@@ -29,11 +30,8 @@ STATE_KEYS = ("velocity", "acceleration", "jerk", "snap")
 WAYPOINT_TOL = 1e-9
 
 
-class ScenarioError(ValueError):
-    def __init__(self, field: str, reason: str) -> None:
-        super().__init__(f"{field}: {reason}")
-        self.field = field
-        self.reason = reason
+class ScenarioError(FieldError):
+    """Invalid scenario or trajectory JSON; `.field` names the offending entry."""
 
 
 @dataclass(frozen=True)

@@ -36,6 +36,29 @@ def swap_box(lo: Any, hi: Any) -> tuple[FloatArray, FloatArray]:
     return np.minimum(lo_s, hi_s), np.maximum(lo_s, hi_s)
 
 
+def to_frame(points: Any, frame: str) -> FloatArray:
+    """NED points (..., 3) in `frame` ("ned" or "enu")."""
+    pts = np.asarray(points, dtype=float)
+    return pts if frame == "ned" else swap_points(pts)
+
+
+def plain(x: float, nd: int = 3) -> float:
+    """A plain, rounded Python float (no -0.0) for a message meant to be read."""
+    r = round(float(x), nd)
+    return 0.0 if r == 0 else r
+
+
+def fmt_point(point: Any, frame: str = "ned") -> str:
+    """`[x, y, z]` of a NED point, in `frame`, with plain numbers."""
+    return "[" + ", ".join(f"{plain(v):g}" for v in to_frame(point, frame)) + "]"
+
+
+def fmt_box(lo: Any, hi: Any, frame: str = "ned") -> str:
+    """An axis-aligned NED box, in `frame`, as `[min]..[max]` with plain numbers."""
+    a, b = (lo, hi) if frame == "ned" else swap_box(lo, hi)
+    return f"{fmt_point(a)}..{fmt_point(b)}"
+
+
 def _swap_bound(value: Any) -> Any:
     """A scenario bound B: number | [lo, hi] | [[lo,hi]] * 3 (per axis)."""
     if isinstance(value, int | float):

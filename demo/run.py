@@ -1,4 +1,4 @@
-"""`python -m companion demo`: the whole chain on this machine, no hardware.
+"""`python -m demo` (or `python -m companion demo`): the whole chain on this machine, no hardware.
 
 Starts the mock autopilot (sitl_mock) and the companion service as subprocesses on free loopback
 ports, joins their Zenoh network as a peer, and flies the paper's two scenarios in real time:
@@ -22,8 +22,9 @@ from typing import Any
 
 import numpy as np
 
-from companion import demo_report as rep
-from companion.demo_rig import (
+from demo import report as rep
+from demo.report import swap_points
+from demo.rig import (
     ROOT,
     TAKEOFF_ALTITUDE,
     Peer,
@@ -31,8 +32,7 @@ from companion.demo_rig import (
     Sample,
     rig,
 )
-from companion.frames import swap_points
-from planner_core.problem import Trajectory
+from planner_core import Trajectory
 
 EXAMPLES = ROOT / "examples"
 UP = np.array([0.0, 0.0, 1.0])  # ENU
@@ -307,7 +307,7 @@ def _full(vec: Any) -> bool:
 
 
 def trajectory_of(sample: Sample) -> Trajectory:
-    from planner_core.io import trajectory_from_dict
+    from planner_core.formats.io import trajectory_from_dict
 
     data = sample.data
     body = data.get("trajectory", data) if isinstance(data, dict) else data
@@ -504,8 +504,8 @@ def _quick_mission() -> dict[str, Any]:
     }
 
 
-def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m companion demo", description=__doc__.splitlines()[0])
+def build_parser(prog: str = "python -m demo") -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog=prog, description=__doc__.splitlines()[0].split(": ", 1)[-1])
     p.add_argument("--autopilot", choices=["px4", "ardupilot"], default="px4")
     p.add_argument("--out", type=Path, default=Path("out/demo"))
     p.add_argument("--quick", action="store_true", help="one short mission only (smoke test)")
@@ -514,8 +514,8 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+def main(argv: list[str] | None = None, prog: str = "python -m demo") -> int:
+    args = build_parser(prog).parse_args(argv)
     out: Path = args.out
     progress = Progress()
     results: list[rep.MissionResult] = []

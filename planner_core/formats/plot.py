@@ -13,7 +13,7 @@ import numpy as np
 from planner_core.problem import ORDER_NAMES, FloatArray, Polytope, Trajectory
 
 if TYPE_CHECKING:
-    from planner_core.io import Scenario
+    from planner_core.formats.io import Scenario
 
 
 def _plt() -> Any:

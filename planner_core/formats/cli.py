@@ -9,6 +9,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from planner_core.errors import FieldError
+
 EXIT_OK = 0
 EXIT_VERIFY_FAILED = 1
 EXIT_INVALID = 2
@@ -32,8 +34,8 @@ def _parser() -> argparse.ArgumentParser:
     ve.add_argument("scenario", type=Path)
     ve.add_argument("trajectory", type=Path)
     ve.add_argument("--json", action="store_true", help="print the report as JSON")
-    from planner_core.replan_cli import (
-        add_replan_parser,  # replan subcommand (planner_core/replan_cli.py)
+    from planner_core.formats.replan_cli import (
+        add_replan_parser,  # replan subcommand (planner_core/formats/replan_cli.py)
     )
 
     add_replan_parser(sub)
@@ -49,9 +51,8 @@ def _read_json(path: Path, what: str) -> Any:
         raise InputError(what, f"{path}: invalid JSON ({e.msg} at line {e.lineno})") from e
 
 
-class InputError(Exception):
-    def __init__(self, field: str, reason: str) -> None:
-        super().__init__(f"{field}: {reason}")
+class InputError(FieldError):
+    """An input file that cannot be read or is not JSON; `.field` names which input."""
 
 
 def _err(msg: str) -> None:
@@ -59,7 +60,7 @@ def _err(msg: str) -> None:
 
 
 def _cmd_plan(args: argparse.Namespace) -> int:
-    from planner_core.io import ScenarioError, load_scenario, trajectory_to_dict
+    from planner_core.formats.io import ScenarioError, load_scenario, trajectory_to_dict
     from planner_core.planning import plan
 
     try:
@@ -102,7 +103,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     )
     if args.plot:
         try:
-            from planner_core.plot import plot_all
+            from planner_core.formats.plot import plot_all
         except ImportError as e:  # matplotlib missing
             _err(f"plotting unavailable: {e}")
         else:
@@ -116,7 +117,7 @@ def _cmd_verify(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from planner_core.io import ScenarioError, load_scenario, trajectory_from_dict
+    from planner_core.formats.io import ScenarioError, load_scenario, trajectory_from_dict
     from planner_core.verify import verify
 
     try:
@@ -149,7 +150,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.command == "plan":
         return _cmd_plan(args)
     if args.command == "replan":
-        from planner_core.replan_cli import replan_command
+        from planner_core.formats.replan_cli import replan_command
 
         return replan_command(args)
     return _cmd_verify(args)

@@ -18,6 +18,7 @@ from typing import Any
 import zenoh
 
 from companion.config import Config, ZenohConfig
+from companion.wire.encode import encode
 
 INBOUND = ("mission", "obstacles", "change", "command")
 OUTBOUND = ("status", "telemetry", "trajectory", "events")
@@ -44,10 +45,6 @@ def zenoh_config(zc: ZenohConfig, *, listen: bool = True) -> zenoh.Config:
     if want("multicast_scouting"):
         cfg.insert_json5("scouting/multicast/enabled", json.dumps(zc.multicast_scouting))
     return cfg
-
-
-def encode(obj: Any) -> bytes:
-    return json.dumps(obj, separators=(",", ":"), allow_nan=False).encode()
 
 
 class ZenohIO:

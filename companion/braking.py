@@ -1,0 +1,392 @@
+"""Braking: verified stops, the braking deadline, and the race between a replan and a stop.
+
+After a pop-up obstacle on the flown path, either a verified replan is swapped in or, by the
+braking deadline (time to hit minus a stop and a margin), a verified stop planned in
+parallel; a nearer pop-up meanwhile brings the deadline forward. The pure part (`plan_stop`,
+`brake_deadline`) runs in worker threads; `Brakes` runs the race on the loop.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from companion.config import Config
+from companion.control import Control
+from companion.flight import HOLDING_CONTROL, State
+from companion.report import Reporter
+from companion.route import build_corridors
+from companion.runtime import Runtime
+from companion.wire.encode import vec
+from companion.wire.messages import MissionSpec
+from planner_core import (
+    Bounds,
+    CorridorError,
+    FloatArray,
+    Polytope,
+    Trajectory,
+    braking_trajectory,
+    splice,
+    stop_time_scale,
+)
+
+log = logging.getLogger("companion")
+
+# A snap-limited stop takes about a second even from a slow speed (measured: the braking QP's
+# durations grow 0.2 s * 1.5^k and slow stops land at k = 4), longer from speed.
+MIN_STOP_SECONDS = 1.0
+STOP_SAFETY_FACTOR = 1.5
+BRAKE_MARGIN_SECONDS = 0.1
+# A stop planned for "now" starts this far ahead at least (its QPs take 15-30 ms).
+BRAKE_LEAD = 0.08
+# Start preparing the stop this long before the braking deadline if the replan is still out.
+BRAKE_PREPARE = 0.35
+
+
+# -- pure: stops and deadlines --------------------------------------------------------------
+
+
+def brake(jet: FloatArray, bounds: Bounds, corridor: Polytope | None, t0: float) -> tuple[Trajectory | None, str]:
+    """A verified stop to rest from `jet` at t0 inside `corridor` (None and why, if none)."""
+    result = braking_trajectory(jet, bounds, corridor, t0)
+    if not result.ok or result.trajectory is None:
+        return None, result.message
+    # braking_trajectory certifies its result with verify() before returning it.
+    return result.trajectory, result.message
+
+
+def stop_time_estimate(velocity: FloatArray, acceleration: FloatArray, bounds: Bounds) -> float:
+    """A generous estimate (s) of a verified stop from any of the states (n, 3): the braking
+    planner's time scale (`stop_time_scale`), scaled, never below MIN_STOP_SECONDS."""
+    return float(max(MIN_STOP_SECONDS, STOP_SAFETY_FACTOR * stop_time_scale(velocity, acceleration, bounds)))
+
+
+def brake_deadline(traj: Trajectory, t_now: float, t_hit: float, bounds: Bounds) -> float:
+    """Latest trajectory time at which to start braking, given that `traj` enters an obstacle at
+    t_hit: the time to hit minus a stop (estimated from the states between now and the hit) and
+    a margin. It may lie in the past: brake at once then."""
+    ts = np.linspace(t_now, max(t_now, min(t_hit, traj.t_end)), 9)
+    stop = stop_time_estimate(traj.evaluate(ts, 1), traj.evaluate(ts, 2), bounds)
+    return t_hit - stop - BRAKE_MARGIN_SECONDS
+
+
+@dataclass(frozen=True)
+class StopPlan:
+    trajectory: Trajectory | None  # verified stop to rest, starting at `start` (None: none found)
+    start: float
+    message: str
+    in_free_space: bool  # False: only the dynamic bounds were respected (last resort)
+
+
+def _jet_at(traj: Trajectory, t: float) -> FloatArray:
+    jet = traj.jet(min(t, traj.t_end))
+    if t >= traj.t_end:
+        jet[1:] = 0.0
+    return jet
+
+
+def corridor_at(traj: Trajectory, t: float) -> Polytope | None:
+    if traj.corridors is None:
+        return None
+    j = int(np.clip(np.searchsorted(traj.times, t, side="right") - 1, 0, traj.n_segments - 1))
+    return traj.corridors[j]
+
+
+def safe_corridor(position: FloatArray, velocity: FloatArray, obstacles: Sequence[Polytope],
+                  mission: MissionSpec) -> Polytope | None:
+    """A free polytope around `position` (for braking) that excludes every obstacle."""
+    speed = float(np.linalg.norm(velocity))
+    step = velocity / max(speed, 1e-9) * 1e-3 if speed > 1e-6 else np.array([1e-3, 0, 0])
+    try:
+        return build_corridors(np.vstack([position, position + step]), obstacles, mission)[0]
+    except (CorridorError, ValueError):
+        return None
+
+
+def plan_stop(base: Trajectory, starts: Sequence[float], clock: Callable[[], float], obstacles: Sequence[Polytope],
+              mission: MissionSpec | None, bounds: Bounds, lead: float) -> StopPlan:
+    """A verified stop branching off `base` at the latest of `starts` that works.
+
+    `clock()` is the trajectory time now (this runs in a worker thread while `base` is being
+    flown): a start is never earlier than clock() + lead, and a stop whose computation ran past
+    its start (a busy computer) is planned again further ahead. Each start is tried inside a
+    free corridor around the vehicle that excludes every obstacle (inflated by the vehicle
+    radius), so the stop cannot enter one. If none works, the last resorts (`in_free_space`
+    False, and the message says so) are a stop as soon as possible inside the corridor of the
+    flown segment (planned before the newest obstacles), then within the dynamic bounds alone.
+    """
+    reasons: list[str] = []
+    tried: set[float] = set()
+    for want in sorted(starts, reverse=True):
+        for _ in range(3):
+            began = clock()
+            t_b = max(float(want), began + lead)
+            if round(t_b, 4) in tried:
+                break
+            tried.add(round(t_b, 4))
+            jet = _jet_at(base, t_b)
+            corridor = safe_corridor(jet[0], jet[1], obstacles, mission) if mission is not None else None
+            if corridor is None:
+                reasons.append(f"start t={t_b:.3f} s: no free corridor around the vehicle")
+                break
+            traj, why = brake(jet, bounds, corridor, t_b)
+            if traj is None:
+                reasons.append(f"start t={t_b:.3f} s: {why}")
+                break
+            if clock() <= t_b - 0.5 * lead:
+                return StopPlan(traj, t_b, why, True)
+            # Planned too slowly to be swapped in before its start: plan further ahead.
+            lead = max(lead, 2.0 * (clock() - began))
+    detail = "; ".join(reasons) or "no start given"
+    t_b = clock() + lead
+    jet = _jet_at(base, t_b)
+    flown = corridor_at(base, t_b)
+    if flown is not None:
+        traj, why = brake(jet, bounds, flown, t_b)
+        if traj is not None:
+            return StopPlan(traj, t_b, f"no stop fits a free corridor ({detail}); stopping inside the flown "
+                            "segment's corridor", False)
+    traj, why = brake(jet, bounds, None, t_b)
+    if traj is None:
+        return StopPlan(None, t_b, f"{detail}; without a corridor: {why}", False)
+    return StopPlan(traj, t_b, f"no stop fits a free corridor ({detail}); shortest stop within the "
+                    "dynamic bounds only", False)
+
+
+def warm_up_brake(cfg: Config) -> bool:
+    """A stop from speed next to an obstacle: first-call costs of the braking path paid early."""
+    from companion.mission import start_mission
+    from companion.obstacles import Known
+    from companion.wire.messages import mission_from_message
+    from planner_core import rest_jet
+
+    spec = mission_from_message({"id": "warm-up", "waypoints": [[3.0, 0.0, -1.5]]}, cfg)
+    outcome = start_mission(spec, rest_jet(np.array([0.0, 0.0, -1.5])), 0.0, Known(), cfg)
+    if not outcome.ok or outcome.route is None:
+        return False
+    traj = outcome.route.trajectory
+    eye = np.eye(3)
+    box = Polytope(np.vstack([eye, -eye]), np.array([2.6, 0.5, -1.0, -2.4, 0.5, 2.0]))
+    mid = 0.5 * (traj.t0 + traj.t_end)
+    return plan_stop(traj, [mid], lambda: traj.t0, [box], spec, spec.bounds, 0.05).trajectory is not None
+
+
+# -- on the loop: the race ------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class StopContext:
+    """What a stop is planned against: the flown mission (None: none), obstacles, bounds."""
+
+    mission: MissionSpec | None
+    obstacles: tuple[Polytope, ...]
+    bounds: Bounds
+
+
+@dataclass(frozen=True)
+class Replanned:
+    ok: bool
+    reason: str = ""
+    blocked: int | None = None  # mission index of a blocked waypoint
+    blocked_message: str = ""
+
+
+class StopGuard:
+    """A verified stop, planned (once started) for the braking deadline in the brake thread."""
+
+    def __init__(self, brakes: Brakes, base: Trajectory, deadline: float, hit: float) -> None:
+        self.brakes = brakes
+        self.base = base
+        self.deadline = deadline
+        self.hit = hit
+        self.notes: list[str] = []
+        self.future: asyncio.Future[StopPlan] | None = None
+
+    def tighten(self, deadline: float, hit: float, why: str) -> None:
+        """Another obstacle, nearer, arrived during the race: brake for it in time."""
+        if deadline >= self.deadline:
+            return
+        self.deadline, self.hit = deadline, min(self.hit, hit)
+        self.notes.append(why)
+        plan = self.ready()
+        if self.future is not None and (plan is None or plan.trajectory is None or plan.start > deadline):
+            self.future.cancel()  # planned for the later deadline (or still planning for it)
+            self.future = None
+
+    def start(self) -> None:
+        if self.future is None:
+            self.future = self.brakes.stop_future(self.base, [self.deadline])
+
+    def ready(self) -> StopPlan | None:
+        f = self.future
+        if f is None or not f.done() or f.cancelled() or f.exception() is not None:
+            return None
+        return f.result()
+
+    def start_time(self) -> float:
+        """When the stop starts: planned, or the deadline while it is not known yet."""
+        plan = self.ready()
+        return self.deadline if plan is None or plan.trajectory is None else plan.start
+
+    async def result(self) -> StopPlan | None:
+        self.start()
+        assert self.future is not None
+        try:
+            return await self.future
+        except Exception as exc:  # a planner bug: the caller falls back to a fresh stop
+            log.exception("stop planning failed: %r", exc)
+            return None
+
+    def cancel(self) -> None:
+        if self.future is not None:
+            self.future.cancel()
+
+
+class Brakes:
+    """Stops on the loop: now (`brake`), or racing a replan against the braking deadline (`race`).
+
+    `context()` says what a stop is planned against; `position()` is the measured position
+    (for a hold when no stop can be planned); `on_stop(t)` is told the trajectory time at
+    which the vehicle starts stopping (the mission is interrupted there)."""
+
+    def __init__(self, cfg: Config, control: Control, runtime: Runtime, report: Reporter,
+                 context: Callable[[], StopContext], position: Callable[[], FloatArray],
+                 on_stop: Callable[[float], None]) -> None:
+        self.cfg = cfg
+        self.control = control
+        self.runtime = runtime
+        self.report = report
+        self.context = context
+        self.position = position
+        self.on_stop = on_stop
+        self.race_guard: StopGuard | None = None  # the replan racing a braking deadline, if any
+
+    def guard(self, base: Trajectory, hit: float) -> StopGuard:
+        return StopGuard(self, base, hit, hit)
+
+    def stop_future(self, base: Trajectory, starts: list[float]) -> asyncio.Future[StopPlan]:
+        """Plan a verified stop off `base` in the brake thread (see plan_stop)."""
+        loop = self.runtime.loop
+        assert loop is not None
+        ctx = self.context()
+        lead = max(BRAKE_LEAD, 3.0 / self.cfg.setpoints.rate_hz)
+        return loop.run_in_executor(self.runtime.brake_pool, plan_stop, base, starts, self.control.clock(),
+                                    list(ctx.obstacles), ctx.mission, ctx.bounds, lead)
+
+    def _commit(self, base: Trajectory, plan: StopPlan | None, arrived: float | None) -> bool:
+        if plan is None or plan.trajectory is None or self.control.active is not base:
+            return False
+        if not self.control.swap(splice(base, plan.trajectory), plan.start, arrived, "braking"):
+            return False
+        self.on_stop(plan.start)
+        return True
+
+    async def brake(self, reason: str, arrived: float | None, blocked: int | None = None,
+                    prepared: StopPlan | None = None) -> None:
+        """Fly a verified stop inside a free corridor, starting as soon as one is planned; else
+        the `prepared` one if it still starts ahead; else hold at the measured position. Say why."""
+        if not self.control.flying:
+            return
+        base = self.control.active
+        assert base is not None
+        try:
+            plan = await self.stop_future(base, [self.control.now()])
+        except Exception as exc:  # a planner bug must still end in a hold, not in flying on
+            log.exception("stop planning failed")
+            plan = StopPlan(None, self.control.now(), f"stop planning failed: {exc!r}", False)
+        why = plan.message
+        swapped = self._commit(base, plan, arrived)
+        if not swapped and self._commit(base, prepared, arrived):
+            assert prepared is not None
+            swapped, plan, why = True, prepared, f"{why}; the stop prepared for the braking deadline instead"
+        if not swapped:
+            if not self.control.flying:
+                return
+            self.on_stop(self.control.now())
+            self.control.hold_here(self.position())
+            why = f"no verified braking trajectory ({why}); holding at the measured position"
+        self.report.go(State.BRAKING, reason)
+        self.report.event("braking", f"{reason}; braking to a stop and holding", reason=reason,
+                          blocked_waypoint=blocked, detail=why, **stop_fields(plan if swapped else None))
+
+    async def race(self, guard: StopGuard, replan: asyncio.Task[Replanned], notes: list[str],
+                   arrived: float, what: str) -> None:
+        """Wait for the replan until the stop's start (a few periods to spare); brake if it is
+        late or fails. The caller set guard.deadline."""
+        self.race_guard = guard
+        try:
+            await self._race(guard, replan, notes, arrived, what)
+        finally:
+            self.race_guard = None
+
+    async def _race(self, guard: StopGuard, replan: asyncio.Task[Replanned], notes: list[str],
+                    arrived: float, what: str) -> None:
+        # Swap with a few periods to spare: the loop may be late, and swap() refuses a split
+        # less than half a period ahead.
+        spare = 2.0 / self.cfg.setpoints.rate_hz
+        flight = self.report.flight
+        while not replan.done():
+            if flight.state not in HOLDING_CONTROL:  # e.g. a pilot took over meanwhile
+                replan.cancel()
+                guard.cancel()
+                return
+            wake = guard.start_time() - spare
+            if guard.future is None:
+                wake = min(wake, guard.deadline - BRAKE_PREPARE)
+            delay = wake - self.control.now()
+            if delay <= 0:
+                if guard.future is None:
+                    guard.start()
+                    continue
+                break
+            waiting: set[asyncio.Future[Any]] = {replan}
+            if guard.future is not None and not guard.future.done():
+                waiting.add(guard.future)
+            # at most a tick at a time: another pop-up may bring the deadline forward
+            await asyncio.wait(waiting, timeout=min(delay, spare / 2), return_when=asyncio.FIRST_COMPLETED)
+        if replan.done():
+            failed = None if replan.cancelled() else replan.exception()
+            if failed is not None:
+                log.error("replan failed: %r", failed)
+            result = Replanned(False, f"replan error: {failed!r}") if failed is not None else replan.result()
+            if result.ok:
+                guard.cancel()
+                return
+            why = (f"{what}: mission waypoint {result.blocked} is blocked ({result.blocked_message})"
+                   if result.blocked is not None else f"{what}: no safe plan ({result.reason})")
+            await self.brake(why, arrived, blocked=result.blocked, prepared=guard.ready())
+            return
+        replan.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await replan
+        pending = "; ".join([*notes, *guard.notes, "the replan is still running"])
+        await self._brake_at_deadline(guard, arrived,
+                                      f"{what}: no verified replan by the braking deadline t={guard.deadline:.2f} s "
+                                      f"(the plan enters the obstacle at t={guard.hit:.2f} s; {pending})")
+
+    async def _brake_at_deadline(self, guard: StopGuard, arrived: float, reason: str) -> None:
+        """The replan is late: swap in the prepared stop (planned for the deadline)."""
+        plan = await guard.result()
+        swap_time = self.control.now()
+        if not self._commit(guard.base, plan, arrived):
+            await self.brake(reason + "; the prepared stop was not usable: "
+                             + ("none planned" if plan is None else plan.message), arrived)
+            return
+        assert plan is not None
+        self.report.go(State.BRAKING, reason)
+        self.report.event("braking", f"{reason}; braking to a stop and holding", reason=reason, blocked_waypoint=None,
+                          detail=plan.message, deadline=round(guard.deadline, 4), hit_time=round(guard.hit, 4),
+                          swap_time=round(swap_time, 4), **stop_fields(plan))
+
+
+def stop_fields(plan: StopPlan | None) -> dict[str, Any]:
+    if plan is None or plan.trajectory is None:
+        return {}
+    return {"brake_start": round(plan.start, 4), "stop_time": round(plan.trajectory.t_end, 4),
+            "stop_position": vec(plan.trajectory.control_points[-1, -1]), "in_free_space": plan.in_free_space}

@@ -1,0 +1,202 @@
+"""The one owner of what is flown: the active trajectory, its time base and whether it streams.
+
+Every change of what the setpoint thread flies goes through `Control`: `take` (a hold at a
+measured position on a fresh time base), `swap` (checked: the new plan equals the flown
+one up to the split), `hold_here` and `release`. The thread reads one immutable `Feed`
+snapshot replaced in one assignment, so it never samples one trajectory on another's time
+base. Trajectory time is `time.monotonic() - t_base`, fixed while we keep control.
+
+Also here, because they are measured against what is flown: the setpoint stream's period
+statistics and the message-to-first-setpoint latency of a new plan.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import time
+from collections.abc import Callable
+from typing import Any, Protocol
+
+import numpy as np
+
+from companion.setpoints import Feed, Setpoint, Tick, YawPolicy, sample
+from planner_core import FloatArray, Trajectory, hold, sampler, trim_before
+
+log = logging.getLogger("companion")
+
+
+class FeedTarget(Protocol):
+    feed: Feed | None
+
+
+class Control:
+    """What the setpoint thread flies, and the checks on every change of it."""
+
+    def __init__(self, target: FeedTarget, send: Callable[[Setpoint], None], yaw: YawPolicy, rate_hz: float,
+                 on_new_plan: Callable[[Trajectory], None] = lambda _t: None,
+                 on_latency: Callable[[str, float, bool, float], None] = lambda *_a: None) -> None:
+        self.target = target
+        self.send = send
+        self.yaw = yaw
+        self.rate_hz = rate_hz
+        self.on_new_plan = on_new_plan  # publish the plan (called after every change of it)
+        self.on_latency = on_latency  # (what, seconds, immediate, sent_mono)
+        self._streaming = False
+        self._t_base: float | None = None
+        self._active: Trajectory | None = None
+        self._latency_mark: tuple[float, Trajectory, str] | None = None
+        # the stream, as sent
+        self.last_sp: Setpoint | None = None
+        self.last_sp_time = 0.0
+        self.setpoint_latency: float | None = None
+        self.setpoint_gap_max = 0.0
+        self.periods: collections.deque[float] = collections.deque(maxlen=1000)
+
+    # -- what is flown (read-only outside) -----------------------------------------
+
+    @property
+    def streaming(self) -> bool:
+        return self._streaming
+
+    @property
+    def t_base(self) -> float | None:
+        return self._t_base
+
+    @property
+    def active(self) -> Trajectory | None:
+        return self._active
+
+    @property
+    def flying(self) -> bool:
+        """A plan and its time base are set (streaming or about to)."""
+        return self._active is not None and self._t_base is not None
+
+    def now(self) -> float:
+        """Trajectory time now."""
+        assert self._t_base is not None
+        return time.monotonic() - self._t_base
+
+    def clock(self) -> Callable[[], float]:
+        """A clock of trajectory time for a worker thread (fixed to this time base)."""
+        t_base = self._t_base
+        assert t_base is not None
+        return lambda: time.monotonic() - t_base
+
+    def jet(self, t: float) -> FloatArray:
+        """The flown plan's jet at trajectory time t (at rest past its end)."""
+        assert self._active is not None
+        jet = self._active.jet(min(t, self._active.t_end))
+        if t >= self._active.t_end:
+            jet[1:] = 0.0
+        return jet
+
+    def reference(self) -> FloatArray | None:
+        """The setpoint position of now (None when not streaming)."""
+        if not self._streaming or self._active is None or self._t_base is None:
+            return None
+        return sampler(self._active).jet(self.now())[0]
+
+    def _set(self, active: Trajectory | None, t_base: float | None, streaming: bool) -> None:
+        self._active, self._t_base, self._streaming = active, t_base, streaming
+        self.target.feed = Feed(active, t_base) if streaming and active is not None and t_base is not None else None
+
+    # -- the changes -------------------------------------------------------------------
+
+    def take(self, position: FloatArray, measured_yaw: float, reason: str) -> None:
+        """Start streaming a hold at a measured position, on a fresh time base."""
+        self._set(self._active, self._t_base, False)  # no tick may pair the old plan with the new base
+        self.yaw.reset(measured_yaw)
+        self._set(hold(position, 0.0), time.monotonic(), True)
+        self.on_new_plan(self._active)  # type: ignore[arg-type]
+        log.info("taking control: %s", reason)
+
+    def swap(self, new: Trajectory, t_split: float, arrived: float | None, what: str) -> bool:
+        """Replace the flown plan by `new`, which must equal it before t_split (checked)."""
+        old = self._active
+        if old is None or self._t_base is None:
+            return False
+        now = self.now()
+        if t_split <= now + 0.5 / self.rate_hz:
+            return False
+        # single-time samplers: Trajectory.evaluate/jet cost ~0.5 ms a call, on the pop-up's
+        # critical path
+        so, sn = sampler(old), sampler(new)
+        ts = np.linspace(now, t_split, 8)
+        if not np.allclose([so.jet(t)[0] for t in ts], [sn.jet(t)[0] for t in ts], atol=1e-6):
+            log.error("swap refused: new trajectory differs from the flown one before the split")
+            return False
+        if not np.allclose(so.jet(t_split), sn.jet(t_split), rtol=1e-6, atol=1e-6):
+            log.error("swap refused: jets differ at the split")
+            return False
+        self._set(trim_before(new, now - 1.0), self._t_base, self._streaming)
+        if arrived is not None:
+            self._latency_mark = (arrived, self._active, what)  # type: ignore[assignment]
+        self.send_now()
+        self.on_new_plan(self._active)  # type: ignore[arg-type]
+        return True
+
+    def hold_here(self, position: FloatArray) -> None:
+        """Hold at the measured position (verified by construction: it does not move)."""
+        self._set(hold(position, self.now()), self._t_base, self._streaming)
+        self.send_now()
+        self.on_new_plan(self._active)  # type: ignore[arg-type]
+
+    def release(self) -> None:
+        """Stop commanding at once and forget the plan and its time base."""
+        self._set(None, None, False)
+
+    def pause(self) -> None:
+        """Stop streaming, keeping the plan (a hand-over to the autopilot's own takeoff)."""
+        self._set(self._active, self._t_base, False)
+
+    # -- the stream --------------------------------------------------------------------
+
+    def send_now(self) -> None:
+        """One setpoint from the flown plan at once, off the periodic grid (which is kept as it
+        is): a new plan reaches the autopilot without waiting up to a period for the next tick.
+        The periodic statistics ignore it."""
+        if not self._streaming or self._active is None or self._t_base is None:
+            return
+        now = time.monotonic()
+        try:
+            self.send(sample(self._active, now - self._t_base, self.yaw))
+        except OSError as exc:  # the periodic loop reports a dead link; never fail a swap on it
+            log.warning("immediate setpoint not sent: %s", exc)
+            return
+        self._report_latency(now, immediate=True)
+
+    def on_tick(self, tick: Tick) -> float | None:
+        """Bookkeeping of one setpoint tick; returns the trajectory time it flew, if it flew
+        the current plan."""
+        feed = tick.feed
+        if feed is None or tick.setpoint is None:
+            self.last_sp = None
+            return None
+        if tick.gap is not None:
+            self.periods.append(tick.gap)
+            self.setpoint_gap_max = max(self.setpoint_gap_max, tick.gap)
+            if tick.gap > 0.04:
+                log.warning("setpoint gap %.1f ms (deadline late by %.1f ms)", tick.gap * 1000,
+                            (tick.now - tick.deadline) * 1000)
+        self.last_sp, self.last_sp_time = tick.setpoint, tick.now
+        self._report_latency(tick.now, immediate=False, sampled=feed.trajectory)
+        if feed.trajectory is self._active and feed.t_base == self._t_base:
+            return tick.now - feed.t_base
+        return None
+
+    def _report_latency(self, now: float, immediate: bool, sampled: Trajectory | None = None) -> None:
+        mark = self._latency_mark
+        if mark is None or mark[1] is not (self._active if sampled is None else sampled):
+            return
+        self._latency_mark = None
+        self.setpoint_latency = now - mark[0]
+        self.on_latency(mark[2], self.setpoint_latency, immediate, now)
+
+    def period_stats(self) -> dict[str, Any] | None:
+        """p50/p99/max of the last setpoint periods (ms), measured at the send."""
+        if len(self.periods) < 2:
+            return None
+        p = np.asarray(self.periods) * 1000.0
+        return {"p50": round(float(np.percentile(p, 50)), 3), "p99": round(float(np.percentile(p, 99)), 3),
+                "max": round(float(p.max()), 3), "n": len(p)}

@@ -1,0 +1,216 @@
+"""Plan a mission, replan its remainder, replan locally: pure orchestration over planner_core.
+
+No asyncio, no I/O: the service calls these in worker threads or processes. Everything is
+NED and in the flight's time base (seconds since the companion took control). A replan
+splits the flown trajectory at `t_split` (a little ahead of now), keeps every waypoint after
+it, starts from the exact jet of the old trajectory there (so the setpoints stay C^4 and the
+piece being flown does not change), rebuilds the corridors against the known obstacles,
+plans and verifies.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import replace
+
+import numpy as np
+
+from companion.config import Config
+from companion.detours import plan_with_detours
+from companion.edits import LocalEdit
+from companion.obstacles import Known, as_known, blocked_text
+from companion.route import Outcome, Route, allocate_durations, clip_velocity
+from companion.wire.messages import MissionSpec, mission_from_message
+from planner_core import (
+    AddObstacles,
+    ChangeError,
+    ChangeSet,
+    Environment,
+    FloatArray,
+    Polytope,
+    Problem,
+    ReplanOptions,
+    Trajectory,
+    replan,
+    rest_jet,
+    start_jet,
+    verify_changed,
+)
+
+
+def start_mission(mission: MissionSpec, initial: FloatArray, t_start: float, known: Known | Sequence[Polytope],
+                  cfg: Config) -> Outcome:
+    """Plan a fresh mission from the jet `initial` at `t_start`."""
+    wps = mission.waypoints
+    labels = mission.first_index + np.arange(len(wps), dtype=float)
+    jet = np.array(initial, dtype=float)
+    if mission.start == "first_waypoint":
+        gap = float(np.linalg.norm(jet[0] - wps[0]))
+        if gap > cfg.safety.arrival_tolerance:
+            return Outcome(False, message=f"start 'first_waypoint': vehicle is {gap:.2f} m from waypoint 0 "
+                           f"(tolerance {cfg.safety.arrival_tolerance} m)")
+        assert mission.initial is not None
+        jet = mission.initial.copy()
+        jet[0] = wps[0]
+        points, lab = wps, labels
+    else:
+        jet[1] = clip_velocity(jet[1], mission.bounds)
+        points = np.vstack([jet[0], wps])
+        lab = np.concatenate([[-1.0], labels])
+    # Already at waypoint 0 (a mission that starts where the vehicle is): the vehicle's position
+    # stands for it. A lead segment of (nearly) zero length has a duration that its end jets
+    # cannot fill without huge snap, and its plan fails verification at the start.
+    at_first = mission.start != "first_waypoint" and len(wps) >= 2 and (
+        float(np.linalg.norm(jet[0] - wps[0])) <= cfg.safety.arrival_tolerance)
+    if at_first:
+        points = np.vstack([jet[0], wps[1:]])
+        lab = labels
+    if mission.durations is not None and mission.start != "first_waypoint" and not at_first:
+        lead = allocate_durations(points[:2], mission.bounds, jet[1])
+        durations = np.concatenate([lead, mission.durations])
+    elif mission.durations is not None:
+        durations = mission.durations
+    else:
+        durations = allocate_durations(points, mission.bounds, jet[1])
+    times = t_start + np.concatenate([[0.0], np.cumsum(durations)])
+    return plan_with_detours(mission, points, times, lab, jet, as_known(known) + Known.of(mission.obstacles), cfg)
+
+
+def check_mission(mission: MissionSpec, initial: FloatArray, t_start: float, known: Known | Sequence[Polytope],
+                  cfg: Config) -> Outcome:
+    """start_mission's verdict without the route (which is large to send between processes)."""
+    return replace(start_mission(mission, initial, t_start, known, cfg), route=None)
+
+
+def replan_remainder(route: Route, active: Trajectory, t_split: float, known: Known | Sequence[Polytope], cfg: Config,
+                     waypoints: FloatArray | None = None, times: FloatArray | None = None,
+                     labels: FloatArray | None = None) -> Outcome:
+    """Re-plan everything after t_split from the jet of `active` at t_split.
+
+    `waypoints/times/labels` (defaults: the route's) may carry an edit; only the entries
+    later than t_split are kept.
+    """
+    wps = route.waypoints if waypoints is None else waypoints
+    tms = route.times if times is None else times
+    lab = route.labels if labels is None else labels
+    keep = tms > t_split + 1e-6
+    if not np.any(keep):
+        return Outcome(False, message="mission already complete: nothing left to replan")
+    jet = active.jet(t_split)
+    points = np.vstack([jet[0], wps[keep]])
+    new_times = np.concatenate([[t_split], tms[keep]])
+    new_labels = np.concatenate([[-1.0], lab[keep]])
+    # A split just before a waypoint leaves a sliver of a segment: give it room.
+    min_first = 0.3
+    if new_times[1] - new_times[0] < min_first:
+        new_times[1:] += min_first - (new_times[1] - new_times[0])
+    return plan_with_detours(route.mission, points, new_times, new_labels, jet,
+                             as_known(known) + Known.of(route.mission.obstacles), cfg)
+
+
+def remaining(route: Route, t: float) -> MissionSpec | None:
+    """The mission waypoints not yet reached at t, as a mission flown from where the vehicle is."""
+    keep = (route.times > t) & (route.labels >= 0)
+    if not np.any(keep):
+        return None
+    # Mission indices stay those published: waypoint i of the mission keeps its index i.
+    first = int(route.labels[keep][0])
+    return replace(route.mission, waypoints=route.waypoints[keep], durations=None, start="current", initial=None,
+                   first_index=first)
+
+
+# -- local replanning (paper section 3.1) via planner_core.replan -----------------------
+
+
+def trim(route: Route, t: float) -> Route:
+    """Drop waypoints (and segments) entirely before t; the rest is bit-for-bit the same."""
+    k0 = int(np.searchsorted(route.times, t, side="right")) - 1
+    if k0 <= 0:
+        return route
+    k0 = min(k0, len(route.times) - 2)
+    tr = route.trajectory
+    initial = start_jet(tr.control_points[k0], float(tr.times[k0 + 1] - tr.times[k0]))
+    initial[0] = route.waypoints[k0]
+    cors = None if route.problem.corridors is None else route.problem.corridors[k0:]
+    problem = Problem(route.waypoints[k0:], route.times[k0:], route.problem.bounds, initial, route.problem.final, cors)
+    traj = Trajectory(tr.times[k0:], tr.control_points[k0:], None if tr.corridors is None else tr.corridors[k0:], tr.stats)
+    return Route(route.mission, route.waypoints[k0:], route.times[k0:], route.labels[k0:], problem, traj)
+
+
+def local_replan(route: Route, t_split: float, edit: LocalEdit, known: Known | Sequence[Polytope],
+                 cfg: Config) -> Outcome:
+    """planner_core.replan with from_time = t_split: only the touched jets are re-solved.
+
+    `route` is the trimmed route the edit was resolved against (edits.resolve), so the
+    edit's indices are this route's."""
+    t0 = time.perf_counter()
+    r = route
+    if t_split >= r.times[-1] - 1e-6 and not any(type(e).__name__ == "AppendWaypoints" for e in edit.edits):
+        return Outcome(False, message="mission already complete: nothing left to replan")
+    every = as_known(known) + Known.of(r.mission.obstacles)
+    new = [p for e in edit.edits if isinstance(e, AddObstacles) for p in e.obstacles]
+    before = every.without(new)
+    named_new = every.only(new)
+    env = Environment(before.polytopes, (r.mission.map_lo, r.mission.map_hi), r.mission.radius)
+    try:
+        result = replan(r.problem, r.trajectory, ChangeSet(edit.edits, from_time=t_split),
+                        options=ReplanOptions(environment=env))
+    except ChangeError as exc:
+        return Outcome(False, message=str(exc), stats={"plan_seconds": time.perf_counter() - t0})
+    except Exception as exc:  # a planner bug must degrade to the next fallback, not crash the service
+        return Outcome(False, message=f"local replan error: {exc!r}", stats={"plan_seconds": time.perf_counter() - t0})
+    stats = {"plan_seconds": time.perf_counter() - t0, "method": "local", "resolved_jets": list(result.resolved_jets)}
+    if not result.ok or result.trajectory is None:
+        split = result.stats.get("split_index")
+        labels = r.labels if split is None else np.insert(r.labels, int(split), -1.0)
+        return Outcome(False, message=_replan_failure(result.message, result.diagnosis, labels, before + named_new),
+                       stats=stats)
+    k = result.stats.get("split_index")
+    labels = r.labels if k is None else np.insert(r.labels, int(k), -1.0)
+
+    def wp(i: int) -> int:
+        return i + 1 if k is not None and i >= int(k) else i
+
+    labels = edit.relabel(labels, wp)
+    p = result.problem
+    traj = result.trajectory
+    if len(labels) != p.m:
+        return Outcome(False, message="internal: waypoint bookkeeping mismatch after replan", stats=stats)
+    failure = verify_changed(r.trajectory, r.problem, traj, p)
+    stats["plan_seconds"] = time.perf_counter() - t0  # with the verification
+    if failure is not None:
+        return Outcome(False, message="verification failed: " + failure, stats=stats)
+    return Outcome(True, Route(r.mission, p.waypoints, p.times, labels, p, traj), result.message, stats=stats)
+
+
+def _replan_failure(message: str, diagnosis: dict[str, object] | None, labels: FloatArray, names: Known) -> str:
+    """planner_core.replan's failure in mission terms: its indices are those of the route
+    with the split point inserted (`labels`); its obstacles those known before, then the new."""
+    if not diagnosis or diagnosis.get("kind") != "corridor":
+        return message
+    ob, seg, wpt = diagnosis.get("obstacle"), diagnosis.get("segment"), diagnosis.get("waypoint")
+    name = names.name(ob if isinstance(ob, int) else None)
+    text, _ = blocked_text(labels, seg if isinstance(seg, int) else None, wpt if isinstance(wpt, int) else None, name)
+    return text
+
+
+# -- first-call costs paid before flying -------------------------------------------------
+
+
+def warm_up(cfg: Config) -> bool:
+    """Plan a tiny mission: imports and first-call caches are paid before flying."""
+    spec = mission_from_message({"id": "warm-up", "waypoints": [[1.0, 0.0, -1.0], [1.0, 1.0, -1.0]]}, cfg)
+    return start_mission(spec, rest_jet(np.array([0.0, 0.0, -1.0])), 0.0, Known(), cfg).ok
+
+
+def warm_up_replan(cfg: Config) -> bool:
+    """A mission and a pop-up local replan on it: first-call costs of the replan path paid early."""
+    spec = mission_from_message({"id": "warm-up", "waypoints": [[3.0, 0.0, -1.5], [3.0, 3.0, -1.5]]}, cfg)
+    outcome = start_mission(spec, rest_jet(np.array([0.0, 0.0, -1.5])), 0.0, Known(), cfg)
+    if not outcome.ok or outcome.route is None:
+        return False
+    eye = np.eye(3)
+    box = Polytope(np.vstack([eye, -eye]), np.array([10.0, 10.0, 10.0, -9.0, -9.0, -9.0]))
+    edit = LocalEdit((AddObstacles((box,)),), "warm-up")
+    return local_replan(trim(outcome.route, 0.0), 0.5, edit, Known(("warm-up",), (box,)), cfg).ok

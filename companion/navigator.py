@@ -1,0 +1,424 @@
+"""Missions in flight, on the loop: load, fly, change, avoid pop-ups, stop, resume.
+
+The one owner of which mission is flown (`route`), which is loaded and waits for `start`
+(`pending`) and which was interrupted by a stop and waits for `resume` (`interrupted`).
+Planning runs in workers (companion.mission, pure); every new plan is swapped in through
+`Control.swap` at a split a little ahead of now, by the one retry loop `_swap_at_split`.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import time
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+
+from companion.braking import Brakes, Replanned, StopContext, brake_deadline
+from companion.config import Config
+from companion.control import Control
+from companion.edits import LocalEdit, Refused, resolve
+from companion.flight import Flight, State
+from companion.mission import (
+    check_mission,
+    local_replan,
+    remaining,
+    replan_remainder,
+    start_mission,
+    trim,
+)
+from companion.obstacles import Known, ObstacleStore
+from companion.report import Reporter
+from companion.route import Outcome, Route
+from companion.runtime import Runtime
+from companion.wire.encode import num
+from companion.wire.messages import Change, MissionSpec, ObstacleUpdate, bounds_from
+from planner_core import AddObstacles, FloatArray, Polytope, Trajectory, first_hit, rest_jet, splice
+
+log = logging.getLogger("companion")
+S = State
+
+
+@dataclass(frozen=True)
+class Swapped:
+    """The end of `_swap_at_split`: a plan swapped in (outcome, split time), or why not."""
+
+    outcome: Outcome | None
+    t_split: float = math.nan
+    reason: str = ""
+
+    @property
+    def ok(self) -> bool:
+        return self.outcome is not None and self.outcome.ok
+
+
+class Navigator:
+    def __init__(self, cfg: Config, flight: Flight, control: Control, runtime: Runtime, report: Reporter,
+                 position: Callable[[], FloatArray]) -> None:
+        self.cfg = cfg
+        self.flight = flight
+        self.control = control
+        self.runtime = runtime
+        self.report = report
+        self.position = position  # the measured position (NED)
+        self.obstacles = ObstacleStore()
+        self.route: Route | None = None  # the mission being flown (its plan is in control)
+        self.pending: MissionSpec | None = None  # loaded, waits for `start`
+        self.interrupted: MissionSpec | None = None  # what a stop left of the mission, for `resume`
+        self.lock = asyncio.Lock()  # one plan change at a time
+        self.plan_latency: float | None = None
+        self.replan_latency: float | None = None
+        self.brakes = Brakes(cfg, control, runtime, report, self.stop_context, position, self._stopped)
+
+    # -- what is known --------------------------------------------------------------------
+
+    def known(self) -> Known:
+        """Every obstacle sent on the `obstacles` key (the planners add the mission's own)."""
+        return self.obstacles.known()
+
+    def stop_context(self) -> StopContext:
+        mission = self.route.mission if self.route is not None else None
+        every = self.known() + (Known.of(mission.obstacles) if mission is not None else Known())
+        bounds = mission.bounds if mission is not None else bounds_from(None, self.cfg)
+        return StopContext(mission, every.polytopes, bounds)
+
+    def has_mission(self) -> bool:
+        """A mission `start`/`resume` can fly: loaded, interrupted, or still being flown."""
+        if self.pending is not None or self.interrupted is not None:
+            return True
+        return self.route is not None and self.control.flying and self.route.t_end > self.control.now()
+
+    def mission_id(self) -> str | None:
+        for m in (self.route.mission if self.route else None, self.interrupted):
+            if m is not None:
+                return m.id
+        return None
+
+    # -- handing control over ---------------------------------------------------------------
+
+    def _stopped(self, t: float) -> None:
+        """A stop starts at trajectory time t: what is left of the mission waits for `resume`."""
+        if self.route is not None:
+            self.interrupted = remaining(self.route, t)
+            self.route = None
+
+    def release(self) -> None:
+        """Control ends (a pilot, a failsafe): keep what is left of the mission for `start`."""
+        if self.route is not None and self.control.flying:
+            left = remaining(self.route, self.control.now())
+            if left is not None:
+                self.pending = left
+        elif self.interrupted is not None:
+            self.pending = self.interrupted
+        self.route = None
+        self.interrupted = None
+
+    def forget(self) -> None:
+        """Abort or land: no mission is flown, loaded or interrupted any more."""
+        self.route = self.pending = self.interrupted = None
+
+    # -- progress -----------------------------------------------------------------------------
+
+    def progress(self, t: float) -> None:
+        """The setpoint thread flew trajectory time t of the current plan."""
+        st = self.flight.state
+        if st is S.STREAMING and self.route is not None and t >= self.route.t_end:
+            mid = self.route.mission.id
+            self.report.go(S.HOLDING, f"mission {mid} complete: holding at the last waypoint")
+            self.report.event("mission_complete", f"mission {mid} complete", mission=mid)
+        elif st is S.BRAKING and self.control.active is not None and t >= self.control.active.t_end:
+            self.report.go(S.HOLDING, "stopped after braking: holding position")
+
+    def status_fields(self) -> dict[str, Any]:
+        seg = progress = time_to_go = None
+        r = self.route
+        if r is not None and self.control.flying:
+            t = self.control.now()
+            i = int(np.clip(np.searchsorted(r.times, t, side="right") - 1, 0, len(r.times) - 2))
+            nxt = r.labels[i + 1 :]
+            ahead = nxt[nxt >= 0]
+            seg = int(ahead[0]) - 1 if len(ahead) else int(np.max(r.labels))
+            progress = float(np.clip((t - r.times[0]) / max(r.t_end - r.times[0], 1e-9), 0.0, 1.0))
+            time_to_go = max(r.t_end - t, 0.0)
+        return {
+            "mission": self.mission_id(),
+            "pending_mission": None if self.pending is None else self.pending.id,
+            "interrupted": self.interrupted is not None,
+            "segment": seg,
+            "progress": num(progress),
+            "time_to_go": num(time_to_go, 3),
+            "plan_latency_ms": num(None if self.plan_latency is None else self.plan_latency * 1000, 2),
+            "replan_latency_ms": num(None if self.replan_latency is None else self.replan_latency * 1000, 2),
+            "obstacles": self.obstacles.ids(),
+        }
+
+    # -- the one retry loop -------------------------------------------------------------------
+
+    async def _swap_at_split(self, what: str, arrived: float | None,
+                             plan_at: Callable[[Trajectory, float], Awaitable[Outcome]],
+                             hit: float | None = None, notes: list[str] | None = None) -> Swapped:
+        """Plan from a split a little ahead of now and swap the plan in; further ahead when the
+        plan came too late or the flown plan changed meanwhile. `plan_at(base, t_split)`."""
+        messages = notes if notes is not None else []
+        for attempt in range(3):
+            if not self.control.flying or not self.flight.flying_ours:
+                return Swapped(None, reason=f"no longer in control ({self.flight.state.value})")
+            base, route = self.control.active, self.route
+            assert base is not None
+            t_split = self.control.now() + self.cfg.planner.split_ahead * (2**attempt)
+            if hit is not None and t_split >= hit:
+                messages.append("too close to the obstacle to replan")
+                break
+            outcome = await plan_at(base, t_split)
+            if not outcome.ok or outcome.route is None:
+                return Swapped(outcome, t_split, outcome.message)
+            if self.control.active is not base or self.route is not route:
+                messages.append("the flown plan changed while planning; planning again")
+                continue
+            if not self.control.swap(splice(base, outcome.route.trajectory), t_split, arrived, what):
+                messages.append("planning finished after the split time; retrying further ahead")
+                continue
+            self.route = outcome.route
+            self.interrupted = None
+            return Swapped(outcome, t_split)
+        return Swapped(None, reason="; ".join(messages) or "too close")
+
+    # -- missions ---------------------------------------------------------------------------------
+
+    async def on_mission(self, spec: MissionSpec, arrived: float) -> None:
+        if self.flight.flying_ours and spec.autostart:
+            await self.fly(spec, arrived)
+            return
+        plan_ms = None
+        pos = self.position()
+        if np.all(np.isfinite(pos)):
+            t0 = time.perf_counter()
+            # The check only needs the verdict: a 1000-waypoint route coming back would be
+            # unpickled here in one GIL-holding call of many milliseconds.
+            outcome = await self.runtime.plan(check_mission, replace(spec, raw={}), rest_jet(pos), 0.0,
+                                              self.known(), self.cfg)
+            plan_ms = round((time.perf_counter() - t0) * 1000, 2)
+            if not outcome.ok:
+                self._reject_outcome(spec, outcome)
+                return
+        self.pending = spec
+        where = "on the ground" if not self.flight.airborne else f"in {self.flight.state.value}"
+        self.report.event("accepted", f"mission {spec.id} loaded ({len(spec.waypoints)} waypoints, vehicle {where}); "
+                          "send 'start' to fly it", key="mission", mission=spec.id, plan_ms=plan_ms, pending=True)
+
+    def _reject_outcome(self, spec: MissionSpec, outcome: Outcome) -> None:
+        field = "" if outcome.blocked_waypoint is None else f"waypoints[{outcome.blocked_waypoint - spec.first_index}]"
+        self.report.reject("mission", field, f"mission {spec.id}: {outcome.message}", mission=spec.id)
+
+    async def fly(self, spec: MissionSpec, arrived: float | None) -> bool:
+        """Plan `spec` from the flown state a little ahead of now and fly it."""
+        async with self.lock:
+            async def plan_at(base: Trajectory, t_split: float) -> Outcome:
+                jet = self.control.jet(t_split)
+                t0 = time.perf_counter()
+                out: Outcome = await self.runtime.plan(start_mission, replace(spec, raw={}), jet, t_split,
+                                                       self.known(), self.cfg)
+                self.plan_latency = time.perf_counter() - t0
+                return out
+
+            done = await self._swap_at_split(f"mission {spec.id}", arrived, plan_at)
+            if not done.ok:
+                if done.outcome is not None:
+                    self._reject_outcome(spec, done.outcome)
+                else:
+                    self.report.reject("mission", "", f"mission {spec.id}: {done.reason}", mission=spec.id)
+                return False
+            assert done.outcome is not None and done.outcome.route is not None
+            if self.pending is spec:
+                self.pending = None
+            self.report.go(S.STREAMING, f"flying mission {spec.id}")
+            lat = self.plan_latency or 0.0
+            self.report.event("accepted", f"mission {spec.id}: planned and verified in {lat * 1000:.1f} ms "
+                              f"({len(spec.waypoints)} waypoints, {done.outcome.route.t_end - done.t_split:.2f} s)",
+                              key="mission", mission=spec.id, plan_ms=round(lat * 1000, 2))
+            return True
+
+    async def resume(self, arrived: float) -> None:
+        spec = self.interrupted
+        if spec is None:
+            if self.route is not None and self.flight.state is S.STREAMING:
+                self.report.refuse("resume", f"mission {self.route.mission.id} is being flown")
+            else:
+                self.report.refuse("resume", "no interrupted mission to resume (it is complete, or was aborted)")
+            return
+        if await self.fly(spec, arrived):
+            self.report.event("resumed", f"mission {spec.id} resumed at mission waypoint {spec.first_index}",
+                              mission=spec.id, waypoint=spec.first_index)
+
+    async def hold(self, reason: str, arrived: float | None) -> None:
+        async with self.lock:
+            await self.brakes.brake(reason, arrived)
+
+    async def abort(self, arrived: float | None) -> None:
+        self.forget()
+        async with self.lock:
+            if self.flight.flying_ours or (self.flight.state is S.TAKEOFF and self.control.streaming):
+                await self.brakes.brake("abort command", arrived)
+
+    # -- changes ------------------------------------------------------------------------------------
+
+    async def on_change(self, change: Change, arrived: float) -> None:
+        if self.route is None or not self.flight.flying_ours or not self.control.flying:
+            why = ("the mission was interrupted by a stop: send 'resume' first" if self.interrupted is not None
+                   else f"no mission in flight ({self.flight.state.value})")
+            self.report.reject("change", "", why)
+            return
+        async with self.lock:
+            refused: list[Refused] = []
+            description: list[str] = []
+
+            async def plan_at(base: Trajectory, t_split: float) -> Outcome:
+                assert self.route is not None
+                r = trim(self.route, self.control.now())
+                resolved = resolve(r, change, t_split)
+                if isinstance(resolved, Refused):
+                    refused.append(resolved)
+                    return Outcome(False, message=resolved.reason)
+                description[:] = [resolved.description]
+                remainder = (resolved.waypoints, resolved.times, resolved.labels)
+                return await self._replan_outcome(r, base, t_split, resolved.local, remainder)
+
+            done = await self._replan_swapped(f"change ({change.key})", arrived, plan_at)
+            what = description[0] if description else change.key
+            if refused:
+                self.report.reject("change", refused[0].field, refused[0].reason)
+            elif done.ok:
+                self.report.event("accepted", f"change: {what}", key="change")
+            else:
+                # The current plan is still safe: a change that cannot be planned is refused.
+                self.report.reject("change", "", f"change ({what}): no verified plan ({done.reason}); "
+                                   "the current plan continues")
+
+    async def _replan_outcome(self, r: Route, base: Trajectory, t_split: float, local: LocalEdit | None,
+                              remainder: tuple[FloatArray, FloatArray, FloatArray] | None,
+                              notes: list[str] | None = None, on_fallback: Callable[[], None] | None = None) -> Outcome:
+        """A local replan (in this process: a few ms), then a replan of the whole remainder in
+        the urgent worker."""
+        messages = notes if notes is not None else []
+        if local is not None:
+            out: Outcome = await self.runtime.run(self.runtime.replan_pool, local_replan, r, t_split, local,
+                                                  self.known(), self.cfg)
+            if out.ok:
+                out.stats.setdefault("method", "local")
+                return out
+            messages.append(f"local replan: {out.message}")
+        if on_fallback is not None:
+            on_fallback()
+        extra = () if remainder is None else remainder
+        out = await self.runtime.plan(replan_remainder, r, base, t_split, self.known(), self.cfg, *extra, urgent=True)
+        if self.cfg.planner.fallback_delay > 0:
+            await asyncio.sleep(self.cfg.planner.fallback_delay)
+        out.stats["method"] = "detour" if out.stats.get("detour") else "remainder"
+        if not out.ok:
+            messages.append(f"full replan: {out.message}")
+        return out
+
+    async def _replan_swapped(self, what: str, arrived: float, plan_at: Callable[[Trajectory, float], Awaitable[Outcome]],
+                              hit: float | None = None, notes: list[str] | None = None) -> Swapped:
+        """`_swap_at_split` for a replan: time it, say what was swapped in."""
+        t0 = time.perf_counter()
+        waited = time.monotonic() - arrived
+        done = await self._swap_at_split(what, arrived, plan_at, hit=hit, notes=notes)
+        self.replan_latency = time.perf_counter() - t0
+        if done.ok:
+            assert done.outcome is not None
+            stats = done.outcome.stats
+            if self.flight.state is not S.STREAMING:
+                self.report.go(S.STREAMING, f"replanned: {what}")
+            self.report.event("replanned", f"{what}: {stats.get('method', 'local')} replan verified in "
+                              f"{self.replan_latency * 1000:.1f} ms, split at t={done.t_split:.3f} s",
+                              method=stats.get("method", "local"), split_time=round(done.t_split, 4),
+                              replan_ms=round(self.replan_latency * 1000, 2),
+                              compute_ms=num(float(stats.get("plan_seconds", math.nan)) * 1000, 2),
+                              before_replan_ms=round(waited * 1000, 2),
+                              resolved_jets=stats.get("resolved_jets"), detour=stats.get("detour"))
+        return done
+
+    # -- obstacles ----------------------------------------------------------------------------------
+
+    async def on_obstacles(self, update: ObstacleUpdate, arrived: float) -> None:
+        added, removed, unknown = self.obstacles.update(update.add, update.remove, update.clear)
+        note = f"; unknown ids ignored: {unknown}" if unknown else ""
+
+        def announce() -> None:
+            self.report.event("accepted", f"obstacles: added {added}, removed {removed}{note}",
+                              key="obstacles", added=added, removed=removed)
+
+        if added:
+            # said once the replan is under way: the event costs time a pop-up does not have
+            await self.avoid([p for _, p in update.add], added, arrived, announce)
+        else:
+            announce()
+
+    async def avoid(self, new: list[Polytope], ids: list[str], arrived: float, announce: Callable[[], None]) -> None:
+        names = str(ids)
+        race = self.brakes.race_guard
+        if race is not None and self.control.active is race.base and self.route is not None and self.control.flying:
+            # A replan for an earlier pop-up holds the lock until it is swapped in or its
+            # braking deadline: this obstacle may need the stop sooner.
+            now = self.control.now()
+            hit = first_hit(race.base, now, new, self.route.mission.radius)
+            if hit is not None:
+                race.tighten(brake_deadline(race.base, now, hit, self.route.mission.bounds), hit,
+                             f"deadline brought forward by obstacles {names} (hit at t={hit:.2f} s)")
+        async with self.lock:
+            if self.flight.state is not S.STREAMING or self.route is None or not self.control.flying:
+                announce()
+                return
+            active = self.control.active
+            assert active is not None
+            now = self.control.now()
+            radius, split_ahead = self.route.mission.radius, self.cfg.planner.split_ahead
+            hit = first_hit(active, now, new, radius)
+            if hit is None:
+                announce()
+                self.report.event("obstacles_clear", f"obstacles {names}: the current trajectory stays clear; no replan",
+                                  obstacles=ids)
+                return
+            if hit < now + split_ahead:
+                announce()
+                await self.brakes.brake(f"obstacle {names} is {hit - now:.2f} s ahead: too close to replan", arrived)
+                return
+            await self._avoid_race(new, names, arrived, hit, announce)
+
+    async def _avoid_race(self, new: list[Polytope], names: str, arrived: float, hit: float,
+                          announce: Callable[[], None]) -> None:
+        """Race the replan against the braking deadline: the latest start of a stop that ends
+        before the flown plan would enter the obstacle. A verified stop is prepared in parallel
+        (at once if the deadline is near, else when the local replan fails or runs late) and
+        swapped in at its start unless a verified replan was swapped in first."""
+        assert self.route is not None and self.control.active is not None
+        base, bounds, now = self.control.active, self.route.mission.bounds, self.control.now()
+        guard = self.brakes.guard(base, hit)
+        notes: list[str] = []
+        edit = LocalEdit((AddObstacles(tuple(new)),), f"avoid obstacles {names}")
+        what = f"obstacles {names}"
+
+        async def plan_at(base_now: Trajectory, t_split: float) -> Outcome:
+            assert self.route is not None
+            r = trim(self.route, self.control.now())
+            return await self._replan_outcome(r, base_now, t_split, edit, None, notes, on_fallback=guard.start)
+
+        async def replan() -> Replanned:
+            done = await self._replan_swapped(what, arrived, plan_at, hit=hit, notes=notes)
+            if done.ok:
+                return Replanned(True)
+            out = done.outcome
+            if out is not None and out.blocked_waypoint is not None:
+                return Replanned(False, "; ".join(notes), out.blocked_waypoint, out.message)
+            return Replanned(False, "; ".join(notes) or done.reason)
+
+        task = asyncio.create_task(replan())
+        await asyncio.sleep(0)  # the replan is handed to its thread first; the rest overlaps it
+        guard.deadline = brake_deadline(base, now, hit, bounds)
+        announce()
+        await self.brakes.race(guard, task, notes, arrived, what)
