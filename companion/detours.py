@@ -17,7 +17,15 @@ from companion.config import Config
 from companion.obstacles import Known, as_known
 from companion.route import Outcome, build_corridors, plan_route
 from companion.wire.messages import MissionSpec
-from planner_core import CorridorError, FloatArray, Polytope, polytope_vertices
+from planner_core import (
+    DEFAULT_MIN_DURATION,
+    CorridorError,
+    FloatArray,
+    Polytope,
+    corridor_cap,
+    durations_from_lengths,
+    polytope_vertices,
+)
 
 
 def plan_with_detours(
@@ -117,8 +125,6 @@ def _detour_times(
     later legs keep theirs. With a moving start, the first leg is capped where the
     points fixed by the start jet would leave its corridor (timing rule 8).
     """
-    from planner_core.timing import DEFAULT_MIN_DURATION, corridor_cap, durations_from_lengths
-
     old = np.diff(times)
     alloc = durations_from_lengths(pts, mission.bounds, initial_jet=initial)
     d = alloc.copy()

@@ -8,6 +8,7 @@ replan, a detour point).
 
 from __future__ import annotations
 
+import enum
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
@@ -60,6 +61,8 @@ class Route:
 
 @dataclass(frozen=True)
 class Outcome:
+    """A planning attempt's result (ruckig style: expected failures are results, not raises)."""
+
     ok: bool
     route: Route | None = None
     message: str = ""
@@ -67,6 +70,20 @@ class Outcome:
     stats: dict[str, Any] = field(default_factory=dict)
     blocked_segment: int | None = None  # route segment whose straight path crosses an obstacle
     obstacle: int | None = None  # index of that obstacle in the list given to the planner
+
+    @property
+    def status(self) -> OutcomeStatus:
+        if self.ok:
+            return OutcomeStatus.OK
+        if self.blocked_waypoint is not None or self.blocked_segment is not None:
+            return OutcomeStatus.BLOCKED
+        return OutcomeStatus.INFEASIBLE
+
+
+class OutcomeStatus(enum.Enum):
+    OK = "ok"  # planned and verified
+    BLOCKED = "blocked"  # an obstacle blocks a waypoint or a leg (and no detour was found)
+    INFEASIBLE = "infeasible"  # no plan within the bounds (or not verified)
 
 
 def _plan_problem(problem: Problem, cfg: Config) -> tuple[Trajectory | None, str]:

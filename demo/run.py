@@ -307,7 +307,7 @@ def _full(vec: Any) -> bool:
 
 
 def trajectory_of(sample: Sample) -> Trajectory:
-    from planner_core.formats.io import trajectory_from_dict
+    from planner_core import trajectory_from_dict
 
     data = sample.data
     body = data.get("trajectory", data) if isinstance(data, dict) else data

@@ -7,7 +7,8 @@ no files (the JSON codec below turns trajectories into dicts and back, nothing m
 - model: `Bounds`, `Polytope`, `Problem`, `Trajectory`, `FloatArray`, `rest_jet`
 - results: `PlanResult`, `PlanStatus`, `Diagnosis`, `VerifyReport`, `ReplanResult`
 - errors: `FieldError` (every field/reason input error) and its `ChangeError`, `CorridorError`
-- planning: `plan`, `IterativeOptions`, `warm_up`, `allocate_times`; process-wide
+- planning: `plan`, `IterativeOptions`, `warm_up`; time allocation `allocate_times`,
+  `durations_from_lengths`, `corridor_cap`, `DEFAULT_MIN_DURATION`; process-wide
   `use_compiled_kernel` / `disable_kernel`
 - certificate: `verify`, `verify_changed` (a local replan, checked only where it changed)
 - local replanning: `replan`, `Environment`, `ReplanOptions`, `ChangeSet` and the edits
@@ -45,7 +46,12 @@ from planner_core.planning import plan
 from planner_core.problem import Bounds, FloatArray, Polytope, Problem, Trajectory, rest_jet
 from planner_core.replan import Environment, ReplanOptions, ReplanResult, replan
 from planner_core.result import Diagnosis, PlanResult, PlanStatus
-from planner_core.timing import allocate_times
+from planner_core.timing import (
+    DEFAULT_MIN_DURATION,
+    allocate_times,
+    corridor_cap,
+    durations_from_lengths,
+)
 from planner_core.trajectory import (
     Sampler,
     end_jet,
@@ -61,6 +67,7 @@ from planner_core.verify import VerifyReport, verify, verify_changed
 from planner_core.window import disable_kernel, use_compiled_kernel
 
 __all__ = [
+    "DEFAULT_MIN_DURATION",
     "AddObstacles",
     "AppendWaypoints",
     "Bounds",
@@ -89,7 +96,9 @@ __all__ = [
     "allocate_times",
     "braking_trajectory",
     "build_corridors",
+    "corridor_cap",
     "disable_kernel",
+    "durations_from_lengths",
     "end_jet",
     "first_hit",
     "hold",
