@@ -16,25 +16,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from companion.wire.frames import swap_halfspaces, swap_points
 from planner_core import Trajectory
 
 FloatArray = NDArray[np.float64]
-
-# ENU <-> NED: x and y swap, z flips sign. Its own inverse, so the same map converts both ways.
-# (The service's own converter is internal to it; the demo, a client, keeps its own copy.)
-P = np.array([[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])
-
-
-def swap_points(points: Any) -> FloatArray:
-    """Points or vectors (..., 3) from one frame to the other."""
-    out: FloatArray = np.asarray(points, dtype=float) @ P.T
-    return out
-
-
-def swap_halfspaces(A: Any) -> FloatArray:
-    """Rows of A x <= b from one frame to the other (b is unchanged): A' = A P."""
-    out: FloatArray = np.asarray(A, dtype=float) @ P
-    return out
 
 ORDER_LABELS = ("velocity [m/s]", "acceleration [m/s²]", "jerk [m/s³]", "snap [m/s⁴]")
 AXES = ("x", "y", "z")

@@ -22,8 +22,8 @@ from typing import Any
 
 import numpy as np
 
+from companion.wire.frames import swap_points
 from demo import report as rep
-from demo.report import swap_points
 from demo.rig import (
     ROOT,
     TAKEOFF_ALTITUDE,
