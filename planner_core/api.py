@@ -8,7 +8,9 @@ no files (the JSON codec below turns trajectories into dicts and back, nothing m
 - results: `PlanResult`, `PlanStatus`, `Diagnosis`, `VerifyReport`, `ReplanResult`
 - errors: `FieldError` (every field/reason input error) and its `ChangeError`, `CorridorError`
 - planning: `plan`, `IterativeOptions`, `warm_up`; time allocation `allocate_times`,
-  `durations_from_lengths`, `corridor_cap`, `DEFAULT_MIN_DURATION`; process-wide
+  `durations_from_lengths`, `corridor_cap`, `DEFAULT_MIN_DURATION`; minimum-time allocation
+  `fastest_durations` -> `FastestAllocation`; infeasibility help `Binding`, `ScaleSearch`,
+  `scale_search`, `scaled_durations`; process-wide
   `use_compiled_kernel` / `disable_kernel`
 - certificate: `verify`, `verify_changed` (a local replan, checked only where it changed)
 - local replanning: `replan`, `Environment`, `ReplanOptions`, `ChangeSet` and the edits
@@ -23,6 +25,7 @@ no files (the JSON codec below turns trajectories into dicts and back, nothing m
 
 from __future__ import annotations
 
+from planner_core.allocation import FastestAllocation, fastest_durations
 from planner_core.braking import braking_trajectory, stop_time_scale
 from planner_core.changes import (
     AddObstacles,
@@ -40,6 +43,8 @@ from planner_core.changes import (
 from planner_core.collision import first_hit, inflate
 from planner_core.corridors import CorridorError, build_corridors, polytope_vertices
 from planner_core.errors import FieldError
+from planner_core.feasibility import Binding, ScaleSearch, scale_search
+from planner_core.feasibility import scaled as scaled_durations
 from planner_core.formats.io import trajectory_from_dict, trajectory_to_dict
 from planner_core.iterative import IterativeOptions, warm_up
 from planner_core.planning import plan
@@ -70,12 +75,14 @@ __all__ = [
     "DEFAULT_MIN_DURATION",
     "AddObstacles",
     "AppendWaypoints",
+    "Binding",
     "Bounds",
     "ChangeError",
     "ChangeSet",
     "CorridorError",
     "Diagnosis",
     "Environment",
+    "FastestAllocation",
     "FieldError",
     "FloatArray",
     "InsertWaypoint",
@@ -89,6 +96,7 @@ __all__ = [
     "ReplanOptions",
     "ReplanResult",
     "Sampler",
+    "ScaleSearch",
     "SetCorridor",
     "SetDuration",
     "Trajectory",
@@ -100,6 +108,7 @@ __all__ = [
     "disable_kernel",
     "durations_from_lengths",
     "end_jet",
+    "fastest_durations",
     "first_hit",
     "hold",
     "inflate",
@@ -110,6 +119,8 @@ __all__ = [
     "replan",
     "rest_jet",
     "sampler",
+    "scale_search",
+    "scaled_durations",
     "splice",
     "split_at",
     "split_segment",

@@ -165,6 +165,40 @@ def split_segment(ctrl: FloatArray, u: float) -> tuple[FloatArray, FloatArray]:
     return left, right
 
 
+@lru_cache(maxsize=32)
+def _subdivision_cached(n: int, pieces: int) -> FloatArray:
+    out = np.empty((pieces, n + 1, n + 1))
+    for i in range(pieces):
+        a, b = i / pieces, (i + 1) / pieces
+        for r in range(n + 1):
+            # blossom of the basis at (a x (n - r), b x r): control point r of the piece [a, b]
+            work = np.eye(n + 1)
+            for step in range(n):
+                u = a if step < n - r else b
+                work = (1.0 - u) * work[:-1] + u * work[1:]
+            out[i, r] = work[0]
+    out.setflags(write=False)
+    return out
+
+
+def subdivision_matrix(n: int, pieces: int) -> FloatArray:
+    """(pieces, n+1, n+1): control points of the restriction of a degree-n Bézier curve to
+    [i/pieces, (i+1)/pieces] are `M[i] @ ctrl` (de Casteljau splits are linear maps, so hull
+    constraints on the pieces stay linear in the control points)."""
+    if pieces < 1:
+        raise ValueError(f"pieces: must be >= 1, got {pieces}")
+    return _subdivision_cached(int(n), int(pieces))
+
+
+def subdivided_hull_extent(ctrl: FloatArray, k: int, durations: FloatArray, pieces: int) -> FloatArray:
+    """(s, 2, 3) min and max over the order-k hodograph control points of every segment after
+    splitting each hodograph into `pieces` equal pieces: the exact continuous-time certificate
+    (the true extremes lie inside; pieces = 1 is the plain hull)."""
+    h = hodographs(ctrl, k, durations)  # (s, 10-k, 3)
+    sub = np.matmul(subdivision_matrix(h.shape[1] - 1, pieces)[None], h[:, None])  # (s, p, 10-k, 3)
+    return np.stack([sub.min(axis=(1, 2)), sub.max(axis=(1, 2))], axis=1)
+
+
 # --- trajectory evaluation --------------------------------------------------
 
 

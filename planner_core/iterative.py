@@ -52,6 +52,11 @@ class IterativeOptions:
     # the compiled pass (window_kernel: block-tridiagonal Goldfarb-Idnani) settles the windows it
     # can; False leaves every window to WindowSolver.solve + daqp (the reference it is tested against)
     compiled: bool = True
+    # False: a window the compiled pass cannot settle fails the plan at once, without the general
+    # path (daqp, recovery, diagnosis). For searches that only need a quick yes/no (the
+    # minimum-time allocation): "no" may then come where the general path would have planned.
+    # Ignored where the compiled pass cannot run.
+    fallback: bool = True
 
     def __post_init__(self) -> None:
         if self.window < 1:
@@ -159,6 +164,12 @@ def plan_iterative(problem: Problem, options: IterativeOptions | None = None) ->
             j = j_stop
             if j > m - 2:
                 break
+            if not opts.fallback and kernel_unavailable() is None:
+                stats = {"method": "iterative", "window": opts.window, "failed_waypoint": j,
+                         "recoveries": recoveries, "time_total": time.perf_counter() - t_start,
+                         "fallback": False}
+                return PlanResult(PlanStatus.INFEASIBLE, None,
+                                  f"infeasible at waypoint {j} (compiled pass only, fallback off)", None, stats)
         t0 = time.perf_counter()
         new: FloatArray | None = None
         if fast is not None and not opts.compiled:

@@ -3,12 +3,16 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import replace
 from typing import Any
 
+import numpy as np
+
+from planner_core.feasibility import scale_search
 from planner_core.iterative import IterativeOptions, plan_iterative
-from planner_core.problem import Problem
-from planner_core.result import PlanResult, PlanStatus
+from planner_core.problem import ORDER_NAMES, Problem
+from planner_core.result import Diagnosis, PlanResult, PlanStatus
 from planner_core.verify import verify
 
 METHODS = ("iterative", "global")
@@ -19,12 +23,73 @@ def plan(problem: Problem, method: str = "iterative", cost: str | None = None, *
 
     Options: iterative: window, backend, recover, diagnose (see IterativeOptions)
     or options=IterativeOptions(...); global: backend, diagnose.
+
+    When the durations are infeasible and `diagnose` is on (the default), a uniform
+    duration-scale search (planner_core.feasibility) finds the smallest scale that plans
+    and the bound that binds first. With the iterative planner's `recover` on, the plan at
+    that scale is returned (stats `duration_scale`, `stretched_durations`); otherwise the
+    INFEASIBLE result's diagnosis carries `binding`, `min_scale` and `min_durations`.
     """
     if method == "iterative":
         base = opts.pop("options", None) or IterativeOptions()
         if cost is not None:
             opts["cost"] = cost
-        result = plan_iterative(problem, replace(base, **opts))
+        iopts = replace(base, **opts)
+        result = _plan_once(problem, method, cost, {"options": iopts})
+        if result.ok or not iopts.diagnose:
+            return result
+        quiet = {"options": replace(iopts, recover=False, diagnose=False)}
+        return _after_search(problem, result, lambda p: _plan_once(p, method, cost, dict(quiet)), iopts.recover)
+    if method == "global":
+        result = _plan_once(problem, method, cost, dict(opts))
+        if result.ok or not opts.get("diagnose", True):
+            return result
+        quiet = {**opts, "diagnose": False}
+        return _after_search(problem, result, lambda p: _plan_once(p, method, cost, dict(quiet)), False)
+    raise ValueError(f"method: unknown method {method!r} (expected one of {METHODS})")
+
+
+def _after_search(problem: Problem, failed: PlanResult, plan_at: Callable[[Problem], PlanResult],
+                  recover: bool) -> PlanResult:
+    """Run the scale search after a failure: stretch (recover) or explain (see `plan`)."""
+    t0 = time.perf_counter()
+    found = scale_search(problem, plan_at)
+    info = {**found.to_dict(), "time_scale_search": time.perf_counter() - t0}
+    good = found.result
+    if recover and found.scale is not None and good is not None and good.trajectory is not None:
+        s = found.scale
+        old, new = problem.durations, np.diff(good.trajectory.times)
+        stretched = [{"segment": i, "old": float(old[i]), "new": float(new[i]), "factor": float(new[i] / old[i])}
+                     for i in range(old.size)]
+        stats = {**good.stats, "duration_scale": s, "stretched_durations": stretched, "scale_search": info,
+                 "recoveries": [*failed.stats.get("recoveries", []), {"action": "uniform stretch", "factor": s}]}
+        why = "" if found.binding is None else f" ({found.binding.describe()} binds first)"
+        return PlanResult(PlanStatus.OK, replace(good.trajectory, stats=stats),
+                          f"planned after stretching every duration by {s:.4g}x{why}", None, stats)
+    diag = failed.diagnosis
+    b = found.binding
+    if diag is None:
+        if b is not None and b.kind == "bounds" and b.order is not None:
+            group = f"bounds order {b.order} ({ORDER_NAMES[b.order]}) of segment {b.segment}"
+            diag = Diagnosis(b.segment + 1, b.segment, group, "bounds", b.order, (group,))
+        elif b is not None:
+            group = f"corridor of segment {b.segment}"
+            diag = Diagnosis(b.segment + 1, b.segment, group, "corridor", None, (group,))
+        else:
+            w = int(failed.stats.get("failed_waypoint", 1))
+            diag = Diagnosis(w, None, "no bound named", "unknown")
+    min_d = None if found.scale is None else tuple(float(x) for x in found.scale * problem.durations)
+    diag = replace(diag, binding=b, min_scale=found.scale, min_durations=min_d,
+                   max_scale_tried=found.infeasible_below if found.scale is None else None)
+    stats = {**failed.stats, "scale_search": info}
+    message = diag.message() if failed.message.startswith("infeasible") else failed.message + "; " + diag.message()
+    return PlanResult(PlanStatus.INFEASIBLE, None, message, diag, stats)
+
+
+def _plan_once(problem: Problem, method: str, cost: str | None, opts: dict[str, Any]) -> PlanResult:
+    """One plan, verified (no scale search)."""
+    if method == "iterative":
+        result = plan_iterative(problem, opts["options"])
     elif method == "global":
         from planner_core.global_qp import plan_global
 

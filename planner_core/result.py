@@ -6,6 +6,7 @@ import enum
 from dataclasses import dataclass, field
 from typing import Any
 
+from planner_core.feasibility import Binding
 from planner_core.problem import Trajectory
 
 
@@ -24,6 +25,11 @@ class Diagnosis:
     kind: str  # "bounds" | "corridor" | "initial" | "unknown"
     order: int | None = None
     candidates: tuple[str, ...] = ()  # every single group whose removal restores feasibility
+    # from the duration-scale search (planner_core.feasibility), when it ran:
+    binding: Binding | None = None  # the bound the plan at `min_scale` uses most of: binds first
+    min_scale: float | None = None  # smallest uniform duration scale found to plan (None: none)
+    max_scale_tried: float | None = None  # with min_scale None: the largest scale that failed
+    min_durations: tuple[float, ...] | None = None  # the durations at min_scale
 
     def to_dict(self) -> dict[str, Any]:
         return {
@@ -33,11 +39,24 @@ class Diagnosis:
             "kind": self.kind,
             "order": self.order,
             "candidates": list(self.candidates),
+            "binding": None if self.binding is None else self.binding.to_dict(),
+            "min_scale": self.min_scale,
+            "max_scale_tried": self.max_scale_tried,
+            "min_durations": None if self.min_durations is None else list(self.min_durations),
         }
 
     def message(self) -> str:
         seg = "" if self.segment is None else f", segment {self.segment}"
-        return f"infeasible at waypoint {self.waypoint}{seg}: {self.group}"
+        out = f"infeasible at waypoint {self.waypoint}{seg}: {self.group}"
+        if self.min_scale is not None:
+            out += f"; feasible from duration scale {self.min_scale:.4g}x"
+            if self.min_durations is not None and len(self.min_durations) <= 8:
+                out += " (durations " + ", ".join(f"{d:.4g}" for d in self.min_durations) + " s)"
+            if self.binding is not None:
+                out += f", where {self.binding.describe()} binds first"
+        elif self.max_scale_tried is not None:
+            out += f"; no uniform duration stretch up to {self.max_scale_tried:.3g}x plans it"
+        return out
 
 
 @dataclass(frozen=True)

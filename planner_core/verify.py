@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from planner_core.bezier import bernstein_basis, end_jet, falling, start_jet
+from planner_core.bezier import bernstein_basis, end_jet, falling, start_jet, subdivision_matrix
 from planner_core.problem import DEGREE, ORDER_NAMES, FloatArray, Polytope, Problem, Trajectory
 
 SAMPLES_PER_SEGMENT = 64
@@ -108,7 +108,13 @@ def _none() -> Worst:
     return Worst(-np.inf)
 
 
-def verify(traj: Trajectory, problem: Problem, tol: float = 1e-9, continuity_tol: float = 1e-6) -> VerifyReport:
+def verify(traj: Trajectory, problem: Problem, tol: float = 1e-9, continuity_tol: float = 1e-6,
+           pieces: int = 1) -> VerifyReport:
+    """The certificate (module docstring). `pieces` > 1 certifies the bounds on the hodographs'
+    de Casteljau pieces (`bezier.subdivision_matrix`): still exact in continuous time, tighter
+    (issue 12); the planner's own rows use 1, the default."""
+    if pieces < 1:
+        raise ValueError(f"pieces: must be >= 1, got {pieces}")
     structure = _structure(traj, problem)
     if structure:
         nan = Worst(np.inf)
@@ -119,7 +125,7 @@ def verify(traj: Trajectory, problem: Problem, tol: float = 1e-9, continuity_tol
     bnd = _boundary(traj, problem)
     hods = _hodograph_stack(ctrl, d)
     cont = _continuity(hods, d)
-    bh, bs = _bounds(hods, d, traj.times, problem)
+    bh, bs = _bounds(hods, d, traj.times, problem, pieces)
     ch, cs = _corridors(ctrl, traj.times, problem)
     checks = [wp, bnd, bh, bs, ch, cs]
     ok = all(w.value <= tol for w in checks) and cont.value <= continuity_tol
@@ -260,20 +266,33 @@ def _continuity(hods: list[FloatArray], d: FloatArray) -> Worst:
     return worst
 
 
-def _bounds(hods: list[FloatArray], d: FloatArray, times: FloatArray, problem: Problem) -> tuple[Worst, Worst]:
+def _pieces(pts: FloatArray, pieces: int) -> FloatArray:
+    """(n+1, s, 3) control points -> (pieces (n+1), s, 3): those of the de Casteljau pieces."""
+    if pieces == 1:
+        return pts
+    n1, s, _ = pts.shape
+    sub = subdivision_matrix(n1 - 1, pieces).reshape(pieces * n1, n1)
+    out: FloatArray = (sub @ pts.reshape(n1, 3 * s)).reshape(pieces * n1, s, 3)
+    return out
+
+
+def _bounds(hods: list[FloatArray], d: FloatArray, times: FloatArray, problem: Problem,
+            pieces: int = 1) -> tuple[Worst, Worst]:
     lo, hi = problem.bounds.lo, problem.bounds.hi
     u = _sample_params(SAMPLES_PER_SEGMENT)
     hull: tuple[float, int, int] = (-np.inf, 0, 1)  # value, segment, order
     samp: tuple[float, int, int] = (-np.inf, 0, 1)
+    cert = [hods[0]] + [_pieces(hods[k], pieces) for k in range(1, 5)]
     for k in range(1, 5):
         pts = hods[k]  # (10-k, s, 3)
-        hull = _better(hull, _box_excess(pts.max(axis=0), pts.min(axis=0), lo[k - 1], hi[k - 1]), k)
+        c = cert[k]
+        hull = _better(hull, _box_excess(c.max(axis=0), c.min(axis=0), lo[k - 1], hi[k - 1]), k)
         top, bottom = _sample_extremes(_sample_basis(DEGREE - k, SAMPLES_PER_SEGMENT), pts)
         samp = _better(samp, _box_excess(top, bottom, lo[k - 1], hi[k - 1]), k)
     # Only the winning (order, segment) is unravelled, in the same (segment, index,
     # axis) order as an elementwise argmax would pick, so ties resolve as before.
     hv, hs, hk = hull
-    _, ha = _first_max(_box_violation(hods[hk][:, hs], lo[hk - 1], hi[hk - 1]))
+    _, ha = _first_max(_box_violation(cert[hk][:, hs], lo[hk - 1], hi[hk - 1]))
     sv, ss, sk = samp
     vals = _sample_basis(DEGREE - sk, SAMPLES_PER_SEGMENT) @ hods[sk][:, ss]
     st, sa = _first_max(_box_violation(vals, lo[sk - 1], hi[sk - 1]))

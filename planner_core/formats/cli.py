@@ -29,6 +29,9 @@ def _parser() -> argparse.ArgumentParser:
     pl.add_argument("--backend", choices=("daqp", "osqp"), default=None)
     pl.add_argument("--no-recover", action="store_true",
                     help="iterative: report the first infeasible QP instead of backtracking/stretching")
+    pl.add_argument("--timing", choices=("default", "fastest"), default=None,
+                    help="fastest: durations as short as the bounds allow (overrides the scenario's "
+                         "times and its 'timing')")
     pl.add_argument("--plot", metavar="PREFIX", default=None, help="write PREFIX_path2d.png etc.")
     ve = sub.add_parser("verify", help="check a trajectory against a scenario")
     ve.add_argument("scenario", type=Path)
@@ -89,7 +92,21 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     if args.method == "global" and args.cost == "waypoint-snap":
         _err("invalid option: --cost: the global planner takes snap or jerk")
         return EXIT_INVALID
-    result = plan(scenario.problem, args.method, args.cost, **opts)
+    timing = args.timing or scenario.timing
+    fastest_note = ""
+    if timing == "fastest":
+        from planner_core.allocation import fastest_durations
+
+        cost_opt = {} if args.cost is None else {"cost": args.cost}
+        fast = fastest_durations(scenario.problem, args.method, **cost_opt, **opts)
+        result = fast.result
+        if fast.ok and result.trajectory is not None:
+            t = result.trajectory
+            fastest_note = (f"fastest timing: flight {t.t_end - t.t0:.4g} s over {t.n_segments} segment(s) "
+                            f"({t.n_segments - scenario.problem.m + 1} knot(s) added), {fast.plans} verified "
+                            f"candidate plans, {1e3 * fast.time:.1f} ms")
+    else:
+        result = plan(scenario.problem, args.method, args.cost, **opts)
     if not result.ok or result.trajectory is None:
         _err(result.message)
         if result.diagnosis is not None:
@@ -97,6 +114,12 @@ def _cmd_plan(args: argparse.Namespace) -> int:
         return EXIT_INFEASIBLE
     args.output.write_text(json.dumps(trajectory_to_dict(result.trajectory, scenario.frame), indent=1))
     st = result.stats
+    if fastest_note:
+        print(fastest_note)
+    if "duration_scale" in st:  # the given durations were infeasible: say so, and what was flown
+        print(f"note: the given durations are infeasible; {result.message}: durations "
+              + ", ".join(f"{c['old']:.4g} -> {c['new']:.4g}" for c in st["stretched_durations"][:8])
+              + (" ..." if len(st["stretched_durations"]) > 8 else "") + " s")
     print(
         f"planned {scenario.problem.m} waypoints ({args.method}): integrated snap "
         f"{st.get('integrated_snap', float('nan')):.6g}, {1e3 * st.get('time_total', 0.0):.2f} ms -> {args.output}"
@@ -138,6 +161,17 @@ def _cmd_verify(args: argparse.Namespace) -> int:
         # the planner's recovery lengthened some durations and says so in stats
         problem = replace(problem, times=traj.times)
         note = "note: checked against the trajectory's stretched times: " + json.dumps(stretched)
+    alloc = traj.stats.get("allocation") if isinstance(traj.stats, dict) else None
+    if isinstance(alloc, dict) and alloc.get("method") == "fastest":
+        # planned with --timing fastest: its own durations, and knots on the given legs
+        index = np.asarray(alloc.get("waypoint_index", []), dtype=np.int64)
+        if traj.n_segments != problem.m - 1 and index.shape == (problem.m,) and np.all(np.diff(index) >= 1):
+            from planner_core.allocation import insert_knots
+
+            problem, _ = insert_knots(problem, np.diff(index))
+        if traj.times.shape == problem.times.shape:
+            problem = replace(problem, times=traj.times)
+        note = f"note: checked against the trajectory's fastest timing ({traj.n_segments} segments)"
     report = verify(traj, problem)
     if note:
         print(note)

@@ -23,8 +23,9 @@ from planner_core.problem import DEGREE, Bounds, FloatArray, Polytope, Problem, 
 TRAJECTORY_FORMAT = "bezier-trajectory/1"
 SCENARIO_KEYS = frozenset({
     "frame", "waypoints", "times", "durations", "bounds", "corridors", "obstacles", "map",
-    "vehicle_radius", "initial", "final", "description",
+    "vehicle_radius", "initial", "final", "description", "timing",
 })
+TIMINGS = ("default", "fastest")  # "fastest": planner_core.allocation.fastest_durations, at plan time
 BOUND_KEYS = ("velocity", "acceleration", "jerk", "snap")
 STATE_KEYS = ("velocity", "acceleration", "jerk", "snap")
 WAYPOINT_TOL = 1e-9
@@ -43,6 +44,7 @@ class Scenario:
     vehicle_radius: float
     raw: dict[str, Any] = field(compare=False)
     description: str = ""
+    timing: str = "default"  # "fastest": the planner CLI replaces the durations by the fastest it can fly
 
 
 # --- small validators ------------------------------------------------------
@@ -183,7 +185,10 @@ def load_scenario(obj: Any) -> Scenario:
     times = _times(raw, wps, bounds, init)
     corridors = _corridors(raw, wps, obstacles, map_box, radius)
     problem = Problem(wps, times, bounds, init, fin, corridors)
-    return Scenario(problem, str(frame), obstacles, map_box, radius, dict(raw), description)
+    timing = raw.get("timing", "default")
+    if timing not in TIMINGS:
+        raise ScenarioError("timing", f"expected one of {', '.join(TIMINGS)}, got {timing!r}")
+    return Scenario(problem, str(frame), obstacles, map_box, radius, dict(raw), description, str(timing))
 
 
 def _list(x: Any, name: str) -> Sequence[Any]:
