@@ -48,33 +48,88 @@ def _add_client_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--zenoh-config", metavar="FILE.json5", help="full Zenoh configuration (TLS, auth)")
 
 
+# `send` exit codes: it never says success for nothing.
+EXIT_OK = 0  # accepted (a command: and completed; with --wait-for: and the state reached)
+EXIT_REJECTED = 1  # the message was rejected (invalid, or cannot be done now: `rejected`)
+EXIT_USAGE = 2  # bad arguments, unreadable file, Zenoh error
+EXIT_NO_ANSWER = 3  # no companion answered within --wait (nobody serves that vehicle?)
+EXIT_REFUSED = 4  # the command was refused by the companion (state, no position estimate, ...)
+EXIT_DENIED = 5  # the autopilot denied it (or did not answer it)
+EXIT_UNFINISHED = 6  # accepted, but not completed (or --wait-for STATE not reached) within --wait
+
+# How long `send` waits by default: a command runs its whole sequence (takeoff: ~10 s).
+DEFAULT_WAIT = {"command": 30.0, "mission": 10.0, "obstacles": 5.0, "change": 5.0}
+
+
+def _outcome(key: str, events: list[dict[str, Any]]) -> int | None:
+    """The exit code the events so far decide, None while undecided."""
+    mine = [e for e in events if e.get("key") == key]
+    for e in mine:
+        kind = e.get("type")
+        if kind == "rejected":
+            return EXIT_REJECTED
+        if kind == "refused":
+            return EXIT_DENIED if e.get("by") == "autopilot" or "failed:" in str(e.get("reason", "")) else EXIT_REFUSED
+        if kind == "accepted" and key != "command":
+            return EXIT_OK
+        if kind == "completed":
+            return EXIT_OK
+    return None
+
+
 def cmd_send(args: argparse.Namespace) -> int:
     payload = sys.stdin.buffer.read() if args.file == "-" else Path(args.file).read_bytes()
+    wait = DEFAULT_WAIT[args.key] if args.wait is None else args.wait
     session = _client_session(args)
     try:
         events: list[dict[str, Any]] = []
-        sub = None
-        if args.wait > 0:
-            def on_event(sample: Any) -> None:
-                with contextlib.suppress(ValueError):
-                    events.append(json.loads(sample.payload.to_bytes()))
+        statuses: list[dict[str, Any]] = []
+        heard = [False]
+        base = f"{args.prefix}/{args.vehicle}"
 
-            sub = session.declare_subscriber(f"{args.prefix}/{args.vehicle}/events", on_event)
-            time.sleep(0.3)  # let the subscription reach the companion before the message
-        session.put(f"{args.prefix}/{args.vehicle}/{args.key}", payload)
-        deadline = time.monotonic() + args.wait
+        def on_event(sample: Any) -> None:
+            heard[0] = True
+            with contextlib.suppress(ValueError):
+                events.append(json.loads(sample.payload.to_bytes()))
+
+        def on_status(sample: Any) -> None:
+            heard[0] = True
+            with contextlib.suppress(ValueError):
+                statuses.append(json.loads(sample.payload.to_bytes()))
+
+        subs = [session.declare_subscriber(f"{base}/events", on_event),
+                session.declare_subscriber(f"{base}/status", on_status)]
+        time.sleep(0.3)  # let the subscription reach the companion before the message
+        session.put(f"{base}/{args.key}", payload)
+        deadline = time.monotonic() + wait
+        code: int | None = None
+        shown = 0
         while time.monotonic() < deadline:
             time.sleep(0.05)
-            done = [e for e in events if e.get("key") == args.key and e.get("type") in ("accepted", "rejected", "refused")]
-            if done:
-                for e in events:
-                    print(json.dumps(e))
-                return 0 if done[-1]["type"] == "accepted" else 1
-        for e in events:
-            print(json.dumps(e))
-        if sub is not None:
-            sub.undeclare()
-        return 0
+            for e in events[shown:]:
+                print(json.dumps(e), flush=True)
+            shown = len(events)
+            code = _outcome(args.key, events)
+            if code is not None and (code != EXIT_OK or not args.wait_for):
+                break
+            if code == EXIT_OK and statuses and statuses[-1].get("state") == args.wait_for:
+                break
+        for e in events[shown:]:
+            print(json.dumps(e), flush=True)
+        for s in subs:
+            s.undeclare()
+        if code is None:
+            if not heard[0]:
+                print(f"send: no companion answered for vehicle {args.vehicle!r} within {wait:g} s "
+                      "(is it running? --vehicle, --prefix and --connect must match it)", file=sys.stderr)
+                return EXIT_NO_ANSWER
+            print(f"send: the companion did not say within {wait:g} s whether {args.key} was done", file=sys.stderr)
+            return EXIT_UNFINISHED
+        if code == EXIT_OK and args.wait_for and not (statuses and statuses[-1].get("state") == args.wait_for):
+            last = statuses[-1].get("state") if statuses else "unknown"
+            print(f"send: state {args.wait_for} not reached within {wait:g} s (state {last})", file=sys.stderr)
+            return EXIT_UNFINISHED
+        return code
     finally:
         session.close()
 
@@ -82,23 +137,39 @@ def cmd_send(args: argparse.Namespace) -> int:
 def cmd_watch(args: argparse.Namespace) -> int:
     session = _client_session(args)
     topics = ["status", "events"] + (["telemetry"] if args.telemetry else [])
+    last_heard = [time.monotonic()]
+    reached = [False]
 
     def show(sample: Any) -> None:
         key = str(sample.key_expr).rsplit("/", 1)[-1]
         text = sample.payload.to_bytes().decode("utf-8", "replace")
+        last_heard[0] = time.monotonic()
         print(f"{key} {text}", flush=True)
+        if args.wait_for and key == "status":
+            with contextlib.suppress(ValueError, AttributeError):
+                if json.loads(text).get("state") == args.wait_for:
+                    reached[0] = True
 
     subs = [session.declare_subscriber(f"{args.prefix}/{args.vehicle}/{t}", show) for t in topics]
     deadline = time.monotonic() + args.duration if args.duration else None
+    said = 0.0
     try:
-        while deadline is None or time.monotonic() < deadline:
+        while (deadline is None or time.monotonic() < deadline) and not reached[0]:
             time.sleep(0.1)
+            quiet = time.monotonic() - last_heard[0]
+            if quiet >= args.silence and time.monotonic() - said >= args.silence:
+                said = time.monotonic()
+                print(f"watch: nothing heard from vehicle {args.vehicle!r} for {quiet:.0f} s "
+                      "(is the companion running? --vehicle, --prefix and --connect must match it)",
+                      file=sys.stderr, flush=True)
     except KeyboardInterrupt:
         pass
     finally:
         for s in subs:
             s.undeclare()
         session.close()
+    if args.wait_for and not reached[0]:
+        return EXIT_UNFINISHED
     return 0
 
 
@@ -137,24 +208,38 @@ def cmd_run(args: argparse.Namespace) -> int:
         # Decided here, by the process entry point, not by Service: it is process-wide.
         disable_kernel("companion service process: long plans run in the planner workers")
 
-    async def main() -> None:
-        stop = asyncio.Event()
+    async def main() -> bool:
+        # First SIGINT/SIGTERM: brake, hand the vehicle over to the autopilot, exit 0 once it
+        # confirms. A second one: give the hand-over up and exit at once (status 1).
+        stop, abandon = asyncio.Event(), asyncio.Event()
         loop = asyncio.get_running_loop()
+
+        def on_signal(name: str) -> None:
+            if stop.is_set():
+                logging.getLogger("companion").warning("%s again: exiting now, without the hand-over", name)
+                abandon.set()
+            else:
+                logging.getLogger("companion").info("%s: stopping (hand-over to the autopilot first)", name)
+                stop.set()
+
         for sig in (signal.SIGINT, signal.SIGTERM):
-            loop.add_signal_handler(sig, stop.set)
-        await run(cfg, stop=stop)
+            loop.add_signal_handler(sig, on_signal, sig.name)
+        return await run(cfg, stop=stop, abandon=abandon)
 
     import zenoh
 
     try:
-        asyncio.run(main())
+        handed_over = asyncio.run(main())
     except zenoh.ZError as exc:
         print(f"zenoh: {exc}", file=sys.stderr)
         return 1
     except OSError as exc:
         print(f"mavlink {cfg.mavlink.url}: {exc}", file=sys.stderr)
         return 1
-    return 0
+    except Exception as exc:  # an internal failure: the vehicle was handed over first
+        logging.getLogger("companion").critical("stopped on an internal failure: %r", exc, exc_info=exc)
+        return 3
+    return 0 if handed_over else 1
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -168,11 +253,19 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("send", help="publish a JSON message to a vehicle")
     s.add_argument("key", choices=KEYS)
     s.add_argument("file", help="JSON file, or - for stdin")
-    s.add_argument("--wait", type=float, default=2.0, help="seconds to wait for the accepted/rejected event (0: none)")
+    s.add_argument("--wait", type=float, default=None,
+                   help="seconds to wait for the outcome (default: 30 for a command, which runs its whole "
+                   "sequence; 10 for a mission; 5 otherwise). Exit 0 accepted (a command: and completed), "
+                   "1 rejected, 3 no companion answered, 4 refused, 5 denied by the autopilot, 6 not done in time")
+    s.add_argument("--wait-for", metavar="STATE", help="after success, also wait until the status says STATE "
+                   "(e.g. READY, HOLDING); exit 6 if it does not within --wait")
     _add_client_args(s)
     w = sub.add_parser("watch", help="print status and events")
     w.add_argument("--telemetry", action="store_true")
     w.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (0: never)")
+    w.add_argument("--silence", type=float, default=3.0, metavar="SECONDS",
+                   help="say so on stderr when nothing has been heard for this long (default 3)")
+    w.add_argument("--wait-for", metavar="STATE", help="exit 0 once the status says STATE (6 if --duration ends first)")
     _add_client_args(w)
     sub.add_parser("demo", help="a scripted demo flight against the mock autopilot (= python -m demo)",
                    add_help=False)

@@ -9,13 +9,14 @@ with the autopilot's answer) and leaves the vehicle in a state it can be command
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import math
 from typing import Any
 
 import numpy as np
 
-from companion.config import Config
+from companion.config import LEAD_MAX, Config
 from companion.control import Control
 from companion.flight import HOLDING_CONTROL, Flight, State
 from companion.navigator import Navigator
@@ -27,6 +28,14 @@ from planner_core import Problem, allocate_times, plan, splice
 log = logging.getLogger("companion")
 S = State
 MAV_LANDED_IN_AIR = 2
+LAG_MIN_SPEED = 0.5  # m/s of the plan: slower samples say little about a time lag
+LAG_ALPHA = 0.03  # smoothing per position sample (~1 s at 30 Hz)
+LAG_GRID = np.arange(0.0, 0.2401, 0.002)  # s: shifts of the setpoint stream tried
+TRACKING_SAMPLES = 3  # position samples in a row above the limit (0.1 s at 30 Hz) before acting
+
+
+def at_rest(velocity: np.ndarray, threshold: float) -> bool:
+    return bool(np.all(np.isfinite(velocity))) and float(np.linalg.norm(velocity)) <= threshold
 
 
 class Commands:
@@ -39,6 +48,16 @@ class Commands:
         self.nav = navigator
         self.report = report
         self.task: asyncio.Task[None] | None = None  # the running arm/takeoff/start sequence
+        # tracking: measured position against the setpoint of the measurement's time
+        self.tracking_error: float | None = None
+        self.tracking_error_max = 0.0  # since the service started
+        self._over = 0  # consecutive samples above [safety] max_tracking_error
+        self._tracking_said = False
+        self._tracking_stop: asyncio.Task[None] | None = None
+        # lag compensation: the vehicle's lag behind the setpoints it is sent, from telemetry
+        self.lag_estimate: float | None = None
+        self._lag_sums = np.zeros(5)  # e.v, v.v, e.a, v.a, a.a (see _estimate_lag)
+        self.lead_target: Any = None  # the setpoint thread (its `lead` is set here)
 
     def cancel_sequence(self) -> None:
         if self.task is not None and self.task is not asyncio.current_task() and not self.task.done():
@@ -64,10 +83,10 @@ class Commands:
                                  reported_in_air=st.landed_state == MAV_LANDED_IN_AIR)
         if why is None and st.last_heartbeat == -math.inf:
             why = "no autopilot heartbeat yet"
-        if why is None and name in ("arm", "takeoff", "start") and not st.has_position:
-            why = "no position estimate from the autopilot"
+        if why is None and name in ("arm", "takeoff", "start"):
+            why = st.position_problem()
         if why is not None:
-            self.report.refuse(name, why)
+            self.report.refuse(name, why, by="companion")
             return
         self.report.event("accepted", f"command {name}", key="command", command=name)
         if name in ("arm", "takeoff", "start"):
@@ -75,28 +94,40 @@ class Commands:
             body = {"arm": self.arm, "takeoff": lambda: self.takeoff(cmd.altitude or self.cfg.safety.takeoff_altitude),
                     "start": lambda: self.start(arrived)}[name]()
             self.task = asyncio.create_task(self._sequence(name, body))
-        elif name == "hold":
+            return
+        done = True
+        if name == "hold":
             await self.nav.hold("hold command", arrived)
         elif name == "resume":
             await self.nav.resume(arrived)
+            done = self.nav.interrupted is None
         elif name == "land":
-            await self.land()
+            done = await self.land()
         elif name == "abort":
             await self.abort(arrived)
         elif name == "disarm":
-            await self.disarm()
+            done = await self.disarm()
+        if done:
+            self._completed(name)
+
+    def _completed(self, name: str) -> None:
+        """The command did what it says (`python -m companion send` exits 0 on this)."""
+        self.report.event("completed", f"command {name} done ({self.flight.state.value})", key="command",
+                          command=name)
 
     async def _sequence(self, name: str, coro: Any) -> None:
         try:
             await coro
         except CommandFailed as exc:
-            self.report.refuse(name, f"failed: {exc}")
+            self.report.refuse(name, f"failed: {exc}", by="autopilot")
             if self.flight.state in (S.ARMING, S.TAKEOFF):
                 self.nav.release()
                 self.control.release()
                 self.report.go(S.IDLE if not self.link.state.armed else S.FAILSAFE, f"{name} failed: {exc}")
         except asyncio.CancelledError:
-            pass
+            self.report.refuse(name, "cancelled before it completed", by="companion")
+        else:
+            self._completed(name)
 
     # -- sequences -------------------------------------------------------------------------------
 
@@ -114,10 +145,23 @@ class Commands:
             self.take_control(reason)
 
     async def arm(self) -> None:
+        st = self.link.state
+        before = (st.base_mode, st.custom_mode, st.mode)
         await self._take_follow_mode("arm command")
         self.flight.disarm_requested = False
-        await self.link.arm(True)
-        await self.link.wait_for(lambda s: s.armed, 3.0, "the autopilot to report armed")
+        try:
+            await self.link.arm(True)
+            await self.link.wait_for(lambda s: s.armed, 3.0, "the autopilot to report armed")
+        except CommandFailed as exc:
+            if st.armed or not before[2] or st.mode == before[2]:
+                raise
+            # Denied: leave the autopilot in the mode it was in, not in OFFBOARD/GUIDED.
+            try:
+                await self.link.restore_mode(before[0], before[1])
+                await self.link.wait_for(lambda s: s.mode == before[2], 3.0, f"the autopilot to confirm {before[2]}")
+            except CommandFailed as again:
+                raise CommandFailed(f"{exc}; and the previous mode {before[2]} was not restored: {again}") from exc
+            raise CommandFailed(f"{exc}; the autopilot is back in {before[2]}") from exc
         where = "in the air" if self.flight.airborne else "on the ground"
         self.report.go(S.READY, f"armed in {self.link.state.mode} ({where}): holding")
 
@@ -136,8 +180,9 @@ class Commands:
         else:
             self.control.pause()
             await self.link.takeoff(altitude)
-            await self.link.wait_for(lambda s: s.position[2] <= target[2] + tol, 10.0 + altitude / 0.3,
-                                     f"altitude {altitude:.2f} m")
+            rest = self.cfg.safety.rest_speed
+            await self.link.wait_for(lambda s: abs(s.position[2] - target[2]) <= tol and at_rest(s.velocity, rest),
+                                     10.0 + altitude / 0.3, f"altitude {altitude:.2f} m, at rest")
             self.take_control("takeoff complete")
         self.flight.airborne = True
         self.report.go(S.READY, f"airborne at {altitude:.2f} m: holding")
@@ -160,11 +205,11 @@ class Commands:
             raise CommandFailed(f"no verified climb: {result.message}")
         if not self.control.swap(splice(base, result.trajectory), t_split, None, "takeoff"):
             raise CommandFailed("climb planning was too slow")
-        tol = self.cfg.safety.arrival_tolerance
+        tol, rest = self.cfg.safety.arrival_tolerance, self.cfg.safety.rest_speed
         end = result.trajectory.t_end
         await self.link.wait_for(
-            lambda s: self.control.flying and self.control.now() >= end and abs(s.position[2] - target[2]) <= tol,
-            end - self.control.now() + 10.0, "the climb to finish")
+            lambda s: self.control.flying and self.control.now() >= end and abs(s.position[2] - target[2]) <= tol
+            and at_rest(s.velocity, rest), end - self.control.now() + 10.0, "the climb to finish, at rest")
 
     async def start(self, arrived: float) -> None:
         self.flight.starting = True
@@ -190,7 +235,7 @@ class Commands:
         elif nav.interrupted is not None:
             await nav.resume(arrived)
 
-    async def land(self) -> None:
+    async def land(self) -> bool:
         """The autopilot lands (NAV_LAND / LAND mode), from any state in which the vehicle may
         be in the air: our modes, a pilot's, a failsafe's, or after a restart."""
         self.cancel_sequence()
@@ -202,7 +247,9 @@ class Commands:
         try:
             await self.link.land()
         except CommandFailed as exc:
-            self.report.refuse("land", f"failed: {exc}")
+            self.report.refuse("land", f"failed: {exc}", by="autopilot")
+            return False
+        return True
 
     async def abort(self, arrived: float) -> None:
         self.cancel_sequence()
@@ -216,13 +263,157 @@ class Commands:
                 self.report.go(S.IDLE if not self.link.state.armed else S.FAILSAFE, "abort command")
         self.report.event("aborted", "mission and pending commands cancelled")
 
-    async def disarm(self) -> None:
+    # -- tracking -------------------------------------------------------------------------
+
+    def check_tracking(self, measured_at: float) -> None:
+        """Each position sample: the time-aligned tracking error; above `[safety]
+        max_tracking_error` for TRACKING_SAMPLES samples in a row while a plan is flown: brake
+        to a verified stop and hold (holding already: say so once), with the figures."""
+        st, ctl, fl = self.link.state, self.control, self.flight
+        err = ctl.tracking_error(st.position, measured_at) if fl.controlling else None
+        self.tracking_error = err
+        if err is None:
+            self._over = 0
+            return
+        self.tracking_error_max = max(self.tracking_error_max, err)
+        self._estimate_lag(measured_at)
+        limit = self.cfg.safety.max_tracking_error
+        self._over = self._over + 1 if err > limit else 0
+        if self._over == 0:
+            self._tracking_said = False
+            return
+        if self._over < TRACKING_SAMPLES or self._tracking_said:
+            return
+        if self._tracking_stop is not None and not self._tracking_stop.done():
+            return
+        self._tracking_said = True
+        ref = ctl.reference(measured_at)
+        flying = fl.state is S.STREAMING and fl.airborne
+        what = "braking to a stop and holding" if flying else "holding already"
+        self.report.event("tracking", f"tracking error {err:.2f} m over [safety] max_tracking_error {limit:.2f} m "
+                          f"for {self._over} samples: {what}", error=round(err, 3), limit=limit,
+                          samples=self._over, position=[round(float(x), 3) for x in st.position],
+                          setpoint=None if ref is None else [round(float(x), 3) for x in ref])
+        if flying:
+            self._tracking_stop = asyncio.get_running_loop().create_task(
+                self.nav.hold(f"tracking error {err:.2f} m > {limit:.2f} m", None))
+
+    def _estimate_lag(self, measured_at: float) -> None:
+        """The vehicle's effective response lag behind its setpoints, from telemetry.
+
+        The time shift d that best explains the measured positions as the setpoint stream
+        delayed by d, as the lag is measured (minimum RMS of p(t) - s(t - d)); the setpoint of
+        time t is the plan at t + lead. To second order s(t - d) ~ s(t) - d v + d^2 a / 2, so
+        with e = measured - s(t) the squared error is a quartic in d whose coefficients are
+        sums of e.v, v.v, e.a, v.a, a.a over the samples (exponentially weighted, ~1 s, plan
+        speeds above LAG_MIN_SPEED); its minimum on [0, 2 LEAD_MAX] is the estimate. With
+        `setpoints.lead = "auto"` the setpoints lead by it (at most LEAD_MAX)."""
+        lead_now = float(getattr(self.lead_target, "lead", 0.0))
+        jet = self.control.reference_jet(measured_at + lead_now)
+        if jet is None or not self.flight.flying_ours:
+            return
+        s_pos, v, a = jet
+        speed2 = float(v @ v)
+        if speed2 < LAG_MIN_SPEED ** 2:
+            return
+        e = self.link.state.position - s_pos
+        sample = np.array([float(e @ v), speed2, float(e @ a), float(v @ a), float(a @ a)])
+        self._lag_sums += LAG_ALPHA * (sample - self._lag_sums)
+        ev, vv, ea, va, aa = self._lag_sums
+        d = LAG_GRID
+        cost = 2 * d * ev + d * d * (vv - ea) - d ** 3 * va + 0.25 * d ** 4 * aa
+        est = float(d[int(np.argmin(cost))])
+        self.lag_estimate = est
+        if self.cfg.setpoints.lead == "auto" and self.lead_target is not None:
+            self.lead_target.lead = min(est, LEAD_MAX)
+
+    # -- the hand-over on exit -------------------------------------------------------------
+
+    async def hand_over(self, reason: str, *, can_brake: bool = True) -> bool:
+        """Leave the vehicle to the autopilot's own control before the service exits.
+
+        In the air and in control: brake to a verified stop (when the setpoint stream still
+        works), then ask for `[safety] on_exit` (PX4 AUTO.LOITER; ArduPilot BRAKE then LOITER;
+        LAND; RTL) and wait for the heartbeat that confirms it, streaming the hold until then
+        so that the autopilot's offboard-loss failsafe never fires. Armed on the ground in
+        control: disarm. Returns True when nothing was left to a failsafe."""
+        fl, st = self.flight, self.link.state
+        self.cancel_sequence()
+        if fl.state is S.ARMING and fl.airborne and self.control.flying:
+            self.report.go(S.READY, f"{reason}: taking control back interrupted")
+        if not fl.controlling or not st.armed or fl.link_lost:
+            self.control.release()
+            if fl.state in (S.ARMING, S.TAKEOFF):
+                self.report.go(S.IDLE if not st.armed else S.FAILSAFE, f"{reason}: sequence interrupted")
+            return not (fl.link_lost and fl.controlling)
+        airborne = fl.airborne or st.landed_state == MAV_LANDED_IN_AIR or fl.state is S.TAKEOFF
+        if not airborne:
+            self.flight.disarm_requested = True
+            try:
+                await self.link.arm(False)
+                await self.link.wait_for(lambda s: not s.armed, 3.0, "the autopilot to report disarmed")
+            except CommandFailed as exc:
+                self.report.event("error", f"{reason}: disarm on the ground failed ({exc}); handing over instead")
+            else:
+                self.control.release()
+                fl.landed()
+                self.report.go(S.IDLE, f"{reason}: disarmed on the ground")
+                return True
+        if fl.state is S.TAKEOFF:
+            self.report.go(S.READY, f"{reason}: takeoff interrupted")
+        if can_brake and self.control.streaming and fl.state in HOLDING_CONTROL:
+            await self._brake_for_exit(reason)
+        return await self._request_exit_mode(reason)
+
+    async def _brake_for_exit(self, reason: str) -> None:
+        try:
+            await asyncio.wait_for(self.nav.hold(f"{reason}: stopping before the hand-over", None), 2.0)
+        except TimeoutError:  # a plan change held the navigator: hold where the vehicle is
+            log.warning("braking for the hand-over timed out; holding at the measured position")
+            if self.control.flying:
+                self.control.hold_here(self.link.state.position)
+        ctl, rest = self.control, self.cfg.safety.rest_speed
+        end = ctl.active.t_end if ctl.active is not None else 0.0
+        with contextlib.suppress(CommandFailed):
+            await self.link.wait_for(
+                lambda s: not ctl.flying or (ctl.now() >= end and at_rest(s.velocity, rest)),
+                max(0.0, end - (ctl.now() if ctl.flying else 0.0)) + 3.0, "the vehicle to stop")
+
+    async def _request_exit_mode(self, reason: str) -> bool:
+        st = self.link.state
+        wanted = {"hold": "LOITER", "land": "LAND", "rtl": "RTL"}[self.cfg.safety.on_exit]
+        steps = ["BRAKE", "LOITER"] if wanted == "LOITER" and st.autopilot == "ardupilot" else [wanted]
+        self.flight.exit_requested = True  # our mode changes: not a pilot takeover
+        for attempt in (steps, ["LAND"]) if wanted != "LAND" else (steps,):
+            try:
+                for mode in attempt:
+                    await self.link.set_mode(mode)
+                    await self.link.wait_for(lambda s, m=mode: s.mode == m, 3.0, f"the autopilot to confirm {mode}")
+                    if mode == "BRAKE":
+                        with contextlib.suppress(CommandFailed):
+                            await self.link.wait_for(lambda s: at_rest(s.velocity, self.cfg.safety.rest_speed), 3.0,
+                                                     "the vehicle to stop in BRAKE")
+            except CommandFailed as exc:
+                self.report.event("error", f"{reason}: hand-over to {attempt[-1]} failed: {exc}",
+                                  mode=st.mode)
+                continue
+            self.nav.release()
+            self.control.release()
+            to = S.LANDING if attempt[-1] == "LAND" else S.PILOT
+            self.report.go(to, f"{reason}: handed over to the autopilot ({st.mode})")
+            self.report.event("handover", f"{reason}: the autopilot holds the vehicle in {st.mode}",
+                              mode=st.mode, reason=reason)
+            return True
+        return False
+
+    async def disarm(self) -> bool:
         self.flight.disarm_requested = True
         self.release_control()
         try:
             await self.link.arm(False)
         except CommandFailed as exc:
-            self.report.refuse("disarm", f"failed: {exc}")
-            return
+            self.report.refuse("disarm", f"failed: {exc}", by="autopilot")
+            return False
         self.flight.landed()
         self.report.go(S.IDLE, "disarmed on command")
+        return True

@@ -38,7 +38,10 @@ class VehicleConfig:
 class ZenohConfig:
     prefix: str = "bezier"
     mode: str = "peer"
-    listen: tuple[str, ...] = ()
+    # Loopback only unless configured: any peer that reaches a listening endpoint may
+    # command the vehicle unless Zenoh authenticates it (config_file; docs/security.md).
+    # Without config_file the service never connects out to peers it scouts.
+    listen: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
     connect: tuple[str, ...] = ()
     multicast_scouting: bool = True
     # A full Zenoh JSON5 configuration (TLS, user/password, access control).
@@ -49,9 +52,14 @@ class ZenohConfig:
 
 @dataclass(frozen=True)
 class MavlinkConfig:
-    # udpout:HOST:PORT (we send first), udpin:HOST:PORT, tcp:HOST:PORT,
-    # serial:/dev/ttyAMA0:921600 (or /dev/ttyAMA0:921600)
-    url: str = "udpout:127.0.0.1:14540"
+    # udpin:HOST:PORT (we listen; the autopilot sends first: PX4 SITL and PX4's Onboard-mode
+    # links send to 14540), udpout:HOST:PORT (we send first), tcp:HOST:PORT (ArduPilot SITL:
+    # tcp:127.0.0.1:5760), serial:/dev/ttyAMA0:921600 (or /dev/ttyAMA0:921600); behind
+    # mavlink-router: udpin:0.0.0.0:14550 or the UDP endpoint it was given.
+    url: str = "udpin:0.0.0.0:14540"
+    # MAVLink 2 signing: a file holding the 32-byte key shared with the autopilot (raw, or 64
+    # hex digits); everything we send is then signed. "" = unsigned.
+    signing_key_file: str = ""
     heartbeat_hz: float = 1.0
     # No heartbeat from the autopilot for this long means the link is lost.
     link_timeout: float = 1.5
@@ -72,6 +80,10 @@ class SetpointConfig:
     # scheduling otherwise). The systemd unit's CPUSchedulingPolicy=fifo does the
     # same without any capability (see companion/rtsched.py and docs/deploy.md).
     realtime_priority: int = 0
+    # Lag compensation: sample each setpoint this far ahead on the verified trajectory (s),
+    # so that the vehicle, which lags its setpoints, flies the plan on time. "auto": the lag
+    # estimated in flight from telemetry (status `lag_estimate_ms`); 0: none. At most 0.12 s.
+    lead: float | str = 0.0
 
 
 @dataclass(frozen=True)
@@ -112,9 +124,37 @@ class GeofenceConfig:
 
 @dataclass(frozen=True)
 class LimitsConfig:
+    # What one inbound message may hold. Each refusal names the limit it hit.
+    # A larger payload is refused from its size alone (it is never read whole).
     max_message_bytes: int = 1048576
+    # Waypoints of one mission (or of one `append` change).
     max_waypoints: int = 5000
+    # Obstacles in one message (a mission's own, or one `obstacles` add).
     max_obstacles: int = 1000
+    # Vertices of one obstacle given as `vertices` (its hull is qhull's: O(n log n)).
+    max_obstacle_vertices: int = 1000
+    # Planes of one obstacle (`A` rows, or its hull's faces): vertex enumeration is
+    # O(planes^3), ~4 ms at 32 on this 2-core machine, and it runs again for every corridor build.
+    max_obstacle_planes: int = 32
+    # An obstacle's extent (m, along any axis) and its thinnest width (m): huge or flat
+    # obstacles are refused.
+    max_obstacle_extent: float = 1000.0
+    min_obstacle_width: float = 0.001
+    # Every number's magnitude (coordinates, offsets, durations, bounds).
+    max_number: float = 100000.0
+    # Characters of one number literal (refused before it is converted: Python's int()
+    # refuses 4300 digits, and long literals cost time), of one string, and nesting depth.
+    max_number_chars: int = 32
+    max_string_chars: int = 256
+    max_depth: int = 12
+    # What the service holds at once: obstacles from the `obstacles` key, mission messages
+    # being checked or planned (waiting included), inbound messages queued for decoding.
+    max_obstacles_held: int = 256
+    max_pending_missions: int = 4
+    max_queued_messages: int = 256
+    # Seconds one message's obstacles may take to check (hulls, vertices; in the decode
+    # thread for messages over 4 kB): past it the message is refused, naming this limit.
+    decode_deadline: float = 0.5
 
 
 @dataclass(frozen=True)
@@ -125,6 +165,14 @@ class SafetyConfig:
     arrival_tolerance: float = 0.2
     # Hold position instead of flying when tracking error exceeds this (m).
     max_tracking_error: float = 3.0
+    # Takeoff is complete within `arrival_tolerance` of its altitude AND below this speed (m/s).
+    rest_speed: float = 0.2
+    # On SIGINT/SIGTERM in flight (or an internal failure the service cannot recover from):
+    # brake to a verified stop, then hand over to the autopilot's own "hold" (PX4 AUTO.LOITER,
+    # ArduPilot BRAKE then LOITER), "land" or "rtl", and wait (at most `exit_timeout` s in
+    # all) for it to confirm the mode before exiting. Keep it below systemd's TimeoutStopSec.
+    on_exit: str = "hold"
+    exit_timeout: float = 8.0
 
 
 @dataclass(frozen=True)
@@ -147,6 +195,7 @@ _CHOICES: dict[str, tuple[str, ...]] = {
     "setpoints.yaw_mode": ("hold", "fixed", "velocity"),
     "planner.method": ("iterative", "global"),
     "planner.executor": ("process", "thread"),
+    "safety.on_exit": ("hold", "land", "rtl"),
 }
 _POSITIVE = {
     "mavlink.heartbeat_hz",
@@ -163,16 +212,39 @@ _POSITIVE = {
     "limits.max_message_bytes",
     "limits.max_waypoints",
     "limits.max_obstacles",
+    "limits.max_obstacle_vertices",
+    "limits.max_obstacle_planes",
+    "limits.max_obstacle_extent",
+    "limits.min_obstacle_width",
+    "limits.max_number",
+    "limits.max_number_chars",
+    "limits.max_string_chars",
+    "limits.max_depth",
+    "limits.max_obstacles_held",
+    "limits.max_pending_missions",
+    "limits.max_queued_messages",
+    "limits.decode_deadline",
     "safety.takeoff_altitude",
     "safety.arrival_tolerance",
     "safety.max_tracking_error",
+    "safety.rest_speed",
+    "safety.exit_timeout",
 }
 
 
 _NON_NEGATIVE = {"planner.fallback_delay"}
 
 
+LEAD_MAX = 0.12  # s: below [planner] split_ahead's default, so a swap is never sampled before its split
+
+
 def _convert(key: str, hint: Any, value: Any, default: Any) -> Any:
+    if key == "setpoints.lead":
+        if value == "auto":
+            return value
+        if isinstance(value, bool) or not isinstance(value, int | float) or not 0.0 <= value <= LEAD_MAX:
+            raise ConfigError(key, f"expected \"auto\" or seconds in [0, {LEAD_MAX}], got {value!r}")
+        return float(value)
     if dataclasses.is_dataclass(default):
         if not isinstance(value, dict):
             raise ConfigError(key, f"expected a table, got {type(value).__name__}")

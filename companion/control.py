@@ -27,7 +27,7 @@ log = logging.getLogger("companion")
 
 
 class FeedTarget(Protocol):
-    feed: Feed | None
+    feed: Feed | None  # and, optionally, `lead` (s): setpoints are sampled that far ahead
 
 
 class Control:
@@ -91,11 +91,28 @@ class Control:
             jet[1:] = 0.0
         return jet
 
-    def reference(self) -> FloatArray | None:
-        """The setpoint position of now (None when not streaming)."""
+    def reference(self, at: float | None = None) -> FloatArray | None:
+        """The setpoint position of monotonic time `at` (default now; None when not streaming).
+        A measurement is compared with the setpoint of its own time, not with that of now."""
         if not self._streaming or self._active is None or self._t_base is None:
             return None
-        return sampler(self._active).jet(self.now())[0]
+        t = (time.monotonic() if at is None else at) - self._t_base
+        return np.asarray(sampler(self._active).jet(t)[0], dtype=float)
+
+    def reference_jet(self, at: float) -> tuple[FloatArray, FloatArray, FloatArray] | None:
+        """The plan's position, velocity and acceleration at monotonic time `at` (None when
+        not streaming)."""
+        if not self._streaming or self._active is None or self._t_base is None:
+            return None
+        jet = sampler(self._active).jet(at - self._t_base)
+        return np.asarray(jet[0], dtype=float), np.asarray(jet[1], dtype=float), np.asarray(jet[2], dtype=float)
+
+    def tracking_error(self, position: FloatArray, at: float) -> float | None:
+        """Distance from a position measured at monotonic time `at` to the setpoint of then."""
+        ref = self.reference(at)
+        if ref is None or not np.all(np.isfinite(position)):
+            return None
+        return float(np.linalg.norm(position - ref))
 
     def _set(self, active: Trajectory | None, t_base: float | None, streaming: bool) -> None:
         self._active, self._t_base, self._streaming = active, t_base, streaming
@@ -160,7 +177,7 @@ class Control:
             return
         now = time.monotonic()
         try:
-            self.send(sample(self._active, now - self._t_base, self.yaw))
+            self.send(sample(self._active, now - self._t_base + getattr(self.target, "lead", 0.0), self.yaw))
         except OSError as exc:  # the periodic loop reports a dead link; never fail a swap on it
             log.warning("immediate setpoint not sent: %s", exc)
             return

@@ -60,7 +60,7 @@ def plan_with_detours(
             outcome = replace(outcome, message=f"{outcome.message}; no detour around {known.name(outcome.obstacle)} "
                               f"({why})")
             break
-        around.append(int(outcome.obstacle))
+        around.append(int(outcome.obstacle or 0))  # not None: the loop's condition
         outcome, points, times, labels = detoured
         detours += outcome.stats.get("detour", [])
     else:

@@ -65,7 +65,7 @@ class Navigator:
         self.runtime = runtime
         self.report = report
         self.position = position  # the measured position (NED)
-        self.obstacles = ObstacleStore()
+        self.obstacles = ObstacleStore(cfg.limits.max_obstacles_held)
         self.route: Route | None = None  # the mission being flown (its plan is in control)
         self.pending: MissionSpec | None = None  # loaded, waits for `start`
         self.interrupted: MissionSpec | None = None  # what a stop left of the mission, for `resume`
@@ -346,6 +346,10 @@ class Navigator:
     # -- obstacles ----------------------------------------------------------------------------------
 
     async def on_obstacles(self, update: ObstacleUpdate, arrived: float) -> None:
+        why = self.obstacles.refusal(update.add, update.remove, update.clear)
+        if why is not None:
+            self.report.reject("obstacles", "add", why, held=len(self.obstacles))
+            return
         added, removed, unknown = self.obstacles.update(update.add, update.remove, update.clear)
         note = f"; unknown ids ignored: {unknown}" if unknown else ""
 

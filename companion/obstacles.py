@@ -44,10 +44,23 @@ class Known:
 
 
 class ObstacleStore:
-    """Obstacles by id, as sent on the `obstacles` key (NED)."""
+    """Obstacles by id, as sent on the `obstacles` key (NED), at most `max_held` of them
+    ([limits] max_obstacles_held): every plan is built against all of them."""
 
-    def __init__(self) -> None:
+    def __init__(self, max_held: int | None = None) -> None:
         self._by_id: dict[str, Polytope] = {}
+        self.max_held = max_held
+
+    def refusal(self, add: Sequence[tuple[str, Polytope]], remove: Sequence[str], clear: bool) -> str | None:
+        """Why this update may not be applied (None: it may): it would hold too many."""
+        if self.max_held is None:
+            return None
+        kept = set() if clear else set(self._by_id) - set(remove)
+        n = len(kept | {k for k, _ in add})
+        if n > self.max_held:
+            return (f"{n} obstacles would be held, more than the limit of {self.max_held} "
+                    f"([limits] max_obstacles_held; {len(self._by_id)} held now: remove or clear some first)")
+        return None
 
     def update(self, add: Sequence[tuple[str, Polytope]], remove: Sequence[str], clear: bool
                ) -> tuple[list[str], list[str], list[str]]:

@@ -18,6 +18,7 @@ import asyncio
 import contextlib
 import functools
 import logging
+import math
 import sys
 import time
 from typing import Any
@@ -42,10 +43,13 @@ from companion.wire.mavlink import MavlinkLink
 from companion.wire.messages import (
     Change,
     Command,
+    InternalError,
     Message,
     MessageError,
     MissionSpec,
     ObstacleUpdate,
+    Oversized,
+    quote,
     read,
     warm_validators,
 )
@@ -58,9 +62,14 @@ INLINE_DECODE_BYTES = 4096
 
 
 class Service:
-    def __init__(self, cfg: Config, stop: asyncio.Event | None = None) -> None:
+    def __init__(self, cfg: Config, stop: asyncio.Event | None = None,
+                 abandon: asyncio.Event | None = None) -> None:
         self.cfg = cfg
-        self.stop = stop or asyncio.Event()
+        # `requested`: asked to stop (first SIGINT/SIGTERM): hand over, then stop; `abandon`
+        # (a second signal): give up the hand-over at once; `stop`: the loops end.
+        self.requested = stop or asyncio.Event()
+        self.abandon = abandon or asyncio.Event()
+        self.stop = asyncio.Event()
         self.flight = Flight()
         self.report = Reporter(self.flight, self._publish)
         self.runtime = Runtime(cfg, on_planner_died=lambda: self.report.event(
@@ -74,8 +83,12 @@ class Service:
                                on_new_plan=self.publish_trajectory, on_latency=self._latency_event)
         self.navigator = Navigator(cfg, self.flight, self.control, self.runtime, self.report, self._position)
         self.commands = Commands(cfg, self.flight, self.control, self.link, self.navigator, self.report)
-        self.watch = AutopilotWatch(cfg, self.flight, self.link, self.report, self.commands.release_control)
+        self.watch = AutopilotWatch(cfg, self.flight, self.link, self.report, self.commands.release_control,
+                                    on_position=self.commands.check_tracking)
         self.link.on_message = self.watch.on_message
+        # lag compensation: a fixed lead, or "auto" (set by Commands from its estimate)
+        self.commands.lead_target = self.sender
+        self.sender.lead = 0.0 if cfg.setpoints.lead == "auto" else float(cfg.setpoints.lead)
         self.zio: ZenohIO | None = None
         self.notifier = Notifier()
         self.gc = GcPacer()
@@ -86,7 +99,11 @@ class Service:
         self._traj_published = 0
         self._traj_bytes: bytes | None = None
         self._sender_failure: asyncio.Future[None] | None = None
-        self._ordered: asyncio.Queue[tuple[str, bytes, float]] = asyncio.Queue()
+        self._ordered: asyncio.Queue[tuple[str, bytes | Oversized, float]] = asyncio.Queue()
+        self._missions: list[asyncio.Task[Any]] = []  # mission handlers not yet done
+        self._drops = 0
+        self._drop_said = -math.inf
+        self.setpoints_stalled = False
         self._ticked = asyncio.Event()
         self._log_listener: Any = None
 
@@ -210,11 +227,8 @@ class Service:
 
     def status(self) -> dict[str, Any]:
         st, ctl = self.link.state, self.control
-        ref = ctl.reference()
-        if ref is not None and st.has_position:
-            self.tracking_error = float(np.linalg.norm(st.position - ref))
-        elif not ctl.streaming:
-            self.tracking_error = None
+        # measured position against the setpoint of the measurement's own time (Commands)
+        self.tracking_error = self.commands.tracking_error if ctl.streaming else None
         return {
             "vehicle": self.cfg.vehicle.id,
             "time": round(time.time(), 3),
@@ -227,11 +241,15 @@ class Service:
             "streaming": ctl.streaming,
             **self.navigator.status_fields(),
             "tracking_error": enc.num(self.tracking_error),
+            "tracking_error_max": enc.num(self.commands.tracking_error_max),
+            "lead_ms": round(self.sender.lead * 1000, 1),
+            "lag_estimate_ms": enc.ms(self.commands.lag_estimate),
             "message_to_setpoint_ms": enc.ms(ctl.setpoint_latency),
             "setpoints_sent": self.link.sent_setpoints,
             "setpoint_gap_max_ms": round(ctl.setpoint_gap_max * 1000, 2),
             "setpoint_period_ms": ctl.period_stats(),
             "gc_pause_max_ms": round(self.gc.worst * 1000, 2),
+            "setpoints_stalled": self.setpoints_stalled,
         }
 
     # -- inbound messages: one reader per kind ------------------------------------------------------
@@ -240,14 +258,21 @@ class Service:
         """Small obstacle messages (pop-ups) are handled at once; the rest keep their order in
         `ordered_loop`, where one large mission may take a while to validate: a pop-up must not
         wait behind it. (Obstacle updates do not depend on a mission being loaded first: a
-        mission is planned against the obstacles known when it is planned.)"""
+        mission is planned against the obstacles known when it is planned.) Nothing a message
+        does ends this loop: the last-resort guard turns it into a rejection and an error."""
         assert self.zio is not None
+        self.zio.on_dropped = self._dropped
         while not self.stop.is_set():
             kind, payload, arrived = await self.zio.inbox.get()
-            if kind == "obstacles" and len(payload) <= INLINE_DECODE_BYTES:
-                self._dispatch(kind, payload, arrived, read(kind, payload, self.cfg))
-            else:
-                self._ordered.put_nowait((kind, payload, arrived))
+            try:
+                if kind == "obstacles" and len(payload) <= INLINE_DECODE_BYTES:
+                    self._dispatch(kind, payload, arrived, read(kind, payload, self.cfg))
+                elif self._ordered.qsize() >= self.cfg.limits.max_queued_messages:
+                    self._dropped(kind, len(payload))
+                else:
+                    self._ordered.put_nowait((kind, payload, arrived))
+            except Exception as exc:
+                self._unforeseen(kind, payload, exc)
 
     async def ordered_loop(self) -> None:
         while not self.stop.is_set():
@@ -255,18 +280,48 @@ class Service:
             # JSON Schema validation is pure Python (~0.1 ms per waypoint): large messages off
             # the loop, small ones (a command: well under a millisecond) right here, which
             # spares two thread hand-offs. One message at a time, so the order is kept.
-            assert self.loop is not None
-            job = functools.partial(read, kind, payload, self.cfg)
-            msg = job() if len(payload) <= INLINE_DECODE_BYTES else \
-                await self.loop.run_in_executor(self.runtime.decode_pool, job)
-            self._dispatch(kind, payload, arrived, msg)
+            try:
+                assert self.loop is not None
+                job = functools.partial(read, kind, payload, self.cfg)
+                msg = job() if len(payload) <= INLINE_DECODE_BYTES else \
+                    await self.loop.run_in_executor(self.runtime.decode_pool, job)
+                self._dispatch(kind, payload, arrived, msg)
+            except Exception as exc:
+                self._unforeseen(kind, payload, exc)
 
-    def _dispatch(self, kind: str, payload: bytes, arrived: float, msg: Message | MessageError) -> None:
+    def _unforeseen(self, kind: str, payload: bytes | Oversized, exc: BaseException) -> None:
+        """The last resort at the loop boundary: a rejection and an error event, never an exit."""
+        log.error("message on %s: unforeseen %r", kind, exc, exc_info=exc)
+        what = f"{type(exc).__name__}: {quote(str(exc))}"
+        with contextlib.suppress(Exception):
+            self.report.reject(kind, "", f"internal error while handling the message: {what}", bytes=len(payload))
+            self.report.event("error", f"{kind}: internal error while handling a message: {what}; "
+                              "holding the current plan", key=kind)
+
+    def _dropped(self, kind: str, size: int) -> None:
+        """A message refused because the inbound queues are full: said at most once a second."""
+        self._drops += 1
+        now = time.monotonic()
+        if now - self._drop_said >= 1.0:
+            n, self._drops, self._drop_said = self._drops, 0, now
+            lim = self.cfg.limits.max_queued_messages
+            self.report.reject(kind, "", f"{n} message(s) dropped: {lim} messages are already queued "
+                               f"([limits] max_queued_messages = {lim})", bytes=size, dropped=n)
+
+    def _dispatch(self, kind: str, payload: bytes | Oversized, arrived: float, msg: Message | MessageError) -> None:
         if isinstance(msg, MessageError):
             self.report.reject(kind, msg.field, msg.reason, bytes=len(payload))
+            if isinstance(msg, InternalError):
+                self.report.event("error", f"{kind}: {msg.reason}; holding the current plan", key=kind)
             return
         handler: Any
         if isinstance(msg, MissionSpec):
+            self._missions = [t for t in self._missions if not t.done()]
+            lim = self.cfg.limits.max_pending_missions
+            if len(self._missions) >= lim:
+                self.report.reject(kind, "", f"mission {msg.id}: {len(self._missions)} missions are already being "
+                                   f"checked or planned ([limits] max_pending_missions = {lim})", mission=msg.id)
+                return
             handler = self.navigator.on_mission
         elif isinstance(msg, ObstacleUpdate):
             handler = self.navigator.on_obstacles
@@ -275,10 +330,42 @@ class Service:
         elif isinstance(msg, Command):
             handler = self.commands.on_command
         else:  # pragma: no cover - read() makes only these
-            raise TypeError(f"no handler for {msg!r}")
+            raise TypeError(f"no handler for {type(msg).__name__}")
         task = asyncio.create_task(self._guard(kind, handler(msg, arrived)))
+        if isinstance(msg, MissionSpec):
+            self._missions.append(task)
         self.tasks.append(task)
         self.tasks = [t for t in self.tasks if not t.done()]
+
+    # -- the setpoint-stream watchdog ---------------------------------------------------------------
+
+    async def setpoint_watchdog(self) -> None:
+        """Notices when setpoints stop leaving while streaming (the setpoint thread stalled or
+        its sends fail), and when this loop itself was held up: status (`setpoints_stalled`) and
+        an `error` event say so, and `setpoints_resumed` when they flow again. (A hung loop is
+        systemd's watchdog's: it is fed only from setpoint ticks handled on the loop.)"""
+        period = 1.0 / self.cfg.setpoints.rate_hz
+        limit = max(0.1, 5 * period)
+        count, since = self.link.sent_setpoints, time.monotonic()
+        expected = since + period
+        while not self.stop.is_set():
+            await asyncio.sleep(period)
+            now = time.monotonic()
+            if now - expected > 0.25:
+                self.report.event("error", f"the event loop was held up for {(now - expected) * 1000:.0f} ms",
+                                  loop_stall_ms=round((now - expected) * 1000, 1))
+            expected = now + period
+            n = self.link.sent_setpoints
+            if n != count or not self.control.streaming:
+                if self.setpoints_stalled:
+                    self.setpoints_stalled = False
+                    self.report.event("setpoints_resumed", f"setpoints leave again after {(now - since) * 1000:.0f} ms",
+                                      silence_ms=round((now - since) * 1000, 1))
+                count, since = n, now
+            elif not self.setpoints_stalled and now - since > limit:
+                self.setpoints_stalled = True
+                self.report.event("error", f"setpoints stopped leaving: none sent for {(now - since) * 1000:.0f} ms "
+                                  "while streaming", silence_ms=round((now - since) * 1000, 1))
 
     async def _guard(self, kind: str, coro: Any) -> None:
         try:
@@ -302,7 +389,9 @@ class Service:
         await loop.run_in_executor(rt.decode_pool, warm_validators)
         await asyncio.gather(*(loop.run_in_executor(rt.brake_pool, warm_up_brake, self.cfg) for _ in range(2)))
 
-    async def run(self) -> None:
+    async def run(self) -> bool:
+        """Run until asked to stop; returns True when the vehicle was handed over (or there
+        was nothing to hand over); raises what failed inside, after the hand-over."""
         self.loop = asyncio.get_running_loop()
         self.runtime.loop = self.loop
         # Log output (a file or journald on a busy disk) is written by a thread of its own.
@@ -318,20 +407,34 @@ class Service:
         self._sender_failure = self.loop.create_future()
         self.sender.start(rtsched.starter())
         log.info("setpoint thread: %.0f Hz, %s scheduling", self.cfg.setpoints.rate_hz, self.sender.scheduling)
-        loops = [self.heartbeat_loop(), self.telemetry_loop(), self.status_loop(),
-                 self.inbox_loop(), self.ordered_loop()]
-        runners = [asyncio.create_task(c) for c in loops]
-        runners.append(asyncio.ensure_future(self._sender_failure))
+        periodic = [asyncio.create_task(c) for c in (self.heartbeat_loop(), self.telemetry_loop(), self.status_loop(),
+                                                       self.setpoint_watchdog())]
+        inbound = [asyncio.create_task(c) for c in (self.inbox_loop(), self.ordered_loop())]
+        sender = asyncio.ensure_future(self._sender_failure)
+        runners: list[asyncio.Future[Any]] = [*periodic, *inbound, sender]
         self.notifier.ready(f"vehicle {self.cfg.vehicle.id}: zenoh and mavlink up")
         self.report.event("started", f"companion for {self.cfg.vehicle.id} started", mavlink=self.cfg.mavlink.url)
+        failure: BaseException | None = None
+        handed_over = False
         try:
-            stopper = asyncio.create_task(self.stop.wait())
+            stopper: asyncio.Future[Any] = asyncio.create_task(self.requested.wait())
             done, _ = await asyncio.wait([stopper, *runners], return_when=asyncio.FIRST_COMPLETED)
+            stopper.cancel()
             for t in done:
-                if t is not stopper and t.exception() is not None:
-                    raise t.exception()  # type: ignore[misc]
+                if t is not stopper and not t.cancelled() and t.exception() is not None:
+                    failure = t.exception()
+            self.notifier.stopping()
+            # No new message is taken from now on; what was being handled is cancelled.
+            for t in [*inbound, *self.tasks]:
+                t.cancel()
+            await asyncio.gather(*inbound, *self.tasks, return_exceptions=True)
+            why = "stop requested" if failure is None else f"internal failure ({failure})"
+            if failure is not None:
+                log.critical("%s: handing the vehicle over to the autopilot", why)
+            handed_over = await self._hand_over(why, can_brake=failure is None or sender not in done)
         finally:
             self.notifier.stopping()
+            self.stop.set()
             self.control.release()
             self.sender.stop()
             seq = self.commands.task
@@ -339,14 +442,37 @@ class Service:
                 t.cancel()
             await asyncio.gather(*runners, *self.tasks, return_exceptions=True)
             with contextlib.suppress(Exception):
-                self.report.event("stopped", "companion stopping")
+                self.report.event("stopped", "companion stopping", handed_over=handed_over)
             self.link.close()
             self.zio.close()
             self.runtime.shutdown()
             self.gc.stop()
             restore_logging(self._log_listener)
+        if failure is not None:
+            raise failure
+        return handed_over
+
+    async def _hand_over(self, why: str, can_brake: bool) -> bool:
+        """`Commands.hand_over`, bounded by `[safety] exit_timeout` and given up on `abandon`."""
+        job = asyncio.create_task(self.commands.hand_over(why, can_brake=can_brake))
+        quit_now = asyncio.create_task(self.abandon.wait())
+        done, _ = await asyncio.wait([job, quit_now], timeout=self.cfg.safety.exit_timeout,
+                                     return_when=asyncio.FIRST_COMPLETED)
+        quit_now.cancel()
+        if job in done:
+            if job.exception() is None:
+                return bool(job.result())
+            log.error("hand-over failed", exc_info=job.exception())
+            return False
+        job.cancel()
+        await asyncio.gather(job, return_exceptions=True)
+        what = "a second signal" if self.abandon.is_set() else f"[safety] exit_timeout ({self.cfg.safety.exit_timeout} s)"
+        with contextlib.suppress(Exception):
+            self.report.event("error", f"hand-over to the autopilot given up on {what}; mode {self.link.state.mode}")
+        return False
 
 
-async def run(config: Config, *, stop: asyncio.Event | None = None) -> None:
-    """Run the service until `stop` is set (or forever)."""
-    await Service(config, stop).run()
+async def run(config: Config, *, stop: asyncio.Event | None = None, abandon: asyncio.Event | None = None) -> bool:
+    """Run the service until `stop` is set (or forever), then hand the vehicle over; a set
+    `abandon` gives the hand-over up. True when nothing was left to a failsafe."""
+    return await Service(config, stop, abandon).run()

@@ -138,6 +138,7 @@ class SetpointSender:
         self.priority = priority
         self.clock = clock
         self.feed: Feed | None = None
+        self.lead = 0.0  # s: setpoints are sampled this far ahead on the trajectory (lag compensation)
         self.scheduling = "normal"  # as the thread found or set it, for the logs and status
         self.native_id: int | None = None
         self._stop = threading.Event()
@@ -182,7 +183,7 @@ class SetpointSender:
             feed = self.feed
             gap = error = sp = None
             if feed is not None:
-                sp = sample(feed.trajectory, now - feed.t_base, self.yaw)
+                sp = sample(feed.trajectory, now - feed.t_base + self.lead, self.yaw)
                 try:
                     self.send(sp)
                 except OSError as exc:  # reported on the loop; the next tick tries again

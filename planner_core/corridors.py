@@ -47,7 +47,6 @@ BoolArray = NDArray[np.bool_]
 
 CERT_TOL = 1e-10  # slack on the certificate test; the offsets are exact up to rounding
 DEFAULT_INFLUENCE_MARGIN = 3.0  # metres beyond the segment length (plus 2r) that get a plane
-_HULL_TOL = 1e-9  # relative to the point cloud's extent
 _DET_TOL = 1e-12  # unit normals: |det| below this means three planes share no single point
 _CHUNK = 20000  # triples per vectorised batch (bounds memory for big hulls)
 
@@ -199,10 +198,16 @@ def polytope_vertices(poly: Polytope, name: str = "polytope") -> FloatArray:
     if verts.shape[0] == 0:
         raise ValueError(f"{name}: polytope is empty (its planes have no common point)")
     verts.flags.writeable = False
-    _VERTEX_CACHE[key] = verts
+    _remember_vertices(poly, verts)
+    return verts
+
+
+def _remember_vertices(poly: Polytope, verts: FloatArray) -> None:
+    A0 = np.ascontiguousarray(poly.A, dtype=float)
+    b0 = np.ascontiguousarray(poly.b, dtype=float)
+    _VERTEX_CACHE[(A0.shape, A0.tobytes(), b0.tobytes())] = verts
     while len(_VERTEX_CACHE) > _VERTEX_CACHE_SIZE:
         _VERTEX_CACHE.popitem(last=False)
-    return verts
 
 
 # --- convex hull (vertices -> H-representation) -----------------------------
@@ -217,31 +222,34 @@ def _dedup_planes(A: FloatArray, b: FloatArray, tol: float) -> tuple[FloatArray,
     return A[keep], b[keep]
 
 
-def _hull_planes(p: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Facet planes of the hull of points p (extent ~1): every supporting triple plane."""
-    normals: list[FloatArray] = []
-    offsets: list[FloatArray] = []
-    for idx in _triple_chunks(p.shape[0]):
-        n = np.cross(p[idx[:, 1]] - p[idx[:, 0]], p[idx[:, 2]] - p[idx[:, 0]])
-        norm = np.linalg.norm(n, axis=1)
-        good = norm > 1e-12
-        n = n[good] / norm[good, None]
-        d = np.einsum("td,td->t", n, p[idx[good, 0]])
-        s = p @ n.T - d  # (k, T) signed distances of all points
-        below = np.max(s, axis=0) <= _HULL_TOL
-        above = np.min(s, axis=0) >= -_HULL_TOL
-        normals += [n[below], -n[above]]
-        offsets += [d[below], -d[above]]
-    A = np.concatenate(normals) if normals else np.zeros((0, 3))
-    b = np.concatenate(offsets) if offsets else np.zeros(0)
-    return _dedup_planes(A, b, 1e-7)
+def _hull_planes(p: FloatArray) -> tuple[FloatArray, FloatArray, IntArray]:
+    """Facet planes of the hull of points p (extent ~1), by qhull (O(k log k)), and the
+    indices of the points that are hull vertices.
+
+    scipy's ConvexHull triangulates facets, so coplanar triangles give the same plane:
+    planes are merged on a 1e-7 grid first (cheap), then pairwise (few left).
+    """
+    from scipy.spatial import ConvexHull, QhullError
+
+    try:
+        hull = ConvexHull(p)
+    except QhullError as exc:  # a degenerate cloud the volume checks let through
+        raise ValueError(f"vertices: degenerate hull ({str(exc).splitlines()[0][:80]})") from None
+    eq = np.asarray(hull.equations, dtype=float)  # rows (n, -d): n.x - d <= 0 inside
+    A = eq[:, :3]
+    b = -eq[:, 3]
+    key = np.round(np.concatenate([A, b[:, None]], axis=1) / 1e-7)
+    _, first = np.unique(key, axis=0, return_index=True)
+    keep = np.sort(first)
+    A, b = _dedup_planes(A[keep], b[keep], 1e-7)
+    return A, b, np.asarray(hull.vertices, dtype=np.intp)
 
 
 def polytope_from_vertices(vertices: ArrayLike) -> Polytope:
     """H-representation of the convex hull of `vertices` (k, 3).
 
-    Rows of A are unit normals, one per facet (no redundant rows). Cost is
-    O(k^4) by plane triples, meant for obstacles of tens of vertices.
+    Rows of A are unit normals, one per facet (no redundant rows). The hull is qhull's
+    (scipy.spatial.ConvexHull): O(k log k), a few ms for thousands of points.
     Raises ValueError for fewer than 4 points, non-finite values, or points
     that are collinear or coplanar (the hull would have no volume).
     """
@@ -258,8 +266,13 @@ def polytope_from_vertices(vertices: ArrayLike) -> Polytope:
         raise ValueError("vertices: all points are collinear (hull has no volume)")
     if sv.shape[0] < 3 or sv[2] <= 1e-9 * sv[0]:
         raise ValueError("vertices: all points are coplanar (hull has no volume)")
-    A, b = _hull_planes(p)
-    return Polytope(A=A, b=b * scale + A @ origin)
+    A, b, hull_vertices = _hull_planes(p)
+    poly = Polytope(A=A, b=b * scale + A @ origin)
+    # The hull's vertices are known: `polytope_vertices` need not enumerate plane triples.
+    verts = np.ascontiguousarray(p[hull_vertices] * scale + origin, dtype=float)
+    verts.flags.writeable = False
+    _remember_vertices(poly, verts)
+    return poly
 
 
 def polytope_from_box(center: ArrayLike, size: ArrayLike) -> Polytope:

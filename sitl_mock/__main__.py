@@ -9,6 +9,8 @@ from types import FrameType
 
 from .faults import _seconds, parse_faults
 from .server import MockAutopilot, MockConfig
+from .transport import PX4_SITL_ENDPOINT, read_signing_key
+from .vehicle import RESPONSES
 
 
 def _takeover(text: str) -> tuple[float, str]:
@@ -37,6 +39,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--autopilot", choices=["px4", "ardupilot"], default="px4")
     p.add_argument("--endpoint", action="append", dest="endpoints", metavar="KIND:HOST:PORT",
                    help="udpin:H:P (default udpin:127.0.0.1:14540), udpout:H:P or tcpin:H:P; repeatable")
+    p.add_argument("--px4-sitl-ports", action="store_true",
+                   help=f"act as PX4 SITL's offboard link: {PX4_SITL_ENDPOINT} (listen on 14580, send to 14540, "
+                   "where MAVSDK, MAVROS and the companion's default udpin:0.0.0.0:14540 listen)")
     p.add_argument("--sysid", type=int, default=1)
     p.add_argument("--compid", type=int, default=1)
     p.add_argument("--log", dest="log_path", metavar="FILE.jsonl")
@@ -58,6 +63,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--offboard-warmup", type=float, default=1.0, metavar="SECONDS",
                    help="how long a >= 2 Hz setpoint stream must run before OFFBOARD is allowed "
                    "(PX4 docs: 1 s; 0: PX4 code's rule, one setpoint within COM_OF_LOSS_T)")
+    p.add_argument("--response", choices=sorted(RESPONSES), default="calibrated",
+                   help="vehicle response: calibrated (default; fitted to ArduCopter SITL, ~60 ms effective lag) "
+                   "or ideal (follows a full feed-forward at once: fast unit tests)")
+    p.add_argument("--signing-key", metavar="FILE",
+                   help="MAVLink 2 signing: a file holding the 32-byte key (raw, or 64 hex digits); unsigned or "
+                   "wrongly signed commands and setpoints are then ignored")
     p.add_argument("--param", action="append", type=_param, default=[], metavar="NAME=VALUE")
     return p
 
@@ -67,13 +78,15 @@ def main(argv: list[str] | None = None) -> int:
     try:
         config = MockConfig(
             autopilot=args.autopilot,
-            endpoints=args.endpoints or ["udpin:127.0.0.1:14540"],
+            endpoints=(args.endpoints or []) + ([PX4_SITL_ENDPOINT] if args.px4_sitl_ports else [])
+            or ["udpin:127.0.0.1:14540"],
             sysid=args.sysid, compid=args.compid, log_path=args.log_path, speed=args.speed,
             control=args.control, faults=parse_faults(args.fault), rate_hz=args.rate_hz,
             log_rate_hz=args.log_rate_hz, home_lat=args.home_lat, home_lon=args.home_lon,
             home_alt=args.home_alt, seed=args.seed, wind=args.wind, noise=args.noise,
             takeovers=args.takeover_at, params=dict(args.param),
-            offboard_warmup_s=args.offboard_warmup,
+            offboard_warmup_s=args.offboard_warmup, vehicle=RESPONSES[args.response],
+            signing_key=read_signing_key(args.signing_key) if args.signing_key else None,
         )
         mock = MockAutopilot(config)
         mock.bind()

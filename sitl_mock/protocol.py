@@ -341,6 +341,13 @@ def default_params(flavour: Flavour) -> dict[str, Param]:
             Param("WPNAV_SPEED", 1000.0, f32),
             Param("WPNAV_SPEED_UP", 300.0, f32),
             Param("WPNAV_SPEED_DN", 150.0, f32),
+            # Stream-group rates (Hz) at boot on the first MAVLink link, as ArduCopter 4.7 names
+            # them (SR0_*/SR1_* before): 0 in a stock set, so nothing but HEARTBEAT and
+            # STATUSTEXT goes out until a client asks (REQUEST_DATA_STREAM, SET_MESSAGE_INTERVAL).
+            Param("MAV1_EXT_STAT", 0, i32),
+            Param("MAV1_POSITION", 0, i32),
+            Param("MAV1_EXTRA1", 0, i32),
+            Param("MAV1_EXTRA3", 0, i32),
         ]
     return {p.name: p for p in items}
 

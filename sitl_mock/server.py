@@ -28,11 +28,13 @@ from .protocol import (
     target_matches,
 )
 from .transport import Encoder, Link, parse_endpoint
-from .vehicle import Target, Vehicle, VehicleParams
+from .vehicle import RESPONSES, Target, Vehicle, VehicleParams
 
 R = mav  # result and enum constants live on the dialect module
 
-# Default stream rates (Hz); SET_MESSAGE_INTERVAL changes them.
+# Default stream rates (Hz) of the PX4 flavour, about what PX4 streams on a MAVLink instance in
+# Onboard mode (the mode of PX4 SITL's offboard link, udp 14580 -> 14540); SET_MESSAGE_INTERVAL
+# changes them. The ArduPilot flavour sends only HEARTBEAT until asked (APM_GROUPS).
 DEFAULT_RATES: dict[int, float] = {
     mav.MAVLINK_MSG_ID_HEARTBEAT: 1.0,
     mav.MAVLINK_MSG_ID_SYS_STATUS: 2.0,
@@ -40,10 +42,21 @@ DEFAULT_RATES: dict[int, float] = {
     mav.MAVLINK_MSG_ID_ATTITUDE: 30.0,
     mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT: 10.0,
     mav.MAVLINK_MSG_ID_GPS_RAW_INT: 2.0,
-    mav.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: 2.0,
+    mav.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: 5.0,
     mav.MAVLINK_MSG_ID_HOME_POSITION: 0.5,
     mav.MAVLINK_MSG_ID_POSITION_TARGET_LOCAL_NED: 10.0,
     mav.MAVLINK_MSG_ID_SYSTEM_TIME: 1.0,
+}
+# ArduPilot: the legacy stream groups (REQUEST_DATA_STREAM) of the messages the mock sends,
+# with the parameter that sets each group's rate at boot. EXTENDED_SYS_STATE, HOME_POSITION
+# and SYSTEM_TIME... are in no group here: on request only (SET_MESSAGE_INTERVAL / REQUEST_MESSAGE).
+APM_GROUPS: dict[int, tuple[str, tuple[int, ...]]] = {
+    mav.MAV_DATA_STREAM_EXTENDED_STATUS: ("MAV1_EXT_STAT", (mav.MAVLINK_MSG_ID_SYS_STATUS, mav.MAVLINK_MSG_ID_GPS_RAW_INT,
+                                                            mav.MAVLINK_MSG_ID_POSITION_TARGET_LOCAL_NED)),
+    mav.MAV_DATA_STREAM_POSITION: ("MAV1_POSITION", (mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT,
+                                                     mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED)),
+    mav.MAV_DATA_STREAM_EXTRA1: ("MAV1_EXTRA1", (mav.MAVLINK_MSG_ID_ATTITUDE,)),
+    mav.MAV_DATA_STREAM_EXTRA3: ("MAV1_EXTRA3", (mav.MAVLINK_MSG_ID_SYSTEM_TIME,)),
 }
 REBOOT_SILENCE_S = 3.0
 STREAM_GAP_S = 0.55  # a 2 Hz stream has 0.5 s gaps; allow a little jitter
@@ -70,7 +83,11 @@ class MockConfig:
     takeovers: list[tuple[float, str]] = field(default_factory=list)
     params: dict[str, float] = field(default_factory=dict)
     offboard_warmup_s: float = 1.0
-    vehicle: VehicleParams = field(default_factory=VehicleParams)
+    # the vehicle's response: sitl_mock.vehicle.RESPONSES["calibrated"] (default) or ["ideal"]
+    vehicle: VehicleParams = field(default_factory=lambda: RESPONSES["calibrated"])
+    # MAVLink 2 signing: with a 32-byte key, unsigned or wrongly signed commands and setpoints
+    # are ignored (logged as event "signature_rejected").
+    signing_key: bytes | None = None
 
     def validate(self) -> None:
         if self.autopilot not in ("px4", "ardupilot"):
@@ -143,6 +160,8 @@ class MockAutopilot:
         if self.links:
             return
         self.links = [Link(parse_endpoint(e)) for e in self.config.endpoints]
+        for link in self.links:
+            link.signing_key = self.config.signing_key
         if self.config.control:
             host, port = parse_hostport(self.config.control, "control")
             self.control = ControlServer(host, port, self._control_request)
@@ -211,6 +230,14 @@ class MockAutopilot:
         self.rebooting_until = -math.inf
         self.next_due = {mid: self.t for mid in DEFAULT_RATES}
         self.intervals = {mid: 1.0 / hz for mid, hz in DEFAULT_RATES.items()}
+        if self.flavour is Flavour.ARDUPILOT:
+            # Stock ArduPilot on a fresh link: HEARTBEAT only (and STATUSTEXT as it happens),
+            # plus the groups whose MAV1_* rate parameter is set.
+            for mid in self.intervals:
+                if mid != mav.MAVLINK_MSG_ID_HEARTBEAT:
+                    self.intervals[mid] = math.inf
+            for group in APM_GROUPS:
+                self._set_group(group, self._param(APM_GROUPS[group][0]))
         self._update_snapshot()
 
     def _param(self, name: str) -> float:
@@ -312,8 +339,12 @@ class MockAutopilot:
                     link.send(item[1])
 
     def _on_data(self, link: Link, peer: Any, data: bytes) -> None:
+        rejected = link.rejected
         for msg in link.parse(peer, data):
             self._on_message(msg)
+        if link.rejected > rejected:
+            self.log.write("event", self.t, event="signature_rejected", count=link.rejected - rejected,
+                           total=link.rejected)
 
     def _send(self, msg: Any) -> None:
         if self.t < self.rebooting_until or not self.link_faults.admit(self.t, "out"):
@@ -595,6 +626,7 @@ class MockAutopilot:
             "PARAM_SET": self._on_param_set,
             "MISSION_REQUEST_LIST": self._on_mission_list,
             "TIMESYNC": self._on_timesync,
+            "REQUEST_DATA_STREAM": self._on_request_data_stream,
         }.get(kind)
         if handler is None:
             return
@@ -689,12 +721,29 @@ class MockAutopilot:
             return int(mav.MAV_RESULT_DENIED), f"message {msg_id} cannot be streamed"
         if interval_us < 0:
             self.intervals[msg_id] = math.inf
-        elif interval_us == 0:
-            self.intervals[msg_id] = 1.0 / DEFAULT_RATES[msg_id]
+        elif interval_us == 0:  # the default rate: ArduPilot's stock one is "not streamed"
+            self.intervals[msg_id] = 1.0 / DEFAULT_RATES[msg_id] if self.flavour is Flavour.PX4 else math.inf
         else:
             self.intervals[msg_id] = max(interval_us * 1e-6, self.dt)
         self.next_due[msg_id] = self.t
         return int(mav.MAV_RESULT_ACCEPTED), ""
+
+    def _set_group(self, group: int, hz: float) -> None:
+        """ArduPilot: one legacy stream group at `hz` (0: stopped)."""
+        groups = list(APM_GROUPS) if group == mav.MAV_DATA_STREAM_ALL else [group]
+        for g in groups:
+            if g not in APM_GROUPS:
+                continue
+            for mid in APM_GROUPS[g][1]:
+                self.intervals[mid] = max(1.0 / hz, self.dt) if hz > 0 else math.inf
+                self.next_due[mid] = self.t
+
+    def _on_request_data_stream(self, msg: Any) -> None:
+        if self.flavour is not Flavour.ARDUPILOT or not self._for_us(msg):
+            return  # PX4 ignores the legacy request
+        hz = float(msg.req_message_rate) if msg.start_stop else 0.0
+        self._set_group(int(msg.req_stream_id), hz)
+        self.log.write("event", self.t, event="request_data_stream", stream=int(msg.req_stream_id), rate_hz=hz)
 
     def _request_message(self, msg_id: int) -> tuple[int, str]:
         if msg_id == mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION:

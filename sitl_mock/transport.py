@@ -14,12 +14,32 @@ class Endpoint:
     kind: str  # udpin | udpout | tcpin
     host: str
     port: int
+    # udpout only: the local address to send from (and to answer on), as PX4 SITL's
+    # offboard link does: bound to 14580, sending to 14540.
+    bind: tuple[str, int] | None = None
 
     def __str__(self) -> str:
-        return f"{self.kind}:{self.host}:{self.port}"
+        suffix = f"@{self.bind[0]}:{self.bind[1]}" if self.bind else ""
+        return f"{self.kind}:{self.host}:{self.port}{suffix}"
+
+
+# PX4 SITL's offboard (Onboard-mode) MAVLink instance: listens on 14580, sends to 14540.
+PX4_SITL_ENDPOINT = "udpout:127.0.0.1:14540@0.0.0.0:14580"
 
 
 def parse_endpoint(text: str) -> Endpoint:
+    text, at, bind_text = text.partition("@")
+    bind: tuple[str, int] | None = None
+    if at:
+        bhost, bsep, bport = bind_text.rpartition(":")
+        if not text.lower().startswith("udpout:") or not bsep or not bport.isdigit():
+            raise ValueError(f"--endpoint: a bind address (@HOST:PORT) goes with udpout only, got {text + at + bind_text!r}")
+        bind = (bhost or "0.0.0.0", int(bport))
+    ep = _parse_plain(text)
+    return Endpoint(ep.kind, ep.host, ep.port, bind) if bind else ep
+
+
+def _parse_plain(text: str) -> Endpoint:
     kind, sep, rest = text.partition(":")
     kind = kind.lower()
     aliases = {"udp": "udpin", "udpin": "udpin", "udpout": "udpout", "tcpin": "tcpin"}
@@ -51,9 +71,36 @@ class Encoder:
         return self._sink.data
 
 
-def new_parser() -> Any:
+# With a signing key, these are ignored unless signed with it (as ArduPilot and PX4 do with
+# signing enabled: commands and setpoints); the rest may come unsigned.
+SIGNED_ONLY = frozenset({
+    mav.MAVLINK_MSG_ID_COMMAND_LONG, mav.MAVLINK_MSG_ID_COMMAND_INT, mav.MAVLINK_MSG_ID_SET_MODE,
+    mav.MAVLINK_MSG_ID_SET_POSITION_TARGET_LOCAL_NED, mav.MAVLINK_MSG_ID_SET_POSITION_TARGET_GLOBAL_INT,
+    mav.MAVLINK_MSG_ID_PARAM_SET, mav.MAVLINK_MSG_ID_REQUEST_DATA_STREAM,
+})
+
+
+def read_signing_key(path: str) -> bytes:
+    """A MAVLink 2 signing key from a file: 32 raw bytes, or 64 hex digits (whitespace ignored)."""
+    with open(path, "rb") as fh:
+        raw = fh.read()
+    text = raw.strip()
+    if len(text) == 64:
+        try:
+            return bytes.fromhex(text.decode("ascii"))
+        except (UnicodeDecodeError, ValueError):
+            pass
+    if len(raw) == 32:
+        return raw
+    raise ValueError(f"{path}: a signing key is 32 bytes (raw) or 64 hex digits, got {len(raw)} bytes")
+
+
+def new_parser(signing_key: bytes | None = None) -> Any:
     parser = mav.MAVLink(None)
     parser.robust_parsing = True
+    if signing_key is not None:
+        parser.signing.secret_key = signing_key
+        parser.signing.allow_unsigned_callback = lambda _mav, msg_id: msg_id not in SIGNED_ONLY
     return parser
 
 
@@ -64,6 +111,8 @@ class Link:
         self.endpoint = endpoint
         self.peers: list[Any] = []  # udp addresses or tcp sockets
         self.parsers: dict[Any, Any] = {}
+        self.signing_key: bytes | None = None  # set: commands and setpoints must be signed with it
+        self.rejected = 0  # packets dropped for a missing or wrong signature
         if endpoint.kind == "tcpin":
             self.sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
             self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
@@ -75,6 +124,9 @@ class Link:
                 self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
                 self.sock.bind((endpoint.host, endpoint.port))
             else:
+                if endpoint.bind is not None:
+                    self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+                    self.sock.bind(endpoint.bind)
                 self.peers.append((endpoint.host, endpoint.port))
         self.sock.setblocking(False)
         self.address: tuple[str, int] = self.sock.getsockname()
@@ -116,17 +168,22 @@ class Link:
             except OSError:
                 # ICMP port unreachable from a udpout peer that is not up yet.
                 break
-            if self.endpoint.kind == "udpin" and addr not in self.peers:
+            if (self.endpoint.kind == "udpin" or self.endpoint.bind is not None) and addr not in self.peers:
                 self.peers.append(addr)
             out.append((addr, data))
         return out
 
     def parse(self, peer: Any, data: bytes) -> list[Any]:
-        parser = self.parsers.setdefault(peer, new_parser())
+        parser = self.parsers.get(peer)
+        if parser is None:
+            parser = self.parsers[peer] = new_parser(self.signing_key)
+        before = parser.signing.reject_count + parser.signing.badsig_count
         try:
             msgs = parser.parse_buffer(data)
         except mav.MAVError:
-            return []
+            msgs = []
+        after = parser.signing.reject_count + parser.signing.badsig_count
+        self.rejected += after - before
         return [m for m in (msgs or []) if m.get_type() != "BAD_DATA"]
 
     def send(self, data: bytes) -> None:

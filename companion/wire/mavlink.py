@@ -34,6 +34,21 @@ TYPE_MASK = 2048
 PX4_OFFBOARD = 6
 APM_GUIDED = 4
 APM_LAND = 9
+# Modes the companion may hand over to, as (DO_SET_MODE param2, param3) and as decoded
+# from the heartbeat (mavutil.mode_string_v10 names).
+PX4_MODES: dict[str, tuple[int, int]] = {"LOITER": (4, 3), "RTL": (4, 5), "LAND": (4, 6)}
+APM_MODES: dict[str, int] = {"LOITER": 5, "RTL": 6, "LAND": 9, "BRAKE": 17}
+
+# The telemetry the companion uses, at the rate it asks for (Hz). HEARTBEAT is unsolicited.
+WANTED: dict[str, float] = {"LOCAL_POSITION_NED": 30.0, "ATTITUDE": 10.0, "EXTENDED_SYS_STATE": 2.0}
+# ArduPilot's legacy stream groups (REQUEST_DATA_STREAM) carrying them, and the parameter
+# that sets each group's rate at boot (MAVn_* from 4.7, SRn_* before).
+APM_STREAMS: dict[str, tuple[int, str]] = {
+    "LOCAL_POSITION_NED": (mavlink.MAV_DATA_STREAM_POSITION, "MAV1_POSITION (SR1_POSITION before 4.7)"),
+    "ATTITUDE": (mavlink.MAV_DATA_STREAM_EXTRA1, "MAV1_EXTRA1 (SR1_EXTRA1 before 4.7)"),
+    "EXTENDED_SYS_STATE": (mavlink.MAV_DATA_STREAM_EXTENDED_STATUS, "MAV1_EXT_STAT (SR1_EXT_STAT before 4.7)"),
+}
+POSITION_STALE = 1.0  # s without LOCAL_POSITION_NED: no position estimate
 
 _IGNORED_TYPES = {
     mavlink.MAV_TYPE_GCS,
@@ -59,16 +74,37 @@ class VehicleState:
     armed: bool = False
     system_status: int = 0
     last_heartbeat: float = -math.inf
+    last_message: float = -math.inf  # any message from the autopilot's component (liveness)
     position: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
     velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
     attitude: np.ndarray = field(default_factory=lambda: np.zeros(3))  # roll, pitch, yaw
     last_position: float = -math.inf
+    received: dict[str, float] = field(default_factory=dict)  # message type -> last arrival
     landed_state: int = 0  # MAV_LANDED_STATE; 0 unknown
+    last_landed_state: float = -math.inf  # when EXTENDED_SYS_STATE last arrived
     statustext: str = ""
 
     @property
     def has_position(self) -> bool:
         return bool(np.all(np.isfinite(self.position)))
+
+    def position_problem(self, now: float | None = None) -> str | None:
+        """Why there is no usable position estimate now (None: there is one)."""
+        now = time.monotonic() if now is None else now
+        if "LOCAL_POSITION_NED" not in self.received:
+            hint = ("the autopilot has not sent LOCAL_POSITION_NED since the link came up (requested at "
+                    f"{WANTED['LOCAL_POSITION_NED']:.0f} Hz); ")
+            if self.autopilot == "ardupilot":
+                hint += f"set {APM_STREAMS['LOCAL_POSITION_NED'][1]} if it ignores requests, and check its EKF origin"
+            else:
+                hint += "check its position estimate (EKF2 / GPS or vision) and the MAVLink instance's mode"
+            return f"no position estimate from the autopilot: {hint}"
+        age = now - self.last_position
+        if age > POSITION_STALE:
+            return f"no position estimate from the autopilot: the last LOCAL_POSITION_NED is {age:.1f} s old"
+        if not self.has_position:
+            return "no position estimate from the autopilot: LOCAL_POSITION_NED is not finite"
+        return None
 
     def in_follow_mode(self) -> bool:
         if self.autopilot == "px4":
@@ -106,6 +142,21 @@ def parse_url(url: str) -> tuple[str, int]:
     return device, 57600
 
 
+def read_signing_key(path: str) -> bytes:
+    """A MAVLink 2 signing key from a file: 32 raw bytes, or 64 hex digits (whitespace ignored)."""
+    with open(path, "rb") as fh:
+        raw = fh.read()
+    text = raw.strip()
+    if len(text) == 64:
+        try:
+            return bytes.fromhex(text.decode("ascii"))
+        except (UnicodeDecodeError, ValueError):
+            pass
+    if len(raw) == 32:
+        return raw
+    raise OSError(f"{path}: a signing key is 32 bytes (raw) or 64 hex digits, got {len(raw)} bytes")
+
+
 class MavlinkLink:
     def __init__(self, cfg: Config, on_message: Callable[[str, Any], None] | None = None) -> None:
         self.cfg = cfg
@@ -131,6 +182,10 @@ class MavlinkLink:
             autoreconnect=True,
         )
         self.conn.mav.robust_parsing = True
+        if self.cfg.mavlink.signing_key_file:
+            # Sign everything we send; what the autopilot sends may be unsigned.
+            self.conn.setup_signing(read_signing_key(self.cfg.mavlink.signing_key_file), sign_outgoing=True,
+                                    allow_unsigned_callback=lambda _mav, _msg_id: True)
         self._loop = loop
         loop.add_reader(self.conn.fd, self._readable)
         self.send_heartbeat()
@@ -161,6 +216,10 @@ class MavlinkLink:
             return
         now = time.monotonic()
         st = self.state
+        if kind != "HEARTBEAT":
+            st.received[kind] = now
+            if msg.get_srcComponent() == self.cfg.vehicle.autopilot_component:
+                st.last_message = now
         if kind == "HEARTBEAT":
             if msg.type in _IGNORED_TYPES or msg.autopilot == mavlink.MAV_AUTOPILOT_INVALID:
                 return
@@ -180,6 +239,7 @@ class MavlinkLink:
             st.attitude = np.array([msg.roll, msg.pitch, msg.yaw], dtype=float)
         elif kind == "EXTENDED_SYS_STATE":
             st.landed_state = msg.landed_state
+            st.last_landed_state = now
         elif kind == "STATUSTEXT":
             st.statustext = str(msg.text)
         elif kind == "COMMAND_ACK":
@@ -190,8 +250,14 @@ class MavlinkLink:
             self.on_message(kind, msg)
 
     def link_ok(self, now: float | None = None) -> bool:
+        """The autopilot is heard: a heartbeat once, then any of its messages within
+        link_timeout (the telemetry at tens of Hz, not only the 1 Hz heartbeat, so that a lossy
+        radio link is not declared lost for two heartbeats missed in a row)."""
         now = time.monotonic() if now is None else now
-        return now - self.state.last_heartbeat <= self.cfg.mavlink.link_timeout
+        st = self.state
+        if st.last_heartbeat == -math.inf:
+            return False
+        return now - max(st.last_heartbeat, st.last_message) <= self.cfg.mavlink.link_timeout
 
     # -- send ----------------------------------------------------------------
 
@@ -260,6 +326,58 @@ class MavlinkLink:
 
     async def takeoff(self, altitude: float) -> None:
         await self.command_ok("takeoff", mavlink.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan, altitude)
+
+    async def request_telemetry(self) -> dict[str, str]:
+        """Ask for each message in WANTED at its rate: MAV_CMD_SET_MESSAGE_INTERVAL, and for
+        ArduPilot also the legacy REQUEST_DATA_STREAM of its group. Returns, per message, what
+        the autopilot answered when it did not accept the interval."""
+        answers: dict[str, str] = {}
+        if self.state.autopilot == "ardupilot":
+            groups: dict[int, float] = {}
+            for name, hz in WANTED.items():
+                group = APM_STREAMS[name][0]
+                groups[group] = max(groups.get(group, 0.0), hz)
+            with self._send_lock:
+                for group, hz in groups.items():
+                    self.conn.mav.request_data_stream_send(self.cfg.vehicle.sysid, self.cfg.vehicle.autopilot_component,
+                                                           group, max(1, round(hz)), 1)
+        for name, hz in WANTED.items():
+            msg_id = getattr(mavlink, f"MAVLINK_MSG_ID_{name}")
+            try:
+                result = await self.command(mavlink.MAV_CMD_SET_MESSAGE_INTERVAL, msg_id, 1e6 / hz)
+            except CommandFailed as exc:
+                answers[name] = str(exc)
+                continue
+            if result != mavlink.MAV_RESULT_ACCEPTED:
+                answers[name] = mavlink.enums["MAV_RESULT"][result].name if result in mavlink.enums["MAV_RESULT"] \
+                    else str(result)
+        return answers
+
+    def missing_telemetry(self, since: float) -> list[str]:
+        """The messages in WANTED that have not arrived since `since` (monotonic)."""
+        return [name for name in WANTED if self.state.received.get(name, -math.inf) < since]
+
+    def telemetry_hint(self, missing: list[str]) -> str:
+        if self.state.autopilot == "ardupilot":
+            return "set " + ", ".join(f"{APM_STREAMS[m][1]} (for {m})" for m in missing) + " to a rate in Hz"
+        return ("PX4 streams these in its Onboard MAVLink mode: check MAV_n_MODE = Onboard on this link, or add "
+                "'mavlink stream -r RATE -s MESSAGE' in the SD card's etc/extras.txt")
+
+    async def set_mode(self, name: str) -> None:
+        """One of PX4_MODES / APM_MODES by MAV_CMD_DO_SET_MODE (custom mode enabled)."""
+        if self.state.autopilot == "px4":
+            main, sub = PX4_MODES[name]
+            await self.command_ok(name, mavlink.MAV_CMD_DO_SET_MODE, 1, main, sub)
+        else:
+            await self.command_ok(name, mavlink.MAV_CMD_DO_SET_MODE, 1, APM_MODES[name])
+
+    async def restore_mode(self, base_mode: int, custom_mode: int) -> None:
+        """Back to a mode as a heartbeat reported it (base_mode, custom_mode)."""
+        if self.state.autopilot == "px4":
+            main, sub = (custom_mode >> 16) & 0xFF, (custom_mode >> 24) & 0xFF
+            await self.command_ok("the previous mode", mavlink.MAV_CMD_DO_SET_MODE, 1, main, sub)
+        else:
+            await self.command_ok("the previous mode", mavlink.MAV_CMD_DO_SET_MODE, 1, custom_mode)
 
     async def land(self) -> None:
         if self.state.autopilot == "px4":

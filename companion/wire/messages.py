@@ -9,8 +9,11 @@ instead of raising, so the caller turns it into a `rejected` event and the fligh
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
+import re
+import time
 from dataclasses import dataclass
 from dataclasses import field as dc_field
 from functools import cache
@@ -20,7 +23,7 @@ from typing import Any
 import jsonschema
 import numpy as np
 
-from companion.config import Config
+from companion.config import Config, LimitsConfig
 from companion.wire.frames import (
     change_to_ned,
     fmt_box,
@@ -41,12 +44,48 @@ from planner_core import (
 KINDS = ("mission", "obstacles", "change", "command")
 
 
+MAX_QUOTE = 100  # characters of a peer's value quoted back in a reason
+MAX_REASON = 400  # characters of a reason; a field path is cut to MAX_QUOTE
+
+
+def quote(value: Any, n: int = MAX_QUOTE) -> str:
+    """repr() of a peer's value, at most about n characters (the length said when cut)."""
+    text = value if isinstance(value, str) and value.startswith(("'", '"')) else repr(value)
+    return text if len(text) <= n else f"{text[: n - 1]}… ({len(text)} chars)"
+
+
+def _bounded(text: str, n: int) -> str:
+    return text if len(text) <= n else f"{text[: n - 15]}… ({len(text)} chars)"
+
+
 class MessageError(FieldError):
-    """A rejected message; `field` is a JSON path ('' for the whole payload)."""
+    """A rejected message; `field` is a JSON path ('' for the whole payload). Both are cut to a
+    bounded length here, whatever the caller passed: a peer must not inflate the events."""
 
     def __init__(self, field: str, reason: str) -> None:
+        field, reason = _bounded(str(field), MAX_QUOTE), _bounded(str(reason), MAX_REASON)
         super().__init__(field, reason)
         self.args = (f"{field or 'payload'}: {reason}",)
+
+
+class InternalError(MessageError):
+    """`read` met something it did not foresee (a bug): the message is rejected, and the
+    service also reports an `error` event."""
+
+
+class Oversized:
+    """A payload too large to take: only its size is known (it was never read whole)."""
+
+    __slots__ = ("size",)
+
+    def __init__(self, size: int) -> None:
+        self.size = int(size)
+
+    def __len__(self) -> int:
+        return self.size
+
+    def __repr__(self) -> str:
+        return f"Oversized({self.size})"
 
 
 @cache
@@ -69,6 +108,9 @@ def warm_validators() -> None:
     """Build (and check) every schema validator once: the first build takes ~0.1 s."""
     for kind in KINDS:
         _validator(kind)
+    # and the hull's first use (it imports scipy.spatial: ~0.1 s) happens now, not in flight
+    cube = [[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)]
+    parse_region({"vertices": cube}, "warm-up")
 
 
 def json_path(parts: Any) -> str:
@@ -78,29 +120,98 @@ def json_path(parts: Any) -> str:
     return out
 
 
-def parse_json(payload: bytes, max_bytes: int) -> Any:
-    if len(payload) > max_bytes:
-        raise MessageError("", f"payload of {len(payload)} bytes exceeds the limit of {max_bytes}")
+class _LongNumber(Exception):
+    def __init__(self, literal: str) -> None:
+        super().__init__(literal[:MAX_QUOTE])
+        self.literal = literal
+
+
+def _converters(max_chars: int) -> tuple[Any, Any]:
+    """json.loads hooks that see each number's literal before it is converted."""
+
+    def to_int(s: str) -> int:
+        if len(s) > max_chars:
+            raise _LongNumber(s)
+        return int(s)
+
+    def to_float(s: str) -> float:
+        if len(s) > max_chars:
+            raise _LongNumber(s)
+        return float(s)
+
+    return to_int, to_float
+
+
+def parse_json(payload: bytes | Oversized, max_bytes: int, max_number_chars: int = 32) -> Any:
+    if len(payload) > max_bytes or isinstance(payload, Oversized):
+        raise MessageError("", f"payload of {len(payload)} bytes exceeds the limit of {max_bytes} "
+                               "([limits] max_message_bytes)")
     try:
         text = payload.decode("utf-8")
     except UnicodeDecodeError as exc:
         raise MessageError("", f"not UTF-8: {exc.reason} at byte {exc.start}") from None
+    to_int, to_float = _converters(max_number_chars)
     try:
-        return json.loads(text)
+        return json.loads(text, parse_int=to_int, parse_float=to_float)
     except json.JSONDecodeError as exc:
         raise MessageError("", f"malformed JSON: {exc.msg} at line {exc.lineno} column {exc.colno}") from None
+    except _LongNumber as exc:
+        at = text.find(exc.literal)
+        line = text.count("\n", 0, at) + 1
+        col = at - (text.rfind("\n", 0, at) + 1) + 1
+        raise MessageError("", f"a number of {len(exc.literal)} characters ({quote(exc.literal[:40] + '…', 60)}) "
+                               f"at line {line} column {col} is longer than {max_number_chars} "
+                               "([limits] max_number_chars)") from None
+    except RecursionError:
+        raise MessageError("", "nested too deeply to parse ([limits] max_depth)") from None
+    except ValueError as exc:  # anything else the parser refuses
+        raise MessageError("", f"malformed JSON: {quote(str(exc))}") from None
 
 
-def _check_finite(obj: Any, path: list[Any]) -> None:
-    """NaN, Infinity and overflowing literals (1e999) parse to floats; name where."""
-    if isinstance(obj, float) and not math.isfinite(obj):
-        raise MessageError(json_path(path), f"non-finite number {obj} is not allowed")
-    if isinstance(obj, list):
-        for i, v in enumerate(obj):
-            _check_finite(v, [*path, i])
-    elif isinstance(obj, dict):
-        for k, v in obj.items():
-            _check_finite(v, [*path, k])
+def check_values(obj: Any, lim: LimitsConfig) -> None:
+    """One walk over a parsed message, without recursion: nesting depth, string and key
+    lengths, array lengths, and every number finite and within [limits] max_number.
+
+    NaN, Infinity and overflowing literals (1e999) parse to floats; they are named here.
+    """
+    longest = max(("max_waypoints", "max_obstacles", "max_obstacle_vertices", "max_obstacle_planes"),
+                  key=lambda n: int(getattr(lim, n)))
+    max_len = int(getattr(lim, longest))
+    max_num, max_str, max_depth = lim.max_number, lim.max_string_chars, lim.max_depth
+    stack: list[tuple[Any, tuple[Any, ...]]] = [(obj, ())]
+    while stack:
+        node, path = stack.pop()
+        if len(path) > max_depth:
+            raise MessageError(json_path(path), f"nested deeper than {max_depth} levels ([limits] max_depth)")
+        t = type(node)
+        if t is float or t is int:
+            if not math.isfinite(node):
+                raise MessageError(json_path(path), f"non-finite number {node} is not allowed")
+            if abs(node) > max_num:
+                raise MessageError(json_path(path), f"{quote(node, 40)} is larger in magnitude than {max_num:g} "
+                                                    "([limits] max_number)")
+        elif t is str:
+            if len(node) > max_str:
+                raise MessageError(json_path(path), f"a string of {len(node)} characters ({quote(node, 40)}) "
+                                                    f"is longer than {max_str} ([limits] max_string_chars)")
+        elif t is list:
+            if len(node) > max_len:
+                raise MessageError(json_path(path), f"an array of {len(node)} items is longer than any "
+                                                    f"[limits] allows ({longest} = {max_len})")
+            for i in range(len(node) - 1, -1, -1):
+                v = node[i]
+                tv = type(v)
+                if tv is float or tv is int:  # the common case, without a stack entry
+                    if not math.isfinite(v) or abs(v) > max_num:
+                        stack.append((v, (*path, i)))
+                elif tv is not bool and v is not None:
+                    stack.append((v, (*path, i)))
+        elif t is dict:
+            for k, v in node.items():
+                if len(k) > max_str:
+                    raise MessageError(json_path(path), f"a key of {len(k)} characters ({quote(k, 40)}) is longer "
+                                                        f"than {max_str} ([limits] max_string_chars)")
+                stack.append((v, (*path, k)))
 
 
 def _points(value: Any) -> bool:
@@ -111,7 +222,7 @@ def _points(value: Any) -> bool:
         return False
     try:
         arr = np.array(value, dtype=float)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         return False
     ok = bool(np.all(np.isfinite(arr)))
     # bools are numbers to numpy but not to JSON Schema
@@ -123,16 +234,20 @@ def _numbers(value: Any) -> bool:
     return isinstance(value, list) and bool(value) and all(type(x) in (int, float) for x in value)
 
 
+def _long_list(value: Any, n: int) -> bool:
+    return isinstance(value, list) and len(value) > n
+
+
 def _region_view(region: Any) -> Any:
     """An obstacle region with its well-formed arrays cut to the schema's minimum length."""
     if not isinstance(region, dict):
         return region
     out = dict(region)
-    if len(region.get("A") or ()) > 1 and _points(region["A"]):
+    if _long_list(region.get("A"), 1) and _points(region["A"]):
         out["A"] = region["A"][:1]
-    if len(region.get("b") or ()) > 1 and _numbers(region["b"]):
+    if _long_list(region.get("b"), 1) and _numbers(region["b"]):
         out["b"] = region["b"][:1]
-    if len(region.get("vertices") or ()) > 4 and _points(region["vertices"]):
+    if _long_list(region.get("vertices"), 4) and _points(region["vertices"]):
         out["vertices"] = region["vertices"][:4]  # the schema's minItems
     return out
 
@@ -149,17 +264,39 @@ def _schema_view(kind: str, obj: Any) -> Any:
         return obj
     if kind == "obstacles" and isinstance(obj.get("add"), list):
         return {**obj, "add": [_region_view(r) for r in obj["add"]]}
-    if kind == "mission" and len(obj.get("waypoints") or ()) > 1 and _points(obj["waypoints"]):
-        return {**obj, "waypoints": obj["waypoints"][:1]}
+    if kind == "mission":
+        out = dict(obj)
+        if _long_list(obj.get("waypoints"), 1) and _points(obj["waypoints"]):
+            out["waypoints"] = obj["waypoints"][:1]
+        if isinstance(obj.get("obstacles"), list):
+            out["obstacles"] = [_region_view(r) for r in obj["obstacles"]]
+        return out
     if kind == "change" and isinstance(obj.get("append"), dict):
         body = obj["append"]
-        if len(body.get("waypoints") or ()) > 1 and _points(body["waypoints"]):
+        if _long_list(body.get("waypoints"), 1) and _points(body["waypoints"]):
             return {**obj, "append": {**body, "waypoints": body["waypoints"][:1]}}
     return obj
 
 
-def validate(kind: str, obj: Any) -> dict[str, Any]:
-    _check_finite(obj, [])
+def _schema_reason(err: Any) -> str:
+    """jsonschema's message, with the instance it quotes cut to MAX_QUOTE characters."""
+    msg = str(err.message)
+    try:
+        inst = repr(err.instance)
+    except Exception:  # pragma: no cover - a repr of parsed JSON does not fail
+        inst = ""
+    head = ""
+    if len(inst) > MAX_QUOTE and msg.startswith(inst):
+        head, msg = quote(inst), msg[len(inst):]
+    # any other long quoted value (an unexpected key, say)
+    return _bounded(head + _LONG_QUOTED.sub(lambda m: quote(m.group(1)), msg), MAX_REASON)
+
+
+_LONG_QUOTED = re.compile("'([^']{" + str(MAX_QUOTE + 1) + ",})'")
+
+
+def validate(kind: str, obj: Any, lim: LimitsConfig | None = None) -> dict[str, Any]:
+    check_values(obj, lim or LimitsConfig())
     errors = list(_validator(kind).iter_errors(_schema_view(kind, obj)))
     if errors:
         err = jsonschema.exceptions.best_match(errors)
@@ -168,9 +305,62 @@ def validate(kind: str, obj: Any) -> dict[str, Any]:
         while err.context:
             err = jsonschema.exceptions.best_match(err.context)
             assert err is not None
-        raise MessageError(json_path(err.absolute_path), err.message)
+        raise MessageError(json_path(err.absolute_path), _schema_reason(err))
     assert isinstance(obj, dict)
     return obj
+
+
+# What each command takes besides `command` (the schema says the same; this says it plainly).
+COMMAND_FIELDS: dict[str, frozenset[str]] = {
+    "arm": frozenset(), "takeoff": frozenset({"altitude"}), "start": frozenset(), "hold": frozenset(),
+    "resume": frozenset(), "land": frozenset(), "abort": frozenset(), "disarm": frozenset(),
+}
+
+
+def _check_command_fields(obj: Any) -> None:
+    if not isinstance(obj, dict) or not isinstance(obj.get("command"), str):
+        return
+    takes = COMMAND_FIELDS.get(obj["command"])
+    if takes is None:
+        return
+    for k in obj:
+        if k != "command" and k not in takes:
+            others = [c for c, f in COMMAND_FIELDS.items() if k in f]
+            hint = f" (only {', '.join(others)} does)" if others else ""
+            raise MessageError(k, f"command {obj['command']!r} takes no {quote(k, 40)}{hint}")
+
+
+def _check_counts(kind: str, obj: dict[str, Any], lim: LimitsConfig) -> None:
+    """Array lengths against their [limits], on the schema-valid message."""
+    def regions(items: list[Any], where: str) -> None:
+        if len(items) > lim.max_obstacles:
+            raise MessageError(where, f"{len(items)} obstacles exceed the limit of {lim.max_obstacles} "
+                                      "([limits] max_obstacles)")
+        for i, ob in enumerate(items):
+            if len(ob.get("vertices", ())) > lim.max_obstacle_vertices:
+                raise MessageError(f"{where}[{i}].vertices", f"{len(ob['vertices'])} vertices exceed the limit of "
+                                   f"{lim.max_obstacle_vertices} ([limits] max_obstacle_vertices)")
+            if len(ob.get("A", ())) > lim.max_obstacle_planes:
+                raise MessageError(f"{where}[{i}].A", f"{len(ob['A'])} planes exceed the limit of "
+                                   f"{lim.max_obstacle_planes} ([limits] max_obstacle_planes)")
+            if "A" in ob and len(ob["A"]) != len(ob["b"]):
+                raise MessageError(f"{where}[{i}].b", f"expected {len(ob['A'])} entries (one per row of A), got {len(ob['b'])}")
+
+    if kind == "mission":
+        if len(obj["waypoints"]) > lim.max_waypoints:
+            raise MessageError("waypoints", f"{len(obj['waypoints'])} waypoints exceed the limit of "
+                                            f"{lim.max_waypoints} ([limits] max_waypoints)")
+        regions(obj.get("obstacles", []), "obstacles")
+    elif kind == "obstacles":
+        regions(obj.get("add", []), "add")
+        if len(obj.get("remove", [])) > lim.max_obstacles_held:
+            raise MessageError("remove", f"{len(obj['remove'])} ids exceed the limit of {lim.max_obstacles_held} "
+                                         "([limits] max_obstacles_held)")
+    elif kind == "change" and "append" in obj:
+        body = obj["append"]
+        if len(body["waypoints"]) > lim.max_waypoints:
+            raise MessageError("append.waypoints", f"{len(body['waypoints'])} waypoints exceed the limit of "
+                                                   f"{lim.max_waypoints} ([limits] max_waypoints)")
 
 
 def _check_lengths(obj: dict[str, Any]) -> None:
@@ -211,19 +401,22 @@ def check_point(point: Any, lo: Any, hi: Any, field: str, frame: str = "ned", wh
                            f"{fmt_box(lo, hi, frame)}")
 
 
-def decode(kind: str, payload: bytes, *, max_bytes: int, max_waypoints: int = 10**6, max_obstacles: int = 10**6) -> dict[str, Any]:
-    """Bytes -> validated dict, or MessageError."""
-    obj = validate(kind, parse_json(payload, max_bytes))
+def decode(kind: str, payload: bytes | Oversized, *, max_bytes: int | None = None, max_waypoints: int | None = None,
+           max_obstacles: int | None = None, limits: LimitsConfig | None = None) -> dict[str, Any]:
+    """Bytes -> validated dict, or MessageError. `limits` (default: [limits]'s defaults) with
+    the keyword limits applied over it."""
+    lim = limits or LimitsConfig()
+    over = {k: v for k, v in (("max_message_bytes", max_bytes), ("max_waypoints", max_waypoints),
+                              ("max_obstacles", max_obstacles)) if v is not None}
+    if over:
+        lim = dataclasses.replace(lim, **over)
+    raw = parse_json(payload, lim.max_message_bytes, lim.max_number_chars)
+    if kind == "command":
+        _check_command_fields(raw)
+    obj = validate(kind, raw, lim)
+    _check_counts(kind, obj, lim)
     if kind == "mission":
-        if len(obj["waypoints"]) > max_waypoints:
-            raise MessageError("waypoints", f"{len(obj['waypoints'])} waypoints exceed the limit of {max_waypoints}")
         _check_lengths(obj)
-    elif kind == "obstacles":
-        if len(obj.get("add", [])) > max_obstacles:
-            raise MessageError("add", f"{len(obj['add'])} obstacles exceed the limit of {max_obstacles}")
-        for i, ob in enumerate(obj.get("add", [])):
-            if "A" in ob and len(ob["A"]) != len(ob["b"]):
-                raise MessageError(f"add[{i}].b", f"expected {len(ob['A'])} entries (one per row of A), got {len(ob['b'])}")
     elif kind == "change" and "append" in obj:
         body = obj["append"]
         if "durations" in body and len(body["durations"]) != len(body["waypoints"]):
@@ -341,17 +534,46 @@ def bounds_from(obj: dict[str, Any] | None, cfg: Config) -> Bounds:
     return Bounds(lo, hi)
 
 
-def parse_region(obj: dict[str, Any], field_name: str) -> Polytope:
+def parse_region(obj: dict[str, Any], field_name: str, lim: LimitsConfig | None = None) -> Polytope:
+    """A schema-valid region to a Polytope: bounded, non-empty, solid (not flat), not huge,
+    with at most [limits] max_obstacle_planes planes (its hull's faces for `vertices`)."""
+    lim = lim or LimitsConfig()
     try:
         poly = parse_polytope({k: v for k, v in obj.items() if k != "id"}, field_name)
     except FieldError as exc:
         raise MessageError(exc.field, exc.reason) from None
+    where = f"{field_name}.vertices" if "vertices" in obj else field_name
+    if poly.A.shape[0] > lim.max_obstacle_planes:
+        raise MessageError(where, f"its hull has {poly.A.shape[0]} faces, more than the limit of "
+                                  f"{lim.max_obstacle_planes} ([limits] max_obstacle_planes)")
     try:
         # Corridors need bounded, non-empty obstacles: refuse others here, not mid-replan.
-        polytope_vertices(poly, field_name)
+        verts = polytope_vertices(poly, field_name)
     except ValueError as exc:
         raise MessageError(field_name, str(exc).removeprefix(f"{field_name}: ")) from None
+    extent = float(np.max(np.ptp(verts, axis=0)))
+    if extent > lim.max_obstacle_extent:
+        raise MessageError(where, f"obstacle spans {extent:.6g} m, more than {lim.max_obstacle_extent:g} m "
+                                  "([limits] max_obstacle_extent)")
+    centred = verts - verts.mean(axis=0)
+    axes = np.linalg.svd(centred, full_matrices=False)[2] if verts.shape[0] >= 3 else np.eye(3)
+    width = float(np.min(np.ptp(centred @ axes.T, axis=0))) if axes.shape[0] == 3 else 0.0
+    if width < lim.min_obstacle_width:
+        raise MessageError(where, f"obstacle is flat (thinnest width {width:.3g} m, less than "
+                                  f"{lim.min_obstacle_width:g} m: [limits] min_obstacle_width)")
     return poly
+
+
+def _regions(items: list[dict[str, Any]], where: str, lim: LimitsConfig, unnamed: str = "") -> tuple[tuple[str, Polytope], ...]:
+    """Each region parsed, within [limits] decode_deadline for them all."""
+    t0 = time.monotonic()
+    out = []
+    for i, ob in enumerate(items):
+        out.append((str(ob.get("id", f"{unnamed}{i}")), parse_region(ob, f"{where}[{i}]", lim)))
+        if time.monotonic() - t0 > lim.decode_deadline:
+            raise MessageError(where, f"checking {len(items)} obstacles took longer than {lim.decode_deadline:g} s "
+                                      f"(stopped after {i + 1}; [limits] decode_deadline)")
+    return tuple(out)
 
 
 def mission_from_message(obj: dict[str, Any], cfg: Config, frame: str = "ned") -> MissionSpec:
@@ -374,10 +596,7 @@ def mission_from_message(obj: dict[str, Any], cfg: Config, frame: str = "ned") -
         if np.any(map_lo >= map_hi):
             raise MessageError("map", "the map box does not overlap the geofence")
         check_geofence(wps, map_lo, map_hi, "waypoints", frame, "the map")
-    obstacles = tuple(
-        (str(o.get("id", f"mission-{i}")), parse_region(o, f"obstacles[{i}]"))
-        for i, o in enumerate(obj.get("obstacles", []))
-    )
+    obstacles = _regions(obj.get("obstacles", []), "obstacles", cfg.limits, "mission-")
     initial = None
     if start == "first_waypoint":
         initial = rest_jet(wps[0])
@@ -392,9 +611,9 @@ def mission_from_message(obj: dict[str, Any], cfg: Config, frame: str = "ned") -
     )
 
 
-def obstacles_from_message(obj: dict[str, Any], frame: str = "ned") -> ObstacleUpdate:
+def obstacles_from_message(obj: dict[str, Any], frame: str = "ned", lim: LimitsConfig | None = None) -> ObstacleUpdate:
     """A schema-valid obstacles dict, already in NED, to an ObstacleUpdate (or MessageError)."""
-    add = tuple((str(ob["id"]), parse_region(ob, f"add[{i}]")) for i, ob in enumerate(obj.get("add", [])))
+    add = _regions(obj.get("add", []), "add", lim or LimitsConfig())
     return ObstacleUpdate(add, tuple(str(k) for k in obj.get("remove", [])), bool(obj.get("clear", False)), frame)
 
 
@@ -426,22 +645,28 @@ def change_from_message(obj: dict[str, Any], cfg: Config, frame: str = "ned") ->
     return Change(body, frame)
 
 
-def read(kind: str, payload: bytes, cfg: Config) -> Message | MessageError:
-    """Bytes -> a typed NED message, or the MessageError that says why not (never raises it)."""
-    lim = cfg.limits
+def read(kind: str, payload: bytes | Oversized, cfg: Config) -> Message | MessageError:
+    """Bytes -> a typed NED message, or the MessageError that says why not. Never raises:
+    anything unforeseen comes back as an `InternalError` (a rejection the service also
+    reports as an `error` event)."""
     try:
-        obj = decode(kind, payload, max_bytes=lim.max_message_bytes, max_waypoints=lim.max_waypoints,
-                     max_obstacles=lim.max_obstacles)
+        obj = decode(kind, payload, limits=cfg.limits)
         frame = str(obj.get("frame", "ned"))
         if kind == "mission":
             return mission_from_message(scenario_to_ned(obj), cfg, frame)
         if kind == "obstacles":
-            return obstacles_from_message(obstacles_to_ned(obj), frame)
+            return obstacles_from_message(obstacles_to_ned(obj), frame, cfg.limits)
         if kind == "change":
             return change_from_message(change_to_ned(obj), cfg, frame)
         if kind == "command":
             alt = obj.get("altitude")
             return Command(str(obj["command"]), None if alt is None else float(alt))
-        return MessageError("", f"unknown message kind {kind!r}")
+        return MessageError("", f"unknown message kind {quote(kind, 40)}")
     except MessageError as exc:
         return exc
+    except RecursionError:
+        return MessageError("", "nested too deeply ([limits] max_depth)")
+    except MemoryError:
+        return InternalError("", "out of memory while decoding")
+    except Exception as exc:  # the last resort: a bug here must never stop the service
+        return InternalError("", f"internal error while decoding: {type(exc).__name__}: {quote(str(exc))}")

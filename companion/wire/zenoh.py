@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import ipaddress
 import json
+import logging
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -19,6 +21,9 @@ import zenoh
 
 from companion.config import Config, ZenohConfig
 from companion.wire.encode import encode
+from companion.wire.messages import Oversized
+
+log = logging.getLogger("companion")
 
 INBOUND = ("mission", "obstacles", "change", "command")
 OUTBOUND = ("status", "telemetry", "trajectory", "events")
@@ -44,7 +49,57 @@ def zenoh_config(zc: ZenohConfig, *, listen: bool = True) -> zenoh.Config:
         cfg.insert_json5("connect/endpoints", json.dumps(list(zc.connect)))
     if want("multicast_scouting"):
         cfg.insert_json5("scouting/multicast/enabled", json.dumps(zc.multicast_scouting))
+    if not zc.config_file and listen:
+        # Without a configuration file the service reaches out to nobody: peers it hears of
+        # by scouting may connect to it (where it listens: loopback by default), it does not
+        # connect to them (an outgoing session carries commands just as well).
+        for how in ("multicast", "gossip"):
+            cfg.insert_json5(f"scouting/{how}/autoconnect", json.dumps({"router": [], "peer": []}))
     return cfg
+
+
+def _loopback(endpoint: str) -> bool:
+    """True for an endpoint only this machine can reach (tcp/127.0.0.1:7447, udp/[::1]:0,
+    unixsock-stream/...); False for anything else, including 0.0.0.0 and host names."""
+    proto, _, rest = endpoint.partition("/")
+    if proto.startswith("unixsock") or proto == "unixpipe":
+        return True
+    host = rest.split("#")[0].rsplit(":", 1)[0].strip("[]")
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def exposure(cfg: zenoh.Config) -> list[str]:
+    """Why commands may be accepted from an unauthenticated network peer ([] if they may not):
+    the session listens or connects beyond loopback, or scouts, without user/password auth."""
+    def get(key: str) -> Any:
+        try:
+            return json.loads(cfg.get_json(key))
+        except Exception:  # a key this zenoh does not have
+            return None
+
+    auth = get("transport/auth/usrpwd") or {}
+    if auth.get("dictionary_file"):
+        return []
+    why: list[str] = []
+    listen = get("listen/endpoints") or []
+    if isinstance(listen, dict):  # per-mode form {"router": [...], "peer": [...]}
+        listen = [e for v in listen.values() for e in (v or [])]
+    if not listen:
+        why.append("listening on zenoh's default endpoint (every interface)")
+    why += [f"listening on {e}" for e in listen if not _loopback(str(e))]
+    connect = get("connect/endpoints") or []
+    if isinstance(connect, dict):
+        connect = [e for v in connect.values() for e in (v or [])]
+    why += [f"connecting to {e}" for e in connect if not _loopback(str(e))]
+    auto = get("scouting/multicast/autoconnect")
+    if get("scouting/multicast/enabled") and auto not in ({"router": [], "peer": []}, [], ""):
+        why.append("connecting to any peer found by multicast scouting")
+    return why
 
 
 class ZenohIO:
@@ -53,15 +108,27 @@ class ZenohIO:
     def __init__(self, cfg: Config, loop: asyncio.AbstractEventLoop) -> None:
         self.cfg = cfg
         self.loop = loop
-        self.inbox: asyncio.Queue[tuple[str, bytes, float]] = asyncio.Queue()
+        self.inbox: asyncio.Queue[tuple[str, bytes | Oversized, float]] = asyncio.Queue()
+        # [limits] max_queued_messages: a message arriving to a full inbox is dropped and
+        # counted; `on_dropped(kind, size)` (on the loop) says so.
+        self.dropped = 0
+        self.on_dropped: Callable[[str, int], None] | None = None
         self.session: Any = None
+        self.exposure: list[str] = []
         self._decls: list[Any] = []
         self._pubs: dict[str, Any] = {}
         self._query_handlers: dict[str, Callable[[], bytes | None]] = {}
 
     def open(self, query_handlers: dict[str, Callable[[], bytes | None]]) -> None:
         self._query_handlers = query_handlers
-        self.session = zenoh.open(zenoh_config(self.cfg.zenoh))
+        zcfg = zenoh_config(self.cfg.zenoh)
+        why = exposure(zcfg)
+        if why:
+            log.warning("!!! COMMANDS ARE ACCEPTED FROM UNAUTHENTICATED NETWORK PEERS: %s. Any peer that "
+                        "reaches this endpoint can arm, take off and fly the vehicle. Use a secured "
+                        "Zenoh configuration ([zenoh] config_file, see docs/security.md).", "; ".join(why))
+        self.exposure = why
+        self.session = zenoh.open(zcfg)
         for kind in INBOUND:
             self._decls.append(self.session.declare_subscriber(self.cfg.key(kind), self._inbound(kind)))
         for kind in OUTBOUND:
@@ -71,12 +138,23 @@ class ZenohIO:
         self._decls.append(self.session.liveliness().declare_token(self.cfg.key("alive")))
 
     def _inbound(self, kind: str) -> Callable[[Any], None]:
+        limit = self.cfg.limits.max_message_bytes
+
         def callback(sample: Any) -> None:
             arrived = time.monotonic()
-            payload = sample.payload.to_bytes()
-            self.loop.call_soon_threadsafe(self.inbox.put_nowait, (kind, payload, arrived))
+            size = len(sample.payload)  # without copying it out of zenoh
+            payload: bytes | Oversized = Oversized(size) if size > limit else sample.payload.to_bytes()
+            self.loop.call_soon_threadsafe(self._enqueue, kind, payload, arrived)
 
         return callback
+
+    def _enqueue(self, kind: str, payload: bytes | Oversized, arrived: float) -> None:
+        if self.inbox.qsize() >= self.cfg.limits.max_queued_messages:
+            self.dropped += 1
+            if self.on_dropped is not None:
+                self.on_dropped(kind, len(payload))
+            return
+        self.inbox.put_nowait((kind, payload, arrived))
 
     def _queried(self, kind: str) -> Callable[[Any], None]:
         def callback(query: Any) -> None:

@@ -13,6 +13,7 @@ import pytest
 from e2e_rig import (
     RADIUS,
     REPO,
+    TRACKING_ALLOWANCE,
     Rig,
     arrival_gap,
     box,
@@ -61,7 +62,7 @@ def test_mission_ardupilot(rig: Rig) -> None:
     assert max_gap(setpoints(log, t0, t1)) <= 0.060
     assert arrival_gap(setpoints(log, t0, t1)) <= 0.5
     track = np.array([r["pos"] for r in states(log, t0, t1)])
-    assert not np.any(inside(track, polytope(obstacle), RADIUS - 0.05))
+    assert not np.any(inside(track, polytope(obstacle), RADIUS - TRACKING_ALLOWANCE))
     assert rig.wait_status(lambda s: s["state"] == "HOLDING", 3, "holding")["mode"] == "GUIDED"
 
 

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from e2e_rig import (
     RADIUS,
+    TRACKING_ALLOWANCE,
     Rig,
     arrival_gap,
     box,
@@ -52,7 +53,7 @@ def test_mission_with_static_obstacle(rig: Rig) -> None:
     assert max_gap(setpoints(log, t0, t1)) <= 0.060
     assert arrival_gap(setpoints(log, t0, t1)) <= 0.5
     track = np.array([r["pos"] for r in states(log, t0, t1)])
-    assert not np.any(inside(track, polytope(obstacle), RADIUS - 0.05))
+    assert not np.any(inside(track, polytope(obstacle), RADIUS - TRACKING_ALLOWANCE))
     seen = rig.statuses[-1]
     assert seen["state"] == "HOLDING" and seen["mission"] == "px4-square"
     assert seen["plan_latency_ms"] is not None
@@ -90,7 +91,7 @@ def test_popup_obstacle_replans_without_touching_the_flown_piece(rig: Rig) -> No
     t_end = rig.mock_time()
     log = rig.log()
     track = np.array([r["pos"] for r in states(log, t_start, t_end)])
-    assert not np.any(inside(track, poly, RADIUS - 0.05))
+    assert not np.any(inside(track, poly, RADIUS - TRACKING_ALLOWANCE))
     assert max_gap(setpoints(log, t_start, t_end)) <= 0.060
     assert arrival_gap(setpoints(log, t_start, t_end)) <= 0.5
     status = rig.wait_status(lambda s: s["replan_latency_ms"] is not None, 3, "replan latency in status")
@@ -134,7 +135,7 @@ def test_obstacle_across_the_path_is_flown_around(rig: Rig) -> None:
     time.sleep(0.5)
     log = rig.log()
     track = np.array([r["pos"] for r in states(log, t_start, rig.mock_time())])
-    assert not np.any(inside(track, polytope(obstacle), RADIUS - 0.05))
+    assert not np.any(inside(track, polytope(obstacle), RADIUS - TRACKING_ALLOWANCE))
     assert np.linalg.norm(np.asarray(rig.control.state()["position"]) - [0.0, -2.5, -1.5]) <= 0.1
 
 

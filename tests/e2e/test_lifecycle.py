@@ -1,0 +1,99 @@
+"""Lifecycle: a signal in flight brakes to a stop and hands the vehicle over to the autopilot's
+own hold, which the mock must confirm, before the companion exits 0; a denied arm leaves the
+autopilot in the mode it was in. One rig per test (each ends with the companion gone)."""
+
+from __future__ import annotations
+
+import signal
+import subprocess
+import time
+from typing import Any
+
+import numpy as np
+import pytest
+from e2e_rig import Rig
+
+pytestmark = pytest.mark.slow
+
+LONG = {"id": "long", "frame": "ned",
+        "waypoints": [[4.0, 0.0, -1.5], [4.0, 4.0, -1.5], [0.0, 4.0, -1.5], [0.0, 0.0, -1.5]]}
+
+
+def _take_off_at_rest(rig: Rig, altitude: float) -> None:
+    """Takeoff completes within tolerance of its altitude and at rest (not on the way up)."""
+    since = rig.mark()
+    rig.command("arm")
+    rig.wait_event(lambda e: e["type"] == "state" and e.get("to") == "READY", 20, "armed/READY", since)
+    ground = rig.control.state()["position"][2]
+    since = rig.mark()
+    rig.command("takeoff", altitude=altitude)
+    rig.wait_event(lambda e: e["type"] == "state" and e.get("to") == "READY", 30, "takeoff complete", since)
+    st = rig.control.state()  # within a few tens of ms of the declaration
+    assert abs(st["position"][2] - (ground - altitude)) <= 0.2 + 0.02
+    assert float(np.linalg.norm(st["velocity"])) <= 0.2 + 0.1
+
+
+def _signal_in_flight(rig: Rig, sig: int) -> tuple[float, int, list[dict[str, Any]]]:
+    _take_off_at_rest(rig, 1.5)
+    since = rig.mark()
+    rig.put("mission", LONG)
+    rig.wait_event(lambda e: e["type"] == "state" and e.get("to") == "STREAMING", 15, "streaming", since)
+    # well into the first leg, moving
+    deadline = time.monotonic() + 15
+    while (speed := float(np.linalg.norm(rig.control.state()["velocity"]))) < 1.0:
+        assert time.monotonic() < deadline, f"test set-up: the vehicle must be moving ({speed:.2f} m/s)"
+        time.sleep(0.02)
+    t_sig = rig.mock_time()
+    companion: subprocess.Popen[bytes] = rig.procs[1]
+    companion.send_signal(sig)
+    code = companion.wait(30)
+    return t_sig, code, rig.log()
+
+
+def _after(log: list[dict[str, Any]], t: float, kind: str) -> list[dict[str, Any]]:
+    return [r for r in log if r["type"] == kind and r["t"] >= t]
+
+
+@pytest.mark.parametrize(("autopilot", "sig"), [("px4", signal.SIGINT), ("ardupilot", signal.SIGTERM)])
+def test_signal_in_flight_brakes_and_hands_over(rig_factory: Any, autopilot: str, sig: int) -> None:
+    rig: Rig = rig_factory(autopilot)
+    t_sig, code, log = _signal_in_flight(rig, sig)
+    assert code == 0, (rig.tmp / f"{autopilot}-companion.err").read_text()[-3000:]
+    modes = _after(log, t_sig, "mode")
+    assert modes, "no mode change after the signal"
+    assert all(m["reason"] == "command" for m in modes), modes
+    assert modes[-1]["to"] == "LOITER"
+    if autopilot == "ardupilot":
+        assert [m["to"] for m in modes] == ["BRAKE", "LOITER"]
+    failsafes = [r for r in _after(log, t_sig, "event") if r.get("event") == "failsafe"]
+    assert not failsafes, failsafes
+    # braked to rest (by a verified stop) before the hand-over: slow when the mode changed
+    t_mode = modes[0]["t"]
+    at_mode = [r for r in _after(log, t_mode - 0.05, "state")][:5]
+    assert at_mode and max(float(np.linalg.norm(r["vel"])) for r in at_mode) <= 0.3
+    # and the stop was ours: setpoints applied after the signal, before the mode change
+    applied = [r for r in _after(log, t_sig, "setpoint") if r["t"] < t_mode and r["applied"]]
+    assert len(applied) > 10
+    # the autopilot still holds the vehicle, armed, in the air, a while later
+    time.sleep(2.0)
+    st = rig.control.state()
+    assert st["mode"] == "LOITER" and st["armed"] and not st["landed"]
+    assert float(np.linalg.norm(st["velocity"])) <= 0.2
+    events = rig.events_since(0)
+    assert any(e["type"] == "handover" for e in events)
+    assert any(e["type"] == "stopped" and e.get("handed_over") for e in events)
+
+
+def test_denied_arm_restores_the_previous_mode(rig_factory: Any) -> None:
+    rig: Rig = rig_factory("px4")
+    before = rig.control.state()["mode"]
+    assert before != "OFFBOARD"
+    assert rig.control.reject_arming(True)["ok"]
+    since = rig.mark()
+    rig.command("arm")
+    ev = rig.wait_event(lambda e: e["type"] == "refused" and e.get("command") == "arm", 20, "arm refused", since)
+    assert "back in" in ev["reason"], ev["reason"]
+    rig.wait_status(lambda s: s["mode"] == before and not s["armed"], 10, f"back in {before}")
+    modes = [r for r in rig.log() if r["type"] == "mode"]
+    assert [m["to"] for m in modes][-2:] == ["OFFBOARD", before]
+    assert rig.state() == "IDLE"

@@ -1,0 +1,80 @@
+"""Lag compensation on the calibrated mock: `setpoints.lead = "auto"` estimates the vehicle's
+lag from telemetry, samples setpoints that far ahead on the verified plan, and flies the plan
+closer than without it (tracking error measured against the plan at each sample's time)."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+from companionkit import Events, service_for, until, up
+
+from companion.config import ConfigError, config_from_dict
+from companion.wire.messages import read
+from sitl_mock import MockAutopilot, MockConfig
+
+MISSION = (b'{"id": "curve", "waypoints": [[4, 0, -1.5], [4, 4, -1.5], [0, 4, -1.5], [0, 0, -1.5]],'
+           b' "durations": [2.5, 2.5, 2.5]}')
+
+
+def test_lead_option() -> None:
+    assert config_from_dict({"setpoints": {"lead": "auto"}}).setpoints.lead == "auto"
+    assert config_from_dict({"setpoints": {"lead": 0.06}}).setpoints.lead == 0.06
+    for bad in (0.5, -0.01, "fast", True):
+        with pytest.raises(ConfigError, match=r"setpoints\.lead"):
+            config_from_dict({"setpoints": {"lead": bad}})
+
+
+async def _fly(mock: MockAutopilot, lead: Any) -> tuple[float, Any, float]:
+    svc = service_for(mock, setpoints={"lead": lead})
+    Events(svc)
+    errors: list[float] = []
+    sample = svc.watch.on_position_sample
+    assert sample is not None
+
+    def record(now: float) -> None:
+        sample(now)
+        if svc.flight.state.value == "STREAMING" and svc.commands.tracking_error is not None:
+            errors.append(svc.commands.tracking_error)
+
+    svc.watch.on_position_sample = record
+    task = asyncio.create_task(svc.run())
+    try:
+        await up(svc, task)
+        await until(lambda: svc.link.state.position_problem() is None, 10, "position")
+        await svc.commands.takeoff(1.5)
+        await svc.navigator.on_mission(read("mission", MISSION, svc.cfg), time.monotonic())  # type: ignore[arg-type]
+        await until(lambda: svc.flight.state.value == "STREAMING", 10, "streaming")
+        await until(lambda: svc.flight.state.value == "HOLDING", 40, "mission complete")
+        status = svc.status()
+    finally:
+        svc.requested.set()
+        await asyncio.wait_for(task, 30)
+    rms = math.sqrt(sum(e * e for e in errors) / len(errors))
+    return rms, status["lag_estimate_ms"], status["lead_ms"]
+
+
+@pytest.mark.slow
+def test_auto_lead_lowers_tracking_error_on_the_calibrated_mock(tmp_path: Path) -> None:
+    figures = {}
+    for lead in (0.0, "auto"):
+        mock = MockAutopilot(MockConfig(autopilot="px4", endpoints=["udpin:127.0.0.1:0"],
+                                        log_path=str(tmp_path / f"{lead}.jsonl"))).start()
+        try:
+            figures[lead] = asyncio.run(_fly(mock, lead))
+        finally:
+            mock.stop()
+    rms0, lag0, lead0 = figures[0.0]
+    rms_auto, lag_auto, lead_auto = figures["auto"]
+    print(f"tracking RMS without lead {rms0:.3f} m, with auto lead {rms_auto:.3f} m "
+          f"(lag estimate {lag_auto} ms, lead {lead_auto} ms; without: lag estimate {lag0} ms)")
+    assert lead0 == 0.0
+    # the calibrated response: a 30 ms delay and half the acceleration feed-forward (~60 ms
+    # effective lag on the demo's scenario 1); measured here: 42 ms, and 30 ms once leading
+    assert lag0 is not None and 25.0 <= lag0 <= 120.0
+    assert 25.0 <= lead_auto <= 120.0 and lead_auto == pytest.approx(lag_auto, abs=0.5)
+    assert rms_auto < 0.9 * rms0  # measured: 0.100 -> 0.079 m

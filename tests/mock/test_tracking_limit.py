@@ -1,0 +1,52 @@
+"""`[safety] max_tracking_error` is acted on: a vehicle that falls behind its setpoints by
+more than the limit is braked to a verified stop and held, with an event carrying the figures."""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from pathlib import Path
+
+from companionkit import Events, service_for, until, up
+
+from companion.wire.messages import read
+from sitl_mock import MockAutopilot, MockConfig
+
+
+def test_tracking_error_over_the_limit_brakes_and_holds(tmp_path: Path) -> None:
+    mock = MockAutopilot(MockConfig(autopilot="px4", endpoints=["udpin:127.0.0.1:0"],
+                                    log_path=str(tmp_path / "f.jsonl"))).start()
+
+    async def go() -> None:
+        svc = service_for(mock, safety={"max_tracking_error": 0.2, "takeoff_altitude": 1.0})
+        events = Events(svc)
+        task = asyncio.create_task(svc.run())
+        try:
+            await up(svc, task)
+            await until(lambda: svc.link.state.position_problem() is None, 10, "position")
+            await svc.commands.takeoff(1.0)
+            assert not events.of("tracking"), events.of("tracking")  # hovering: well within
+            # a slow link: the vehicle's answer comes 0.6 s late both ways
+            mock.link_faults.latency_s = 0.3
+            spec = read("mission", b'{"id": "far", "waypoints": [[8, 0, -1.0]]}', svc.cfg)
+            await svc.navigator.on_mission(spec, time.monotonic())  # type: ignore[arg-type]
+            try:
+                await until(lambda: events.of("tracking"), 20, "the tracking event")
+            except AssertionError:
+                raise AssertionError(f"{svc.flight.state} max {svc.commands.tracking_error_max} "
+                                     f"{[(e['type'], e['message']) for e in events.all][-8:]}") from None
+            ev = events.of("tracking")[0]
+            assert ev["error"] > ev["limit"] == 0.2 and ev["samples"] >= 3
+            assert ev["position"] and ev["setpoint"]
+            await until(lambda: svc.flight.state.value == "HOLDING", 15, "holding")
+            assert any(e["type"] == "braking" and "tracking error" in e["message"] for e in events.all)
+            assert svc.navigator.interrupted is not None  # the mission waits for `resume`
+        finally:
+            mock.link_faults.latency_s = 0.0
+            svc.requested.set()
+            await asyncio.wait_for(task, 30)
+
+    try:
+        asyncio.run(go())
+    finally:
+        mock.stop()
