@@ -173,7 +173,8 @@ class Rig:
         return None
 
 
-def demo_config(zenoh_port: int, mav_port: int, rate_hz: float = 50.0, workers: int | None = None) -> Config:
+def demo_config(zenoh_port: int, mav_port: int, rate_hz: float = 50.0, workers: int | None = None,
+                lead: float = 0.0) -> Config:
     from companion.config import PlannerConfig, SetpointConfig
 
     planner = PlannerConfig() if workers is None else PlannerConfig(workers=workers)
@@ -182,7 +183,7 @@ def demo_config(zenoh_port: int, mav_port: int, rate_hz: float = 50.0, workers: 
         vehicle=VehicleConfig(id=VEHICLE),
         zenoh=ZenohConfig(listen=(f"tcp/127.0.0.1:{zenoh_port}",), multicast_scouting=False),
         mavlink=MavlinkConfig(url=f"udpout:127.0.0.1:{mav_port}"),
-        setpoints=SetpointConfig(rate_hz=rate_hz),
+        setpoints=SetpointConfig(rate_hz=rate_hz, lead=lead),
         geofence=GeofenceConfig(min=(-60.0, -60.0, -20.0), max=(60.0, 60.0, 0.5)),
         safety=SafetyConfig(auto_arm=True, takeoff_altitude=TAKEOFF_ALTITUDE),
     )
@@ -191,13 +192,13 @@ def demo_config(zenoh_port: int, mav_port: int, rate_hz: float = 50.0, workers: 
 @contextlib.contextmanager
 def rig(out: Path, autopilot: str, rate_hz: float = 50.0, mock_args: tuple[str, ...] = (),
         mav_port: int | None = None, companion_mav_port: int | None = None,
-        workers: int | None = None) -> Iterator[Rig]:
+        workers: int | None = None, lead: float = 0.0) -> Iterator[Rig]:
     """Mock + companion + our peer. `companion_mav_port` lets a relay sit between the two."""
     out.mkdir(parents=True, exist_ok=True)
     mav_port = mav_port or free_port(socket.SOCK_DGRAM)
     control_port, zenoh_port = free_port(), free_port()
     flight_log = out / "flight.jsonl"
-    cfg = demo_config(zenoh_port, companion_mav_port or mav_port, rate_hz, workers)
+    cfg = demo_config(zenoh_port, companion_mav_port or mav_port, rate_hz, workers, lead)
     cfg_path = out / "companion.toml"
     cfg_path.write_text(config_to_toml(cfg))
     py = sys.executable

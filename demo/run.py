@@ -324,7 +324,7 @@ def _event_values(events: list[Sample], kind: str, key: str) -> list[tuple[Sampl
 
 
 def analyse(name: str, mission: dict[str, Any], outcome: FlightOutcome, r: Rig,
-            mono_to_sim: Callable[[float], float]) -> rep.MissionResult:
+            mono_to_sim: Callable[[float], float], lead: float = 0.0) -> rep.MissionResult:
     result = rep.MissionResult(name=name, ok=outcome.ok, reason=outcome.reason)
     result.bounds = rep.bounds_matrix(mission.get("bounds"), "enu")
     planned = [v for e, v in _event_values(outcome.events, "accepted", "plan_ms") if e.data.get("mission") == name]
@@ -378,6 +378,9 @@ def analyse(name: str, mission: dict[str, Any], outcome: FlightOutcome, r: Rig,
         return result
     sp_t, sp_p = sp_t[flying], sp_p[flying]
     sp_raw, sp_off = rep.local_offsets(result.trajectories, starts, sp_t, sp_p, offset)
+    # A setpoint sampled `lead` ahead matches the plan `lead` later than its own time: the
+    # flown position is compared with the plan at that time, not with the setpoint.
+    sp_off = sp_off + lead
     result.starts = starts
     result.tau_stream = s_stream - offset
     result.tracking = rep.tracking_error(result.trajectories, starts, flown, sp_t, sp_off,
@@ -511,6 +514,8 @@ def build_parser(prog: str = "python -m demo") -> argparse.ArgumentParser:
     p.add_argument("--quick", action="store_true", help="one short mission only (smoke test)")
     p.add_argument("--timeout", type=float, default=120.0, help="per mission, seconds")
     p.add_argument("--no-plots", action="store_true")
+    p.add_argument("--lead", type=float, default=0.0, metavar="SECONDS",
+                   help="sample setpoints this far ahead of the plan (companion [setpoints] lead; 0: off)")
     return p
 
 
@@ -522,7 +527,7 @@ def main(argv: list[str] | None = None, prog: str = "python -m demo") -> int:
     pngs: list[Path] = []
     print(f"bezier-companion demo: mock {args.autopilot} autopilot + companion service + Zenoh peer")
     try:
-        with rig(out, args.autopilot) as r:
+        with rig(out, args.autopilot, lead=args.lead) as r:
             print(f"  companion pid {r.companion.pid}, mock pid {r.mock.pid}, logs in {out}/")
             to_sim = sim_clock(r)
             plans: list[tuple[str, str, dict[str, Any], list[Action], dict[str, Any] | None, dict[str, Any] | None]] = []
@@ -549,7 +554,7 @@ def main(argv: list[str] | None = None, prog: str = "python -m demo") -> int:
                 print(f"- {title}: {len(mission['waypoints'])} waypoints")
                 outcome = fly(r, mission, actions, args.timeout, progress)
                 here = np.asarray(mission["waypoints"][-1], dtype=float)
-                result = analyse(name, mission, outcome, r, to_sim)
+                result = analyse(name, mission, outcome, r, to_sim, lead=args.lead)
                 results.append(result)
                 if not args.no_plots:
                     pngs += figures(name, title, mission, result, r, popup_msg, change_msg)
