@@ -57,10 +57,6 @@ CONTROLLING = frozenset({S.ARMING, S.TAKEOFF, S.READY, S.STREAMING, S.HOLDING, S
 IN_OUR_MODE = frozenset({S.TAKEOFF, S.READY, S.STREAMING, S.HOLDING, S.BRAKING})
 # States in which we hold or fly a plan; with `airborne`, a mission may be flown.
 HOLDING_CONTROL = frozenset({S.READY, S.STREAMING, S.HOLDING, S.BRAKING})
-# Not ours: someone else (a pilot, the autopilot's failsafe) flies; we never stream.
-NOT_OURS = frozenset({S.IDLE, S.PILOT, S.FAILSAFE, S.LANDING})
-
-COMMANDS = ("arm", "takeoff", "start", "hold", "resume", "land", "abort", "disarm")
 
 
 class IllegalTransition(RuntimeError):

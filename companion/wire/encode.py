@@ -34,10 +34,6 @@ def event_body(kind: str, state: str, message: str, **extra: Any) -> dict[str, A
     return {"type": kind, "time": round(time.time(), 3), "state": state, "message": message, **extra}
 
 
-def trajectory_dict(traj: Trajectory) -> dict[str, Any]:
-    return trajectory_to_dict(traj, "ned")
-
-
 def encode_trajectory(traj: Trajectory) -> bytes:
     """Trajectory JSON, one segment per json.dumps call so other threads get the GIL between."""
     head = trajectory_to_dict(Trajectory(traj.times[:2], traj.control_points[:1], None, traj.stats), "ned")
