@@ -10,7 +10,9 @@ $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -e '.[test,plot]'
-	# compile the planner's numba kernel into its cache once (~20 s), not in the first flight
+	# compile the planner's numba kernel into its cache once (~20 s), not in the first plan that
+	# uses it (big CLI plans, benchmarks, tests, `[planner] compiled = true`); the service's own
+	# processes and small one-shot plans do without it (benchmarks/footprint.py)
 	$(PY) -c "from planner_core.iterative import warm_up; warm_up()"
 	touch $(STAMP)
 
@@ -34,6 +36,7 @@ bench: $(STAMP)
 	$(PY) -m pip install --quiet -e '.[bench]'
 	$(PY) benchmarks/planner.py --quality --minsnap --json out/bench_planner.json
 	$(PY) benchmarks/service.py --json out/bench_service.json
+	$(PY) benchmarks/footprint.py --json out/bench_footprint.json
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache .mypy_cache .ruff_cache out

@@ -10,10 +10,13 @@ Cases:
   "cold" clears the vertex cache first (a new obstacle), "warm" does not.
 - flight_popup: benchmarks/service.py's flight (two laps of a rectangle, no known
   obstacles, so map-box corridors) and a small box inside a corner the curve cuts:
-  no map plane certifies it, so every corridor gets a plane (the service's case).
-- long_popup: the same with 1000 waypoints and a small box beside segment 500.
+  no face certifies it, so every corridor gets a plane (the service's case).
+- long_popup: the same with 1000 waypoints and a small box beside segment 500: only
+  the corridors whose analysis box holds the box are touched.
 - scenario2_build: `build_corridors` for all of scenario 2 (what a replan does,
   per segment, for the pieces of a split segment).
+- scale_build: `build_corridors` for benchmarks/scale.py's 500 boxes / 1000 waypoints
+  scene, from cold (vertex cache cleared: a user's obstacles are new).
 
 Wall-clock medians on whatever machine runs this; compare ratios, not absolute
 numbers, when the machine is shared.
@@ -123,6 +126,21 @@ def bench(repeats: int = 50) -> list[Row]:
     _, changed = cor.update_corridors(lw, lcors, [], [lpop], lmap, lr, prune=False)
     med, best = _time(lambda: cor.update_corridors(lw, lcors, [], [lpop], lmap, lr, prune=False), repeats)
     rows.append({"case": "long_popup", "segments": len(lcors), "changed": changed, "median_ms": med, "min_ms": best})
+
+    from benchmarks.scale import scene
+
+    raw = scene(500, 1000)
+    sc_wps = np.asarray(raw["waypoints"], dtype=float)
+    boxes = [Polytope(np.asarray(o["A"], dtype=float), np.asarray(o["b"], dtype=float)) for o in raw["obstacles"]]
+    sc_map = (np.asarray(raw["map"]["min"], dtype=float), np.asarray(raw["map"]["max"], dtype=float))
+
+    def scale_build() -> object:
+        cor._VERTEX_CACHE.clear()
+        return cor.build_corridors(sc_wps, boxes, sc_map, float(raw["vehicle_radius"]))
+
+    med, best = _time(scale_build, max(repeats // 5, 3))
+    rows.append({"case": "scale_build", "segments": len(sc_wps) - 1, "obstacles": len(boxes), "median_ms": med,
+                 "min_ms": best})
     return rows
 
 

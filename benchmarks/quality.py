@@ -148,13 +148,14 @@ def _verified(traj: Trajectory, problem: Problem) -> bool:
 
 
 def binding_orders(traj: Trajectory, bounds: Bounds) -> list[int]:
-    """Derivative orders (1..4) whose bound some hodograph control point reaches (within BIND_TOL)."""
-    from planner_core.bezier import hodographs
+    """Derivative orders (1..4) whose bound some certified hodograph point (the control points of
+    the planner's de Casteljau pieces) reaches (within BIND_TOL)."""
+    from planner_core.constraints import certified_points
 
     d = np.diff(traj.times)
     out = []
     for k in range(1, 5):
-        pts = hodographs(traj.control_points, k, d)
+        pts = certified_points(traj.control_points, k, d)
         use = np.maximum(pts / bounds.hi[k - 1], pts / bounds.lo[k - 1])
         if float(use.max()) >= 1.0 - BIND_TOL:
             out.append(k)

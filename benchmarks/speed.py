@@ -9,6 +9,13 @@ Rows:
   obstacles, corridors built from them) with the bounds replaced by v 5, a 5, j 15,
   s 60 per axis.
 
+Also: the certificate's conservatism on the rest-to-rest segment per number of de Casteljau
+pieces (the planner certifies each hodograph on constraints.HULL_PIECES of them), the takeoff
+climb (`allocation.takeoff_duration`) and the time weight (`allocation.weighted_durations`,
+min J + rho T) on a few missions, and the fastest allocation's cost against the mission size
+(`--scale`: benchmarks/scale.py scenes without their durations, 10 to 1000 waypoints). `lb_turn` is a tighter valid lower bound than the per-axis
+one (`turning_lower_bound`: acceleration at the axis' turning points).
+
 For each: the allocation (`default`: planner_core.timing.allocate_times, what a
 scenario without times gets; `fastest`: planner_core.fastest_durations), our flight
 time, ruckig's time-optimal jerk-limited time for the same v/a/j (legs only: ruckig
@@ -23,6 +30,7 @@ as such.
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import sys
 import time
@@ -35,7 +43,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from planner_core import Bounds, Problem, Trajectory, allocate_times, plan, warm_up
 from planner_core.bezier import end_map, hodograph_matrix, start_map, subdivision_matrix
-from planner_core.feasibility import bound_usage
+from planner_core.constraints import HULL_PIECES, certified_points
 
 Row = dict[str, Any]
 LEG_BOUNDS = Bounds.symmetric(3.0, 3.0, 10.0, 50.0)
@@ -66,6 +74,34 @@ def axis_lower_bound(waypoints: np.ndarray, bounds: Bounds) -> float:
     return float(np.sum(np.max(np.abs(np.diff(waypoints, axis=0)) / vmax, axis=1)))
 
 
+def turning_lower_bound(waypoints: np.ndarray, bounds: Bounds) -> float:
+    """A tighter valid lower bound with acceleration: per axis, the waypoints' coordinates are
+    visited in order, so between two turning points (a local max then min, or the start/end at
+    rest) the axis' velocity is zero at the curve's extreme beyond each, and the stretch takes at
+    least the bang-bang time from rest to rest under v and a (acceleration free at the turns: jerk
+    and snap ignored, so it stays a lower bound). The flight takes at least the slowest axis' sum,
+    and at least `axis_lower_bound`."""
+    vmax = np.minimum(bounds.hi[0], -bounds.lo[0])
+    amax = np.minimum(bounds.hi[1], -bounds.lo[1])
+    worst = 0.0
+    for ax in range(3):
+        x = waypoints[:, ax]
+        dx = np.diff(x)
+        dx = dx[np.abs(dx) > 1e-12]
+        if dx.size == 0:
+            continue
+        runs: list[float] = [abs(float(dx[0]))]
+        for a, b in itertools.pairwise(dx):
+            if np.sign(a) == np.sign(b):
+                runs[-1] += abs(float(b))
+            else:
+                runs.append(abs(float(b)))
+        v, acc = float(vmax[ax]), float(amax[ax])
+        t = sum(dd / v + v / acc if dd >= v * v / acc else 2.0 * np.sqrt(dd / acc) for dd in runs)
+        worst = max(worst, t)
+    return max(worst, axis_lower_bound(waypoints, bounds))
+
+
 def peak_fractions(traj: Trajectory, problem: Problem) -> dict[str, float]:
     d = np.diff(traj.times)
     u = (np.arange(SAMPLES) + 0.5) / SAMPLES
@@ -75,8 +111,9 @@ def peak_fractions(traj: Trajectory, problem: Problem) -> dict[str, float]:
     for k, name in enumerate(("v", "a", "j", "s"), start=1):
         vals = np.abs(traj.evaluate(t, k))
         out[f"peak_{name}"] = float(np.max(vals / sym[k - 1]))
-    up, dn = bound_usage(traj, problem)
-    out["hull_v"] = float(max(up[:, 0].max(), dn[:, 0].max()))
+    # the certificate's use of the velocity bound: its certified points (HULL_PIECES pieces)
+    cert = certified_points(traj.control_points, 1, d)
+    out["hull_v"] = float(np.max(np.maximum(cert / sym[0], -cert / sym[0])))
     return out
 
 
@@ -100,12 +137,13 @@ def plan_timed(problem: Problem, how: str, repeats: int = 3) -> tuple[Any, float
 
 def _row(kind: str, name: str, how: str, problem: Problem, res: Any, t_plan: float, lb: float,
          ruck: float | None) -> Row:
+    lb_turn = turning_lower_bound(problem.waypoints, problem.bounds)
     row: Row = {"kind": kind, "name": name, "alloc": how, "m": problem.m, "ok": bool(res.ok),
-                "lower_bound": lb, "ruckig": ruck, "plan_ms": 1e3 * t_plan}
+                "lower_bound": lb, "lb_turn": lb_turn, "ruckig": ruck, "plan_ms": 1e3 * t_plan}
     if res.ok and res.trajectory is not None:
         traj = res.trajectory
         flight = traj.t_end - traj.t0
-        row.update(flight=flight, vs_lb=flight / lb, vs_ruckig=None if ruck is None else flight / ruck,
+        row.update(flight=flight, vs_lb=flight / lb, vs_lb_turn=flight / lb_turn, vs_ruckig=None if ruck is None else flight / ruck,
                    **peak_fractions(traj, problem if problem.m == traj.n_segments + 1 else
                                     Problem(traj.waypoints, traj.times, problem.bounds, problem.initial,
                                             problem.final)))
@@ -155,6 +193,7 @@ def _fmt(v: Any) -> str:
 
 
 COLS = ["kind", "name", "alloc", "m", "segs", "ok", "flight", "ruckig", "vs_ruckig", "lower_bound", "vs_lb",
+        "lb_turn", "vs_lb_turn",
         "peak_v", "peak_a", "peak_j", "peak_s", "hull_v", "plan_ms", "plans"]
 
 
@@ -172,16 +211,128 @@ def summary(rows: list[Row]) -> list[str]:
         lg = [r["vs_ruckig"] for r in rows if r["kind"] == "leg" and r["alloc"] == how and r.get("vs_ruckig")
               and r["name"] != "1 m"]
         ms = [r["vs_lb"] for r in rows if r["kind"] == "mission" and r["alloc"] == how and r.get("vs_lb")]
+        mt = [r["vs_lb_turn"] for r in rows if r["kind"] == "mission" and r["alloc"] == how and r.get("vs_lb_turn")]
         n_ms = sum(1 for r in rows if r["kind"] == "mission" and r["alloc"] == how)
         ok = sum(1 for r in rows if r["kind"] == "mission" and r["alloc"] == how and r["ok"])
         pt = [r["plan_ms"] for r in rows if r["kind"] == "mission" and r["alloc"] == how and r["m"] == 10]
         out.append(
             f"{how}: legs 5-50 m flight / ruckig {min(lg, default=float('nan')):.2f}-"
             f"{max(lg, default=float('nan')):.2f}x (target <= 1.25); missions median flight / per-axis "
-            f"lower bound {float(np.median(ms)) if ms else float('nan'):.2f}x (target <= 1.5), {ok}/{n_ms} planned"
+            f"lower bound {float(np.median(ms)) if ms else float('nan'):.2f}x (target <= 1.5; "
+            f"{float(np.median(mt)) if mt else float('nan'):.2f}x the turning-point v/a bound), {ok}/{n_ms} planned"
             + (f"; 10-waypoint plan time median {float(np.median(pt)):.1f} ms (target <= 50)" if pt else "")
         )
     return out
+
+
+def conservatism(pieces: tuple[int, ...] = (1, 2, 3, 4, 6)) -> list[Row]:
+    """Certificate / true peak of the rest-to-rest segment (the fixed curve of a single leg), per
+    order, when each hodograph is certified on p de Casteljau pieces (the planner uses
+    HULL_PIECES); rows per segment is 3 (26 p + 4) bound rows."""
+    from planner_core.bezier import evaluate_segment, segment_from_jets, stacked_pieces
+    from planner_core.problem import rest_jet
+
+    ctrl = segment_from_jets(rest_jet(np.zeros(3)), rest_jet(np.array([1.0, 0.0, 0.0])), 1.0)
+    u = np.linspace(0.0, 1.0, 20001)
+    rows = []
+    for p in pieces:
+        row: Row = {"pieces": p, "planner": "*" if p == HULL_PIECES else "", "bound_rows": 3 * (26 * p + 4)}
+        for k, name in enumerate(("v", "a", "j", "s"), start=1):
+            true = float(np.abs(evaluate_segment(ctrl, 1.0, u, k)[:, 0]).max())
+            cert = stacked_pieces(9 - k, p) @ (hodograph_matrix(k, 1.0) @ ctrl)
+            row[name] = float(np.abs(cert[:, 0]).max()) / true
+        rows.append(row)
+    return rows
+
+
+def time_weights(n: int, seed: int, weights: tuple[float, ...]) -> list[Row]:
+    """`weighted_durations` (min J + rho T) on the first n missions: flight against the fastest
+    allocation's, the objective after the scale search and after the per-segment refinement,
+    the candidate plans after the fastest allocation's, and the time."""
+    from dataclasses import replace
+
+    from quality import random_scenario  # type: ignore[import-not-found]
+
+    from planner_core.allocation import weighted_durations
+
+    rows = []
+    for i in range(n):
+        sc = random_scenario(seed + i)
+        p = sc.problem
+        problem = replace(p, times=allocate_times(p.waypoints, MISSION_BOUNDS, corridors=p.corridors),
+                          bounds=MISSION_BOUNDS)
+        for rho in weights:
+            w = weighted_durations(problem, rho)
+            row: Row = {"name": sc.name, "rho": rho, "ok": w.ok}
+            if w.ok:
+                a = w.result.stats["allocation"]
+                row.update(flight=a["flight"], fastest=a["fastest_flight"], snap=a["integrated_cost"],
+                           objective=a["objective"], after_scale=a["objective_scale"], scale=a["scale"],
+                           plans=a["plans"] - a["fastest_plans"], ms=1e3 * a["time"])
+            rows.append(row)
+    return rows
+
+
+def takeoffs(heights: tuple[float, ...] = (1.0, 3.0, 10.0)) -> list[Row]:
+    """`takeoff_duration` (one certified rest-to-rest climb) against ruckig, companion bounds."""
+    from planner_core.allocation import takeoff_duration
+
+    out = []
+    for h in heights:
+        t = takeoff_duration(h, LEG_BOUNDS)
+        r = ruckig_time(h, LEG_BOUNDS)
+        out.append({"height": h, "duration": t, "ruckig": r, "vs_ruckig": None if r is None else t / r})
+    return out
+
+
+SCALE_OBSTACLES = {10: 10, 30: 30, 100: 50, 300: 100, 1000: 200}  # benchmarks/scale.py-like densities
+
+
+def scaling(sizes: tuple[int, ...], repeats: int = 3) -> list[Row]:
+    """The fastest allocation's cost against m (benchmarks/scale.py scenes without their durations,
+    corridors from their obstacles): the plan at allocate_times' durations (what a scenario
+    without times got before), `fastest_durations` as it runs by default (`strategy`: the
+    duration search up to allocation.SEARCH_MAX_WAYPOINTS waypoints, the local pass alone above)
+    and, for comparison, with the search forced on (one run: it is the slow one)."""
+    from scale import scene  # type: ignore[import-not-found]
+
+    from planner_core import fastest_durations
+    from planner_core.formats.io import load_scenario
+
+    out = []
+    for m in sizes:
+        sc = scene(SCALE_OBSTACLES.get(m, max(10, m // 5)), m)
+        del sc["durations"]
+        problem = load_scenario(sc).problem  # times: allocate_times
+        default, t_default, _ = plan_timed(problem, "default", repeats)
+        times, fast = [], None
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            fast = fastest_durations(problem)
+            times.append(time.perf_counter() - t0)
+        assert fast is not None
+        t0 = time.perf_counter()
+        searched = fastest_durations(problem, search=True)
+        t_search = time.perf_counter() - t0
+        row: Row = {"m": m, "obstacles": len(sc["obstacles"]), "plan_ms": 1e3 * t_default,
+                    "fastest_ms": 1e3 * float(np.median(times)), "strategy": fast.strategy, "plans": fast.plans,
+                    "search_ms": 1e3 * t_search, "ok": bool(default.ok and fast.ok)}
+        row["x_plan"] = row["fastest_ms"] / row["plan_ms"]
+        for name, res in (("default", default), ("fastest", fast.result), ("search", searched.result)):
+            row[f"flight_{name}"] = res.trajectory.t_end - res.trajectory.t0 if res.ok and res.trajectory else None
+        if row["flight_default"] and row["flight_fastest"]:
+            row["vs_default"] = row["flight_fastest"] / row["flight_default"]
+        out.append(row)
+    return out
+
+
+def _rows_table(rows: list[Row]) -> str:
+    cols = list(dict.fromkeys(k for r in rows for k in r))
+    cells = [[_fmt(r.get(c)) for c in cols] for r in rows]
+    w = [max(len(c), *(len(x[i]) for x in cells)) for i, c in enumerate(cols)]
+    lines = ["  ".join(c.rjust(w[i]) for i, c in enumerate(cols))]
+    lines += ["  ".join(x[i].rjust(w[i]) for i in range(len(cols))) for x in cells]
+    return "\n".join(lines)
 
 
 def lp_feasible(problem: Problem, durations: np.ndarray, pieces: int) -> bool:
@@ -254,7 +405,7 @@ def lp_min_scale(problem: Problem, base: np.ndarray, pieces: int, lo: float = 0.
 def subdivision_potential(n: int, seed: int) -> list[Row]:
     """What a subdivided certificate in the QP could give on the missions: the global feasibility
     LP's shortest plan (uniform scale on the safety-1 durations, then per-segment coordinate
-    descent x0.8/0.9/0.95/0.97) with 1 and 4 pieces, as flight / per-axis lower bound."""
+    descent x0.8/0.9/0.95/0.97) with 1 and HULL_PIECES pieces, as flight / per-axis lower bound."""
     from dataclasses import replace
 
     from quality import random_scenario  # type: ignore[import-not-found]
@@ -267,7 +418,7 @@ def subdivision_potential(n: int, seed: int) -> list[Row]:
         base = durations_from_lengths(p.waypoints, MISSION_BOUNDS, safety=1.0, corridors=p.corridors)
         lb = axis_lower_bound(p.waypoints, MISSION_BOUNDS)
         row: Row = {"name": f"s{seed + i}", "m": p.m}
-        for pc in (1, 4):
+        for pc in (1, HULL_PIECES):
             s = lp_min_scale(p, base, pc)
             if s is None:
                 continue
@@ -294,6 +445,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--alloc", default="default,fastest", help="comma list of default, fastest")
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--time-weights", default="1,10,100", help="comma list of rho for min J + rho T ('' for none)")
+    ap.add_argument("--weight-scenes", type=int, default=5, help="missions for the time-weight table")
+    ap.add_argument("--scale", default="10,30,100,1000",
+                    help="comma list of mission sizes for the fastest allocation's cost table ('' for none)")
     ap.add_argument("--subdivision", type=int, default=0, metavar="N",
                     help="also the subdivided-certificate potential on N missions (global LP, ~5 s each)")
     args = ap.parse_args(argv)
@@ -307,6 +462,23 @@ def main(argv: list[str] | None = None) -> int:
     print(table(rows))
     for line in summary(rows):
         print(line)
+    cons = conservatism()
+    print(f"\ncertificate / true peak on the rest-to-rest segment (planner: {HULL_PIECES} pieces per hodograph):")
+    print(_rows_table(cons))
+    lifts = takeoffs()
+    print("\ntakeoff climb (takeoff_duration, companion bounds):")
+    print(_rows_table(lifts))
+    weights = tuple(float(x) for x in args.time_weights.split(",") if x)
+    weighted = time_weights(args.weight_scenes, args.seed, weights) if weights else []
+    if weighted:
+        print("\ntime weight (min J + rho T; plans: candidates after the fastest allocation's):")
+        print(_rows_table(weighted))
+    sizes = tuple(int(x) for x in args.scale.split(",") if x)
+    scaled_rows = scaling(sizes) if sizes else []
+    if scaled_rows:
+        print("\nfastest allocation against m (scale.py scenes without durations; x_plan = fastest_ms / plan_ms;"
+              " search: the duration search forced on):")
+        print(_rows_table(scaled_rows))
     potential: list[Row] = []
     if args.subdivision:
         potential = subdivision_potential(args.subdivision, args.seed)
@@ -315,7 +487,9 @@ def main(argv: list[str] | None = None) -> int:
             print("  " + "  ".join(f"{k} {_fmt(v)}" for k, v in r.items()))
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"rows": rows, "summary": summary(rows), "subdivision": potential},
+        args.json.write_text(json.dumps({"rows": rows, "summary": summary(rows), "subdivision": potential,
+                                         "conservatism": cons, "takeoff": lifts, "time_weight": weighted,
+                                         "scaling": scaled_rows},
                                         indent=1))
         print(f"wrote {args.json}")
     return 0

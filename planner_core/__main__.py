@@ -1,5 +1,8 @@
 import sys
+import time
 
-from planner_core.formats.cli import main
+started = time.perf_counter()  # before any of the planner is imported: the CLI reports start-up apart
 
-sys.exit(main())
+from planner_core.formats.cli import main  # noqa: E402
+
+sys.exit(main(started=started))

@@ -7,11 +7,13 @@ no files (the JSON codec below turns trajectories into dicts and back, nothing m
 - model: `Bounds`, `Polytope`, `Problem`, `Trajectory`, `FloatArray`, `rest_jet`
 - results: `PlanResult`, `PlanStatus`, `Diagnosis`, `VerifyReport`, `ReplanResult`
 - errors: `FieldError` (every field/reason input error) and its `ChangeError`, `CorridorError`
+- a mission in one call: `plan_mission` -> `MissionPlan` (waypoints, bounds, corridors, optional
+  durations and a timing mode in; the verified plan and the map back to the given waypoints out)
 - planning: `plan`, `IterativeOptions`, `warm_up`; time allocation `allocate_times`,
   `durations_from_lengths`, `corridor_cap`, `DEFAULT_MIN_DURATION`; minimum-time allocation
-  `fastest_durations` -> `FastestAllocation`; infeasibility help `Binding`, `ScaleSearch`,
-  `scale_search`, `scaled_durations`; process-wide
-  `use_compiled_kernel` / `disable_kernel`
+  `fastest_durations` -> `FastestAllocation`, `weighted_durations` (min J + rho T), the
+  takeoff climb's `takeoff_duration`; infeasibility help `Binding`, `ScaleSearch`,
+  `scale_search`, `scaled_durations`; process-wide `use_compiled_kernel`
 - certificate: `verify`, `verify_changed` (a local replan, checked only where it changed)
 - local replanning: `replan`, `Environment`, `ReplanOptions`, `ChangeSet` and the edits
   `MoveWaypoint`, `SetDuration`, `SetCorridor`, `AddObstacles`, `InsertWaypoint`,
@@ -21,55 +23,140 @@ no files (the JSON codec below turns trajectories into dicts and back, nothing m
 - trajectory surgery: `split_at`, `splice`, `trim_before`, `hold`, `Sampler`, `sampler`,
   `start_jet`, `end_jet`, `split_segment`
 - JSON: `trajectory_to_dict`, `trajectory_from_dict`
+- user waypoint indices among knots: `WaypointMap`, `to_planned` -> `PlannedChange`
 """
 
 from __future__ import annotations
 
-from planner_core.allocation import FastestAllocation, fastest_durations
-from planner_core.braking import braking_trajectory, stop_time_scale
-from planner_core.changes import (
-    AddObstacles,
-    AppendWaypoints,
-    ChangeError,
-    ChangeSet,
-    InsertWaypoint,
-    MoveWaypoint,
-    RemoveWaypoint,
-    SetCorridor,
-    SetDuration,
-    parse_change,
-    parse_polytope,
-)
-from planner_core.collision import first_hit, inflate
-from planner_core.corridors import CorridorError, build_corridors, polytope_vertices
-from planner_core.errors import FieldError
-from planner_core.feasibility import Binding, ScaleSearch, scale_search
-from planner_core.feasibility import scaled as scaled_durations
-from planner_core.formats.io import trajectory_from_dict, trajectory_to_dict
-from planner_core.iterative import IterativeOptions, warm_up
-from planner_core.planning import plan
-from planner_core.problem import Bounds, FloatArray, Polytope, Problem, Trajectory, rest_jet
-from planner_core.replan import Environment, ReplanOptions, ReplanResult, replan
-from planner_core.result import Diagnosis, PlanResult, PlanStatus
-from planner_core.timing import (
-    DEFAULT_MIN_DURATION,
-    allocate_times,
-    corridor_cap,
-    durations_from_lengths,
-)
-from planner_core.trajectory import (
-    Sampler,
-    end_jet,
-    hold,
-    sampler,
-    splice,
-    split_at,
-    split_segment,
-    start_jet,
-    trim_before,
-)
-from planner_core.verify import VerifyReport, verify, verify_changed
-from planner_core.window import disable_kernel, use_compiled_kernel
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from planner_core.allocation import (
+        FastestAllocation,
+        fastest_durations,
+        takeoff_duration,
+        weighted_durations,
+    )
+    from planner_core.braking import braking_trajectory, stop_time_scale
+    from planner_core.changes import (
+        AddObstacles,
+        AppendWaypoints,
+        ChangeError,
+        ChangeSet,
+        InsertWaypoint,
+        MoveWaypoint,
+        RemoveWaypoint,
+        SetCorridor,
+        SetDuration,
+        parse_change,
+        parse_polytope,
+    )
+    from planner_core.collision import first_hit, inflate
+    from planner_core.corridors import CorridorError, build_corridors, polytope_vertices
+    from planner_core.errors import FieldError
+    from planner_core.feasibility import Binding, ScaleSearch, scale_search
+    from planner_core.feasibility import scaled as scaled_durations
+    from planner_core.formats.io import trajectory_from_dict, trajectory_to_dict
+    from planner_core.indices import PlannedChange, WaypointMap, to_planned
+    from planner_core.iterative import IterativeOptions, warm_up
+    from planner_core.missions import MissionPlan, plan_mission
+    from planner_core.planning import plan
+    from planner_core.problem import Bounds, FloatArray, Polytope, Problem, Trajectory, rest_jet
+    from planner_core.replan import Environment, ReplanOptions, ReplanResult, replan
+    from planner_core.result import Diagnosis, PlanResult, PlanStatus
+    from planner_core.timing import (
+        DEFAULT_MIN_DURATION,
+        allocate_times,
+        corridor_cap,
+        durations_from_lengths,
+    )
+    from planner_core.trajectory import (
+        Sampler,
+        end_jet,
+        hold,
+        sampler,
+        splice,
+        split_at,
+        split_segment,
+        start_jet,
+        trim_before,
+    )
+    from planner_core.verify import VerifyReport, verify, verify_changed
+    from planner_core.window import use_compiled_kernel
+
+# Where each name lives. Nothing is imported until first asked for (PEP 562): a client that
+# only loads a scenario does not pay for scipy's sparse matrices, the elastic LP or numba,
+# and `python -m planner_core plan` starts in a fraction of the time.
+_WHERE: dict[str, tuple[str, str]] = {
+    "AddObstacles": ("planner_core.changes", "AddObstacles"),
+    "allocate_times": ("planner_core.timing", "allocate_times"),
+    "AppendWaypoints": ("planner_core.changes", "AppendWaypoints"),
+    "Binding": ("planner_core.feasibility", "Binding"),
+    "Bounds": ("planner_core.problem", "Bounds"),
+    "braking_trajectory": ("planner_core.braking", "braking_trajectory"),
+    "build_corridors": ("planner_core.corridors", "build_corridors"),
+    "ChangeError": ("planner_core.changes", "ChangeError"),
+    "ChangeSet": ("planner_core.changes", "ChangeSet"),
+    "corridor_cap": ("planner_core.timing", "corridor_cap"),
+    "CorridorError": ("planner_core.corridors", "CorridorError"),
+    "DEFAULT_MIN_DURATION": ("planner_core.timing", "DEFAULT_MIN_DURATION"),
+    "Diagnosis": ("planner_core.result", "Diagnosis"),
+    "durations_from_lengths": ("planner_core.timing", "durations_from_lengths"),
+    "end_jet": ("planner_core.trajectory", "end_jet"),
+    "Environment": ("planner_core.replan", "Environment"),
+    "fastest_durations": ("planner_core.allocation", "fastest_durations"),
+    "FastestAllocation": ("planner_core.allocation", "FastestAllocation"),
+    "takeoff_duration": ("planner_core.allocation", "takeoff_duration"),
+    "weighted_durations": ("planner_core.allocation", "weighted_durations"),
+    "FieldError": ("planner_core.errors", "FieldError"),
+    "first_hit": ("planner_core.collision", "first_hit"),
+    "FloatArray": ("planner_core.problem", "FloatArray"),
+    "hold": ("planner_core.trajectory", "hold"),
+    "inflate": ("planner_core.collision", "inflate"),
+    "InsertWaypoint": ("planner_core.changes", "InsertWaypoint"),
+    "IterativeOptions": ("planner_core.iterative", "IterativeOptions"),
+    "MissionPlan": ("planner_core.missions", "MissionPlan"),
+    "MoveWaypoint": ("planner_core.changes", "MoveWaypoint"),
+    "parse_change": ("planner_core.changes", "parse_change"),
+    "parse_polytope": ("planner_core.changes", "parse_polytope"),
+    "plan": ("planner_core.planning", "plan"),
+    "plan_mission": ("planner_core.missions", "plan_mission"),
+    "PlanResult": ("planner_core.result", "PlanResult"),
+    "PlanStatus": ("planner_core.result", "PlanStatus"),
+    "Polytope": ("planner_core.problem", "Polytope"),
+    "polytope_vertices": ("planner_core.corridors", "polytope_vertices"),
+    "Problem": ("planner_core.problem", "Problem"),
+    "RemoveWaypoint": ("planner_core.changes", "RemoveWaypoint"),
+    "replan": ("planner_core.replan", "replan"),
+    "ReplanOptions": ("planner_core.replan", "ReplanOptions"),
+    "ReplanResult": ("planner_core.replan", "ReplanResult"),
+    "rest_jet": ("planner_core.problem", "rest_jet"),
+    "Sampler": ("planner_core.trajectory", "Sampler"),
+    "sampler": ("planner_core.trajectory", "sampler"),
+    "scale_search": ("planner_core.feasibility", "scale_search"),
+    "scaled_durations": ("planner_core.feasibility", "scaled"),
+    "ScaleSearch": ("planner_core.feasibility", "ScaleSearch"),
+    "SetCorridor": ("planner_core.changes", "SetCorridor"),
+    "SetDuration": ("planner_core.changes", "SetDuration"),
+    "splice": ("planner_core.trajectory", "splice"),
+    "split_at": ("planner_core.trajectory", "split_at"),
+    "split_segment": ("planner_core.trajectory", "split_segment"),
+    "start_jet": ("planner_core.trajectory", "start_jet"),
+    "stop_time_scale": ("planner_core.braking", "stop_time_scale"),
+    "Trajectory": ("planner_core.problem", "Trajectory"),
+    "trajectory_from_dict": ("planner_core.formats.io", "trajectory_from_dict"),
+    "trajectory_to_dict": ("planner_core.formats.io", "trajectory_to_dict"),
+    "trim_before": ("planner_core.trajectory", "trim_before"),
+    "use_compiled_kernel": ("planner_core.window", "use_compiled_kernel"),
+    "verify": ("planner_core.verify", "verify"),
+    "verify_changed": ("planner_core.verify", "verify_changed"),
+    "VerifyReport": ("planner_core.verify", "VerifyReport"),
+    "warm_up": ("planner_core.iterative", "warm_up"),
+    "PlannedChange": ("planner_core.indices", "PlannedChange"),
+    "to_planned": ("planner_core.indices", "to_planned"),
+    "WaypointMap": ("planner_core.indices", "WaypointMap"),
+}
 
 __all__ = [
     "DEFAULT_MIN_DURATION",
@@ -87,9 +174,11 @@ __all__ = [
     "FloatArray",
     "InsertWaypoint",
     "IterativeOptions",
+    "MissionPlan",
     "MoveWaypoint",
     "PlanResult",
     "PlanStatus",
+    "PlannedChange",
     "Polytope",
     "Problem",
     "RemoveWaypoint",
@@ -101,11 +190,11 @@ __all__ = [
     "SetDuration",
     "Trajectory",
     "VerifyReport",
+    "WaypointMap",
     "allocate_times",
     "braking_trajectory",
     "build_corridors",
     "corridor_cap",
-    "disable_kernel",
     "durations_from_lengths",
     "end_jet",
     "fastest_durations",
@@ -115,6 +204,7 @@ __all__ = [
     "parse_change",
     "parse_polytope",
     "plan",
+    "plan_mission",
     "polytope_vertices",
     "replan",
     "rest_jet",
@@ -126,6 +216,8 @@ __all__ = [
     "split_segment",
     "start_jet",
     "stop_time_scale",
+    "takeoff_duration",
+    "to_planned",
     "trajectory_from_dict",
     "trajectory_to_dict",
     "trim_before",
@@ -133,4 +225,19 @@ __all__ = [
     "verify",
     "verify_changed",
     "warm_up",
+    "weighted_durations",
 ]
+
+
+def __getattr__(name: str) -> Any:
+    try:
+        module, attr = _WHERE[name]
+    except KeyError:
+        raise AttributeError(f"module 'planner_core' has no attribute {name!r}") from None
+    value = getattr(importlib.import_module(module), attr)
+    globals()[name] = value  # later look-ups are plain attribute reads
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *__all__})

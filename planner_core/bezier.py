@@ -190,13 +190,35 @@ def subdivision_matrix(n: int, pieces: int) -> FloatArray:
     return _subdivision_cached(int(n), int(pieces))
 
 
+@lru_cache(maxsize=32)
+def _stacked_pieces(n: int, pieces: int) -> FloatArray:
+    sub = subdivision_matrix(n, pieces)
+    # piece i ends where piece i+1 starts (the same blossom, computed the same way): once
+    out = np.ascontiguousarray(np.concatenate([sub[0]] + [sub[i, 1:] for i in range(1, pieces)]))
+    out.setflags(write=False)
+    return out
+
+
+def stacked_pieces(n: int, pieces: int) -> FloatArray:
+    """(pieces n + 1, n+1): the control points of all `pieces` equal de Casteljau pieces of a
+    degree-n curve, each shared end once. Their hull holds the curve, and shrinks to it as
+    pieces grow (the gap falls as 1 / pieces^2)."""
+    return _stacked_pieces(int(n), int(pieces)) if pieces > 1 else np.eye(n + 1)
+
+
+def certificate_matrix(k: int, pieces: int, duration: float = 1.0, n: int = N) -> FloatArray:
+    """(pieces (n-k) + 1, n+1): control points -> the control points of the `pieces` pieces of
+    the order-k hodograph. A bound on all of them is the planner's certificate of order k."""
+    return np.asarray(stacked_pieces(n - k, pieces) @ hodograph_matrix(k, duration, n))
+
+
 def subdivided_hull_extent(ctrl: FloatArray, k: int, durations: FloatArray, pieces: int) -> FloatArray:
     """(s, 2, 3) min and max over the order-k hodograph control points of every segment after
     splitting each hodograph into `pieces` equal pieces: the exact continuous-time certificate
     (the true extremes lie inside; pieces = 1 is the plain hull)."""
     h = hodographs(ctrl, k, durations)  # (s, 10-k, 3)
-    sub = np.matmul(subdivision_matrix(h.shape[1] - 1, pieces)[None], h[:, None])  # (s, p, 10-k, 3)
-    return np.stack([sub.min(axis=(1, 2)), sub.max(axis=(1, 2))], axis=1)
+    sub = np.matmul(stacked_pieces(h.shape[1] - 1, pieces), h)  # (s, p (9-k) + 1, 3)
+    return np.stack([sub.min(axis=1), sub.max(axis=1)], axis=1)
 
 
 # --- trajectory evaluation --------------------------------------------------

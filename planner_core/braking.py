@@ -6,7 +6,7 @@ first five control points are fixed by the current jet and spread with the
 duration cubed, so a second, short, leading segment with a free junction jet
 (position included) takes them out first. The QP (integrated squared snap
 plus a small pull of p towards the current position) constrains every
-hodograph point of both segments within the bounds and every control point
+certified hodograph point (`constraints.HULL_PIECES` pieces) of both segments within the bounds and every control point
 (the junction included) inside the corridor. Total durations are tried
 shortest first along a short geometric sequence starting from the time a
 bang-bang stop would need; the first solution that passes `verify` is

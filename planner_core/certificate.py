@@ -1,8 +1,8 @@
 """Per-duration segment maps and the certificate of rebuilt segments.
 
 A local replan rebuilds a few segments from their end jets; before it is
-returned, `certify_rebuilt` checks them (every hodograph control point of
-orders 1..4 within bounds, every control point in its corridor, C^4
+returned, `certify_rebuilt` checks them (the control points of every
+`HULL_PIECES` de Casteljau piece of the hodographs of orders 1..4 within bounds, every control point in its corridor, C^4
 continuity with the kept neighbours) from maps built from the difference
 matrices, independent of the QP's jet model. The maps depend on one
 duration each and are cached: a replan touches a few durations, often the
@@ -16,8 +16,8 @@ from functools import lru_cache
 
 import numpy as np
 
-from planner_core.bezier import hodograph_matrix
-from planner_core.constraints import _unit_templates
+from planner_core.bezier import certificate_matrix, hodograph_matrix
+from planner_core.constraints import HULL_PIECES, _unit_templates
 from planner_core.problem import (
     DEGREE,
     JET_ORDER,
@@ -36,12 +36,14 @@ from planner_core.problem import (
 # costs a few numpy calls instead of building matrices in Python loops.
 _POW_LO = -7
 _POW_EXP = np.arange(_POW_LO, 5, dtype=float)
-_ORDER_OF_ROW = np.concatenate([np.full(DEGREE + 1 - k, k) for k in range(1, 5)])
-# (2, 90): index of each hodograph value's lower (upper) bound in the 24 entries of (lo, hi) flattened
+# the certified hodograph points: orders 1..4, each on HULL_PIECES de Casteljau pieces
+_CERT_BLOCKS = tuple(certificate_matrix(k, HULL_PIECES) for k in range(1, 5))
+_ORDER_OF_ROW = np.concatenate([np.full(b.shape[0], k) for k, b in enumerate(_CERT_BLOCKS, start=1)])
+# (2, 3 n): index of each hodograph value's lower (upper) bound in the 24 entries of (lo, hi) flattened
 _LIM_IDX = np.stack([((_ORDER_OF_ROW - 1)[:, None] * 3 + np.arange(3)).ravel() + 12 * side for side in (0, 1)])
-_HODO = slice(N_CTRL, None)  # hull rows 10..39: hodographs of orders 1..4
+_HODO = slice(N_CTRL, None)  # hull rows 10..: certified hodograph points of orders 1..4
 _INNER = slice(1, DEGREE)  # control points P^1..P^8
-_N_HODO = 30  # hodograph control points of orders 1..4 per segment
+_N_HODO = int(_ORDER_OF_ROW.size)  # certified hodograph points of orders 1..4 per segment
 
 
 def _power_table(d: float) -> FloatArray:
@@ -55,7 +57,7 @@ def _read_only(a: FloatArray) -> FloatArray:
 
 
 def _limits(bounds: Bounds) -> FloatArray:
-    """(2, 30, 3): lower and upper bound of every hodograph control point of orders 1..4."""
+    """(2, n, 3): lower and upper bound of every certified hodograph point of orders 1..4."""
     return np.asarray(np.concatenate((bounds.lo, bounds.hi), axis=None)[_LIM_IDX].reshape(2, _N_HODO, 3))
 
 
@@ -75,10 +77,10 @@ def _jet_rows() -> tuple[FloatArray, FloatArray]:
 
 @lru_cache(maxsize=1)
 def _cert_unit() -> tuple[FloatArray, FloatArray]:
-    """The (40, 10) certificate map at d = 1 and the power of d that scales each of its rows."""
+    """The (n + 10, 10) certificate map at d = 1 and the power of d that scales each of its rows."""
     u0, u1 = _jet_rows()
     unit = np.zeros((_N_HODO + 2 * JET_ORDER, N_CTRL))
-    unit[:_N_HODO] = np.vstack([hodograph_matrix(k, 1.0) for k in range(1, 5)])
+    unit[:_N_HODO] = np.vstack(_CERT_BLOCKS)
     unit[_N_HODO : _N_HODO + JET_ORDER, :JET_ORDER] = u0
     unit[_N_HODO + JET_ORDER :, JET_ORDER:] = u1
     order = np.concatenate([_ORDER_OF_ROW, np.arange(JET_ORDER), np.arange(JET_ORDER)])
@@ -87,7 +89,7 @@ def _cert_unit() -> tuple[FloatArray, FloatArray]:
 
 @lru_cache(maxsize=1024)
 def _cert_map(d: float) -> FloatArray:
-    """(40, 10): control points -> hodograph points (rows 0..29), start jet (30..34), end jet (35..39).
+    """(n + 10, 10): control points -> certified hodograph points (rows 0..n-1), start jet, end jet.
 
     Built from the difference matrices, not from the jet maps the QP uses: the
     certificate stays independent of the model it checks.
@@ -97,7 +99,7 @@ def _cert_map(d: float) -> FloatArray:
 
 
 def _hodograph_stack(d: float) -> FloatArray:
-    """(30, 10): control points -> hodograph control points of orders 1..4, stacked."""
+    """(n, 10): control points -> certified hodograph points of orders 1..4, stacked."""
     return _cert_map(d)[:_N_HODO]
 
 
@@ -132,7 +134,7 @@ def segment_ctrl(jet0: FloatArray, jet1: FloatArray, duration: float) -> FloatAr
 def _hull_failure_one(
     ctrl: FloatArray, d: float, lim: FloatArray, poly: Polytope | None, tol: float, name: int
 ) -> str | None:
-    h = _hodograph_stack(d) @ ctrl  # (30, 3)
+    h = _hodograph_stack(d) @ ctrl  # (n, 3)
     worst = np.maximum(h - lim[1], lim[0] - h)
     w = float(worst.max())
     if not w <= tol:  # NaN fails too
@@ -155,7 +157,7 @@ def hull_violation(
 ) -> str | None:
     """First hull certificate failure of segments (s, 10, 3), or None when all pass.
 
-    Checks every hodograph control point of orders 1..4 against the bounds and
+    Checks every certified hodograph point of orders 1..4 against the bounds and
     all 10 control points against the corridor. `labels` are the segments'
     indices to name in the message (default 0..s-1). NaN never passes.
     """
@@ -201,7 +203,7 @@ def certify_rebuilt(
     segs = sorted({s + e for s in rebuild for e in (-1, 0, 1) if 0 <= s + e <= last})
     at = {s: i for i, s in enumerate(segs)}
     durs = [float(times[s + 1] - times[s]) for s in segs]
-    Y = np.array([_cert_map(d) for d in durs]) @ _take(ctrl, segs)  # (k, 40, 3)
+    Y = np.array([_cert_map(d) for d in durs]) @ _take(ctrl, segs)  # (k, n + 10, 3)
     h = _take(Y, [at[s] for s in rebuild])[:, :_N_HODO]
     lim = _limits(bounds)
     hull_ok = float(np.maximum(h - lim[1], lim[0] - h).max()) <= tol

@@ -1,7 +1,10 @@
 """Mission changes for local replanning, and their JSON form.
 
 A change set is a dict (CHANGE.json) with any of these keys; every index
-refers to the problem *as given* (before any split or edit). The companion
+refers to the problem *as given* (before any split or edit). `replan` counts
+every waypoint of the problem it is handed; the planner CLI's replan counts the
+user's waypoints instead (knots absent) through the trajectory's
+"waypoint_index" (`planner_core.indices.to_planned`). The companion
 schema's spellings are accepted too ("move_waypoint", "insert_waypoint",
 "remove_waypoint", duration {"index", "value"}); "description" is ignored.
 

@@ -1,8 +1,9 @@
 """Constraint rows and cost matrices of one segment as linear maps of its two end jets.
 
 A segment's 10 control points are `[start_map @ J0; end_map @ J1]` (method.md), so
-every hull quantity the planner constrains (control points and hodograph
-control points of orders 1..4) is a fixed matrix times the stacked jet pair.
+every hull quantity the planner constrains (control points, and the control points of
+the `HULL_PIECES` de Casteljau pieces of the hodographs of orders 1..4) is a fixed
+matrix times the stacked jet pair.
 
 Column layout used by every row here ("30-layout"): the pair of jets
 `(J0, J1)` of a segment, each (5, 3), flattened as `[J0.ravel(), J1.ravel()]`,
@@ -22,12 +23,17 @@ from math import comb
 import numpy as np
 from numpy.typing import NDArray
 
-from planner_core.bezier import end_map, hodograph_matrix, start_map
+from planner_core.bezier import (
+    certificate_matrix,
+    end_map,
+    hodograph_matrix,
+    stacked_pieces,
+    start_map,
+)
 from planner_core.problem import DEGREE, JET_ORDER, N_CTRL, FloatArray, Polytope
 
 IntArray = NDArray[np.int64]
 
-N_HODO = tuple(N_CTRL - k for k in range(1, 5))  # hodograph points per order: 9, 8, 7, 6
 JET_COLS = 2 * JET_ORDER * 3  # 30
 INF = 1e30  # what both QP backends treat as "no bound"
 
@@ -36,23 +42,37 @@ KIND_BOUND = 0
 KIND_CORRIDOR = 1
 
 
+HULL_PIECES = 3  # de Casteljau pieces per hodograph in the bound rows (measured: benchmarks/speed.py)
+
+
 @lru_cache(maxsize=1)
 def _unit_templates() -> tuple[FloatArray, IntArray, IntArray, IntArray]:
-    """Q(1) (40, 10): ctrl points then hodographs 1..4, over (side*5+order); power table; row order; row index."""
+    """Q(1) (10 + n, 10): ctrl points, then the control points of the `HULL_PIECES` de Casteljau
+    pieces of the hodographs of orders 1..4 (`bezier.certificate_matrix`), over (side*5+order);
+    power table; row order; row index (within its order).
+
+    One hull over a degree-9 segment is up to 15x wider than the curve (a rest-to-rest segment:
+    velocity 3.7x, snap 14.6x); the pieces' hulls are within 1.07 / 1.07 / 1.25 / 1.62x of it at
+    3 pieces, and every row is still a linear map of the two jets."""
     smat = np.zeros((N_CTRL, 2 * JET_ORDER))
     smat[:JET_ORDER, :JET_ORDER] = start_map(1.0)
     smat[JET_ORDER:, JET_ORDER:] = end_map(1.0)
-    blocks = [np.eye(N_CTRL)] + [hodograph_matrix(k, 1.0) for k in range(1, 5)]
+    blocks = [np.eye(N_CTRL)] + [certificate_matrix(k, HULL_PIECES) for k in range(1, 5)]
     q1 = np.vstack(blocks) @ smat
-    row_order = np.concatenate([np.full(N_CTRL - k, k) for k in range(5)])
-    row_index = np.concatenate([np.arange(N_CTRL - k) for k in range(5)])
+    row_order = np.concatenate([np.full(b.shape[0], k) for k, b in enumerate(blocks)])
+    row_index = np.concatenate([np.arange(b.shape[0]) for b in blocks])
     col_order = np.tile(np.arange(JET_ORDER), 2)
     power = col_order[None, :] - row_order[:, None]
     return q1, power, row_order, row_index
 
 
+def n_bound_points() -> int:
+    """Certified hodograph points (orders 1..4, all pieces) per segment and axis."""
+    return int(_unit_templates()[0].shape[0]) - N_CTRL
+
+
 def hull_maps(durations: FloatArray) -> FloatArray:
-    """Per segment, the (40, 10) map from one axis of (J0, J1) to ctrl + hodograph points."""
+    """Per segment, the (10 + n, 10) map from one axis of (J0, J1) to ctrl + certified hodograph points."""
     q1, power, _, _ = _unit_templates()
     d = np.asarray(durations, dtype=float)
     # integer powers -4..4: one small table per segment, then a gather (elementwise ** with an
@@ -65,28 +85,42 @@ def hull_maps(durations: FloatArray) -> FloatArray:
     return out.reshape(d.size, *q1.shape)
 
 
-# bound rows are the hodograph rows 10..39 (orders 1..4)
-_BOUND_Q_ROWS = np.arange(N_CTRL, N_CTRL + sum(N_HODO))
 _CORR_Q_ROWS = np.arange(1, N_CTRL - 1)  # P^1..P^8 (P^0, P^9 are the fixed waypoints)
+
+
+def _bound_q_rows() -> IntArray:
+    """Hull rows of the bound constraints (the certified hodograph points, orders 1..4)."""
+    return np.arange(N_CTRL, N_CTRL + n_bound_points())
 
 
 @lru_cache(maxsize=1)
 def _bound_meta() -> tuple[IntArray, IntArray, IntArray, NDArray[np.bool_]]:
-    _, _, row_order, row_index = _unit_templates()
-    order = np.repeat(row_order[_BOUND_Q_ROWS], 3)
-    index = np.repeat(row_index[_BOUND_Q_ROWS], 3)
-    axis = np.tile(np.arange(3), _BOUND_Q_ROWS.size)
-    # a hodograph point i of order k uses P^i..P^{i+k}; it depends on J0 only if i+k <= 4
-    half = index + order <= JET_ORDER - 1
+    q1, _, row_order, row_index = _unit_templates()
+    rows = _bound_q_rows()
+    order = np.repeat(row_order[rows], 3)
+    index = np.repeat(row_index[rows], 3)
+    axis = np.tile(np.arange(3), rows.size)
+    # read off the map (the zeros are structural: de Casteljau steps at u = 0 or 1 copy exactly):
+    # a point depends on J0 only when its end-jet columns vanish
+    half = np.repeat(np.all(q1[rows, JET_ORDER:] == 0.0, axis=1), 3)
     return order, index, axis, half
 
 
+def bound_sides() -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    """Per bound row (point * 3 + axis): depends on the start jet only; on the end jet only."""
+    q1 = _unit_templates()[0]
+    rows = _bound_q_rows()
+    a_only = np.repeat(np.all(q1[rows, JET_ORDER:] == 0.0, axis=1), 3)
+    b_only = np.repeat(np.all(q1[rows, :JET_ORDER] == 0.0, axis=1), 3)
+    return a_only, b_only
+
+
 def bound_rows(hull: FloatArray, lo: FloatArray, hi: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Rows (90, 30), lower and upper limits of the dynamic-bound constraints of one segment.
+    """Rows (3 n, 30), lower and upper limits of the dynamic-bound constraints of one segment.
 
     `lo`, `hi` are the Bounds arrays (4, 3).
     """
-    rows: FloatArray = np.kron(hull[_BOUND_Q_ROWS], np.eye(3)).astype(np.float64)
+    rows: FloatArray = np.kron(hull[_bound_q_rows()], np.eye(3)).astype(np.float64)
     order, _, axis, _ = _bound_meta()
     return rows, lo[order - 1, axis], hi[order - 1, axis]
 
@@ -123,9 +157,9 @@ def bernstein_gram(n: int) -> FloatArray:
 
 @lru_cache(maxsize=8)
 def _unit_cost(order: int) -> tuple[FloatArray, FloatArray]:
-    q1, _power, row_order, _ = _unit_templates()
-    rows = row_order == order
-    m = q1[rows]  # (10-order, 10)
+    q1 = _unit_templates()[0]
+    # the plain hodograph (the cost integrates the curve itself, not the certificate's pieces)
+    m = hodograph_matrix(order, 1.0) @ q1[:N_CTRL]  # (10-order, 10)
     k1 = m.T @ bernstein_gram(DEGREE - order) @ m
     col_order = np.tile(np.arange(JET_ORDER), 2)
     # ∫_0^Δ |x^(k)(t)|^2 dt = Δ * (Δ^-k)^2 * ... ; column scaling Δ^order(c)
@@ -186,3 +220,11 @@ def segment_rows(hull: FloatArray, lo: FloatArray, hi: FloatArray, poly: Polytop
         np.concatenate([np.full(brows.shape[0], KIND_BOUND), np.full(n_c, KIND_CORRIDOR)]),
         np.concatenate([border, np.zeros(n_c, dtype=np.int64)]),
     )
+
+
+def certified_points(ctrl: FloatArray, k: int, durations: FloatArray) -> FloatArray:
+    """(s, n_k, 3) the order-k values the planner's bound rows certify for segments (s, 10, 3):
+    the control points of the `HULL_PIECES` de Casteljau pieces of each hodograph."""
+    from planner_core.bezier import hodographs
+
+    return np.asarray(np.matmul(stacked_pieces(DEGREE - k, HULL_PIECES), hodographs(ctrl, k, durations)))

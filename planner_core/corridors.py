@@ -6,7 +6,8 @@ of segment j inside corridor j). With vehicle radius r, corridor j = {x : A x <=
 
 - Containment: the straight segment [W_j, W_{j+1}] is inside, at distance >= r
   from every obstacle plane (so the curve has room to bend) and inside the map
-  planes (the vehicle centre stays in the map box shrunk by r).
+  planes (the vehicle centre stays in the map box shrunk by r) and the faces of
+  its analysis box (below), which are farther.
 - Exclusion (checkable certificate): for every obstacle O there is one corridor
   plane with all vertices of O at signed distance >= r beyond it, so the ball of
   radius r around any corridor point misses O.
@@ -20,11 +21,25 @@ of segment j inside corridor j). With vehicle radius r, corridor j = {x : A x <=
 - Blocked: a segment is flyable only if the segment inflated by r and the
   obstacle inflated by r are disjoint (gap >= 2r); otherwise CorridorError.
   Obstacles already kept r beyond the shrunk map box count as outside the map.
-- Economy: obstacles within `influence` of the segment always get a plane;
-  farther ones only when no existing plane already certifies them. Planes that
-  are not facets of the corridor are then dropped unless one is the only
-  certificate of some obstacle (removing it would not change the region, but
-  the certificate is what makes exclusion checkable with one matrix product).
+- Analysis box (the broad phase, the plane choice of this builder): each
+  segment's corridor starts as its bounding box padded by `influence` (default
+  length + 3 m), clipped to the map box shrunk by r. An obstacle that a face of
+  that box already keeps r away (its bounding box lies beyond the face) needs no
+  plane: it is never looked at again (`broadphase`: a sorted sweep finds the
+  others, the candidates). So a corridor costs what its neighbourhood holds, not
+  what the map holds; a far obstacle is excluded by a box face instead of by a
+  plane of its own, and never changes the region.
+- Economy: the planes of all (segment, candidate) pairs are computed in one
+  batch; nearest first, a candidate keeps its plane only when no nearer
+  candidate's plane already certifies it (dropping a certified obstacle's plane
+  only gives room). Then, for all corridors with as many planes at once
+  (`facets`: plane-triple vertices in closed form), planes that are not facets
+  are dropped, unless a candidate's plane is the certificate a candidate would
+  lose, or a box face has obstacles beyond it (counted with a sorted sweep;
+  removing such planes would not change the region, but the certificate is what
+  makes exclusion checkable with one matrix product).
+- Pop-ups (`update_corridors`): only corridors that no plane (box faces
+  included) already certifies against the new obstacle are touched.
 """
 
 from __future__ import annotations
@@ -32,23 +47,26 @@ from __future__ import annotations
 from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
-from functools import lru_cache
 from itertools import combinations
+from typing import Any
 
 import daqp
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from planner_core.broadphase import count_beyond, overlapping_pairs
 from planner_core.errors import FieldError
+from planner_core.facets import facet_masks, triples
 from planner_core.problem import FloatArray, Polytope
 
 IntArray = NDArray[np.intp]
 BoolArray = NDArray[np.bool_]
 
 CERT_TOL = 1e-10  # slack on the certificate test; the offsets are exact up to rounding
-DEFAULT_INFLUENCE_MARGIN = 3.0  # metres beyond the segment length (plus 2r) that get a plane
+DEFAULT_INFLUENCE_MARGIN = 3.0  # metres: the analysis box pads the segment by its length plus this
 _DET_TOL = 1e-12  # unit normals: |det| below this means three planes share no single point
 _CHUNK = 20000  # triples per vectorised batch (bounds memory for big hulls)
+_PAIR_BATCH = 1_000_000  # (segment, obstacle) pairs x per-pair work per batch (bounds the temporaries)
 
 
 class CorridorError(FieldError):
@@ -98,21 +116,12 @@ def _as_point(values: ArrayLike, name: str) -> FloatArray:
     return pt
 
 
-@lru_cache(maxsize=64)
-def _cached_triples(k: int) -> IntArray:
-    idx = np.fromiter(
-        (i for t in combinations(range(k), 3) for i in t), dtype=np.intp
-    ).reshape(-1, 3)
-    idx.setflags(write=False)
-    return idx
-
-
 def _triple_chunks(k: int) -> list[IntArray]:
     """All index triples i<j<l of range(k), in batches."""
     if k < 3:
         return []
     if k <= 64:
-        return [_cached_triples(k)]
+        return [triples(k)]
     idx = np.fromiter((i for t in combinations(range(k), 3) for i in t), dtype=np.intp)
     idx = idx.reshape(-1, 3)
     return [idx[s : s + _CHUNK] for s in range(0, idx.shape[0], _CHUNK)]
@@ -174,6 +183,31 @@ def _vertices(A: FloatArray, b: FloatArray) -> FloatArray:
     return _unique_rows(np.concatenate(found), 10 * tol)
 
 
+# corner c of a box is (hi if bit a of c else lo) on axis a; its 12 edges join corners one bit apart
+_CORNER_BITS = (np.arange(8)[:, None] >> np.arange(3)[None, :]) & 1  # (8, 3)
+_BOX_EDGES = np.array([(c, c | (1 << a)) for c in range(8) for a in range(3) if not c & (1 << a)], dtype=np.intp)
+
+
+def _box_extents(A: FloatArray, b: FloatArray) -> tuple[BoolArray, FloatArray, FloatArray]:
+    """Which of the polytopes A (n, 6, 3), b (n, 6) (unit rows) are axis-aligned boxes with
+    volume (one row per signed axis, in any order), and their (lo, hi) corners (n, 3)."""
+    ax = np.argmax(np.abs(A), axis=2)  # (n, 6)
+    comp = np.take_along_axis(A, ax[..., None], axis=2)[..., 0]
+    ids = ax + 3 * (comp < 0.0)
+    axis_rows = np.all((np.abs(comp) == 1.0) & (np.count_nonzero(A, axis=2) == 1), axis=1)
+    perm = np.all(np.sort(ids, axis=1) == np.arange(6), axis=1)
+    order = np.argsort(ids, axis=1)
+    bs = np.take_along_axis(b, order, axis=1)
+    hi, lo = bs[:, :3], -bs[:, 3:]
+    ok = axis_rows & perm & np.all(hi > lo, axis=1)
+    return ok, lo, hi
+
+
+def _box_corners(lo: FloatArray, hi: FloatArray) -> FloatArray:
+    """(n, 8, 3) corners of the boxes [lo, hi] (n, 3), numbered as `_CORNER_BITS`."""
+    return np.where(_CORNER_BITS[None].astype(bool), hi[:, None, :], lo[:, None, :])
+
+
 _VERTEX_CACHE: OrderedDict[tuple[tuple[int, ...], bytes, bytes], FloatArray] = OrderedDict()
 _VERTEX_CACHE_SIZE = 256
 
@@ -192,6 +226,13 @@ def polytope_vertices(poly: Polytope, name: str = "polytope") -> FloatArray:
     if hit is not None:
         return hit
     A, b = normalised(poly, name)
+    if A.shape[0] == 6:
+        is_box, lo, hi = _box_extents(A[None], b[None])
+        if is_box[0]:
+            verts = np.ascontiguousarray(_box_corners(lo, hi)[0])
+            verts.flags.writeable = False
+            _remember_vertices(poly, verts)
+            return verts
     if not _is_bounded(A):
         raise ValueError(f"{name}: polytope is unbounded (its planes do not enclose a region)")
     verts = _vertices(A, b)
@@ -439,18 +480,23 @@ def _polytope_edges(verts: FloatArray, A: FloatArray, b: FloatArray) -> IntArray
     return np.concatenate([np.stack([i, j], axis=1), np.stack([lonely, lonely], axis=1)]).astype(np.intp)
 
 
+def _dot(x: FloatArray, y: FloatArray) -> FloatArray:
+    return np.asarray(np.sum(x * y, axis=-1))
+
+
 def _segment_pairs(p: FloatArray, d1: FloatArray, q: FloatArray, d2: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Closest points of every segment p_i + s d1_i (s, 3) to every segment q_e + t d2_e (E, 3).
+    """Closest points of segments p + s d1 to segments q + t d2 (any shapes that broadcast, last
+    axis 3): e.g. (s, 1, 3) against (1, E, 3) for every pair, or (P, 1, 3) against (P, E, 3).
 
     Ericson, Real-Time Collision Detection, 5.1.9, with the degenerate cases (a
-    point for a segment, parallel segments) as array masks; the dot products of
-    all pairs are matmuls. Returns the two points of each pair, (s, E, 3) each.
+    point for a segment, parallel segments) as array masks. Returns the two points
+    of each pair, each of the broadcast shape.
     """
-    a = np.einsum("sd,sd->s", d1, d1)[:, None]
-    e = np.einsum("ed,ed->e", d2, d2)[None, :]
-    c = np.einsum("sd,sd->s", d1, p)[:, None] - d1 @ q.T  # d1 . (p - q)
-    f = p @ d2.T - np.einsum("ed,ed->e", d2, q)[None, :]  # d2 . (p - q)
-    bb = d1 @ d2.T
+    a = _dot(d1, d1)
+    e = _dot(d2, d2)
+    c = _dot(d1, p - q)
+    f = _dot(d2, p - q)
+    bb = _dot(d1, d2)
     tiny = 1e-300
     a_ok, e_ok = a > tiny, e > tiny
     safe_a, safe_e = np.where(a_ok, a, 1.0), np.where(e_ok, e, 1.0)
@@ -463,7 +509,93 @@ def _segment_pairs(p: FloatArray, d1: FloatArray, q: FloatArray, d2: FloatArray)
     # degenerate segments: a point against a segment (or a point)
     s = np.where(a_ok, np.where(e_ok, s, np.clip(-c / safe_a, 0.0, 1.0)), 0.0)
     t = np.where(e_ok, np.where(a_ok, t, np.clip(f / safe_e, 0.0, 1.0)), 0.0)
-    return p[:, None, :] + s[..., None] * d1[:, None, :], q[None, :, :] + t[..., None] * d2[None, :, :]
+    return p + s[..., None] * d1, q + t[..., None] * d2
+
+
+@dataclass(frozen=True)
+class _Shapes:
+    """Obstacles as padded arrays, one row each: vertices (n, V, 3), edges as start and
+    direction (n, E, 3), unit-row planes (n, F, 3) and (n, F) with their Gram matrices
+    (n, F, F). Short rows repeat their first entry, which changes no min, max or argmin."""
+
+    verts: FloatArray
+    edge0: FloatArray
+    edged: FloatArray
+    A: FloatArray
+    b: FloatArray
+    AA: FloatArray
+    tol: FloatArray  # (n,) the foot-on-facet tolerance, relative to the obstacle's size
+
+
+def _pad_rows(x: NDArray[Any], width: int) -> NDArray[Any]:
+    idx = np.arange(width)
+    return x[np.where(idx < x.shape[0], idx, 0)]
+
+
+def _shapes(verts: Sequence[FloatArray], edges: Sequence[IntArray], planes: Sequence[tuple[FloatArray, FloatArray]]) -> _Shapes:
+    V = max(v.shape[0] for v in verts)
+    E = max(e.shape[0] for e in edges)
+    F = max(p[0].shape[0] for p in planes)
+    pv = np.stack([v if v.shape[0] == V else _pad_rows(v, V) for v in verts])
+    if all(e is edges[0] for e in edges):  # all boxes: one edge list
+        pe = np.broadcast_to(edges[0], (len(edges), *edges[0].shape))
+    else:
+        pe = np.stack([_pad_rows(e, E) for e in edges])
+    rows = np.arange(len(verts))[:, None]
+    e0, e1 = pv[rows, pe[:, :, 0]], pv[rows, pe[:, :, 1]]
+    pA = np.stack([p[0] if p[0].shape[0] == F else _pad_rows(p[0], F) for p in planes])
+    pb = np.stack([p[1] if p[1].shape[0] == F else _pad_rows(p[1], F) for p in planes])
+    tol = 1e-12 * np.maximum(1.0, np.max(np.abs(pv), axis=(1, 2)))
+    return _Shapes(pv, e0, e1 - e0, pA, pb, np.einsum("nfd,ngd->nfg", pA, pA), tol)
+
+
+def _separations_padded(p0: FloatArray, p1: FloatArray, sh: _Shapes, ks: IntArray | None) -> tuple[FloatArray, FloatArray]:
+    """`separations` of segment i (p0[i], p1[i]) against obstacle ks[i] of `sh`, every i at
+    once (ks None: `sh` holds one obstacle, against every segment)."""
+    s = p0.shape[0]
+    normals = np.full((s, 3), np.nan)
+    gaps = np.zeros(s)
+    if s == 0:
+        return normals, gaps
+    if ks is None:
+        verts, e0, ed, A, b, AA, tol = sh.verts, sh.edge0, sh.edged, sh.A, sh.b, sh.AA, sh.tol
+    else:
+        verts, e0, ed, A, b = sh.verts[ks], sh.edge0[ks], sh.edged[ks], sh.A[ks], sh.b[ks]
+        AA, tol = sh.AA[ks], sh.tol[ks]
+    d1 = p1 - p0
+    # the segment against every edge (and lone vertex): (s, E)
+    x_seg, x_obs = _segment_pairs(p0[:, None, :], d1[:, None, :], e0, ed)
+    dist = np.linalg.norm(x_obs - x_seg, axis=-1)
+    # each end against each facet it faces, where its foot lands on the facet: (s, 2F);
+    # A . foot = A . end - height (A a_f), so the feet themselves are not needed yet
+    ends = np.stack([p0, p1], axis=1)  # (s, 2, 3)
+    proj = np.matmul(ends, np.swapaxes(A, -1, -2))  # (s, 2, F)
+    bq = np.broadcast_to(b, (s, b.shape[-1]))
+    height = proj - bq[:, None, :]
+    lim = (bq + np.broadcast_to(tol, (s,))[:, None])[:, None, None, :]
+    on = (height > 0.0) & np.all(proj[:, :, None, :] - height[..., None] * np.broadcast_to(AA, (s, *AA.shape[-2:]))[:, None] <= lim, axis=-1)
+    best = np.argmin(np.concatenate([dist, np.where(on, height, np.inf).reshape(s, -1)], axis=1), axis=1)
+    n_e, n_f = dist.shape[1], height.shape[2]
+    rows = np.arange(s)
+    by_edge = best < n_e
+    which = np.where(by_edge, 0, best - n_e)
+    end, facet = which // n_f, which % n_f
+    foot_end = ends[rows, end]
+    e_best = np.minimum(best, n_e - 1)
+    seg_pt = np.where(by_edge[:, None], x_seg[rows, e_best], foot_end)
+    A_f = np.broadcast_to(A, (s, *A.shape[-2:]))[rows, facet]
+    obs_pt = np.where(by_edge[:, None], x_obs[rows, e_best], foot_end - height[rows, end, facet][:, None] * A_f)
+    diff = obs_pt - seg_pt
+    norm = np.linalg.norm(diff, axis=1)
+    n = diff / np.where(norm > 0.0, norm, 1.0)[:, None]
+    vmin = np.min(np.einsum("sd,svd->sv", n, np.broadcast_to(verts, (s, *verts.shape[-2:]))), axis=1)
+    gap = vmin - np.maximum(np.sum(n * p0, axis=1), np.sum(n * p1, axis=1))
+    # disjoint sets: the closest pair's direction leaves a slab as wide as their distance;
+    # no direction leaves a positive one when they meet (a crossing segment lands here)
+    apart = (norm > 0.0) & (gap > 0.0)
+    normals[apart] = n[apart]
+    gaps[apart] = gap[apart]
+    return normals, gaps
 
 
 def separations(
@@ -476,45 +608,9 @@ def separations(
     meet) and gaps (s,) = min_v a.v - max_p a.p (0 where they meet), as
     `separation` would for each segment, but exact up to rounding (no QP).
     """
-    s = p0.shape[0]
-    normals = np.full((s, 3), np.nan)
-    gaps = np.zeros(s)
-    if s == 0:
-        return normals, gaps
-    d1 = p1 - p0
-    edges = _polytope_edges(verts, A, b)
-    e0 = verts[edges[:, 0]]
-    # the segment against every edge (and lone vertex): (s, E)
-    x_seg, x_obs = _segment_pairs(p0, d1, e0, verts[edges[:, 1]] - e0)
-    dist = np.linalg.norm(x_obs - x_seg, axis=-1)
-    # each end against each facet it faces, where its foot lands on the facet: (s, 2F);
-    # A . foot = A . end - height (A a_f), so the feet themselves are not needed yet
-    ends = np.stack([p0, p1], axis=1)  # (s, 2, 3)
-    proj = ends @ A.T  # (s, 2, F)
-    height = proj - b
-    tol = 1e-12 * max(1.0, float(np.max(np.abs(verts))))
-    on = (height > 0.0) & np.all(proj[:, :, None, :] - height[..., None] * (A @ A.T) <= b + tol, axis=-1)
-    best = np.argmin(np.concatenate([dist, np.where(on, height, np.inf).reshape(s, -1)], axis=1), axis=1)
-    n_e = edges.shape[0]
-    rows = np.arange(s)
-    by_edge = best < n_e
-    which = np.where(by_edge, 0, best - n_e)
-    end, facet = which // A.shape[0], which % A.shape[0]
-    foot_end = ends[rows, end]
-    seg_pt = np.where(by_edge[:, None], x_seg[rows, np.minimum(best, n_e - 1)], foot_end)
-    obs_pt = np.where(
-        by_edge[:, None], x_obs[rows, np.minimum(best, n_e - 1)], foot_end - height[rows, end, facet][:, None] * A[facet]
-    )
-    diff = obs_pt - seg_pt
-    norm = np.linalg.norm(diff, axis=1)
-    n = diff / np.where(norm > 0.0, norm, 1.0)[:, None]
-    gap = np.min(n @ verts.T, axis=1) - np.maximum(np.sum(n * p0, axis=1), np.sum(n * p1, axis=1))
-    # disjoint sets: the closest pair's direction leaves a slab as wide as their distance;
-    # no direction leaves a positive one when they meet (a crossing segment lands here)
-    apart = (norm > 0.0) & (gap > 0.0)
-    normals[apart] = n[apart]
-    gaps[apart] = gap[apart]
-    return normals, gaps
+    sh = _shapes([verts], [_polytope_edges(verts, A, b)], [(A, b)])
+    one = _Shapes(sh.verts[0], sh.edge0[0], sh.edged[0], sh.A[0], sh.b[0], sh.AA[0], sh.tol[0])
+    return _separations_padded(p0, p1, one, None)
 
 
 # --- obstacle set -----------------------------------------------------------------
@@ -522,7 +618,7 @@ def separations(
 
 @dataclass(frozen=True)
 class _Obstacles:
-    """All obstacles' vertices stacked, with offsets and bounding spheres."""
+    """All obstacles' vertices stacked, with offsets, bounding spheres and boxes, and padded."""
 
     verts: tuple[FloatArray, ...]
     stacked: FloatArray  # (N, 3)
@@ -530,6 +626,9 @@ class _Obstacles:
     centres: FloatArray  # (n, 3)
     radii: FloatArray  # (n,)
     planes: tuple[tuple[FloatArray, FloatArray], ...]
+    lo: FloatArray  # (n, 3) bounding boxes of the vertices
+    hi: FloatArray
+    shapes: _Shapes | None  # None without obstacles
 
     @property
     def n(self) -> int:
@@ -544,33 +643,84 @@ class _Obstacles:
 
 
 def _prepare_obstacles(obstacles: Sequence[Polytope], first_index: int = 0) -> _Obstacles:
-    verts: list[FloatArray] = []
-    planes: list[tuple[FloatArray, FloatArray]] = []
+    """Checks every obstacle (naming the first bad one) and gathers the arrays the builders use.
+
+    Axis-aligned boxes, the common case, are recognised in one vectorised pass (their
+    corners and edges are known); any other polytope goes through `polytope_vertices`.
+    """
+    n = len(obstacles)
     for i, obs in enumerate(obstacles):
-        name = f"obstacles[{first_index + i}]"
         if not isinstance(obs, Polytope):
-            raise ValueError(f"{name}: expected a Polytope, got {type(obs).__name__}")
-        planes.append(normalised(obs, name))
-        verts.append(polytope_vertices(obs, name))
-    if not verts:
+            raise ValueError(f"obstacles[{first_index + i}]: expected a Polytope, got {type(obs).__name__}")
+    if n == 0:
         empty = np.zeros((0, 3))
-        return _Obstacles((), empty, np.zeros(0, dtype=np.intp), empty, np.zeros(0), ())
-    counts = np.array([v.shape[0] for v in verts])
-    centres = np.stack([v.mean(axis=0) for v in verts])
-    radii = np.array([np.max(np.linalg.norm(v - c, axis=1)) for v, c in zip(verts, centres, strict=True)])
+        return _Obstacles((), empty, np.zeros(0, dtype=np.intp), empty, np.zeros(0), (), empty, empty, None)
+    verts: list[FloatArray | None] = [None] * n
+    planes: list[tuple[FloatArray, FloatArray] | None] = [None] * n
+    edges: list[IntArray | None] = [None] * n
+    six = [i for i, o in enumerate(obstacles) if np.shape(o.A) == (6, 3) and np.shape(o.b) == (6,)]
+    if six:
+        A6 = np.array([obstacles[i].A for i in six], dtype=float)
+        b6 = np.array([obstacles[i].b for i in six], dtype=float)
+        norms = np.linalg.norm(A6, axis=2)
+        fine = np.all(np.isfinite(A6), axis=(1, 2)) & np.all(np.isfinite(b6), axis=1) & np.all(norms > 1e-12, axis=1)
+        safe = np.where(fine[:, None], norms, 1.0)
+        An, bn = A6 / safe[..., None], b6 / safe
+        is_box, lo, hi = _box_extents(An, bn)
+        is_box &= fine
+        corners = _box_corners(lo, hi)
+        if len(six) == n and bool(np.all(is_box)):
+            return _boxes(corners, An, bn, lo, hi)
+        for row in np.flatnonzero(is_box).tolist():
+            i = six[row]
+            verts[i] = corners[row]
+            planes[i] = (An[row], bn[row])
+            edges[i] = _BOX_EDGES
+    for i, obs in enumerate(obstacles):
+        if verts[i] is not None:
+            continue
+        name = f"obstacles[{first_index + i}]"
+        A, b = normalised(obs, name)
+        v = polytope_vertices(obs, name)
+        verts[i], planes[i], edges[i] = v, (A, b), _polytope_edges(v, A, b)
+    vs = [v for v in verts if v is not None]
+    ps = [p for p in planes if p is not None]
+    es = [e for e in edges if e is not None]
+    counts = np.array([v.shape[0] for v in vs])
+    centres = np.stack([v.mean(axis=0) for v in vs])
+    stacked = np.concatenate(vs)
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.intp)
-    return _Obstacles(tuple(verts), np.concatenate(verts), starts, centres, radii, tuple(planes))
+    owner = np.repeat(np.arange(n), counts)
+    radii = np.zeros(n)
+    np.maximum.at(radii, owner, np.linalg.norm(stacked - centres[owner], axis=1))
+    lo = np.minimum.reduceat(stacked, starts, axis=0)
+    hi = np.maximum.reduceat(stacked, starts, axis=0)
+    return _Obstacles(tuple(vs), stacked, starts, centres, radii, tuple(ps), lo, hi, _shapes(vs, es, ps))
+
+
+def _boxes(corners: FloatArray, A: FloatArray, b: FloatArray, lo: FloatArray, hi: FloatArray) -> _Obstacles:
+    """`_prepare_obstacles` when every obstacle is an axis-aligned box: all in array operations."""
+    n = corners.shape[0]
+    e = _BOX_EDGES
+    e0 = corners[:, e[:, 0]]
+    shapes = _Shapes(corners, e0, corners[:, e[:, 1]] - e0, A, b, np.einsum("nfd,ngd->nfg", A, A),
+                     1e-12 * np.maximum(1.0, np.max(np.abs(corners), axis=(1, 2))))
+    radii = 0.5 * np.linalg.norm(hi - lo, axis=1)
+    return _Obstacles(tuple(corners), corners.reshape(-1, 3), np.arange(n, dtype=np.intp) * 8, 0.5 * (lo + hi),
+                      radii, tuple(zip(A, b, strict=True)), lo, hi, shapes)
 
 
 def _segment_point_distance(p0: FloatArray, p1: FloatArray, c: FloatArray) -> FloatArray:
     """(s, n) distance from segments [p0_s, p1_s] to points c_n."""
-    d = p1 - p0  # (s, 3)
-    dd = np.einsum("sd,sd->s", d, d)
-    rel = c[None, :, :] - p0[:, None, :]  # (s, n, 3)
-    t = np.einsum("snd,sd->sn", rel, d) / np.where(dd > 0, dd, 1.0)[:, None]
-    t = np.clip(t, 0.0, 1.0)
-    closest = p0[:, None, :] + t[..., None] * d[:, None, :]
-    return np.asarray(np.linalg.norm(c[None, :, :] - closest, axis=-1))
+    return _pair_point_distance(p0[:, None, :], p1[:, None, :], c[None, :, :])
+
+
+def _pair_point_distance(p0: FloatArray, p1: FloatArray, c: FloatArray) -> FloatArray:
+    """Distance from segments [p0, p1] to points c, elementwise over broadcast leading axes."""
+    d = p1 - p0
+    dd = _dot(d, d)
+    t = np.clip(_dot(c - p0, d) / np.where(dd > 0, dd, 1.0), 0.0, 1.0)
+    return np.asarray(np.linalg.norm(c - (p0 + t[..., None] * d), axis=-1))
 
 
 # --- map box ------------------------------------------------------------------------
@@ -712,15 +862,26 @@ def _point_distance(point: FloatArray, ctx: _Context, k: int) -> float:
     return 0.0 if normal is None else max(gap, 0.0)
 
 
-def _check_waypoints_clear(ctx: _Context) -> None:
+def _check_waypoints_clear(ctx: _Context, pairs: tuple[IntArray, IntArray] | None = None) -> None:
+    """CorridorError for the first waypoint (then obstacle) inside an obstacle inflated by r.
+
+    pairs: the (waypoint, obstacle) pairs to examine, sorted (default: all); any pair
+    left out must be known to be clear.
+    """
     obs = ctx.obs
     if obs.n == 0:
         return
-    near = (
-        np.linalg.norm(ctx.waypoints[:, None, :] - obs.centres[None, :, :], axis=-1) - obs.radii
-        < ctx.radius
-    )
-    for i, k in zip(*np.nonzero(near), strict=True):
+    if pairs is None:
+        near = (
+            np.linalg.norm(ctx.waypoints[:, None, :] - obs.centres[None, :, :], axis=-1) - obs.radii
+            < ctx.radius
+        )
+        wi, wk = np.nonzero(near)
+    else:
+        wi, wk = pairs
+        close = np.linalg.norm(ctx.waypoints[wi] - obs.centres[wk], axis=1) - obs.radii[wk] < ctx.radius
+        wi, wk = wi[close], wk[close]
+    for i, k in zip(wi.tolist(), wk.tolist(), strict=True):
         A, b = obs.planes[k]
         if float(np.max(A @ ctx.waypoints[i] - b)) >= ctx.radius:
             continue  # one face plane already keeps it radius away
@@ -756,17 +917,16 @@ Separation = tuple[FloatArray | None, float]  # (unit normal or None if they mee
 
 def _separation_arrays(ctx: _Context, js: IntArray, ks: IntArray) -> tuple[FloatArray, FloatArray]:
     """Max-margin normals (p, 3; NaN where they meet) and gaps (p,) of the pairs
-    (segment js[i], obstacle ks[i]), one batch per obstacle."""
-    normals = np.full((js.shape[0], 3), np.nan)
-    gaps = np.zeros(js.shape[0])
-    for k in np.unique(ks):
-        rows = np.flatnonzero(ks == k)
-        seg = js[rows]
-        A, b = ctx.obs.planes[int(k)]
-        normals[rows], gaps[rows] = separations(
-            ctx.waypoints[seg], ctx.waypoints[seg + 1], ctx.obs.verts[int(k)], A, b
-        )
-    return normals, gaps
+    (segment js[i], obstacle ks[i]), all in one batch."""
+    if js.shape[0] == 0 or ctx.obs.shapes is None:
+        return np.full((js.shape[0], 3), np.nan), np.zeros(js.shape[0])
+    sh = ctx.obs.shapes
+    step = max(1, _PAIR_BATCH // (sh.A.shape[1] ** 2 + sh.edge0.shape[1] + sh.verts.shape[1]))
+    parts = [
+        _separations_padded(ctx.waypoints[js[i : i + step]], ctx.waypoints[js[i : i + step] + 1], sh, ks[i : i + step])
+        for i in range(0, js.shape[0], step)
+    ]
+    return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
 
 
 def _separations(ctx: _Context, js: IntArray, ks: IntArray) -> dict[tuple[int, int], Separation]:
@@ -823,21 +983,6 @@ def _finish(ctx: _Context, A: FloatArray, b: FloatArray) -> Polytope:
     return Polytope(A=np.ascontiguousarray(A[keep]), b=np.ascontiguousarray(b[keep]))
 
 
-def _segment_corridor(
-    ctx: _Context,
-    j: int,
-    lower: FloatArray,
-    influence: float,
-    outside_map: BoolArray,
-    seps: dict[tuple[int, int], Separation],
-) -> Polytope:
-    """Corridor of segment j; lower[k] bounds its distance to obstacle k from below."""
-    order = np.argsort(lower, kind="stable")
-    order = order[~outside_map[order]]
-    A, b = _add_planes(ctx, j, ctx.map_A, ctx.map_b, order, lower < influence, seps)
-    return _finish(ctx, A, b)
-
-
 def _context(
     wps: FloatArray,
     obs: _Obstacles,
@@ -861,9 +1006,11 @@ def build_corridors(
 ) -> tuple[Polytope, ...]:
     """One safe convex corridor per segment (see the module docstring for the rules).
 
-    influence: obstacles whose distance to a segment may be below this get a
-    plane of their own; default segment length + 3 m + 2 x radius. Farther
-    obstacles get one only if the corridor does not already exclude them.
+    influence: how far the segment's analysis box reaches beyond the segment's
+    bounding box; default segment length + 3 m, never below 2 x radius + 0.5 m.
+    Obstacles meeting the box (inflated by radius) are candidates: nearest first, each
+    gets a plane unless a nearer one's plane already keeps it radius away; the box's
+    faces exclude the others.
     Raises CorridorError for a waypoint outside the map box shrunk by radius,
     a waypoint inside an inflated obstacle, or a blocked segment; ValueError
     for malformed input.
@@ -873,22 +1020,156 @@ def build_corridors(
     if influence is not None and not (np.isfinite(influence) and influence >= 0.0):
         raise ValueError(f"influence: must be finite and >= 0, got {influence}")
     obs = _prepare_obstacles(obstacles)
-    ctx = _context(wps, obs, map_box, r)
+    map_A, map_b = _map_planes(map_box, r)
+    ctx = _Context(wps, obs, r, map_A, map_b, None, 0)
     _check_waypoints_in_map(ctx)
-    _check_waypoints_clear(ctx)
     p0, p1 = wps[:-1], wps[1:]
-    lower = np.maximum(_segment_point_distance(p0, p1, obs.centres) - obs.radii, 0.0)
     lengths = np.linalg.norm(p1 - p0, axis=1)
     reach = lengths + DEFAULT_INFLUENCE_MARGIN if influence is None else np.full_like(lengths, influence)
-    # Anything within 2r could block the segment, so it must be examined.
-    reach = np.maximum(reach, 2.0 * r + 1e-9)
-    outside_map = np.any(obs.margins(ctx.map_A, ctx.map_b) >= r - CERT_TOL, axis=1)
-    # every obstacle within reach of a segment gets a plane: all those separations in one batch
-    js, ks = np.nonzero((lower < reach[:, None]) & ~outside_map[None, :])
-    seps = _separations(ctx, js, ks)
-    return tuple(
-        _segment_corridor(ctx, j, lower[j], float(reach[j]), outside_map, seps) for j in range(wps.shape[0] - 1)
-    )
+    flo, fhi = analysis_boxes(p0, p1, np.maximum(reach, 2.0 * r + _MIN_PAD), map_box, r)
+    # broad phase: an obstacle that no face of the analysis box keeps r away is a candidate
+    js, ks = overlapping_pairs(flo - (r - CERT_TOL), fhi + (r - CERT_TOL), obs.lo, obs.hi)
+    # a waypoint inside an inflated obstacle makes it a candidate of the waypoint's segments
+    wi = np.concatenate([js, js + 1])
+    wk = np.concatenate([ks, ks])
+    key = np.unique(wi * max(obs.n, 1) + wk)
+    _check_waypoints_clear(ctx, (key // max(obs.n, 1), key % max(obs.n, 1)))
+    lower = np.maximum(_pair_point_distance(p0[js], p1[js], obs.centres[ks]) - obs.radii[ks], 0.0)
+    order = np.lexsort((ks, lower, js))  # by segment, nearest first (as the sequential rule)
+    js, ks = js[order], ks[order]
+    normals, gaps = _separation_arrays(ctx, js, ks)
+    bad = np.isnan(normals[:, 0]) | (gaps < 2.0 * r)
+    if np.any(bad):
+        i = int(np.argmax(bad))
+        raise _blocked(ctx, int(js[i]), int(ks[i]), float(gaps[i]))
+    offsets = _min_over_vertices(obs, normals, ks) - r
+    return _assemble(obs, r, flo, fhi, js, ks, normals, offsets)
+
+
+_MIN_PAD = 0.5  # metres: the analysis box never hugs the segment closer than 2 r + this
+_FRAME_A = np.concatenate([np.eye(3), -np.eye(3)])
+
+
+def analysis_boxes(
+    p0: FloatArray, p1: FloatArray, pad: FloatArray, map_box: tuple[ArrayLike, ArrayLike] | None, radius: float
+) -> tuple[FloatArray, FloatArray]:
+    """(lo, hi) (s, 3) of each segment's analysis box: its bounding box padded by pad (s,),
+    clipped to the map box shrunk by radius. Its six faces are the first six planes of
+    the segment's corridor, before pruning."""
+    lo = np.minimum(p0, p1) - pad[:, None]
+    hi = np.maximum(p0, p1) + pad[:, None]
+    if map_box is not None:
+        _, map_b = _map_planes(map_box, radius)
+        hi = np.minimum(hi, map_b[:3])
+        lo = np.maximum(lo, -map_b[3:])
+    return lo, hi
+
+
+def _assemble(
+    obs: _Obstacles,
+    r: float,
+    flo: FloatArray,
+    fhi: FloatArray,
+    js: IntArray,
+    ks: IntArray,
+    normals: FloatArray,
+    offsets: FloatArray,
+) -> tuple[Polytope, ...]:
+    """Each segment's corridor from its analysis box and its candidates' planes (pairs sorted
+    by segment, nearest first), in batches of corridors with as many candidates, then with as
+    many planes.
+
+    A candidate gets its plane unless a nearer candidate's plane already keeps it r away (the
+    greedy rule, one rank at a time for every corridor at once). Pruning then keeps the facets;
+    a face of the analysis box also while some obstacle lies wholly beyond it (it is their
+    certificate: counted with a sorted sweep, none examined), and a candidate's plane also
+    when it is the certificate a candidate would lose.
+    """
+    n_seg = flo.shape[0]
+    fb = np.concatenate([fhi, -flo], axis=1)  # (s, 6)
+    far = np.zeros((n_seg, 6), dtype=bool)
+    if obs.n:
+        for a in range(3):
+            far[:, a] = count_beyond(obs.lo[:, a], fhi[:, a] + (r - CERT_TOL), upper=True) > 0
+            far[:, 3 + a] = count_beyond(obs.hi[:, a], flo[:, a] - (r - CERT_TOL), upper=False) > 0
+    counts = np.bincount(js, minlength=n_seg)
+    first = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    V = 0 if obs.shapes is None else obs.shapes.verts.shape[1]
+    # per corridor: the rows (into the pairs) of the planes it takes, and which candidate
+    # certifies which (both for the pruning's certificate restoration)
+    taken: list[IntArray] = [np.zeros(0, dtype=np.intp)] * n_seg
+    certs: list[BoolArray] = [np.zeros((0, 0), dtype=bool)] * n_seg
+    for K in np.unique(counts).tolist():
+        if K == 0 or obs.shapes is None:
+            continue
+        every = np.flatnonzero(counts == K)
+        step = max(1, _PAIR_BATCH // (K * K * V))
+        for i in range(0, every.shape[0], step):
+            segs = every[i : i + step]
+            pidx = first[segs][:, None] + np.arange(K)[None, :]  # (G, K)
+            cert = _mutual_certificates(obs.shapes.verts[ks[pidx]], normals[pidx], offsets[pidx], r)
+            added = _greedy_planes(cert)
+            for g, j in enumerate(segs.tolist()):
+                taken[j] = pidx[g, added[g]]
+                certs[j] = cert[g][:, added[g]]  # (K candidates, planes taken)
+    n_taken = np.array([t.shape[0] for t in taken], dtype=np.intp)
+    out: list[Polytope | None] = [None] * n_seg
+    for Q in np.unique(n_taken).tolist():
+        every = np.flatnonzero(n_taken == Q)
+        step = max(1, _PAIR_BATCH // ((6 + Q) ** 2 * 64))
+        for i in range(0, every.shape[0], step):
+            segs = every[i : i + step]
+            rows = np.stack([taken[j] for j in segs.tolist()]) if Q else np.zeros((segs.shape[0], 0), dtype=np.intp)
+            G = segs.shape[0]
+            A = np.concatenate([np.broadcast_to(_FRAME_A, (G, 6, 3)), normals[rows]], axis=1)
+            b = np.concatenate([fb[segs], offsets[rows]], axis=1)
+            distinct = _first_of_duplicates_padded(A, b, np.ones((G, 6 + Q), dtype=bool))
+            keep = distinct & facet_masks(A, b)
+            keep[:, :6] |= far[segs]
+            if Q:
+                _restore_certificates(keep[:, 6:], distinct[:, 6:], [certs[j] for j in segs.tolist()])
+            for g, j in enumerate(segs.tolist()):
+                out[j] = Polytope(A=np.ascontiguousarray(A[g, keep[g]]), b=np.ascontiguousarray(b[g, keep[g]]))
+    return tuple(p for p in out if p is not None)
+
+
+def _mutual_certificates(verts: FloatArray, normals: FloatArray, offsets: FloatArray, r: float) -> BoolArray:
+    """(G, K, K): candidate c (verts (G, K, V, 3)) is kept r away by candidate d's plane."""
+    G, K, V, _ = verts.shape
+    proj = np.matmul(verts.reshape(G, K * V, 3), normals.transpose(0, 2, 1)).reshape(G, K, V, K)
+    return np.asarray(np.min(proj, axis=2) - offsets[:, None, :] >= r - CERT_TOL)
+
+
+def _greedy_planes(cert: BoolArray) -> BoolArray:
+    """(G, K): the candidates (nearest first) that get a plane: those no earlier plane certifies."""
+    G, K, _ = cert.shape
+    added = np.zeros((G, K), dtype=bool)
+    certified = np.zeros((G, K), dtype=bool)
+    for i in range(K):
+        need = np.flatnonzero(~certified[:, i])
+        added[need, i] = True
+        certified[need] |= cert[need, :, i]
+    return added
+
+
+def _restore_certificates(keep: BoolArray, distinct: BoolArray, certs: list[BoolArray]) -> None:
+    """Where pruning left a candidate without a plane that keeps it r away, keep planes again,
+    greedily the one restoring the most (as `_prune`). keep, distinct: (G, Q) over the
+    corridors' obstacle planes, updated in place; certs[g] (K_g, Q): which plane certifies
+    which candidate."""
+    G, Q = keep.shape
+    width = max(c.shape[0] for c in certs)
+    cert = np.zeros((G, width, Q), dtype=bool)
+    for g, c in enumerate(certs):
+        cert[g, : c.shape[0]] = c
+    cert &= distinct[:, None, :]  # a dropped duplicate has a kept twin
+    missing = ~np.any(cert & keep[:, None, :], axis=2) & np.any(cert, axis=2)
+    for g in np.flatnonzero(np.any(missing, axis=1)).tolist():
+        miss, cg = missing[g], cert[g]
+        while np.any(miss):
+            p = int(np.argmax(cg[miss].sum(axis=0)))
+            keep[g, p] = True
+            miss &= ~cg[:, p]
 
 
 def update_corridors(
@@ -1052,11 +1333,9 @@ def _append_planes(
 
 def _min_over_vertices(obs: _Obstacles, normals: FloatArray, ks: IntArray) -> FloatArray:
     """min over obstacle ks[i]'s vertices of normals[i] . v, for every i."""
-    out = np.empty(ks.shape[0])
-    for k in np.unique(ks):
-        rows = np.flatnonzero(ks == k)
-        out[rows] = np.min(normals[rows] @ obs.verts[int(k)].T, axis=1)
-    return out
+    if ks.shape[0] == 0 or obs.shapes is None:
+        return np.zeros(ks.shape[0])
+    return np.asarray(np.min(np.einsum("pd,pvd->pv", normals, obs.shapes.verts[ks]), axis=1))
 
 
 def _padded_corridors(

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from planner_core.bezier import hodographs
+from planner_core.constraints import certified_points
 from planner_core.problem import ORDER_NAMES, FloatArray, Problem, Trajectory
 
 MAX_SCALE = 64.0
@@ -92,7 +92,8 @@ def scaled(problem: Problem, factor: float) -> Problem:
 def bound_usage(traj: Trajectory, problem: Problem) -> tuple[FloatArray, FloatArray]:
     """Per segment, order 1..4 and axis, the certificate's use of the upper and lower bound.
 
-    (s, 4, 3) arrays: max over the hodograph control points of value / hi (for hi > 0)
+    (s, 4, 3) arrays: max over the certified points (the control points of the hodograph's
+    subdivided pieces, as the planner and `verify` certify them) of value / hi (for hi > 0)
     and value / lo (for lo < 0); 0 where the bound is absent or of the other sign.
     """
     ctrl = traj.control_points
@@ -102,7 +103,7 @@ def bound_usage(traj: Trajectory, problem: Problem) -> tuple[FloatArray, FloatAr
     dn = np.zeros((s, 4, 3))
     hi, lo = problem.bounds.hi, problem.bounds.lo
     for k in range(1, 5):
-        h = hodographs(ctrl, k, d)  # (s, 10-k, 3)
+        h = certified_points(ctrl, k, d)  # (s, points, 3)
         top, bot = h.max(axis=1), h.min(axis=1)
         hk, lk = hi[k - 1], lo[k - 1]
         with np.errstate(divide="ignore", invalid="ignore"):

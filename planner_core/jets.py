@@ -7,7 +7,8 @@ jets free) and local replanning (a handful of jets around a change):
 - unknowns: velocity..snap (12 numbers) of each free jet; positions are the
   waypoints; every other jet is taken from `jets` as fixed;
 - every segment touching a free jet is *fully* constrained: all hodograph
-  control points (orders 1..4) within the bounds and control points P^1..P^8
+  control points (orders 1..4, on `constraints.HULL_PIECES` de Casteljau pieces) within
+  the bounds and control points P^1..P^8
   inside its corridor (P^0, P^9 are the waypoints, checked by the loader);
 - with `open_end=True` the jet after the last free one is not yet decided, so
   the segment after the window is *half* constrained: P^1..P^4 and the
@@ -32,10 +33,9 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from functools import cached_property
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import scipy.sparse as sp
 from numpy.typing import NDArray
 
 from planner_core.bezier import segments_from_jets
@@ -51,13 +51,18 @@ from planner_core.constraints import (
 
 __all__ = ["JetSolve", "ProblemCache", "assemble", "initial_jets", "solve_jets", "trajectory_from_jets"]
 from planner_core.problem import JET_ORDER, FloatArray, Problem, Trajectory
-from planner_core.qp import QPResult, QPStatus, solve_qp
+from planner_core.qp import QPResult, QPStatus, issparse, solve_qp
+
+if TYPE_CHECKING:
+    # imported where a sparse QP is built: ~0.1 s of start-up the dense per-window path never needs
+    import scipy.sparse as sp
 
 COSTS = ("snap", "jerk", "waypoint-snap")
 MARGIN = 1e-6  # relative tightening of every limit
 CHECK_TOL = 1e-9  # absolute: untightened rows must hold to this
 WAYPOINT_SNAP_REG = 1e-6
 NV = 4 * 3  # unknowns per free jet
+BLOCKS_KEPT = 64  # segments whose row blocks a ProblemCache keeps (a window touches ~10)
 DENSE_FALLBACK_JETS = 200  # up to 2400 unknowns, a dense solve is still affordable
 
 
@@ -118,12 +123,10 @@ class SegBlocks:
 
 
 def _bound_groups() -> tuple[NDArray[np.int64], int, int]:
-    """Permutation of the 90 bound rows into [start only | both | end only] and group sizes."""
-    from planner_core.constraints import _bound_meta
+    """Permutation of the bound rows into [start only | both | end only] and group sizes."""
+    from planner_core.constraints import bound_sides
 
-    order, index, _, _ = _bound_meta()
-    a_only = index + order <= JET_ORDER - 1
-    b_only = index >= JET_ORDER
+    a_only, b_only = bound_sides()
     both = ~a_only & ~b_only
     perm = np.concatenate([np.flatnonzero(a_only), np.flatnonzero(both), np.flatnonzero(b_only)])
     return perm, int(a_only.sum()), int(both.sum())
@@ -133,24 +136,26 @@ class ProblemCache:
     """Everything that depends only on durations, bounds and corridors, built once per problem.
 
     Hull maps and limits are vectorised over segments; each segment's row
-    blocks are built on first use (the iterative pass stacks all segments'
-    rows itself, in `window.py`, so the general path only pays for the few
-    segments it touches).
+    blocks are built on first use (the iterative pass stacks the rows near its
+    window itself, in `window.py`, so the general path only pays for the few
+    segments it touches). The hull maps of every segment (`hull`, ~7 MB at
+    m = 1000) are built only for the compiled pass, which reads them all;
+    the numpy paths build those of the segments they touch (`hull_of`).
     """
 
     def __init__(self, problem: Problem) -> None:
-        from planner_core.constraints import bound_row_orders
+        from planner_core.constraints import _bound_meta, bound_row_orders
 
         self.problem = problem
         self.durations = problem.durations
-        self.hull = hull_maps(self.durations)
-        n_seg = problem.m - 1
-        self._blocks: list[SegBlocks | None] = [None] * n_seg
+        # the segments the general path touched last: a recovery re-solves the same few again and
+        # again, and a long mission's many recoveries would otherwise keep ~0.1 MB a segment
+        self._blocks: dict[int, SegBlocks] = {}
         self._cost: dict[int, FloatArray] = {}
         perm, self._bn1, self._bn2 = _bound_groups()
         self._bperm = perm
         orders = bound_row_orders()[perm]
-        axes = np.tile(np.arange(3), 30)[perm]
+        axes = _bound_meta()[2][perm]
         b = problem.bounds
         lo = np.clip(b.lo[orders - 1, axes], -INF, INF)
         hi = np.clip(b.hi[orders - 1, axes], -INF, INF)
@@ -158,26 +163,44 @@ class ProblemCache:
         self._blo_t, self._bhi_t = _tighten(lo, hi)
         self._border = orders.astype(np.int64)
 
+    @cached_property
+    def hull(self) -> FloatArray:
+        """(S, 10 + n, 10) `hull_maps` of every segment."""
+        return hull_maps(self.durations)
+
+    def hull_of(self, segments: NDArray[np.int64] | int) -> FloatArray:
+        """`hull[segments]`, without building every segment's maps when they are not built yet
+        (the maps are per segment: the same numbers either way)."""
+        if "hull" in self.__dict__:
+            return np.asarray(self.hull[segments])
+        if isinstance(segments, int):
+            one: FloatArray = hull_maps(self.durations[segments : segments + 1])[0]
+            return one
+        return hull_maps(self.durations[segments])
+
     def bound_rows(self, s: int) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """Bound rows of segment s in block order: (A (90, 12), B (90, 12), c0 (90,))."""
-        qb = self.hull[s, 10:40]  # (30, 10) hodograph rows, per axis
+        """Bound rows of segment s in block order: (A (3 n, 12), B (3 n, 12), c0 (3 n,))."""
+        qb = self.hull_of(s)[10:]  # (n, 10) certified hodograph points, per axis
+        nb = 3 * qb.shape[0]
         eye = np.eye(3)
-        rows_a = np.einsum("rc,de->rdce", qb[:, 1:5], eye).reshape(90, 12)
-        rows_b = np.einsum("rc,de->rdce", qb[:, 6:10], eye).reshape(90, 12)
+        rows_a = np.einsum("rc,de->rdce", qb[:, 1:5], eye).reshape(nb, 12)
+        rows_b = np.einsum("rc,de->rdce", qb[:, 6:10], eye).reshape(nb, 12)
         w = self.problem.waypoints
-        c0 = (qb[:, 0, None] * w[s] + qb[:, 5, None] * w[s + 1]).reshape(90)
+        c0 = (qb[:, 0, None] * w[s] + qb[:, 5, None] * w[s + 1]).reshape(nb)
         perm = self._bperm
         return rows_a[perm], rows_b[perm], c0[perm]
 
     def rows(self, s: int) -> SegmentRows:
         b = self.problem.bounds
-        return segment_rows(self.hull[s], b.lo, b.hi, self.problem.corridor(s))
+        return segment_rows(self.hull_of(s), b.lo, b.hi, self.problem.corridor(s))
 
     def blocks(self, s: int) -> SegBlocks:
-        blk = self._blocks[s]
+        blk = self._blocks.pop(s, None)  # re-inserted below: the dict's order is last use
         if blk is None:
             blk = self._build_blocks(s)
-            self._blocks[s] = blk
+            if len(self._blocks) >= BLOCKS_KEPT:
+                del self._blocks[next(iter(self._blocks))]  # the least recently used
+        self._blocks[s] = blk
         return blk
 
     def _build_blocks(self, s: int) -> SegBlocks:
@@ -191,7 +214,7 @@ class ProblemCache:
                 bA, bB, bc0, self._blo, self._bhi, self._blo_t, self._bhi_t,
                 np.full(nb, s, dtype=np.int64), kb, self._border, n1, n2,
             )
-        q = self.hull[s]
+        q = self.hull_of(s)
         f = poly.A.shape[0]
         w = self.problem.waypoints
         # P^1..P^4 depend on the start jet only, P^5..P^8 on the end jet only
@@ -221,15 +244,21 @@ class ProblemCache:
             np.full(nb + 8 * f, s, dtype=np.int64), mix(kb, kc), mix(self._border, zc), n1 + 4 * f, n2,
         )
 
-    def cost30(self, order: int) -> FloatArray:
-        """(S, 30, 30) per-segment cost matrices (times 2: the Hessian of z'Kz) in the 30-layout."""
+    def cost30(self, order: int, segments: Sequence[int] | None = None) -> FloatArray:
+        """(S, 30, 30) per-segment cost matrices (times 2: the Hessian of z'Kz) in the 30-layout;
+        with `segments`, (len(segments), 30, 30) of those, built for them alone unless every
+        segment's are built (the general path's few segments: ~7 MB at m = 1000 otherwise)."""
         c = self._cost.get(order)
+        if c is None and segments is not None:
+            return _cost30(self.durations[np.asarray(segments, dtype=np.int64)], order)
         if c is None:
-            k = cost_matrices(self.durations, order)
-            n = k.shape[0]
-            c = 2.0 * np.einsum("sij,de->sidje", k, np.eye(3)).reshape(n, 30, 30)
-            self._cost[order] = c
-        return c
+            c = self._cost[order] = _cost30(self.durations, order)
+        return c if segments is None else c[np.asarray(segments, dtype=np.int64)]
+
+
+def _cost30(durations: FloatArray, order: int) -> FloatArray:
+    k = cost_matrices(durations, order)
+    return np.asarray(2.0 * np.einsum("sij,de->sidje", k, np.eye(3)).reshape(k.shape[0], 30, 30))
 
 
 def _tighten(lo: FloatArray, hi: FloatArray) -> tuple[FloatArray, FloatArray]:
@@ -363,6 +392,8 @@ def _check_constant_rows(
 
 
 def _sparse_rows(g_blocks: list[tuple[int, int, FloatArray]], n_rows: int, nx: int) -> sp.csc_matrix:
+    import scipy.sparse as sp
+
     rr: list[NDArray[np.int64]] = []
     cc: list[NDArray[np.int64]] = []
     vv: list[FloatArray] = []
@@ -388,6 +419,8 @@ def _cost_terms(
     cost: str,
     sparse: bool,
 ) -> tuple[FloatArray | sp.csc_matrix, FloatArray]:
+    if sparse:
+        import scipy.sparse as sp
     nx = NV * len(free)
     q = np.zeros(nx)
     if cost == "waypoint-snap":
@@ -397,10 +430,10 @@ def _cost_terms(
         return (sp.diags(diag, format="csc") if sparse else np.diag(diag)), q
     if cost not in ("snap", "jerk"):
         raise ValueError(f"cost: unknown cost {cost!r} (expected one of {COSTS})")
-    k_all = cache.cost30(4 if cost == "snap" else 3)
+    segs = list(full)
+    k_segs = cache.cost30(4 if cost == "snap" else 3, segs)
     blocks: list[tuple[int, int, FloatArray]] = []
-    for s in full:
-        K = k_all[s]
+    for s, K in zip(segs, k_segs, strict=True):
         pa = pos.get(s)
         pb = pos.get(s + 1)
         if pa is not None and pb is not None:
@@ -472,7 +505,9 @@ def solve_assembled(
             return res, np.inf, qp.lo.size
         return _checked(qp, res, backend, np.ones(nx), qp.lo.size)
     c = np.ones(nx) if col_scale is None else col_scale
-    if sp.issparse(qp.G):
+    if issparse(qp.G):
+        import scipy.sparse as sp
+
         Gc = sp.csc_matrix(qp.G @ sp.diags(c))
         norms = np.sqrt(np.asarray(Gc.multiply(Gc).sum(axis=1)).ravel())
         norms[norms == 0] = 1.0
@@ -491,7 +526,7 @@ def solve_assembled(
     Ps = Ps / pscale
     qs = qp.q * c / pscale
     n_used = lo.size
-    if LAZY and guess is not None and not sp.issparse(Gs) and nx >= LAZY_MIN_VARS and lo.size > 2 * nx:
+    if LAZY and guess is not None and not issparse(Gs) and nx >= LAZY_MIN_VARS and lo.size > 2 * nx:
         res, n_used = _solve_lazy(Ps, qs, np.asarray(Gs), lo, hi, guess / c, backend)
     else:
         res = solve_qp(Ps, qs, Gs, lo, hi, backend)

@@ -206,7 +206,7 @@ class _Layout:
     parts: tuple[tuple[str, int, int, tuple[int, ...]], ...]
     live_b: NDArray[np.int64]  # flat (point * 3 + axis) hodograph values that depend on a free entry
     dead_b: NDArray[np.int64]
-    live_c: NDArray[np.int64]  # control-point rows (of the 40 hull rows) that depend on a free entry
+    live_c: NDArray[np.int64]  # control-point rows (of the hull rows) that depend on a free entry
     dead_c: NDArray[np.int64]
 
 
@@ -267,7 +267,7 @@ def _free_layout(free0: bool, free1: bool) -> _Layout:
 class _SegmentMats:
     """One segment's QP block at one duration, for one choice of free sides.
 
-    arrays: "qfix" (40, 10) hull map with the free entries' columns zeroed; per free side a,
+    arrays: "qfix" (10 + n, 10) hull map with the free entries' columns zeroed; per free side a,
     "gb<a>" (3 * live points, 12) bound rows, "qc<a>" (live points, 4) corridor coefficients
     per axis, "kq<a>" (4, 10) cost gradient rows (fixed entries only); per pair of free
     sides, "p<a><b>" (12, 12) cost Hessian blocks.
@@ -302,7 +302,7 @@ class _Pattern:
     n_live: int
     n_rows: int
     n_dead_bound: int
-    live_b: NDArray[np.int64]  # hodograph values (of the 90 k) with a bound row in the QP
+    live_b: NDArray[np.int64]  # hodograph values (of the 3 n k) with a bound row in the QP
     dead_b: NDArray[np.int64]
     face_off: tuple[int, ...]  # per segment, offset of its (9, faces) corridor values in the flat vector
     live_c: NDArray[np.int64]  # flat indices into the corridor values of the rows handed to the solver
@@ -330,8 +330,8 @@ def _pattern(n_free: int, pat: tuple[tuple[int, int, int, int], ...]) -> _Patter
     fo = 0
     for i, (_, p0, p1, faces) in enumerate(pat):
         lay = _free_layout(p0 >= 0, p1 >= 0)
-        lives.append(i * 90 + lay.live_b)
-        deads.append(i * 90 + lay.dead_b)
+        lives.append(i * 3 * _N_HODO + lay.live_b)
+        deads.append(i * 3 * _N_HODO + lay.dead_b)
         face_off.append(fo)
         if faces:
             f = np.arange(faces)
@@ -407,7 +407,7 @@ def _scatter_plan(
 ) -> tuple[FloatArray, NDArray[np.int64], NDArray[np.int64], int, _Regions]:
     """Where each entry of each segment's `_SegmentMats` layout goes in `_structure`'s buffer.
 
-    Regions: "hodo" (30 k, 5 nj), "inner" (9 k, 5 nj), "grad" (4 n_free, 5 nj), "P" (n, n),
+    Regions: "hodo" (n k, 5 nj), "inner" (9 k, 5 nj), "grad" (4 n_free, 5 nj), "P" (n, n),
     "G" (rows, n), then "qc<i>.<side>" per corridor block, one after the other ("qc": all
     of them). Sums (P, grad) come out of the scatter-add; unused entries go one past the end.
     """
@@ -466,7 +466,7 @@ class _Structure:
     """
 
     pat: _Pattern
-    hodo: FloatArray  # (30 k, 5 nj): fixed entries of the jets -> every segment's hodograph points
+    hodo: FloatArray  # (n k, 5 nj): fixed entries of the jets -> every segment's hodograph points
     inner: FloatArray  # (9 k, 5 nj): same -> control points P^0..P^8
     grad: FloatArray  # (4 n_free, 5 nj): same -> cost gradient, per axis
     P: FloatArray  # (n, n)
@@ -507,7 +507,7 @@ def _structure(n_free: int, pat: tuple[tuple[int, int, int, int], ...], ds: tupl
 
 @lru_cache(maxsize=64)
 def _bound_limits(bounds_key: bytes, k: int) -> tuple[FloatArray, bool]:
-    """(2, 90 k) lower / upper bound of every hodograph value of k segments; all finite?"""
+    """(2, 3 n k) lower / upper bound of every certified hodograph value of k segments; all finite?"""
     lim = np.tile(np.frombuffer(bounds_key, dtype=np.float64)[_LIM_IDX], (1, k))
     return _read_only(lim), bool(np.isfinite(lim).all())
 
@@ -583,7 +583,7 @@ def solve_derivatives(
     n, k, nb, nl = pt.n, len(segs), pt.n_bound, pt.n_live
     limits, finite = _bound_limits(_bounds_key(bounds), k)
     J = np.array([jets[s0 + o] for o in pt.jets]).reshape(-1, 3)  # (5 nj, 3)
-    room = limits - st.hodo.dot(J).reshape(-1)  # (2, 90 k): limit - value of every hodograph point
+    room = limits - st.hodo.dot(J).reshape(-1)  # (2, 3 n k): limit - value of every hodograph point
     vi = st.inner.dot(J)  # (9 k, 3): P^0..P^8 of every segment from the fixed entries
     G = st.G.copy()
     if pt.uniform_col is not None and st.uniform_qc is not None:  # one free side per segment, one face count

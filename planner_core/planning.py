@@ -24,11 +24,15 @@ def plan(problem: Problem, method: str = "iterative", cost: str | None = None, *
     Options: iterative: window, backend, recover, diagnose (see IterativeOptions)
     or options=IterativeOptions(...); global: backend, diagnose.
 
-    When the durations are infeasible and `diagnose` is on (the default), a uniform
-    duration-scale search (planner_core.feasibility) finds the smallest scale that plans
-    and the bound that binds first. With the iterative planner's `recover` on, the plan at
-    that scale is returned (stats `duration_scale`, `stretched_durations`); otherwise the
-    INFEASIBLE result's diagnosis carries `binding`, `min_scale` and `min_durations`.
+    When the durations are infeasible, the iterative planner's `recover` (on by default)
+    first stretches only the segments around each failing window (`iterative._recover_local`:
+    O(window) a recovery, stats `recoveries`, `stretched_durations`), so a mission with a few
+    tight segments never pays for the search below. Only when that fails (always for a
+    single segment, which has no window) and `diagnose` is on (the default), a uniform
+    duration-scale search (planner_core.feasibility, up to ~16 plans) finds the smallest scale
+    that plans and the bound that binds first. With `recover` on, the plan at that scale is
+    returned (stats `duration_scale`, `stretched_durations`); otherwise the INFEASIBLE
+    result's diagnosis carries `binding`, `min_scale` and `min_durations`.
     """
     if method == "iterative":
         base = opts.pop("options", None) or IterativeOptions()

@@ -21,16 +21,18 @@ import threading
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Any, TypeAlias
+from typing import TYPE_CHECKING, Any, TypeAlias
 
 import numpy as np
-import scipy.sparse as sp
-import scipy.sparse.linalg as spla
 
 from planner_core.problem import FloatArray
 
+if TYPE_CHECKING:
+    # imported where used: scipy.sparse costs ~0.1 s of start-up that a dense daqp solve never needs
+    import scipy.sparse as sp
+
 INF = 1e30
-Matrix: TypeAlias = FloatArray | sp.spmatrix | sp.sparray
+Matrix: TypeAlias = "FloatArray | sp.spmatrix | sp.sparray"
 
 
 class QPStatus(enum.Enum):
@@ -74,8 +76,14 @@ def solve_qp(
     raise ValueError(f"backend: unknown QP backend {backend!r} (expected one of {BACKENDS})")
 
 
+def issparse(a: object) -> bool:
+    """scipy.sparse.issparse, without importing scipy.sparse (nothing is sparse before it is)."""
+    sparse = sys.modules.get("scipy.sparse")
+    return sparse is not None and bool(sparse.issparse(a))
+
+
 def _dense(a: Matrix) -> FloatArray:
-    if sp.issparse(a):
+    if issparse(a):
         return np.asarray(a.toarray(), dtype=np.float64)  # type: ignore[union-attr]
     return np.ascontiguousarray(a, dtype=float)
 
@@ -139,6 +147,7 @@ _LIBC: Any = None
 
 def solve_osqp(P: Matrix, q: FloatArray, G: Matrix, lo: FloatArray, hi: FloatArray, *, tol: float = 1e-10) -> QPResult:
     import osqp
+    import scipy.sparse as sp
 
     Ps = sp.triu(sp.csc_matrix(P), format="csc")
     Gs = sp.csc_matrix(G)
@@ -197,6 +206,9 @@ def refine_active_set(
     then adds violated rows and drops rows whose multiplier has the wrong sign,
     until the active set is consistent. Returns None when it does not settle.
     """
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as spla
+
     Gs = sp.csr_matrix(G)
     Ps = sp.csc_matrix(P)
     n = Ps.shape[0]
@@ -234,4 +246,6 @@ def refine_active_set(
 
 
 def _unreg_kkt(P: sp.csc_matrix, A: sp.csr_matrix) -> sp.csc_matrix:
+    import scipy.sparse as sp
+
     return sp.bmat([[P, A.T], [A, None]], format="csc")

@@ -16,15 +16,17 @@ The rule (`allocate_times`), for segment j of length L_j and direction u_j:
    w_{i+1}^2 <= w_i^2 + 2 a_eff L.
 4. Trapezoid: entry speed -> peak (<= v) -> exit speed at a_eff: the
    kinematic time.
-5. Hull minimum: the planner bounds the hodograph control points of one
-   degree-9 polynomial per segment, which needs more time than a trapezoid,
+5. Hull minimum: the planner bounds the control points of the de Casteljau
+   pieces of the hodographs of one degree-9 polynomial per segment, which needs
+   more time than a trapezoid,
    most of all at ends pinned at rest. Order k alone requires
    T >= (C_k L / bound_k)^(1/k), with C_k exact (an LP over scalar control
    points, table `_HULL_C`) for each pair of end types rest/stop/free; a
    junction of speed w interpolates between stop (w = 0) and free (w = v),
    the start (whole jet given) between rest and free.
-   Both ends at rest give the exact minimum 9 L / v, sqrt(72 L / a),
-   (1008 L / j)^(1/3), (9072 L / s)^(1/4) of the fixed rest-to-rest curve.
+   Both ends at rest give the exact minimum 2.64 L / v, sqrt(9.88 L / a),
+   (98.2 L / j)^(1/3), (1008 L / s)^(1/4) of the fixed rest-to-rest curve certified
+   on 3 pieces (9 L / v ... (9072 L / s)^(1/4) on one).
 6. A start velocity across or against u_0 must be cancelled first: the first
    segment gets |v0 - (v0.u_0)^+ u_0| / a_min more (a_min: smallest axis bound).
 7. Slack: the maximum of 4 and 5 (plus 6) times `safety` (turns, corridors and
@@ -58,20 +60,23 @@ DEFAULT_MIN_DURATION = 0.05  # seconds
 _EPS = 1e-12
 _HUGE = 1e12  # stands in for an unbounded derivative
 BoolArray = NDArray[np.bool_]
-# Hodograph-hull necessary conditions, order k alone: T >= (C_k L / bound_k)^(1/k)
-# with C_k = 9!/(9-k)! / g, g = max (p_9 - p_0) over scalar control points with
-# |Δ^k p| <= 1 and the end pins (LP, see tests/planner/test_timing.py). An end is
-# "rest" (all four derivatives zero: p_1..p_4 = p_0), "stop" (velocity zero,
-# higher derivatives free) or "free". Table index [order-1, start, end] with
-# 0 = rest, 1 = stop, 2 = free; 0 where the order alone does not limit T.
+# Certificate necessary conditions, order k alone: T >= (C_k L / bound_k)^(1/k) with
+# C_k = 9!/(9-k)! / g, g = max (p_9 - p_0) over scalar control points whose order-k
+# hodograph, split into constraints.HULL_PIECES (3) de Casteljau pieces, has every piece's
+# control points in [-1, 1], with the end pins (LP, see tests/planner/test_timing.py). An
+# end is "rest" (all four derivatives zero: p_1..p_4 = p_0), "stop" (velocity zero, higher
+# derivatives free) or "free". Table index [order-1, start, end] with 0 = rest, 1 = stop,
+# 2 = free; 0 where the order alone does not limit T. (One piece: 9, 72, 1008, 9072 at rest.)
 _HULL_C = np.array(
     [
-        [[9.0, 2.25, 1.8], [2.25, 9.0 / 7.0, 1.125], [1.8, 1.125, 1.0]],
-        [[72.0, 12.0, 4.8], [12.0, 4.5, 2.0], [4.8, 2.0, 0.0]],
-        [[1008.0, 67.2, 14.4], [67.2, 12.0, 0.0], [14.4, 0.0, 0.0]],
-        [[9072.0, 302.4, 43.2], [302.4, 0.0, 0.0], [43.2, 0.0, 0.0]],
+        [[1921 / 729, 1.614096757, 1.48375025], [1.614096757, 1.094225922, 1.052753683],
+         [1.48375025, 1.052753683, 1.0]],
+        [[800 / 81, 6.772532189, 3.281985832], [6.772532189, 4.356521739, 2.0], [3.281985832, 2.0, 0.0]],
+        [[7952 / 81, 33.10335196, 9.119879367], [33.10335196, 12.0, 0.0], [9.119879367, 0.0, 0.0]],
+        [[1008.0, 174.2354822, 31.11111111], [174.2354822, 0.0, 0.0], [31.11111111, 0.0, 0.0]],
     ]
 )
+_HULL_PIECES = 3  # the pieces the table is for (tests check it against constraints.HULL_PIECES)
 
 
 def _directions(waypoints: FloatArray) -> tuple[FloatArray, FloatArray]:

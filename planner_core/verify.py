@@ -5,8 +5,9 @@ Checks, each with the place of its worst case:
 - boundary jets: the jets at the start and end equal the problem's initial and
   final jets (absolute);
 - continuity: C^4 at each junction, relative to the size of the derivative;
-- bounds by hull: every hodograph control point of orders 1..4 inside the
-  bounds (this is the guarantee: it implies the bound in continuous time);
+- bounds by hull: the control points of the `constraints.HULL_PIECES` de Casteljau
+  pieces of every hodograph of orders 1..4 inside the bounds (the planner's own rows;
+  this is the guarantee: it implies the bound in continuous time);
 - bounds by sampling: dense samples of orders 1..4 (an independent check);
 - corridors by hull (all 10 control points) and by sampling.
 """
@@ -20,7 +21,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from planner_core.bezier import bernstein_basis, end_jet, falling, start_jet, subdivision_matrix
+from planner_core.bezier import bernstein_basis, end_jet, falling, stacked_pieces, start_jet
+from planner_core.constraints import HULL_PIECES
 from planner_core.problem import DEGREE, ORDER_NAMES, FloatArray, Polytope, Problem, Trajectory
 
 SAMPLES_PER_SEGMENT = 64
@@ -109,10 +111,10 @@ def _none() -> Worst:
 
 
 def verify(traj: Trajectory, problem: Problem, tol: float = 1e-9, continuity_tol: float = 1e-6,
-           pieces: int = 1) -> VerifyReport:
-    """The certificate (module docstring). `pieces` > 1 certifies the bounds on the hodographs'
-    de Casteljau pieces (`bezier.subdivision_matrix`): still exact in continuous time, tighter
-    (issue 12); the planner's own rows use 1, the default."""
+           pieces: int = HULL_PIECES) -> VerifyReport:
+    """The certificate (module docstring). `pieces`: de Casteljau pieces per hodograph the
+    bounds are certified on (`bezier.stacked_pieces`); the default is the planner's own, 1 is
+    the plain hull (stricter: plans that use the bounds fully fail it)."""
     if pieces < 1:
         raise ValueError(f"pieces: must be >= 1, got {pieces}")
     structure = _structure(traj, problem)
@@ -267,12 +269,12 @@ def _continuity(hods: list[FloatArray], d: FloatArray) -> Worst:
 
 
 def _pieces(pts: FloatArray, pieces: int) -> FloatArray:
-    """(n+1, s, 3) control points -> (pieces (n+1), s, 3): those of the de Casteljau pieces."""
+    """(n+1, s, 3) control points -> (pieces n + 1, s, 3): those of the de Casteljau pieces."""
     if pieces == 1:
         return pts
     n1, s, _ = pts.shape
-    sub = subdivision_matrix(n1 - 1, pieces).reshape(pieces * n1, n1)
-    out: FloatArray = (sub @ pts.reshape(n1, 3 * s)).reshape(pieces * n1, s, 3)
+    sub = stacked_pieces(n1 - 1, pieces)
+    out: FloatArray = (sub @ pts.reshape(n1, 3 * s)).reshape(sub.shape[0], s, 3)
     return out
 
 

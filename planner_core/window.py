@@ -3,12 +3,13 @@
 Same QP as `jets.solve_jets(..., open_end=True)` with the dense backend (same
 rows, same tightening, same cost); what differs is how it is put together:
 
-- every segment's hull rows are stacked into global arrays (filled in chunks
-  as the window reaches them) with columns already scaled per jet, so a
-  window's rows are one contiguous slice `[r0, r1)` of them (roles
+- the hull rows of the segments near the window are stacked (columns already
+  scaled per jet) in a store that slides along with it, `CHUNK` segments at a
+  time, so a window's rows are one contiguous slice of it (roles
   'b' | 'ab'... | 'half' are contiguous by the [start only | both | end only]
-  row order of `SegBlocks`);
-- the cost Hessian blocks (free part of each segment, 24 x 24) and the
+  row order of `SegBlocks`); the rows of the whole mission are never held at
+  once (~70 MB at m = 1000: most of a planner process's peak);
+- the cost Hessian blocks (free part of each segment, per axis: 8 x 8) and the
   position part of the gradient are precomputed for all segments;
 - daqp factors H and forms G R^-1 in plain C at every call (~100 us at 48
   unknowns, measured); here LAPACK factors H = L L' and daqp gets the
@@ -36,38 +37,30 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.linalg.lapack import dpotrf as _potrf
-from scipy.linalg.lapack import dtrtri as _trtri
 
 from planner_core.constraints import INF, cost_matrices
 from planner_core.jets import CHECK_TOL, MARGIN, NV, ProblemCache, _tighten
 
 FloatArray = NDArray[np.float64]
 
-CHUNK = 64  # segments per vectorised block of rows, filled as the window reaches them
+CHUNK = 32  # segments of rows the window solver holds: filled in one vectorised block as it reaches them
 MAX_ROUNDS = 8  # working-set growth rounds before giving up on the fast path
 ADD_TOL = 1e-12  # relative: a row outside its tightened limit by more joins the working set
 _ORD = np.repeat(np.arange(1, 5), 3).astype(float)
 
 
-_kernel_off: list[str] = []  # set by disable_kernel: this process never loads numba
-
-
-def disable_kernel(reason: str) -> None:
-    """Plan without the compiled pass in this process from now on, and never import numba
-    (~70 MB resident): for a process that only replans a few jets at a time and hands long
-    plans to worker processes (the companion's main process)."""
-    _kernel_off[:] = [reason]
+_kernel_off: list[str] = []  # set by use_compiled_kernel(False): this process never loads numba
 
 
 def use_compiled_kernel(enabled: bool, reason: str = "disabled by the caller") -> None:
     """Process-wide: allow the compiled pass (the default) or, with `enabled=False`, plan
-    without it and never import numba (`disable_kernel(reason)`). Per plan, the same choice
-    is `IterativeOptions.compiled`."""
+    without it and never import numba (~105 MB resident; loading it from its cache ~0.4 s):
+    the companion's processes, a one-shot CLI plan of a small problem. Per plan, the same
+    choice is `IterativeOptions.compiled`."""
     if enabled:
         _kernel_off.clear()
     else:
-        disable_kernel(reason)
+        _kernel_off[:] = [reason]
 
 
 def _kernel_or_reason() -> ModuleType | str:
@@ -121,11 +114,13 @@ def jet_scales(durations: FloatArray) -> FloatArray:
 
 
 class WindowSolver:
-    """Stacked, pre-scaled rows and cost blocks of one problem.
+    """Pre-scaled rows near the window and cost blocks of one problem.
 
-    Rows are filled in chunks of `CHUNK` segments as the window reaches them:
-    the same total work for a full pass, but a solver rebuilt after a duration
-    stretch only pays for the segments it still visits.
+    Rows are built `CHUNK` segments at a time as the window reaches them (each
+    segment once on a forward pass, as when the whole mission's rows were kept),
+    and dropped once the window has passed them: a solver rebuilt after a
+    duration stretch only pays for the segments it still visits, and memory
+    does not grow with m (except the working-set flags, one byte a row).
     """
 
     def __init__(self, cache: ProblemCache, cost_order: int = 4) -> None:
@@ -137,27 +132,23 @@ class WindowSolver:
         self.cache = cache
         cs = jet_scales(cache.durations)
         self.cs = cs
-        self._rows = _RowStore(cache, cs)
+        self._rows = _RowStore(cache, cs, span=CHUNK, working=True)
         self.off, self.n1, self.n2 = self._rows.off, self._rows.n1, self._rows.n2
-        self.ab, self.c0, self.lim = self._rows.ab, self._rows.c0, self._rows.lim
-        # working limits: tightened (for the solver), and tightened + ADD_TOL (to accept a row)
-        self.limw = np.empty_like(self.lim)
-        self._ready = [False] * (len(self.n1) // CHUNK + 1)
-        self.active = np.zeros(self.c0.size, dtype=bool)  # rows active at the last solution
-        self.sense = np.zeros(self.c0.size, dtype=np.int32)
+        # rows active at the last solution, over the whole mission: the compiled pass keeps it too
+        self.active = np.zeros(self._rows.n_rows, dtype=bool)
+        self.sense = np.zeros(0, dtype=np.int32)
         self._eyes: dict[int, FloatArray] = {}
         self.times = (0.0, 0.0, 0.0)  # build, backend, check of the last successful solve (s)
         self.rows_used = 0
-        # cost: free part [start derivatives | end derivatives] of each segment, scaled; built
-        # per axis (10 x 10) and spread over the 3 axes: the same cost for each
+        # cost: free part [start derivatives | end derivatives] of each segment, scaled; per axis
+        # (10 x 10): the same cost for each of the 3
         k10 = 2.0 * cost_matrices(cache.durations, cost_order)  # (S, 10, 10), Hessian of z'Kz
         free = np.r_[1:5, 6:10]
-        # column scales are the same on every axis (jet_scales): scale the 8 x 8 per-axis blocks,
-        # then spread them (kron with I3) once
+        # column scales are the same on every axis (jet_scales): the 8 x 8 per-axis blocks are
+        # scaled here and spread over the axes per window (all segments' would be ~6 MB at m = 1000)
         c8 = np.concatenate([cs[:-1, ::3], cs[1:, ::3]], axis=1)  # (S, 8)
         k8 = k10[:, free][:, :, free] * c8[:, :, None] * c8[:, None, :]
-        self.k8 = k8  # per axis: the kernel works on H4 with H = H4 (x) I3
-        self._k24: FloatArray | None = None  # all axes, for `solve`: built on first use
+        self.k8 = k8  # per axis: both passes work on H4, with H = H4 (x) I3
         w = problem.waypoints
         # position part of the gradient: K[free, 0] p0 + K[free, 5] p1, per axis
         gpos = k10[:, free, 0, None] * w[:-1, None, :] + k10[:, free, 5, None] * w[1:, None, :]
@@ -166,34 +157,12 @@ class WindowSolver:
         # axis: end-jet rows x start-jet derivatives, and the reverse
         self.kba4 = np.ascontiguousarray(k10[:, 6:10, 1:5] * c8[:, 4:, None])
         self.kab4 = np.ascontiguousarray(k10[:, 1:5, 6:10] * c8[:, :4, None])
-        self._kba: FloatArray | None = None
-        self._kab: FloatArray | None = None
         # per-waypoint Hessian/gradient sums of the two segments meeting there (index 0 and m-1 unused)
         self.kdd = np.zeros((problem.m, 4, 4))  # per axis
         self.kdd[1:-1] = k8[:-1, 4:, 4:] + k8[1:, :4, :4]
         self.qsum = np.zeros((problem.m, NV))
         self.qsum[1:-1] = self.qpos[:-1, NV:] + self.qpos[1:, :NV]
         self._idx: _CompactRows | None = None
-
-    @property
-    def k_ba(self) -> FloatArray:
-        """(S, 12, 12) `kba4` over the 3 axes, for `solve`."""
-        if self._kba is None:
-            self._kba = _kron3(self.kba4)
-        return self._kba
-
-    @property
-    def k_ab(self) -> FloatArray:
-        if self._kab is None:
-            self._kab = _kron3(self.kab4)
-        return self._kab
-
-    @property
-    def k24(self) -> FloatArray:
-        """(S, 24, 24) cost blocks over the 3 axes: the numpy path's Hessian pieces."""
-        if self._k24 is None:
-            self._k24 = _kron3(self.k8)
-        return self._k24
 
     def solve(self, jets: FloatArray, f0: int, f1: int, open_end: bool) -> FloatArray | None:
         """Derivatives (f1-f0+1, 4, 3) of jets f0..f1 given the others in `jets`, or None."""
@@ -203,52 +172,57 @@ class WindowSolver:
         nx = NV * nf
         off, n1, n2 = self.off, self.n1, self.n2
         sb = f0 - 1
-        if not (self._ready[sb // CHUNK] and self._ready[f1 // CHUNK]):
-            self._fill(sb // CHUNK, f1 // CHUNK)
+        store = self._rows
+        row0 = store.hold(sb, f1)  # the store's first row: rows below are indices into the mission's
         half = open_end and f1 < m - 2
         r0 = off[sb] + n1[sb]
         r1 = off[f1] + n1[f1] + (0 if half else n2[f1])
         nr = r1 - r0
-        ab = self.ab
+        ab = store.ab[r0 - row0 : r1 - row0]  # the window's rows: index r - r0 is mission row r
         cs = self.cs
         # --- rows: G in scaled columns, constants from the fixed neighbours ---
         G = np.zeros((nr, nx))
         kb = off[f0] - r0
-        G[:kb, :NV] = ab[r0 : off[f0], NV:]
+        G[:kb, :NV] = ab[:kb, NV:]
         for i in range(nf - 1):
             s = f0 + i
-            G[off[s] - r0 : off[s + 1] - r0, NV * i : NV * i + 2 * NV] = ab[off[s] : off[s + 1]]
-        G[off[f1] - r0 :, nx - NV :] = ab[off[f1] : r1, :NV]
-        lims = self.limw[:, r0:r1] - self.c0[r0:r1]  # (4, nr): limits less the fixed positions' part
+            G[off[s] - r0 : off[s + 1] - r0, NV * i : NV * i + 2 * NV] = ab[off[s] - r0 : off[s + 1] - r0]
+        ke = off[f1] - r0
+        G[ke:, nx - NV :] = ab[ke:, :NV]
+        # (4, nr): limits less the fixed positions' part
+        lims = store.limw[:, r0 - row0 : r1 - row0] - store.c0[r0 - row0 : r1 - row0]
         start = jets[sb, 1:].ravel() / cs[sb]
-        lims[:, :kb] -= ab[r0 : off[f0], :NV] @ start
+        lims[:, :kb] -= ab[:kb, :NV] @ start
         if f0 == 1 and not self._constants_hold(sb, start, 0, n1[sb], side=0):
             return None
         if not half:
             end = jets[f1 + 1, 1:].ravel() / cs[f1 + 1]
-            lims[:, off[f1] - r0 :] -= ab[off[f1] : r1, NV:] @ end
+            lims[:, ke:] -= ab[ke:, NV:] @ end
             if not self._constants_hold(f1, end, n1[f1] + n2[f1], off[f1 + 1] - off[f1], side=1):
                 return None
-        # --- cost ---
-        H = np.zeros((nx, nx))
+        # --- cost: assembled per axis (the same on each), then spread over the axes ---
+        k8 = self.k8
+        n4 = 4 * nf
+        h4 = np.zeros((n4, n4))
         q = np.zeros(nx)
-        H[:NV, :NV] = self.k24[sb, NV:, NV:]
-        q[:NV] = self.qpos[sb, NV:] + self.k_ba[sb] @ jets[sb, 1:].ravel()
+        h4[:4, :4] = k8[sb, 4:, 4:]
+        q[:NV] = self.qpos[sb, NV:] + (self.kba4[sb] @ jets[sb, 1:]).ravel()
         for i in range(nf - 1):
             s = f0 + i
-            H[NV * i : NV * i + 2 * NV, NV * i : NV * i + 2 * NV] += self.k24[s]
+            h4[4 * i : 4 * i + 8, 4 * i : 4 * i + 8] += k8[s]
             q[NV * i : NV * i + 2 * NV] += self.qpos[s]
         if not half:
-            H[nx - NV :, nx - NV :] += self.k24[f1, :NV, :NV]
-            q[nx - NV :] += self.qpos[f1, :NV] + self.k_ab[f1] @ jets[f1 + 1, 1:].ravel()
+            h4[n4 - 4 :, n4 - 4 :] += k8[f1, :4, :4]
+            q[nx - NV :] += self.qpos[f1, :NV] + (self.kab4[f1] @ jets[f1 + 1, 1:]).ravel()
+        H = _kron3(h4[None])[0]
         # daqp factors H and forms G R^-1 in plain C at every call (~100 us at 48 unknowns);
         # doing it with LAPACK here and handing daqp H = I costs a fraction of that
-        chol, info = _potrf(H, lower=1, clean=1)
-        if info != 0:
+        # (numpy's LAPACK, not scipy's: importing scipy.linalg costs ~0.1 s of a one-shot plan)
+        try:
+            chol = np.linalg.cholesky(H)
+        except np.linalg.LinAlgError:
             return None
-        li, info = _trtri(chol, lower=1)  # L^-1: x = L^-T u, u'u/2 + (L^-1 q)'u, rows G L^-T
-        if info != 0:
-            return None
+        li = np.linalg.inv(chol)  # L^-1: x = L^-T u, u'u/2 + (L^-1 q)'u, rows G L^-T
         f = li @ q
         lt = li.T
         t_built = perf_counter()
@@ -262,6 +236,8 @@ class WindowSolver:
             work[off[f1] - r0 :] = True
         lo_x, hi_x = lims[2], lims[3]
         eye = self._eye(nx)
+        if self.sense.size < nr:
+            self.sense = np.zeros(nr, dtype=np.int32)
         for _ in range(MAX_ROUNDS):
             idx = np.flatnonzero(work)
             gw = G[idx] @ lt
@@ -317,14 +293,6 @@ class WindowSolver:
             self._idx = _compact_rows(self._rows)
         return self._idx
 
-    def _fill(self, k0: int, k1: int) -> None:
-        for k in range(k0, k1 + 1):
-            if self._ready[k]:
-                continue
-            segs = np.arange(k * CHUNK, min((k + 1) * CHUNK, len(self.n1)), dtype=np.int64)
-            self._rows.fill(segs, self.limw)
-            self._ready[k] = True
-
     def _eye(self, n: int) -> FloatArray:
         eye = self._eyes.get(n)
         if eye is None:
@@ -344,13 +312,15 @@ class WindowSolver:
             work[lo - r0 : off[b] - r0] |= self.active[off[a - 1] + n1[a - 1] : off[a]]
 
     def _constants_hold(self, s: int, fixed: FloatArray, a: int, b: int, side: int) -> bool:
-        """Rows [a, b) of segment s depend only on one fixed jet (and positions): they must hold."""
-        lo, hi = self.off[s] + a, self.off[s] + b
+        """Rows [a, b) of segment s (held by the store) depend only on one fixed jet (and
+        positions): they must hold."""
+        store = self._rows
+        lo, hi = self.off[s] + a - store.row0, self.off[s] + b - store.row0
         if hi <= lo:
             return True
         cols = slice(0, NV) if side == 0 else slice(NV, 2 * NV)
-        v = self.c0[lo:hi] + self.ab[lo:hi, cols] @ fixed
-        return bool(np.all(v <= self.lim[3, lo:hi] + CHECK_TOL) and np.all(v >= self.lim[2, lo:hi] - CHECK_TOL))
+        v = store.c0[lo:hi] + store.ab[lo:hi, cols] @ fixed
+        return bool(np.all(v <= store.lim[3, lo:hi] + CHECK_TOL) and np.all(v >= store.lim[2, lo:hi] - CHECK_TOL))
 
 
 def _stack_rows(
@@ -359,19 +329,24 @@ def _stack_rows(
     """All segments' rows in `SegBlocks` order, stacked: offsets per segment, n1, n2 per
     segment, [A | B] (R, 24) with columns scaled by `cs`, c0 (R,), limits (4, R)."""
     store = _RowStore(cache, cs)
-    store.fill(np.arange(len(store.n1)))
+    store.hold(0, len(store.n1) - 1)
     return store.off, store.n1, store.n2, store.ab, store.c0, store.lim
 
 
 class _RowStore:
-    """Stacked rows of every segment, filled on demand.
+    """Stacked rows of a run of consecutive segments `[seg0, seg1)`, built on demand.
 
-    Segments are built in chunks of equal corridor size (one dense
-    (g, rows, 24) block each, then one row scatter): element-wise scatters
-    were 5x slower.
+    Row r of the mission (`off` counts them) is row r - `row0` of the arrays. With
+    `span` (segments), `hold` slides the run forward: the rows still wanted move to
+    the front (a copy of a window's worth) and the next `span` or so segments are
+    built; without it, the arrays have room for every segment's rows (the global QP).
+    Segments are built in groups of equal corridor size (one dense (g, rows, 24)
+    block each, then one row scatter): element-wise scatters were 5x slower.
+    `working` adds the solver's working limits `limw`: tightened (for the solver),
+    and tightened + ADD_TOL relative (to accept a row).
     """
 
-    def __init__(self, cache: ProblemCache, cs: FloatArray) -> None:
+    def __init__(self, cache: ProblemCache, cs: FloatArray, span: int | None = None, working: bool = False) -> None:
         problem = cache.problem
         self.cache = cache
         self.cs = cs
@@ -381,6 +356,7 @@ class _RowStore:
         nb = cache._bperm.size
         off = np.concatenate([[0], np.cumsum(nb + 8 * self.faces)])
         n_rows = int(off[-1])
+        self.n_rows = n_rows
         self._off = off
         self.off: list[int] = off.tolist()
         self.n1: list[int] = (cache._bn1 + 4 * self.faces).tolist()
@@ -391,37 +367,71 @@ class _RowStore:
         self._pa = np.concatenate([p.A for p in planes]) if planes else np.zeros((0, 3))
         self._pb = np.concatenate([p.b for p in planes]) if planes else np.zeros(0)
         self._blim = np.stack([cache._blo_t, cache._bhi_t, cache._blo, cache._bhi])
-        self.ab = np.empty((n_rows, 2 * NV))
-        self.c0 = np.empty(n_rows)
-        self.lim = np.empty((4, n_rows))
+        self.span = n_seg if span is None else max(1, min(span, n_seg))
+        self._working = working
+        # room for the rows of any `span` consecutive segments
+        first = np.arange(n_seg)
+        cap = int(np.max(off[np.minimum(first + self.span, n_seg)] - off[first])) if n_seg else 0
+        self._alloc(cap)
+        self.seg0 = self.seg1 = self.row0 = 0
 
-    def fill(self, segments: NDArray[np.int64], limw: FloatArray | None = None) -> None:
-        """Rows of `segments`; also their working limits into `limw` when given. Compiled
-        (`window_kernel.fill_rows`) where numba runs, numpy otherwise."""
+    def _alloc(self, n: int) -> None:
+        self.ab = np.empty((n, 2 * NV))
+        self.c0 = np.empty(n)
+        self.lim = np.empty((4, n))
+        self.limw = np.empty((4, n if self._working else 0))
+
+    def hold(self, s0: int, s1: int) -> int:
+        """Make segments s0..s1 (inclusive) held; returns `row0`, the mission row of array row 0."""
+        if self.seg0 <= s0 and s1 < self.seg1:
+            return self.row0
+        off = self.off
+        new0, new1 = s0, min(len(self.n1), max(s1 + 1, s0 + self.span))
+        if off[new1] - off[new0] > self.c0.size:  # a window wider than the span: rare, start afresh
+            self._alloc(off[new1] - off[new0])
+            self.seg0 = self.seg1 = 0
+        keep0, keep1 = max(new0, self.seg0), min(new1, self.seg1)
+        if keep0 < keep1:
+            # rows still wanted move to their new place (numpy copies overlapping slices safely)
+            src, dst, n = off[keep0] - self.row0, off[keep0] - off[new0], off[keep1] - off[keep0]
+            self.ab[dst : dst + n] = self.ab[src : src + n]
+            self.c0[dst : dst + n] = self.c0[src : src + n]
+            self.lim[:, dst : dst + n] = self.lim[:, src : src + n]
+            if self._working:
+                self.limw[:, dst : dst + n] = self.limw[:, src : src + n]
+        else:
+            keep0 = keep1 = new0
+        self.seg0, self.seg1, self.row0 = new0, new1, off[new0]
+        todo = np.r_[np.arange(new0, keep0), np.arange(keep1, new1)].astype(np.int64)
+        if todo.size:
+            self.fill(todo)
+        return self.row0
+
+    def fill(self, segments: NDArray[np.int64]) -> None:
+        """Rows of `segments` (held: within [seg0, seg1)), and their working limits when the store
+        keeps them. Compiled (`window_kernel.fill_rows`) where numba runs, numpy otherwise."""
         cache = self.cache
         kernel = _kernel_or_reason()
         if isinstance(kernel, str):
             faces = self.faces[segments]
             for f in np.unique(faces).tolist():
                 self._fill_group(segments[faces == f], int(f))
-            rows = (
-                np.concatenate([np.arange(self._off[s], self._off[s + 1]) for s in segments.tolist()])
-                if segments.size else np.zeros(0, dtype=np.int64)
-            )
-            if limw is not None and limw.shape[1]:
+            if self._working:
+                rows = np.concatenate(
+                    [np.arange(self._off[s], self._off[s + 1]) for s in segments.tolist()]
+                ) - self.row0
                 lo_t, hi_t = self.lim[0, rows], self.lim[1, rows]
-                limw[0, rows] = lo_t
-                limw[1, rows] = hi_t
-                limw[2, rows] = lo_t - ADD_TOL * (1.0 + np.abs(lo_t))
-                limw[3, rows] = hi_t + ADD_TOL * (1.0 + np.abs(hi_t))
+                self.limw[0, rows] = lo_t
+                self.limw[1, rows] = hi_t
+                self.limw[2, rows] = lo_t - ADD_TOL * (1.0 + np.abs(lo_t))
+                self.limw[3, rows] = hi_t + ADD_TOL * (1.0 + np.abs(hi_t))
             return
-        # callers that only want ab/c0/lim (the global QP) pass nothing: fill_rows skips it
-        if limw is None:
-            limw = np.empty((4, 0))
+        # fill_rows writes segment s at off[s]: offsets shifted to the store's first row; it skips
+        # the working limits when limw has no columns (the global QP's store)
         kernel.fill_rows(
-            segments, self._off, cache.hull, cache.problem.waypoints, self.cs, cache._bperm, int(cache._bn1),
-            self._blim, self._face_off, self._pa, self._pb, INF, MARGIN, self.ab, self.c0, self.lim, limw,
-            ADD_TOL,
+            segments, self._off - self.row0, cache.hull, cache.problem.waypoints, self.cs, cache._bperm,
+            int(cache._bn1), self._blim, self._face_off, self._pa, self._pb, INF, MARGIN, self.ab, self.c0, self.lim,
+            self.limw, ADD_TOL,
         )
 
     def _fill_group(self, segs: NDArray[np.int64], f: int) -> None:
@@ -429,10 +439,10 @@ class _RowStore:
         perm = cache._bperm
         nb = perm.size
         bn1 = cache._bn1
-        hull = cache.hull
         w = cache.problem.waypoints
         g = segs.size
         nrow = nb + 8 * f
+        hull = cache.hull_of(segs)  # (g, 10 + n, 10): indexed by position in segs below
         # bound rows: [a-only | (corridor P1..P4) | both | end-only | (corridor P5..P8)]
         pos = np.arange(nb)
         bpos = pos + 4 * f * (pos >= bn1)
@@ -440,20 +450,20 @@ class _RowStore:
         cblk = np.empty((g, nrow))
         lblk = np.empty((4, g, nrow))
         eye = np.eye(3)
-        qb = hull[segs, 10:40]  # (g, 30, 10)
+        qb = hull[:, 10:]  # (g, n, 10) certified hodograph points
         ra = np.einsum("src,de->srdce", qb[:, :, 1:5], eye).reshape(g, nb, NV)[:, perm]
         rb = np.einsum("src,de->srdce", qb[:, :, 6:10], eye).reshape(g, nb, NV)[:, perm]
         blk[:, bpos, :NV] = ra * cs[segs, None, :]
         blk[:, bpos, NV:] = rb * cs[segs + 1, None, :]
         cb0 = qb[:, :, 0, None] * w[segs, None, :] + qb[:, :, 5, None] * w[segs + 1, None, :]
         cblk[:, bpos] = cb0.reshape(g, nb)[:, perm]
-        blim = np.stack([cache._blo_t, cache._bhi_t, cache._blo, cache._bhi])  # (4, 90)
+        blim = np.stack([cache._blo_t, cache._bhi_t, cache._blo, cache._bhi])  # (4, nb)
         lblk[:, :, bpos] = blim[:, None, :]
         if f:
             polys = [self.polys[s] for s in segs.tolist()]
             pa = np.stack([p.A for p in polys if p is not None])  # (g, f, 3)
             pb = np.stack([p.b for p in polys if p is not None])
-            q = hull[segs]
+            q = hull
             ka = slice(bn1, bn1 + 4 * f)
             kb = slice(nb + 4 * f, nrow)
             ca = (q[:, 1:5, None, 1:5, None] * pa[:, None, :, None, :]).reshape(g, 4 * f, NV)
@@ -469,7 +479,7 @@ class _RowStore:
                 lblk[1, :, k] = hi_t
                 lblk[2, :, k] = -INF
                 lblk[3, :, k] = hi
-        rows = (self._off[segs, None] + np.arange(nrow)[None, :]).ravel()
+        rows = (self._off[segs, None] - self.row0 + np.arange(nrow)[None, :]).ravel()
         self.ab[rows] = blk.reshape(-1, 2 * NV)
         self.c0[rows] = cblk.ravel()
         self.lim[:, rows] = lblk.reshape(4, -1)

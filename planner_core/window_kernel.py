@@ -62,6 +62,19 @@ def njit_inline(fn: F) -> F:
     return _jit(fn, inline="always")
 
 
+def cache_state() -> str:
+    """`warm` when numba's on-disk cache holds the compiled pass of this source (loading it:
+    ~0.4 s), `cold` when the first call compiles it (~20 s here; a new install or an edit of
+    this file), `unknown` when numba's cache cannot be read."""
+    try:
+        cache = cast(Any, run_pass)._cache  # numba internals, hence the guard
+        if type(cache).__name__ == "NullCache":  # no writable cache: every process compiles
+            return "cold"
+        return "warm" if cache._cache_file._load_index() else "cold"
+    except Exception:  # any change of numba's internals: say so, do not fail a plan
+        return "unknown"
+
+
 @njit
 def _chol(a: Any) -> bool:
     """In-place lower Cholesky of a small block (upper part left as is)."""
@@ -298,7 +311,8 @@ def _seg_points(s: int, ua: Any, ub: Any, hull: Any, w: Any, f: int, nz: Any, ne
     Points that involve the start jet only (no nonzero in the end jet's run of `nz[k]`) are
     computed when `need_a`, the others when `need_b`: the first and the last segment of a window
     need one kind each."""
-    jm = pts[40:50]  # rows 40..49: the 10 x 3 [p0; start derivatives; p1; end derivatives]
+    nh = hull.shape[1]  # 10 control points, then the certified hodograph points
+    jm = pts[nh : nh + 10]  # the 10 x 3 [p0; start derivatives; p1; end derivatives]
     for d in range(3):
         jm[0, d] = w[s, d]
         jm[5, d] = w[s + 1, d]
@@ -306,7 +320,7 @@ def _seg_points(s: int, ua: Any, ub: Any, hull: Any, w: Any, f: int, nz: Any, ne
             jm[1 + c, d] = ua[c, d]
             jm[6 + c, d] = ub[c, d]
     k0 = 1 if f > 0 else 10
-    for k in range(k0, 40):
+    for k in range(k0, nh):
         if not (need_b if nz[k, 3] > nz[k, 2] else need_a):
             continue
         for d in range(3):
@@ -387,7 +401,7 @@ def _materialize(
     `f6` per face hold lo_t, hi_t, lo, hi, lo_w, hi_w).
 
     Rows are built when a window needs them (its working set) instead of stored: a row comes
-    from its segment's hull map (40 x 10), the column scales and its faces. Stored densely they
+    from its segment's hull map (10 + n, 10), the column scales and its faces. Stored densely they
     were ~60 MB at m = 1000, and filling them cost more than half the pass.
 
     One call for many rows, the row code written out here: a call with this many array
@@ -680,12 +694,13 @@ def _step(
 
 @njit
 def _nonzero_runs(hull: Any) -> Any:
-    """(40, 4): per hull row, the bounds of its nonzero run among columns 0..4 and among 5..9
+    """(10 + n, 4): per hull row, the bounds of its nonzero run among columns 0..4 and among 5..9
     (the pattern is structural: the same for every segment; d > 0 only scales entries)."""
-    nz = np.zeros((40, 4), dtype=np.int64)
+    nh = hull.shape[1]
+    nz = np.zeros((nh, 4), dtype=np.int64)
     if hull.shape[0] == 0:
         return nz
-    for k in range(40):
+    for k in range(nh):
         for side in range(2):
             lo, hi = 5 * side + 5, 5 * side
             for c in range(5 * side, 5 * side + 5):
@@ -715,7 +730,7 @@ def run_pass(
     """Steps j0 .. m-2; commits the jet at each j. Returns the first j it could not settle (m-1
     when it settled all). `step_times[j]`: seconds spent on step j.
 
-    Rows: `hull` (S, 40, 10) maps each segment's [p0, start derivatives, p1, end derivatives] to
+    Rows: `hull` (S, 10 + n, 10) maps each segment's [p0, start derivatives, p1, end derivatives] to
     its control and hodograph points; `cs` the column scales; `pr`/`pd` the hodograph row and axis
     of each bound row (in `_RowStore`'s order, `bn1` of them start-only, `nb` in all); corridor
     faces `pa` (segment s: rows face_off[s]:face_off[s+1]); limits per bound row `b6` and per face
@@ -738,7 +753,7 @@ def run_pass(
         np.zeros(nrm, dtype=np.int64), np.zeros(nrm, dtype=np.int64), np.zeros(nrm, dtype=np.int64),
         np.zeros((4, nrm)), np.zeros(nrm, dtype=np.bool_),
         np.zeros(nxm + 1), np.zeros(nrm, dtype=np.int64), np.zeros(rmax, dtype=np.int64), np.zeros(2 * NV),
-        np.zeros((nrm, 2 * NV)), np.zeros(nrm), np.zeros((50, 3)), np.zeros((4, 3)), np.zeros((4, 3)),
+        np.zeros((nrm, 2 * NV)), np.zeros(nrm), np.zeros((hull.shape[1] + 10, 3)), np.zeros((4, 3)), np.zeros((4, 3)),
         _nonzero_runs(hull),
     )
     x = ws[3]

@@ -2,10 +2,27 @@
 
 `load_scenario` validates everything and raises `ScenarioError` naming the
 field and index ("bounds.velocity[1]: lo 3 > hi 2"). When a scenario has no
-times/durations, times come from `planner_core.timing.allocate_times`; when it
-has obstacles but no corridors, corridors come from
+times/durations, the problem's times come from `planner_core.timing.allocate_times`
+(a start for the planner; `Scenario.durations_given` says they were not the user's);
+when it has obstacles but no corridors, corridors come from
 `planner_core.corridors.build_corridors` (both imported lazily; a blocked
 segment raises that module's `CorridorError`, which is not an input error).
+
+Timing keys (what the planner CLI does with them; `planner_core.missions.plan_mission`):
+- "timing": "auto" (the default): the given times/durations, or when there are none the
+  fastest durations the bounds and corridors allow (`allocation.fastest_durations`);
+  "fastest": the fastest durations even when times are given; "default": the given
+  times, or `allocate_times` when there are none (the slower allocation that was the
+  default before).
+- "time_weight": rho > 0: the durations minimising J + rho T (overrides "timing").
+
+Trajectory JSON (`trajectory_to_dict` / `trajectory_from_dict`): "format", "frame",
+"degree", "segments" (each "t0", "t1", "control_points", "corridor") and "stats", plus
+"waypoint_index" when the writer knows it: for each waypoint the user gave, the index of the
+trajectory waypoint (segment boundary) it is; the boundaries not listed are knots (the
+fastest allocation's splits of long legs, a replan's split at from_time). `replan` counts a
+change's indices in the user's waypoints through it (`planner_core.indices`); a file without
+it counts every boundary as a waypoint (`waypoint_index_from_dict` returns None).
 """
 
 from __future__ import annotations
@@ -16,6 +33,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from planner_core.errors import FieldError
 from planner_core.problem import DEGREE, Bounds, FloatArray, Polytope, Problem, Trajectory, rest_jet
@@ -23,9 +41,9 @@ from planner_core.problem import DEGREE, Bounds, FloatArray, Polytope, Problem, 
 TRAJECTORY_FORMAT = "bezier-trajectory/1"
 SCENARIO_KEYS = frozenset({
     "frame", "waypoints", "times", "durations", "bounds", "corridors", "obstacles", "map",
-    "vehicle_radius", "initial", "final", "description", "timing",
+    "vehicle_radius", "initial", "final", "description", "timing", "time_weight",
 })
-TIMINGS = ("default", "fastest")  # "fastest": planner_core.allocation.fastest_durations, at plan time
+TIMINGS = ("auto", "default", "fastest")  # module docstring; the allocation runs at plan time
 BOUND_KEYS = ("velocity", "acceleration", "jerk", "snap")
 STATE_KEYS = ("velocity", "acceleration", "jerk", "snap")
 WAYPOINT_TOL = 1e-9
@@ -44,7 +62,9 @@ class Scenario:
     vehicle_radius: float
     raw: dict[str, Any] = field(compare=False)
     description: str = ""
-    timing: str = "default"  # "fastest": the planner CLI replaces the durations by the fastest it can fly
+    timing: str = "auto"  # one of TIMINGS (module docstring)
+    time_weight: float | None = None  # rho > 0: the planner CLI minimises J + rho T over the durations
+    durations_given: bool = True  # False: the problem's times are allocate_times', not the user's
 
 
 # --- small validators ------------------------------------------------------
@@ -171,7 +191,6 @@ def load_scenario(obj: Any) -> Scenario:
     if "waypoints" not in raw:
         raise ScenarioError("waypoints", "missing")
     wps = _matrix(raw["waypoints"], "waypoints", 3, 2)
-    wps.shape[0]
     bounds = _bounds(raw)
     init = _state(raw.get("initial", {}), "initial", wps[0])
     fin = _state(raw.get("final", {}), "final", wps[-1])
@@ -185,10 +204,16 @@ def load_scenario(obj: Any) -> Scenario:
     times = _times(raw, wps, bounds, init)
     corridors = _corridors(raw, wps, obstacles, map_box, radius)
     problem = Problem(wps, times, bounds, init, fin, corridors)
-    timing = raw.get("timing", "default")
-    if timing not in TIMINGS:
-        raise ScenarioError("timing", f"expected one of {', '.join(TIMINGS)}, got {timing!r}")
-    return Scenario(problem, str(frame), obstacles, map_box, radius, dict(raw), description, str(timing))
+    timing = raw.get("timing", "auto")
+    if not isinstance(timing, str) or timing not in TIMINGS:
+        raise ScenarioError("timing", f"expected one of {', '.join(repr(t) for t in TIMINGS)}, got {timing!r}")
+    rho = None
+    if "time_weight" in raw:
+        rho = _number(raw["time_weight"], "time_weight")
+        if rho <= 0.0:
+            raise ScenarioError("time_weight", f"must be > 0 (seconds of flight are worth rho units of cost), got {rho}")
+    given = "times" in raw or "durations" in raw
+    return Scenario(problem, str(frame), obstacles, map_box, radius, dict(raw), description, timing, rho, given)
 
 
 def _list(x: Any, name: str) -> Sequence[Any]:
@@ -305,9 +330,12 @@ def _jsonable(x: Any) -> Any:
     return str(x)
 
 
-def trajectory_to_dict(traj: Trajectory, frame: str = "enu") -> dict[str, Any]:
+def trajectory_to_dict(
+    traj: Trajectory, frame: str = "enu", waypoint_index: Sequence[int] | NDArray[np.int64] | None = None
+) -> dict[str, Any]:
+    """The JSON form; `waypoint_index`: the user waypoints' boundary indices (module docstring)."""
     corridors = traj.corridors or (None,) * traj.n_segments
-    return {
+    out: dict[str, Any] = {
         "format": TRAJECTORY_FORMAT,
         "frame": frame,
         "degree": DEGREE,
@@ -322,10 +350,39 @@ def trajectory_to_dict(traj: Trajectory, frame: str = "enu") -> dict[str, Any]:
         ],
         "stats": _jsonable(traj.stats),
     }
+    if waypoint_index is not None:
+        from planner_core.indices import WaypointMap
+
+        try:
+            wm = WaypointMap.checked(np.asarray(waypoint_index), traj.n_segments + 1)
+        except FieldError as e:  # a bug of the caller's, not bad input
+            raise ValueError(f"trajectory_to_dict: {e}") from e
+        out["waypoint_index"] = wm.index.tolist()
+    return out
+
+
+TRAJECTORY_KEYS = ("format", "frame", "degree", "segments", "stats", "waypoint_index")
+
+
+def waypoint_index_from_dict(d: Any) -> NDArray[np.int64] | None:
+    """The "waypoint_index" of a trajectory dict, checked against its segments (None: absent)."""
+    obj = _keys(d, "", TRAJECTORY_KEYS)
+    raw = obj.get("waypoint_index")
+    if raw is None:
+        return None
+    segs = _list(obj.get("segments"), "segments")
+    if not isinstance(raw, list) or not all(isinstance(v, int) and not isinstance(v, bool) for v in raw):
+        raise ScenarioError("waypoint_index", "expected a list of integer indices")
+    from planner_core.indices import WaypointMap
+
+    try:
+        return WaypointMap.checked(np.asarray(raw, dtype=np.int64), len(segs) + 1).index
+    except FieldError as e:
+        raise ScenarioError(e.field, e.reason) from e
 
 
 def trajectory_from_dict(d: Any) -> Trajectory:
-    obj = _keys(d, "", ("format", "frame", "degree", "segments", "stats"))
+    obj = _keys(d, "", TRAJECTORY_KEYS)
     if obj.get("format") != TRAJECTORY_FORMAT:
         raise ScenarioError("format", f"expected {TRAJECTORY_FORMAT!r}, got {obj.get('format')!r}")
     if obj.get("degree", DEGREE) != DEGREE:
@@ -363,4 +420,5 @@ __all__ = [
     "load_scenario",
     "trajectory_from_dict",
     "trajectory_to_dict",
+    "waypoint_index_from_dict",
 ]

@@ -6,6 +6,15 @@ bounds and the environment (obstacles, map, radius) corridors are rebuilt
 from; the trajectory supplies the current plan. When the trajectory no longer
 matches the scenario's waypoints (it came from an earlier replan), the problem
 is taken from the trajectory itself so that replans can be chained.
+
+A change's indices count the user's waypoints: when the trajectory file has a
+"waypoint_index" (the planner CLI writes it; knots are absent from it) they are
+mapped onto the planned waypoints by `planner_core.indices.to_planned` (its
+docstring has the rules for segments that hold knots), the new file gets the new
+map, and messages and stats name user indices ("resolved_jets" the user waypoints
+re-solved, "resolved_knots" how many knots were, "rebuilt_segments" user
+segments; the planned indices under "planned"). A file without the map counts
+every segment boundary as a waypoint, as before.
 """
 
 from __future__ import annotations
@@ -14,7 +23,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -27,6 +36,9 @@ from planner_core.formats.cli import (
     _read_json,
 )
 from planner_core.problem import Problem, Trajectory
+
+if TYPE_CHECKING:
+    from planner_core.indices import WaypointMap
 
 
 def add_replan_parser(sub: Any) -> None:
@@ -71,7 +83,9 @@ def replan_command(args: argparse.Namespace) -> int:
         load_scenario,
         trajectory_from_dict,
         trajectory_to_dict,
+        waypoint_index_from_dict,
     )
+    from planner_core.indices import WaypointMap, to_planned
     from planner_core.replan import Environment, ReplanOptions, replan
     from planner_core.verify import verify
 
@@ -97,6 +111,7 @@ def replan_command(args: argparse.Namespace) -> int:
         return EXIT_INVALID
     try:
         traj = trajectory_from_dict(raw_traj)
+        index = waypoint_index_from_dict(raw_traj)
     except ValueError as e:
         _err(f"invalid trajectory: {e}")
         return EXIT_INVALID
@@ -108,28 +123,58 @@ def replan_command(args: argparse.Namespace) -> int:
     if args.max_widen < 0 or args.max_stretch < 0:
         _err("invalid option: --max-widen and --max-stretch must be >= 0")
         return EXIT_INVALID
+    planned_m = traj.n_segments + 1
+    wmap = WaypointMap.identity(planned_m) if index is None else WaypointMap(index, planned_m)
     problem = problem_for(scenario.problem, traj)
     env = Environment(tuple(scenario.obstacles), scenario.map_box, scenario.vehicle_radius)
     opts = ReplanOptions(max_widen=args.max_widen, max_stretch=args.max_stretch, environment=env)
     try:
-        result = replan(problem, traj, change, options=opts)
+        mapped = to_planned(change, wmap, problem.waypoints, traj.times)  # its errors are in user indices
     except ChangeError as e:
         _err(f"invalid change: {e}")
         return EXIT_INVALID
+    try:
+        result = replan(problem, traj, mapped.change, options=opts)
+    except ChangeError as e:  # the planned change's indices, told in the user's
+        _err(f"invalid change: {wmap.relabel_text(str(e))}")
+        return EXIT_INVALID
     if not result.ok or result.trajectory is None:
-        _err(result.message)
+        at = wmap.split_at(result.stats.get("split_index"))
+        _err(at.relabel_text(result.message))
         if result.diagnosis is not None:
-            print(json.dumps({"diagnosis": result.diagnosis}), file=sys.stderr)
+            print(json.dumps({"diagnosis": at.relabel_diagnosis(result.diagnosis)}), file=sys.stderr)
         return EXIT_INFEASIBLE
     report = verify(result.trajectory, result.problem)
     if not report.ok:
         _err(f"replanned trajectory failed the certificate: {report.summary()}")
         return EXIT_INFEASIBLE
-    stats = {**result.stats, "resolved_jets": list(result.resolved_jets), "message": result.message}
+    new_map = mapped.map_after(result.stats.get("split_index"), result.problem.m)
+    message = new_map.relabel_text(result.message)
+    stats = {**_user_stats(result.stats, list(result.resolved_jets), new_map, wmap), "message": message}
     out = Trajectory(result.trajectory.times, result.trajectory.control_points, result.trajectory.corridors, stats)
-    args.output.write_text(json.dumps(trajectory_to_dict(out, scenario.frame), indent=1))
+    args.output.write_text(json.dumps(trajectory_to_dict(out, scenario.frame, new_map.index), indent=1))
+    knots = new_map.planned - new_map.n
     print(
-        f"replanned: {result.message}; {result.problem.m} waypoints, "
-        f"{1e3 * float(result.stats.get('time_s', 0.0)):.2f} ms -> {args.output}"
+        f"replanned: {message}; {new_map.n} waypoints" + (f" ({knots} knot(s) between them)" if knots else "")
+        + f", {1e3 * float(result.stats.get('time_s', 0.0)):.2f} ms -> {args.output}"
     )
     return EXIT_OK
+
+
+PLANNED_STATS = ("split_index", "lock", "rebuilt_segments")  # replan's stats that count planned waypoints
+
+
+def _user_stats(
+    stats: dict[str, Any], resolved: list[int], new_map: WaypointMap, old_map: WaypointMap
+) -> dict[str, Any]:
+    """replan's stats, with every index a user reads in user indices (module docstring)."""
+    if new_map.is_identity and old_map.is_identity:
+        return {**stats, "resolved_jets": resolved}
+    users = [u for u in (new_map.user_of(j) for j in resolved) if u is not None]
+    out = {k: v for k, v in stats.items() if k not in PLANNED_STATS}
+    out["planned"] = {**{k: stats[k] for k in PLANNED_STATS if k in stats}, "resolved_jets": resolved}
+    out["resolved_jets"] = users
+    out["resolved_knots"] = len(resolved) - len(users)
+    if "rebuilt_segments" in stats:
+        out["rebuilt_segments"] = sorted({new_map.segment_of(int(s)) for s in stats["rebuilt_segments"]})
+    return out

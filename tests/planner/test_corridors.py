@@ -16,6 +16,7 @@ from hypothesis import strategies as st
 
 from planner_core.corridors import (
     CorridorError,
+    analysis_boxes,
     build_corridors,
     corridor_contains_segment,
     exclusion_margin,
@@ -196,15 +197,15 @@ def check_corridor(
     verts = [verts_of(o) for o in obs]
     for k, v in enumerate(verts):
         assert exclusion_margin(corridor, v) >= r - 1e-9, f"obstacle {k} has no single-plane certificate"
-    # irredundant: every plane either shapes the region or is some obstacle's only certificate
+    # no useless plane: every plane either shapes the region or certifies some obstacle (a face
+    # of the analysis box certifies every obstacle beyond it, so it need not be the only one)
     for p in range(len(b)):
         rest = np.delete(np.arange(len(b)), p)
-        # without a map box, judge inside a box far larger than the scene
+        # judge inside a box far larger than the scene
         region = brute_vertices(np.concatenate([A[rest], BIG[0]]), np.concatenate([b[rest], BIG[1]]))
         shapes = region.size > 0 and float(np.max(region @ A[p])) > b[p] + 1e-7
-        certs = np.array([[np.min(vv @ A[q] - b[q]) >= r - 1e-9 for q in range(len(b))] for vv in verts])
-        sole = bool(np.any(certs[:, p] & (certs.sum(axis=1) == 1))) if verts else False
-        assert shapes or sole, f"plane {p} is redundant"
+        certifies = any(float(np.min(vv @ A[p] - b[p])) >= r - 1e-9 for vv in verts)
+        assert shapes or certifies, f"plane {p} is redundant"
 
 
 # --- hull ---------------------------------------------------------------------------
@@ -371,8 +372,13 @@ def test_single_obstacle_plane_is_the_roomiest(seed: int, r: float) -> None:
     obstacle = random_obstacle(rng, (p0 + p1) / 2 + rng.normal(size=3) * 3)
     gap = dist_segment_polytope(p0, p1, obstacle)
     assume(gap >= 2 * r + 1e-3)
+    assume(gap < float(np.linalg.norm(p1 - p0)) + 3.0)  # within the default reach: it gets a plane
     (c,) = build_corridors(np.stack([p0, p1]), [obstacle], None, r)
-    assert c.A.shape == (1, 3)
+    lo, hi = analysis_boxes(p0[None], p1[None], np.array([np.linalg.norm(p1 - p0) + 3.0]), None, r)
+    frame = np.concatenate([hi[0], -lo[0]])
+    own = [p for p in range(len(c.b)) if not (np.count_nonzero(c.A[p]) == 1 and np.any(np.isclose(frame, c.b[p])))]
+    assert len(own) == 1  # one plane of its own; the others are faces of the analysis box
+    c = Polytope(c.A[own], c.b[own])
     assert exclusion_margin(c, polytope_vertices(obstacle)) == pytest.approx(r, abs=1e-9)
     clearance = segment_clearance(p0, p1, c)
     assert clearance >= gap / 2 - r - 1e-9  # at least the mid-margin plane's room

@@ -144,8 +144,8 @@ def test_invalid_options() -> None:
 
 def test_row_blocks_match_bezier_hull() -> None:
     """Every cached row equals the hull quantity computed from the segment's control points."""
-    from planner_core.bezier import hodograph, segment_from_jets
-    from planner_core.constraints import KIND_BOUND
+    from planner_core.bezier import hodograph, segment_from_jets, stacked_pieces
+    from planner_core.constraints import HULL_PIECES, KIND_BOUND
     from planner_core.jets import ProblemCache
 
     problem = random_problem(13, 5)
@@ -158,9 +158,10 @@ def test_row_blocks_match_bezier_hull() -> None:
         blk = cache.blocks(s)
         val = blk.c0 + blk.A @ jets[s, 1:].ravel() + blk.B @ jets[s + 1, 1:].ravel()
         ctrl = segment_from_jets(jets[s], jets[s + 1], d[s])
-        hodo = {k: hodograph(ctrl, k, d[s]) for k in range(1, 5)}
+        hodo = {k: stacked_pieces(9 - k, HULL_PIECES) @ hodograph(ctrl, k, d[s]) for k in range(1, 5)}
         bound = blk.kind == KIND_BOUND
-        # bound rows: the multiset of values equals all hodograph control points, orders 1..4
+        # bound rows: the multiset of values equals the control points of the HULL_PIECES pieces
+        # of every hodograph, orders 1..4
         expect = np.sort(np.concatenate([hodo[k].ravel() for k in range(1, 5)]))
         assert np.allclose(np.sort(val[bound]), expect, rtol=1e-12, atol=1e-9)
         poly = problem.corridor(s)

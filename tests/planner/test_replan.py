@@ -328,14 +328,15 @@ def test_infeasible_change_reports(planned2) -> None:  # type: ignore[no-untyped
 
 
 def test_widening_recovers_when_the_seed_is_infeasible() -> None:
-    # Slow straight line; moving W3 1 m forward with both neighbours' jets fixed
+    # Slow straight line (a 2 m/s^2 bound and a 2 m move: with less the subdivided certificate
+    # lets the seed through); moving W3 forward with both neighbours' jets fixed
     # needs more acceleration than allowed, freeing the neighbours does not.
     wps = np.array([[4.0 * i, 0.0, 0.0] for i in range(7)])
-    problem = Problem.from_waypoints(wps, np.full(6, 2.0), Bounds.symmetric(6, 3, np.inf, np.inf))
+    problem = Problem.from_waypoints(wps, np.full(6, 2.0), Bounds.symmetric(6, 2, np.inf, np.inf))
     res0 = plan(problem)
     assert res0.ok and res0.trajectory is not None
     traj = res0.trajectory
-    move = MoveWaypoint(3, wps[3] + np.array([1.0, 0.0, 0.0]))
+    move = MoveWaypoint(3, wps[3] + np.array([2.0, 0.0, 0.0]))
     narrow = replan(problem, traj, move, options=ReplanOptions(max_widen=0, max_stretch=0))
     assert narrow.status is PlanStatus.INFEASIBLE
     res = replan(problem, traj, move, options=ReplanOptions(max_stretch=0))
@@ -348,11 +349,11 @@ def test_widening_recovers_when_the_seed_is_infeasible() -> None:
 
 def test_stretching_recovers_when_widening_is_not_allowed() -> None:
     wps = np.array([[4.0 * i, 0.0, 0.0] for i in range(7)])
-    problem = Problem.from_waypoints(wps, np.full(6, 2.0), Bounds.symmetric(6, 3, np.inf, np.inf))
+    problem = Problem.from_waypoints(wps, np.full(6, 2.0), Bounds.symmetric(6, 2, np.inf, np.inf))
     res0 = plan(problem)
     assert res0.ok and res0.trajectory is not None
     traj = res0.trajectory
-    move = MoveWaypoint(3, wps[3] + np.array([1.0, 0.0, 0.0]))
+    move = MoveWaypoint(3, wps[3] + np.array([2.0, 0.0, 0.0]))
     res = replan(problem, traj, move, options=ReplanOptions(max_widen=0, max_stretch=2))
     new = _ok(res)
     assert res.stats["stretched"] >= 1 and set(res.resolved_jets) <= {2, 3, 4}

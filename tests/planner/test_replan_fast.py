@@ -19,6 +19,7 @@ import pytest
 from planner_core import certificate, localqp
 from planner_core.certificate import certify_rebuilt, hull_violation
 from planner_core.changes import ChangeSet, MoveWaypoint, SetCorridor, box
+from planner_core.constraints import certified_points
 from planner_core.jets import solve_jets
 from planner_core.localqp import solve_derivatives
 from planner_core.planning import plan
@@ -144,8 +145,11 @@ def test_certificate_fails_exactly_when_it_must(planned) -> None:  # type: ignor
     args = (problem.bounds, corr, problem.initial, problem.final)
     assert certify_rebuilt(ctrl, times, rebuild, *args) is None
     # tighter bounds: the same message as the per-segment hull check names
-    tight = problem.bounds.scaled(0.3)
     d = np.diff(times)
+    sym = np.minimum(problem.bounds.hi, -problem.bounds.lo)
+    used = max(float(np.abs(certified_points(ctrl[rebuild], k, d[rebuild])).max() / sym[k - 1].min())
+               for k in range(1, 5))
+    tight = problem.bounds.scaled(0.5 * used)  # half of what the certificate uses
     msg = certify_rebuilt(ctrl, times, rebuild, tight, corr, problem.initial, problem.final)
     assert msg is not None and msg == hull_violation(ctrl[rebuild], d[rebuild], tight, [corr[s] for s in rebuild], labels=rebuild)
     # a control point nudged along the curve's own chord: hull still fine, C^4 joint broken

@@ -9,11 +9,13 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from planner_core.bezier import hodograph, segment_from_jets
+from planner_core.bezier import certificate_matrix, segment_from_jets, stacked_pieces
+from planner_core.constraints import HULL_PIECES
 from planner_core.corridors import CorridorError, build_corridors, polytope_from_box
 from planner_core.problem import Bounds, Problem, rest_jet
 from planner_core.timing import (
     _HULL_C,
+    _HULL_PIECES,
     DEFAULT_SAFETY,
     _fixed_points,
     allocate_times,
@@ -81,7 +83,8 @@ def test_times_increase_from_t0_and_respect_the_minimum(
 def test_rest_to_rest_segment_meets_every_bound_exactly_at_safety_one(
     bounds: Bounds, length: float, u: tuple[float, float, float]
 ) -> None:
-    """With both ends at rest the curve is fixed; its hodograph hull must fit the bounds."""
+    """With both ends at rest the curve is fixed; its certificate (the hodographs' pieces) must fit
+    the bounds."""
     direction = np.array(u)
     if np.linalg.norm(direction) < 1e-3:
         direction = np.array([1.0, 0.0, 0.0])
@@ -89,12 +92,14 @@ def test_rest_to_rest_segment_meets_every_bound_exactly_at_safety_one(
     wps = np.stack([np.zeros(3), length * direction])
     (T,) = durations_from_lengths(wps, bounds, safety=1.0)
     ctrl = segment_from_jets(rest_jet(wps[0]), rest_jet(wps[1]), T)
-    worst = max(float(np.max(np.abs(hodograph(ctrl, k, T)) / bounds.hi[k - 1])) for k in range(1, 5))
+    worst = max(float(np.max(np.abs(certificate_matrix(k, HULL_PIECES, T) @ ctrl) / bounds.hi[k - 1]))
+                for k in range(1, 5))
     assert worst <= 1.0 + 1e-9
 
 
 def _hull_capacity(order: int, start: str, end: str) -> float:
-    """max p_9 - p_0 over scalar control points with |Δ^k p| <= 1 and the end pins (LP)."""
+    """max p_9 - p_0 over scalar control points whose order-k hodograph's HULL_PIECES de Casteljau
+    pieces have control points in [-1, 1] (|pieces Δ^k p| <= 1), with the end pins (LP)."""
     linprog = pytest.importorskip("scipy.optimize").linprog
 
     def diff(k: int) -> np.ndarray:
@@ -107,13 +112,14 @@ def _hull_capacity(order: int, start: str, end: str) -> float:
     d1 = diff(1)
     pins = {"rest": (d1[0:4], d1[5:9]), "stop": (d1[0:1], d1[8:9]), "free": (d1[:0], d1[:0])}
     eq = np.concatenate([np.eye(10)[:1], pins[start][0], pins[end][1]])
-    dk = diff(order)
+    dk = stacked_pieces(9 - order, HULL_PIECES) @ diff(order)
     res = linprog(-np.eye(10)[9], A_ub=np.concatenate([dk, -dk]), b_ub=np.ones(2 * len(dk)),
                   A_eq=eq, b_eq=np.zeros(len(eq)), bounds=[(None, None)] * 10, method="highs")
     return -float(res.fun) if res.status == 0 else float("inf")
 
 
 def test_hull_table_matches_the_lp() -> None:
+    assert _HULL_PIECES == HULL_PIECES  # the table is for the planner's pieces
     types = ("rest", "stop", "free")
     for k in range(1, 5):
         for a, start in enumerate(types):

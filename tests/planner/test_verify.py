@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from planner_core import Bounds, Polytope, Problem, Trajectory, plan, verify
-from planner_core.bezier import bernstein_basis, hodographs
+from planner_core.bezier import bernstein_basis, hodographs, stacked_pieces
+from planner_core.constraints import HULL_PIECES
 from planner_core.formats.io import load_scenario
 
 EXAMPLES = Path(__file__).resolve().parents[2] / "examples"
@@ -63,7 +64,9 @@ def test_continuity_violation(planned: tuple[Trajectory, Problem]) -> None:
 
 
 def _hull_max(traj: Trajectory, k: int) -> float:
-    return float(np.abs(hodographs(traj.control_points, k, np.diff(traj.times))).max())
+    """Largest certified value of order k: the hodographs' HULL_PIECES de Casteljau pieces."""
+    pts = hodographs(traj.control_points, k, np.diff(traj.times))
+    return float(np.abs(stacked_pieces(9 - k, HULL_PIECES) @ pts).max())
 
 
 def _sample_max(traj: Trajectory, k: int) -> float:

@@ -12,6 +12,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from planner_core import Bounds, Polytope, Problem, Trajectory, verify
+from planner_core.bezier import split_segment
+from planner_core.constraints import HULL_PIECES
 from planner_core.verify import SAMPLES_PER_SEGMENT, VerifyReport, Worst
 
 N = 9
@@ -33,8 +35,21 @@ def _bernstein(n: int, u: np.ndarray) -> np.ndarray:
     return np.array([comb(n, j) for j in range(n + 1)]) * u[:, None] ** i * (1 - u[:, None]) ** (n - i)
 
 
+def _pieces(pts: np.ndarray, pieces: int) -> np.ndarray:
+    """Control points of the curve's restrictions to [i/p, (i+1)/p], one piece after the other,
+    by repeated de Casteljau splits (verify uses the stacked linear map)."""
+    out = []
+    rest = pts
+    for i in range(pieces - 1):
+        left, rest = split_segment(rest, 1.0 / (pieces - i))
+        out.append(left)
+    out.append(rest)
+    return np.concatenate(out)
+
+
 def reference_bounds(traj: Trajectory, problem: Problem) -> tuple[Worst, Worst]:
-    """Order by order, segment by segment; the first worst entry wins (order, segment, index, axis)."""
+    """Order by order, segment by segment; the first worst entry wins (order, segment, index, axis).
+    The hull is that of the hodographs' HULL_PIECES pieces (the planner's certificate)."""
     u = np.linspace(0.0, 1.0, SAMPLES_PER_SEGMENT)
     hull, samp = Worst(-np.inf), Worst(-np.inf)
     lo, hi = problem.bounds.lo, problem.bounds.hi
@@ -43,7 +58,8 @@ def reference_bounds(traj: Trajectory, problem: Problem) -> tuple[Worst, Worst]:
         for s in range(traj.n_segments):
             d = traj.times[s + 1] - traj.times[s]
             pts = _hodograph(traj.control_points[s], k, d)
-            v = np.maximum(pts - hi[k - 1], lo[k - 1] - pts)
+            cert = _pieces(pts, HULL_PIECES)
+            v = np.maximum(cert - hi[k - 1], lo[k - 1] - cert)
             i, a = np.unravel_index(int(np.argmax(v)), v.shape)
             if v[i, a] > hull.value:
                 hull = Worst(float(v[i, a]), s, k, int(a))
@@ -126,8 +142,6 @@ def test_matches_per_segment_reference(seed: int, s: int, none_every: int) -> No
 
 def _smooth_case(s: int, seed: int = 0) -> tuple[Trajectory, Problem]:
     """A C^4 trajectory: one degree-9 polynomial split into s segments (so it verifies)."""
-    from planner_core.bezier import split_segment
-
     rng = np.random.default_rng(seed)
     whole = np.cumsum(rng.normal(size=(N + 1, 3)), axis=0) * 10.0
     pieces = []
@@ -152,7 +166,7 @@ def test_injected_bound_violation_is_found_at_its_segment_and_order(s: int, targ
     assert verify(traj, problem).ok
     # bounds just inside every segment's hodograph of order k, except a spike in `target`
     d = traj.times[1] - traj.times[0]
-    peaks = np.array([np.abs(_hodograph(c, k, d)).max(axis=0) for c in traj.control_points])
+    peaks = np.array([np.abs(_pieces(_hodograph(c, k, d), HULL_PIECES)).max(axis=0) for c in traj.control_points])
     hi = np.full((4, 3), np.inf)
     hi[k - 1] = peaks.max(axis=0) * 1.01
     bounds = Bounds(-hi, hi)

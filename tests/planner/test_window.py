@@ -33,26 +33,62 @@ def _problem(seed: int, m: int) -> Problem:
     return Problem.from_waypoints(wps, durations, Bounds.symmetric(7, 6.5, 15, 60), tuple(cors))
 
 
-@pytest.mark.parametrize(("chunk", "compiled"), [(3, True), (64, True), (3, False)])
-def test_stacked_rows_equal_segment_blocks(chunk: int, compiled: bool, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(window, "CHUNK", chunk)
+# (span, compiled): a store sliding 3 segments at a time (and re-sized for a window wider than
+# that), and one holding the whole mission
+@pytest.mark.parametrize(("span", "compiled"), [(3, True), (None, True), (3, False), (None, False)])
+def test_stacked_rows_equal_segment_blocks(span: int | None, compiled: bool, monkeypatch: pytest.MonkeyPatch) -> None:
     if not compiled:  # as where numba cannot run: the numpy fill
         monkeypatch.setattr(window, "_kernel_or_reason", lambda: "no JIT here")
     problem = _problem(3, 12)
     cache = ProblemCache(problem)
-    fast = WindowSolver(cache)
-    fast._fill(0, (problem.m - 2) // chunk)
     cs = jet_scales(problem.durations)
-    for s in range(problem.m - 1):
-        blk = cache.blocks(s)
-        rows = slice(fast.off[s], fast.off[s + 1])
-        assert fast.n1[s] == blk.n1 and fast.n2[s] == blk.n2
-        np.testing.assert_allclose(fast.ab[rows, :NV], blk.A * cs[s], rtol=1e-13, atol=1e-12)
-        np.testing.assert_allclose(fast.ab[rows, NV:], blk.B * cs[s + 1], rtol=1e-13, atol=1e-12)
-        np.testing.assert_allclose(fast.c0[rows], blk.c0, rtol=1e-13, atol=1e-12)
-        np.testing.assert_array_equal(fast.lim[:, rows], blk.lim)
-        np.testing.assert_array_equal(fast.limw[:2, rows], blk.lim[:2])  # tightened, for the solver
-        assert np.all(fast.limw[3, rows] >= blk.lim[1]) and np.all(fast.limw[3, rows] - blk.lim[1] <= 1e-11 * (1 + np.abs(blk.lim[1])))
+    store = window._RowStore(cache, cs, span=span, working=True)
+    # windows as the pass asks for them (segments j-1 .. j+2), one wider than the span, one going back
+    asks = [(max(0, j - 1), min(j + 2, problem.m - 2)) for j in range(problem.m - 1)]
+    asks[5] = (3, 8)
+    asks.append((0, 1))
+    for s0, s1 in asks:
+        row0 = store.hold(s0, s1)
+        assert store.seg0 <= s0 and s1 < store.seg1 and row0 == store.off[store.seg0]
+        for s in range(s0, s1 + 1):
+            blk = cache.blocks(s)
+            rows = slice(store.off[s] - row0, store.off[s + 1] - row0)
+            assert store.n1[s] == blk.n1 and store.n2[s] == blk.n2
+            np.testing.assert_allclose(store.ab[rows, :NV], blk.A * cs[s], rtol=1e-13, atol=1e-12)
+            np.testing.assert_allclose(store.ab[rows, NV:], blk.B * cs[s + 1], rtol=1e-13, atol=1e-12)
+            np.testing.assert_allclose(store.c0[rows], blk.c0, rtol=1e-13, atol=1e-12)
+            np.testing.assert_array_equal(store.lim[:, rows], blk.lim)
+            np.testing.assert_array_equal(store.limw[:2, rows], blk.lim[:2])  # tightened, for the solver
+            hi_t = blk.lim[1]
+            assert np.all(store.limw[3, rows] >= hi_t)
+            assert np.all(store.limw[3, rows] - hi_t <= 1e-11 * (1 + np.abs(hi_t)))
+    if span is not None:  # it held a few segments' rows at a time, never the mission's
+        assert store.c0.size < store.n_rows
+
+
+def test_sliding_row_store_plans_as_one_holding_every_row(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The numpy window path with rows built a few segments at a time, slid forward and rebuilt
+    after recoveries, solves the same windows as with every row of the mission held."""
+    monkeypatch.setattr(window, "_kernel_or_reason", lambda: "no JIT here")
+    problem = _problem(3, 14)  # window=1 needs recoveries here: solvers over pieces of the mission
+    plans = {}
+    for span in (2, 5, 10**6):
+        monkeypatch.setattr(window, "CHUNK", span)
+        for h in (1, 4):
+            plans[span, h] = plan_iterative(problem, IterativeOptions(window=h, compiled=False))
+    for h in (1, 4):
+        ref = plans[10**6, h]
+        assert ref.ok and ref.trajectory is not None
+        for span in (2, 5):
+            res = plans[span, h]
+            assert res.ok and res.trajectory is not None
+            def what(r: dict[str, object]) -> dict[str, object]:
+                return {k: v for k, v in r.items() if k != "time"}
+
+            assert [what(r) for r in res.stats["recoveries"]] == [what(r) for r in ref.stats["recoveries"]]
+            np.testing.assert_allclose(res.trajectory.control_points, ref.trajectory.control_points,
+                                       rtol=0.0, atol=1e-12)
+    assert len(plans[10**6, 1].stats["recoveries"]) > 0
 
 
 def test_compiled_pass_builds_the_stacked_rows() -> None:
@@ -64,13 +100,13 @@ def test_compiled_pass_builds_the_stacked_rows() -> None:
 
     problem = _problem(3, 12)
     cache = ProblemCache(problem)
-    fast = WindowSolver(cache)
-    fast._fill(0, (problem.m - 2) // window.CHUNK)  # the numpy path's stacked rows
-    c = fast._compact()
+    fast = window._RowStore(cache, jet_scales(problem.durations), working=True)
+    fast.hold(0, problem.m - 2)  # the numpy path's stacked rows, every segment's (row0 = 0)
+    c = window._compact_rows(fast)
     rng = np.random.default_rng(0)
-    pts = np.empty((50, 3))
+    pts = np.empty((cache.hull.shape[1] + 10, 3))  # the hull's points, then the segment's jets
     nz = wk._nonzero_runs(cache.hull)
-    bad = np.empty(200, dtype=np.int64)
+    bad = np.empty(int(np.max(np.diff(fast.off))), dtype=np.int64)
     for s in range(problem.m - 1):
         n = fast.off[s + 1] - fast.off[s]
         rows = slice(fast.off[s], fast.off[s + 1])
@@ -104,7 +140,7 @@ def test_compiled_pass_builds_the_stacked_rows() -> None:
 
 @pytest.mark.parametrize("chunk", [2, 64])
 def test_window_solve_matches_general_solver(chunk: int, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(window, "CHUNK", chunk)  # rows filled lazily across chunk borders
+    monkeypatch.setattr(window, "CHUNK", chunk)  # rows held a few segments at a time (2: fewer than a window)
     problem = _problem(5, 14)
     cache = ProblemCache(problem)
     fast = WindowSolver(cache)
@@ -210,8 +246,8 @@ def test_a_process_can_plan_without_ever_loading_numba() -> None:
 
     code = (
         "import sys\n"
-        "from planner_core.window import disable_kernel\n"
-        "disable_kernel('service process')\n"
+        "from planner_core import use_compiled_kernel\n"
+        "use_compiled_kernel(False, 'service process')\n"
         "from planner_core.iterative import warm_up\n"
         "print(warm_up(), 'numba' in sys.modules, 'llvmlite' in sys.modules)\n"
     )

@@ -1,0 +1,189 @@
+"""A mission planned in one call: waypoints, bounds, corridors, optional durations and a timing mode
+in; the verified trajectory and the way back to the caller's waypoint indices out.
+
+`plan_mission` is what a client (the companion, the CLI) calls instead of choosing between
+`plan`, `fastest_durations` and `weighted_durations` itself. Timing modes (`TIMINGS`):
+
+- "auto" (the default): the given durations when there are any (the planner's recovery
+  stretches them if they are infeasible), else the fastest the bounds and corridors allow
+  (`allocation.fastest_durations`);
+- "fastest": the fastest allocation even when durations are given (they are ignored);
+- "default": the given durations, else `timing.allocate_times` (the slower allocation that
+  was the default before the fastest one).
+`time_weight` (rho > 0) chooses the durations minimising J + rho T instead, whatever the mode.
+
+The fastest allocation may split long legs with knots (extra waypoints on the straight leg,
+inside its corridor). The planned problem then has more waypoints than the caller gave:
+`waypoint_index[i]` is where the caller's waypoint i sits in it, `segment_source[s]` the
+caller's segment that planned segment s lies on, and `relabel` maps per-waypoint labels
+(mission indices) onto the planned waypoints with a fill value for the knots, so that no
+message ever counts a knot as a waypoint.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from planner_core.errors import FieldError
+from planner_core.planning import plan
+from planner_core.problem import Bounds, FloatArray, Polytope, Problem, Trajectory
+from planner_core.result import PlanResult, PlanStatus
+from planner_core.verify import verify
+
+IntArray = NDArray[np.int64]
+TIMINGS = ("auto", "fastest", "default")
+
+__all__ = ["TIMINGS", "MissionPlan", "plan_mission"]
+
+
+@dataclass(frozen=True)
+class MissionPlan:
+    result: PlanResult  # the verified plan, or the failure (status, message, diagnosis)
+    problem: Problem  # what was planned: the given waypoints plus any knots, at the planned times
+    waypoint_index: IntArray  # (n,) per given waypoint, its index in `problem`
+    timing: str  # what chose the durations: "given", "default", "fastest" or "time-weight"
+
+    @property
+    def ok(self) -> bool:
+        return self.result.ok
+
+    @property
+    def status(self) -> PlanStatus:
+        return self.result.status
+
+    @property
+    def message(self) -> str:
+        return self.result.message
+
+    @property
+    def trajectory(self) -> Trajectory | None:
+        return self.result.trajectory
+
+    @property
+    def durations(self) -> FloatArray:
+        return self.problem.durations
+
+    @property
+    def segment_source(self) -> IntArray:
+        """(planned segments,) the given segment each planned segment lies on."""
+        owner = np.zeros(self.problem.m - 1, dtype=np.int64)
+        owner[self.waypoint_index[1:-1]] = 1
+        return np.cumsum(owner)
+
+    def relabel(self, labels: ArrayLike, fill: float = -1.0) -> FloatArray:
+        """Per-waypoint `labels` of the given waypoints, onto the planned ones; knots get `fill`."""
+        lab = np.asarray(labels, dtype=float)
+        if lab.shape != self.waypoint_index.shape:
+            raise FieldError("labels", f"expected {self.waypoint_index.size} entries (one per given waypoint), "
+                                       f"got shape {lab.shape}")
+        out = np.full(self.problem.m, fill, dtype=float)
+        out[self.waypoint_index] = lab
+        return out
+
+
+def plan_mission(
+    waypoints: ArrayLike,
+    bounds: Bounds,
+    corridors: Sequence[Polytope | None] | None = None,
+    durations: ArrayLike | None = None,
+    *,
+    timing: str = "auto",
+    time_weight: float | None = None,
+    initial: ArrayLike | None = None,
+    final: ArrayLike | None = None,
+    t0: float = 0.0,
+    method: str = "iterative",
+    **opts: Any,
+) -> MissionPlan:
+    """Plan and verify a mission (module docstring). `initial` / `final`: (5, 3) jets at the
+    first / last waypoint (rest when None); `t0`: the time of the first waypoint; `opts` go to
+    `plan` (window, cost, backend, ...). Bad input raises `FieldError` naming the argument;
+    an infeasible mission is a result (`ok` False, `message`, `result.diagnosis`)."""
+    if timing not in TIMINGS:
+        raise FieldError("timing", f"expected one of {', '.join(TIMINGS)}, got {timing!r}")
+    if time_weight is not None and not (np.isfinite(time_weight) and time_weight > 0.0):
+        raise FieldError("time_weight", f"must be finite and > 0, got {time_weight}")
+    if not np.isfinite(t0):
+        raise FieldError("t0", f"must be finite, got {t0}")
+    wps = np.asarray(waypoints, dtype=float)
+    if wps.ndim != 2 or wps.shape[1] != 3 or wps.shape[0] < 2:
+        raise FieldError("waypoints", f"expected (m >= 2, 3) positions, got shape {wps.shape}")
+    if not np.all(np.isfinite(wps)):
+        raise FieldError(f"waypoints[{int(np.argwhere(~np.isfinite(wps))[0, 0])}]", "must be finite")
+    m = wps.shape[0]
+    cors: tuple[Polytope | None, ...] | None = None
+    if corridors is not None:
+        cors = tuple(corridors)
+        if len(cors) != m - 1:
+            raise FieldError("corridors", f"has {len(cors)} entries for {m - 1} segments")
+    init = _jet(initial, wps[0], "initial")
+    fin = _jet(final, wps[-1], "final")
+    given: FloatArray | None = None
+    if durations is not None:
+        given = np.asarray(durations, dtype=float).reshape(-1)
+        if given.shape != (m - 1,):
+            raise FieldError("durations", f"has {given.size} entries for {m - 1} segments")
+        bad = np.flatnonzero(~(np.isfinite(given) & (given > 0.0)))
+        if bad.size:
+            raise FieldError(f"durations[{int(bad[0])}]", f"must be finite and > 0, got {given[bad[0]]:g}")
+    same = np.arange(m, dtype=np.int64)
+    if time_weight is None and given is not None and timing != "fastest":
+        return _planned(Problem.from_waypoints(wps, given, bounds, cors, init, fin, t0), same, "given", method, opts)
+    if time_weight is None and timing == "default":
+        from planner_core.timing import allocate_times
+
+        # as the loader and the companion always did: from the legs and the start velocity alone
+        times = np.asarray(allocate_times(wps, bounds, t0=t0, initial_velocity=init[1]), dtype=float)
+        return _planned(Problem(wps, times, bounds, init, fin, cors), same, "default", method, opts)
+    from planner_core.allocation import fastest_durations, weighted_durations
+
+    seed = Problem.from_waypoints(wps, np.ones(m - 1), bounds, cors, init, fin, t0)  # only t0 of its times counts
+    if time_weight is not None:
+        alloc = weighted_durations(seed, time_weight, method, **opts)
+        mode = "time-weight"
+    else:
+        alloc = fastest_durations(seed, method, **opts)
+        mode = "fastest"
+    return _checked(MissionPlan(alloc.result, alloc.problem, alloc.waypoint_index, mode))
+
+
+def _jet(jet: ArrayLike | None, position: FloatArray, name: str) -> FloatArray:
+    from planner_core.problem import rest_jet
+
+    if jet is None:
+        return rest_jet(position)
+    out = np.array(jet, dtype=float)
+    if out.shape != (5, 3) or not np.all(np.isfinite(out)):
+        raise FieldError(name, f"expected a finite (5, 3) jet (position .. snap), got shape {out.shape}")
+    if np.linalg.norm(out[0] - position) > 1e-9 * (1.0 + np.linalg.norm(position)):
+        raise FieldError(f"{name}[0]", f"position {out[0].tolist()} is not the waypoint {position.tolist()}")
+    return out
+
+
+def _planned(problem: Problem, index: IntArray, mode: str, method: str, opts: dict[str, Any]) -> MissionPlan:
+    res = plan(problem, method, **opts)
+    traj = res.trajectory
+    # the planner's recovery may have stretched durations: the planned problem is at its times
+    planned = problem if traj is None or np.array_equal(traj.times, problem.times) else replace(problem,
+                                                                                                times=traj.times)
+    return _checked(MissionPlan(res, planned, index, mode))
+
+
+def _checked(mp: MissionPlan) -> MissionPlan:
+    """Verify the answer once more against the problem it claims (plan verified it already):
+    a result handed to an autopilot is never trusted on one check alone."""
+    traj = mp.result.trajectory
+    if not mp.result.ok or traj is None:
+        return mp
+    problem = mp.problem if np.array_equal(traj.times, mp.problem.times) else replace(mp.problem, times=traj.times)
+    report = verify(traj, problem)
+    if report.ok:
+        return replace(mp, problem=problem)
+    failed = replace(mp.result, status=PlanStatus.INFEASIBLE, trajectory=None,
+                     message="verification failed: " + report.summary())
+    return replace(mp, result=failed, problem=problem)
