@@ -70,6 +70,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="MAVLink 2 signing: a file holding the 32-byte key (raw, or 64 hex digits); unsigned or "
                    "wrongly signed commands and setpoints are then ignored")
     p.add_argument("--param", action="append", type=_param, default=[], metavar="NAME=VALUE")
+    p.add_argument("--ground-z", type=float, default=None, metavar="METRES",
+                   help="z (NED) of the ground in the local frame (default: px4 +1.6, i.e. 1.6 m below the "
+                   "local origin as on PX4 SITL; ardupilot 0)")
+    p.add_argument("--px4-statustext", action="store_true",
+                   help="PX4: report with STATUSTEXT as PX4 < 1.14 did, instead of EVENT messages")
     return p
 
 
@@ -87,6 +92,7 @@ def main(argv: list[str] | None = None) -> int:
             takeovers=args.takeover_at, params=dict(args.param),
             offboard_warmup_s=args.offboard_warmup, vehicle=RESPONSES[args.response],
             signing_key=read_signing_key(args.signing_key) if args.signing_key else None,
+            ground_z=args.ground_z, px4_statustext=args.px4_statustext,
         )
         mock = MockAutopilot(config)
         mock.bind()

@@ -125,7 +125,12 @@ class ModeTable:
 
     @property
     def boot_mode(self) -> str:
-        return "POSCTL" if self.flavour is Flavour.PX4 else "STABILIZE"
+        # PX4 >= 1.14 starts with AUTO.LOITER as the user's intended mode (UserModeIntention).
+        return "LOITER" if self.flavour is Flavour.PX4 else "STABILIZE"
+
+    def prevents_arming(self, name: str) -> bool:
+        """Modes one cannot arm in (PX4's mode_req_prevent_arming; ArduPilot: LAND, RTL)."""
+        return self.behaviour(name) in (Behaviour.LAND, Behaviour.RTL)
 
     @property
     def follow_mode(self) -> str:
@@ -322,8 +327,10 @@ def default_params(flavour: Flavour) -> dict[str, Param]:
     if flavour is Flavour.PX4:
         items = [
             Param("COM_OF_LOSS_T", 1.0, f32),
-            # 0 position, 1 altitude, 2 manual, 3 return, 4 land, 5 hold
-            Param("COM_OBL_RC_ACT", 5, i32),
+            # 0 position, 1 altitude, 2 stabilized, 3 return, 4 land, 5 hold, 6 terminate,
+            # 7 disarm. PX4's default 0; without RC (the mock has none) 0-2 cannot run and
+            # PX4's mode fallback ends in Return.
+            Param("COM_OBL_RC_ACT", 0, i32),
             Param("COM_DISARM_PRFLT", 10.0, f32),
             Param("COM_DISARM_LAND", 2.0, f32),
             Param("MIS_TAKEOFF_ALT", 2.5, f32),

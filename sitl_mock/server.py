@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import select
+import struct
 import threading
 import time
 from dataclasses import dataclass, field
@@ -11,6 +12,8 @@ from typing import Any
 
 import numpy as np
 from pymavlink.dialects.v20 import common as mav
+
+from companion.wire import dialect
 
 from . import telemetry as tm
 from .control import ControlServer, parse_hostport
@@ -31,6 +34,7 @@ from .transport import Encoder, Link, parse_endpoint
 from .vehicle import RESPONSES, Target, Vehicle, VehicleParams
 
 R = mav  # result and enum constants live on the dialect module
+dialect.install()  # EVENT (410), which PX4 >= 1.14 reports with, is not in pymavlink's common
 
 # Default stream rates (Hz) of the PX4 flavour, about what PX4 streams on a MAVLink instance in
 # Onboard mode (the mode of PX4 SITL's offboard link, udp 14580 -> 14540); SET_MESSAGE_INTERVAL
@@ -44,6 +48,7 @@ DEFAULT_RATES: dict[int, float] = {
     mav.MAVLINK_MSG_ID_GPS_RAW_INT: 2.0,
     mav.MAVLINK_MSG_ID_EXTENDED_SYS_STATE: 5.0,
     mav.MAVLINK_MSG_ID_HOME_POSITION: 0.5,
+    mav.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN: 0.1,
     mav.MAVLINK_MSG_ID_POSITION_TARGET_LOCAL_NED: 10.0,
     mav.MAVLINK_MSG_ID_SYSTEM_TIME: 1.0,
 }
@@ -59,6 +64,13 @@ APM_GROUPS: dict[int, tuple[str, tuple[int, ...]]] = {
     mav.MAV_DATA_STREAM_EXTRA3: ("MAV1_EXTRA3", (mav.MAVLINK_MSG_ID_SYSTEM_TIME,)),
 }
 REBOOT_SILENCE_S = 3.0
+# The ground's z in the local frame when not configured: PX4's estimator origin sits above the
+# ground (z +1.5 to +1.7 m, NED, on a PX4 1.15 SIH SITL's ground); ArduPilot's is on it.
+DEFAULT_GROUND_Z = {"px4": 1.6, "ardupilot": 0.0}
+# PX4's events enums (arm_disarm_reason_t, failsafe_action_t), for the EVENT arguments.
+ARM_REASON = {"command": 4, "auto-disarm after landing": 7, "auto-disarm: no takeoff": 8, "forced": 4,
+              "failsafe": 15}
+FAILSAFE_ACTION = {"LOITER": 5, "RTL": 6, "LAND": 7, "disarm": 9, "terminate": 10}
 STREAM_GAP_S = 0.55  # a 2 Hz stream has 0.5 s gaps; allow a little jitter
 
 
@@ -88,6 +100,10 @@ class MockConfig:
     # MAVLink 2 signing: with a 32-byte key, unsigned or wrongly signed commands and setpoints
     # are ignored (logged as event "signature_rejected").
     signing_key: bytes | None = None
+    # z (NED, m) of the ground in the local frame; None: the flavour's (PX4 +1.6, ArduPilot 0).
+    ground_z: float | None = None
+    # PX4: report with STATUSTEXT as PX4 < 1.14 did, instead of EVENT messages.
+    px4_statustext: bool = False
 
     def validate(self) -> None:
         if self.autopilot not in ("px4", "ardupilot"):
@@ -102,6 +118,12 @@ class MockConfig:
             raise ValueError(f"rate_hz: must be >= 200, got {self.rate_hz}")
         if not self.endpoints:
             raise ValueError("endpoints: at least one endpoint is needed")
+        if self.ground_z is not None and not (math.isfinite(self.ground_z) and abs(self.ground_z) <= 1000.0):
+            raise ValueError(f"ground_z: must be a finite z in [-1000, 1000] m, got {self.ground_z}")
+
+    @property
+    def resolved_ground_z(self) -> float:
+        return DEFAULT_GROUND_Z[self.autopilot] if self.ground_z is None else float(self.ground_z)
 
 
 class MockAutopilot:
@@ -117,7 +139,12 @@ class MockAutopilot:
         self.flavour = Flavour(config.autopilot)
         self.modes = ModeTable(self.flavour)
         self.dt = 1.0 / config.rate_hz
-        self.home = tm.Home(config.home_lat, config.home_lon, config.home_alt)
+        self.ground_z = config.resolved_ground_z
+        # home_alt is the ground's altitude (AMSL) at the boot point; the local origin is
+        # ground_z above it.
+        self.origin = tm.Home(config.home_lat, config.home_lon, config.home_alt + self.ground_z)
+        self.events = self.flavour is Flavour.PX4 and not config.px4_statustext
+        self.event_seq = 0
         self.params: dict[str, Param] = default_params(self.flavour)
         for name, value in config.params.items():
             if name not in self.params:
@@ -128,7 +155,7 @@ class MockAutopilot:
                 self.modes.canonical(mode)
             except ValueError as exc:
                 raise ValueError(f"takeovers[{i}]: {exc}") from None
-        self.vehicle = Vehicle(config.vehicle)
+        self.vehicle = Vehicle(config.vehicle, ground_z=self.ground_z)
         self.enc = Encoder(config.sysid, config.compid)
         self.log = FlightLog(config.log_path)
         self.link_faults = LinkFaults(config.faults, config.seed)
@@ -212,10 +239,17 @@ class MockAutopilot:
 
     def _reset_state(self) -> None:
         self.boot_t = self.t
-        self.mode = self.modes.boot_mode
+        self.mode = self.modes.boot_mode  # the mode in force (PX4's nav_state), as reported
+        # PX4's UserModeIntention: the mode the user asked for (a failsafe overrides it while
+        # active) and the one to go back to on disarm (never one that prevents arming).
+        self.user_mode = self.mode
+        self.mode_after_disarm = self.mode
+        self.failsafe_mode: str | None = None
         self.armed = False
         self.vehicle.reset()
-        self.hold_target = Target.hold(np.zeros(3), 0.0)
+        # Home: the boot point on the ground; PX4 moves it to where it arms.
+        self.home_ned = np.array([0.0, 0.0, self.ground_z])
+        self.hold_target = Target.hold(self.home_ned, 0.0)
         self.follow_target: Target | None = None
         self.sp_times: list[float] = []
         self.stream_start = -math.inf
@@ -276,6 +310,10 @@ class MockAutopilot:
                 "landed": self.landed,
                 "link_paused": self.link_faults.paused(self.t),
                 "rebooting": self.t < self.rebooting_until,
+                "user_mode": self.user_mode,
+                "failsafe": self.failsafe_mode is not None,
+                "ground_z": self.ground_z,
+                "home": self.home_ned.tolist(),
             }
 
     # ------------------------------------------------------------------ loop
@@ -360,6 +398,22 @@ class MockAutopilot:
         self.log.write("event", self.t, event="statustext", severity=severity, text=text)
         self._send(tm.statustext(self.enc.mav, severity, text))
 
+    def _report(self, severity: int, text: str, event: str | None, args: bytes = b"",
+                internal: int | None = None) -> None:
+        """What an autopilot tells the ground: PX4 >= 1.14 an EVENT (none if `event` is None,
+        as PX4 reports plain mode changes and rejected setpoints on its console only), else
+        STATUSTEXT. `severity` is the external log level (MAV_SEVERITY numbering)."""
+        if not self.events:
+            self._text(severity, text)
+            return
+        if event is None:
+            return
+        seq = self.event_seq
+        self.event_seq = (self.event_seq + 1) & 0xFFFF
+        self.log.write("event", self.t, event="px4_event", name=event, id=dialect.PX4_EVENT_IDS[event],
+                       level=dialect.LEVELS[severity], sequence=seq, text=text)
+        self._send(tm.event(self.enc.mav, event, severity, seq, self.time_boot_ms, args, internal))
+
     # ------------------------------------------------------------------ simulation step
 
     def _step(self) -> None:
@@ -397,7 +451,8 @@ class MockAutopilot:
 
     def _rules(self) -> None:
         """Autopilot-side decisions that depend on time: failsafes, timeouts, auto-disarm."""
-        if self.flavour is Flavour.PX4 and self.mode == "OFFBOARD" and self.armed:
+        if (self.flavour is Flavour.PX4 and self.armed and self.user_mode == "OFFBOARD"
+                and self.failsafe_mode is None):
             loss_t = self._param("COM_OF_LOSS_T")
             if self.t - self.last_sp > loss_t:
                 self._offboard_failsafe()
@@ -417,12 +472,29 @@ class MockAutopilot:
                 self.log.write("event", self.t, event="guided_timeout")
 
     def _offboard_failsafe(self) -> None:
+        """PX4's mode fallback for a lost offboard signal (failsafe.cpp checkModeFallback).
+
+        COM_OBL_RC_ACT 0-2 fall back to Position, Altitude or Stabilized mode, which need RC;
+        the mock has none, so the fallback chain ends in Return, as PX4's does. OFFBOARD stays
+        the user's mode: a setpoint arriving while armed ends the failsafe (`_on_setpoint`).
+        """
         action = int(self._param("COM_OBL_RC_ACT"))
-        target = {0: "POSCTL", 1: "ALTCTL", 2: "MANUAL", 3: "RTL", 4: "LAND"}.get(action, "LOITER")
-        self._text(mav.MAV_SEVERITY_CRITICAL, "Failsafe activated: no offboard signal")
+        target = {3: "RTL", 4: "LAND", 5: "LOITER", 6: "terminate", 7: "disarm"}.get(action, "RTL")
         self.log.write("event", self.t, event="failsafe", cause="offboard_loss",
                        last_setpoint_t=self.last_sp, action=target)
+        args = struct.pack("<IB", self.modes.custom_mode(self.user_mode), FAILSAFE_ACTION[target])
+        self._report(mav.MAV_SEVERITY_CRITICAL, "Failsafe activated: no offboard signal",
+                     "commander_failsafe_enter_generic", args, internal=mav.MAV_SEVERITY_WARNING)
+        if target in ("terminate", "disarm"):
+            self._disarm("failsafe")
+            return
+        self.failsafe_mode = target
         self._set_mode(target, "failsafe")
+
+    def _clear_failsafe(self, reason: str) -> None:
+        self.failsafe_mode = None
+        self.log.write("event", self.t, event="failsafe_cleared", reason=reason, mode=self.user_mode)
+        self._set_mode(self.user_mode, reason)
 
     def _after_physics(self) -> None:
         s = self.vehicle.state
@@ -430,6 +502,8 @@ class MockAutopilot:
             self.landed_since = self.t if not self.landed else self.landed_since
             return
         if not self.landed:
+            if self.landed_since != math.inf and self.flavour is Flavour.PX4:
+                self._report(mav.MAV_SEVERITY_INFO, "Takeoff detected", "commander_takeoff_detected")
             self.airborne_since_arm = True
             self.landed_since = math.inf
             return
@@ -437,6 +511,8 @@ class MockAutopilot:
             self.landed_since = self.t
             if self.airborne_since_arm:
                 self.log.write("event", self.t, event="landed", pos=s.pos.tolist())
+                if self.flavour is Flavour.PX4:
+                    self._report(mav.MAV_SEVERITY_INFO, "Landing detected", "commander_landing_detected")
         landed_for = self.t - self.landed_since
         behaviour = self.modes.behaviour(self.mode)
         if self.airborne_since_arm:
@@ -460,23 +536,25 @@ class MockAutopilot:
         behaviour = self.modes.behaviour(self.mode)
         if behaviour is Behaviour.FOLLOW:
             if self.flavour is Flavour.ARDUPILOT and self.landed and not self.guided_taken_off:
-                return Target.hold(s.pos * np.array([1, 1, 0]), s.yaw)
+                return Target.hold(np.array([s.pos[0], s.pos[1], self.ground_z]), s.yaw)
             return self.follow_target if self.follow_target is not None else self.hold_target
         if behaviour is Behaviour.TAKEOFF:
-            goal = np.array([self.takeoff_xy[0], self.takeoff_xy[1], -self.takeoff_alt])
+            goal = np.array([self.takeoff_xy[0], self.takeoff_xy[1], self.home_ned[2] - self.takeoff_alt])
             if abs(s.pos[2] - goal[2]) < 0.1 and abs(s.vel[2]) < 0.3:
-                self._set_mode("LOITER", "takeoff complete")
+                self._user_mode("LOITER", "takeoff complete")
                 return self.hold_target
             return Target.hold(goal, s.yaw)
         if behaviour is Behaviour.LAND:
             return self._land_target()
         if behaviour is Behaviour.RTL:
-            if not self.rtl_landing and float(np.hypot(s.pos[0], s.pos[1])) < 0.5:
+            home = self.home_ned
+            if not self.rtl_landing and float(np.hypot(s.pos[0] - home[0], s.pos[1] - home[1])) < 0.5:
                 self.rtl_landing = True
-                self.takeoff_xy = np.zeros(2)
+                self.takeoff_xy = home[:2].copy()
+                self.hold_target = Target.hold(np.array([home[0], home[1], s.pos[2]]), s.yaw)
             if self.rtl_landing:
                 return self._land_target()
-            return Target.hold(np.array([0.0, 0.0, min(s.pos[2], self.hold_target.pos[2])]), s.yaw)
+            return Target.hold(np.array([home[0], home[1], min(s.pos[2], self.hold_target.pos[2])]), s.yaw)
         return self.hold_target
 
     def _land_target(self) -> Target:
@@ -495,7 +573,7 @@ class MockAutopilot:
         s = self.vehicle.state
         self.hold_target = Target.hold(s.pos.copy(), s.yaw)
         if self.landed:
-            self.hold_target.pos[2] = min(s.pos[2], 0.0)
+            self.hold_target.pos[2] = min(s.pos[2], self.ground_z)
         self.rtl_landing = False
         if name == self.modes.follow_mode:
             # PX4 publishes trajectory setpoints only once in OFFBOARD, so it starts from
@@ -504,17 +582,28 @@ class MockAutopilot:
         if self.modes.behaviour(name) is Behaviour.TAKEOFF:
             self.takeoff_xy = s.pos[:2].copy()
         self.log.write("mode", self.t, **{"from": old, "to": name, "reason": reason})
-        self._text(mav.MAV_SEVERITY_INFO, f"Mode {old} -> {name} ({reason})"[:50])
+        self._report(mav.MAV_SEVERITY_INFO, f"Mode {old} -> {name} ({reason})"[:50], None)
         self._send_heartbeat()
+
+    def _user_mode(self, name: str, reason: str) -> None:
+        """The user's (or navigator's) mode change: it also ends a failsafe."""
+        self.user_mode = name
+        if not self.modes.prevents_arming(name) and self.modes.behaviour(name) is not Behaviour.TAKEOFF:
+            self.mode_after_disarm = name
+        self.failsafe_mode = None
+        self._set_mode(name, reason)
 
     def request_mode(self, name: str, source: str) -> tuple[int, str]:
         """A mode change asked for over MAVLink or by the pilot; returns (MAV_RESULT, why)."""
         if self.flavour is Flavour.PX4 and name == "OFFBOARD" and not self.stream_ok():
             why = "Switching to Offboard denied: no offboard signal"
-            self._text(mav.MAV_SEVERITY_CRITICAL, why)
+            args = struct.pack("<IB", self.modes.custom_mode(name), 14)  # 14: nav state OFFBOARD
+            self._report(mav.MAV_SEVERITY_CRITICAL, why, "commander_modeswitch_not_avail", args,
+                         internal=mav.MAV_SEVERITY_INFO)
+            self._report(mav.MAV_SEVERITY_ERROR, "No offboard signal", "check_modes_offboard_no_signal")
             self.log.write("event", self.t, event="mode_refused", mode=name, source=source, reason=why)
             return int(mav.MAV_RESULT_TEMPORARILY_REJECTED), why
-        self._set_mode(name, source)
+        self._user_mode(name, source)
         return int(mav.MAV_RESULT_ACCEPTED), ""
 
     def pilot_set_mode(self, mode: str) -> tuple[bool, str]:
@@ -525,20 +614,25 @@ class MockAutopilot:
     def _refuse(self) -> int:
         return int(mav.MAV_RESULT_DENIED if self.flavour is Flavour.PX4 else mav.MAV_RESULT_FAILED)
 
+    def _refuse_arming(self) -> int:
+        """PX4 answers a denied arm/disarm transition with TEMPORARILY_REJECTED."""
+        return int(mav.MAV_RESULT_TEMPORARILY_REJECTED if self.flavour is Flavour.PX4 else mav.MAV_RESULT_FAILED)
+
     def arm(self, force: bool) -> tuple[int, str]:
         if self.armed:
             return int(mav.MAV_RESULT_ACCEPTED), ""
-        why = ""
+        why, event = "", ""
         if self.reject_arming:
-            why = "Arming denied: preflight checks failed"
+            why, event = "Arming denied: preflight checks failed", "check_rc_dl_no_dllink"
         elif self.flavour is Flavour.PX4 and self.mode == "OFFBOARD" and not self.stream_ok():
-            why = "Arming denied: no offboard signal"
-        elif self.modes.behaviour(self.mode) in (Behaviour.LAND, Behaviour.RTL) and not force:
-            why = f"Arming denied: not armable in {self.mode}"
+            why, event = "Arming denied: no offboard signal", "check_modes_offboard_no_signal"
+        elif self.modes.prevents_arming(self.mode) and not force:
+            why, event = f"Arming denied: not armable in {self.mode}", "mock_arm_denied_mode"
         if why:
-            self._text(mav.MAV_SEVERITY_CRITICAL, why)
+            # PX4's arming checks report as errors; the old STATUSTEXT was critical.
+            self._report(mav.MAV_SEVERITY_ERROR if self.events else mav.MAV_SEVERITY_CRITICAL, why, event)
             self.log.write("event", self.t, event="arming_refused", reason=why)
-            return self._refuse(), why
+            return self._refuse_arming() if self.flavour is Flavour.PX4 else self._refuse(), why
         self.armed = True
         self.arm_t = self.t
         self.airborne_since_arm = False
@@ -547,7 +641,11 @@ class MockAutopilot:
         s = self.vehicle.state
         self.hold_target = Target.hold(s.pos.copy(), s.yaw)
         self.log.write("event", self.t, event="armed", mode=self.mode)
-        self._text(mav.MAV_SEVERITY_INFO, "Armed")
+        self._report(mav.MAV_SEVERITY_INFO, "Armed", "commander_armed_by", bytes([ARM_REASON["command"]]))
+        if self.flavour is Flavour.PX4:
+            # PX4 (COM_HOME_EN) sets home where it arms, and streams the new home at once.
+            self.home_ned = s.pos.copy()
+            self._send(tm.home_position(self.enc.mav, self.origin, self.home_ned, int((self.t - self.boot_t) * 1e6)))
         self._send_heartbeat()
         return int(mav.MAV_RESULT_ACCEPTED), ""
 
@@ -555,7 +653,13 @@ class MockAutopilot:
         self.armed = False
         self.guided_taken_off = False
         self.log.write("event", self.t, event="disarmed", reason=reason)
-        self._text(mav.MAV_SEVERITY_INFO, f"Disarmed: {reason}"[:50])
+        self._report(mav.MAV_SEVERITY_INFO, f"Disarmed: {reason}"[:50], "commander_disarmed_by",
+                     bytes([ARM_REASON.get(reason, ARM_REASON["command"])]))
+        if self.flavour is Flavour.PX4:
+            # PX4 ends any failsafe and goes back to the last user mode one can arm in.
+            self.failsafe_mode = None
+            self.user_mode = self.mode_after_disarm
+            self._set_mode(self.user_mode, "disarmed")
         self._send_heartbeat()
 
     def disarm(self, force: bool) -> tuple[int, str]:
@@ -563,20 +667,27 @@ class MockAutopilot:
             return int(mav.MAV_RESULT_ACCEPTED), ""
         if not self.landed and not force:
             why = "Disarming denied: not landed"
-            self._text(mav.MAV_SEVERITY_CRITICAL, why)
-            return self._refuse(), why
+            self._report(mav.MAV_SEVERITY_CRITICAL, why, "commander_disarm_denied_not_landed",
+                         internal=mav.MAV_SEVERITY_INFO)
+            return self._refuse_arming(), why
         self._disarm("command" if not force else "forced")
         return int(mav.MAV_RESULT_ACCEPTED), ""
 
     def takeoff(self, param7: float) -> tuple[int, str]:
         s = self.vehicle.state
         if self.flavour is Flavour.PX4:
-            # PX4's param7 is an AMSL altitude; NaN means MIS_TAKEOFF_ALT.
-            alt = param7 - self.home.alt if math.isfinite(param7) else self._param("MIS_TAKEOFF_ALT")
+            # PX4's param7 is an AMSL altitude; NaN means MIS_TAKEOFF_ALT above home.
+            home_amsl = self.origin.alt - float(self.home_ned[2])
+            alt = param7 - home_amsl if math.isfinite(param7) else self._param("MIS_TAKEOFF_ALT")
             if alt <= 0.0:
-                return int(mav.MAV_RESULT_DENIED), "takeoff altitude below home"
+                why = "takeoff altitude below home"
+                self._report(mav.MAV_SEVERITY_CRITICAL, why, "mock_takeoff_denied_alt")
+                return int(mav.MAV_RESULT_DENIED), why
+            if not math.isfinite(param7):
+                self._report(mav.MAV_SEVERITY_INFO, f"Using default takeoff altitude: {alt:.1f} m",
+                             "navigator_takeoff_default_alt", struct.pack("<f", alt))
             self.takeoff_alt = alt
-            self._set_mode("TAKEOFF", "takeoff command")
+            self._user_mode("TAKEOFF", "takeoff command")
             return int(mav.MAV_RESULT_ACCEPTED), ""
         why = ""
         if self.mode != "GUIDED":
@@ -588,12 +699,12 @@ class MockAutopilot:
         elif not (math.isfinite(param7) and param7 > 0):
             why = "Takeoff refused: altitude must be > 0"
         if why:
-            self._text(mav.MAV_SEVERITY_WARNING, why)
+            self._report(mav.MAV_SEVERITY_WARNING, why, None)
             self.log.write("event", self.t, event="takeoff_refused", reason=why)
             return int(mav.MAV_RESULT_FAILED), why
         self.guided_taken_off = True
         self.takeoff_alt = param7
-        self.follow_target = Target.hold(np.array([s.pos[0], s.pos[1], -param7]), s.yaw)
+        self.follow_target = Target.hold(np.array([s.pos[0], s.pos[1], self.home_ned[2] - param7]), s.yaw)
         self.log.write("event", self.t, event="takeoff", alt=param7)
         return int(mav.MAV_RESULT_ACCEPTED), ""
 
@@ -684,6 +795,8 @@ class MockAutopilot:
             # Acknowledged first, as the autopilot does before it goes quiet.
             self._reboot_pending = True
             return int(mav.MAV_RESULT_ACCEPTED), ""
+        if command == mav.MAV_CMD_GET_HOME_POSITION:  # deprecated for REQUEST_MESSAGE, still answered
+            return self._request_message(mav.MAVLINK_MSG_ID_HOME_POSITION)
         if command == mav.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
             return self._request_message(mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION)
         return int(mav.MAV_RESULT_UNSUPPORTED), f"command {command} unsupported"
@@ -694,7 +807,7 @@ class MockAutopilot:
         name = self.modes.from_custom(main, sub)
         if name is None:
             why = f"unknown custom mode {main}/{sub}"
-            self._text(mav.MAV_SEVERITY_WARNING, why)
+            self._report(mav.MAV_SEVERITY_WARNING, why, None)
             return self._refuse(), why
         result, why = self.request_mode(name, "command")
         if result != mav.MAV_RESULT_ACCEPTED and self.flavour is Flavour.ARDUPILOT:
@@ -778,10 +891,13 @@ class MockAutopilot:
             if self.t - self.last_sp > STREAM_GAP_S:
                 self.stream_start = self.t
             self.last_sp = self.t
+            if self.failsafe_mode is not None and self.armed and self.user_mode == "OFFBOARD":
+                # PX4 re-runs the user's mode as soon as it can: one setpoint within COM_OF_LOSS_T.
+                self._clear_failsafe("offboard signal regained")
         elif self.flavour is Flavour.PX4 and self.t - self._last_reject_text.get(d.reason, -math.inf) >= 1.0:
             # PX4 reports each rejection, throttled like its mavlink_log.
             self._last_reject_text[d.reason] = self.t
-            self._text(mav.MAV_SEVERITY_CRITICAL, f"SET_POSITION_TARGET_LOCAL_NED {d.reason}")
+            self._report(mav.MAV_SEVERITY_CRITICAL, f"SET_POSITION_TARGET_LOCAL_NED {d.reason}", None)
         if d.stop:
             self.follow_target = Target.hold(s.pos.copy(), s.yaw)
             applied = True
@@ -832,7 +948,7 @@ class MockAutopilot:
             return
         name = self._param_name(msg.param_id)
         if name not in self.params:
-            self._text(mav.MAV_SEVERITY_WARNING, f"unknown param {name}")
+            self._report(mav.MAV_SEVERITY_WARNING, f"unknown param {name}", None)
             return
         old = self.params[name]
         value = tm.decode_param_value(self.flavour, old.ptype, float(msg.param_value))
@@ -907,14 +1023,16 @@ class MockAutopilot:
             self._send(m.attitude_encode(ms, roll, pitch, yaw, 0.0, 0.0, s.yaw_rate))
         elif mid == mav.MAVLINK_MSG_ID_GLOBAL_POSITION_INT:
             pos, vel = self._noisy()
-            self._send(tm.global_position(m, self.home, ms, pos, vel, s.yaw))
+            self._send(tm.global_position(m, self.origin, float(self.home_ned[2]), ms, pos, vel, s.yaw))
         elif mid == mav.MAVLINK_MSG_ID_GPS_RAW_INT:
             pos, vel = self._noisy()
-            self._send(tm.gps_raw(m, self.home, t_usec, pos, vel))
+            self._send(tm.gps_raw(m, self.origin, t_usec, pos, vel))
         elif mid == mav.MAVLINK_MSG_ID_EXTENDED_SYS_STATE:
             self._send(m.extended_sys_state_encode(mav.MAV_VTOL_STATE_UNDEFINED, self._landed_state()))
         elif mid == mav.MAVLINK_MSG_ID_HOME_POSITION:
-            self._send(tm.home_position(m, self.home, t_usec))
+            self._send(tm.home_position(m, self.origin, self.home_ned, t_usec))
+        elif mid == mav.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN:
+            self._send(tm.gps_global_origin(m, self.origin, t_usec))
         elif mid == mav.MAVLINK_MSG_ID_POSITION_TARGET_LOCAL_NED:
             if target is not None:
                 self._send(tm.position_target(m, ms, target.pos, target.vel, target.acc, target.yaw,

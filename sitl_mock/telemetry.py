@@ -11,6 +11,8 @@ from typing import Any
 import numpy as np
 from pymavlink.dialects.v20 import common as mav
 
+from companion.wire import dialect
+
 from .protocol import Flavour, Param
 
 EARTH_RADIUS = 6378137.0
@@ -33,6 +35,8 @@ SENSORS = (
 
 @dataclass(frozen=True)
 class Home:
+    """A geodetic point, used for the local origin (the estimator's, GPS_GLOBAL_ORIGIN)."""
+
     lat: float
     lon: float
     alt: float  # m AMSL
@@ -79,16 +83,25 @@ def autopilot_version(m: mav.MAVLink, flavour: Flavour, sysid: int) -> Any:
     )
 
 
-def home_position(m: mav.MAVLink, home: Home, t_usec: int) -> Any:
-    lat, lon, alt = home.to_global(np.zeros(3))
-    return m.home_position_encode(lat, lon, alt, 0.0, 0.0, 0.0, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, t_usec)
+def home_position(m: mav.MAVLink, origin: Home, home_ned: np.ndarray, t_usec: int) -> Any:
+    """HOME_POSITION: the home point both geodetic and in the local frame of `origin`."""
+    lat, lon, alt = origin.to_global(home_ned)
+    x, y, z = (float(v) for v in home_ned)
+    return m.home_position_encode(lat, lon, alt, x, y, z, [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, t_usec)
 
 
-def global_position(m: mav.MAVLink, home: Home, ms: int, pos: np.ndarray, vel: np.ndarray, yaw: float) -> Any:
-    lat, lon, alt = home.to_global(pos)
+def gps_global_origin(m: mav.MAVLink, origin: Home, t_usec: int) -> Any:
+    lat, lon, alt = origin.to_global(np.zeros(3))
+    return m.gps_global_origin_encode(lat, lon, alt, t_usec)
+
+
+def global_position(m: mav.MAVLink, origin: Home, home_z: float, ms: int, pos: np.ndarray, vel: np.ndarray,
+                    yaw: float) -> Any:
+    """GLOBAL_POSITION_INT: alt AMSL from the origin, relative_alt above home."""
+    lat, lon, alt = origin.to_global(pos)
     hdg = round(math.degrees(yaw) % 360.0 * 100) % 36000
     return m.global_position_int_encode(
-        ms, lat, lon, alt, round(-pos[2] * 1000),
+        ms, lat, lon, alt, round((home_z - pos[2]) * 1000),
         round(vel[0] * 100), round(vel[1] * 100), round(vel[2] * 100), hdg,
     )
 
@@ -148,3 +161,10 @@ def param_value(m: mav.MAVLink, flavour: Flavour, p: Param, count: int, index: i
 
 def statustext(m: mav.MAVLink, severity: int, text: str) -> Any:
     return m.statustext_encode(severity, text.encode()[:50])
+
+
+def event(m: mav.MAVLink, name: str, level: int, sequence: int, ms: int, args: bytes = b"",
+          internal: int | None = None) -> Any:
+    """EVENT (410) with PX4's id for `name` (see companion.wire.dialect.PX4_EVENTS)."""
+    return dialect.event_encode(m, dialect.PX4_EVENT_IDS[name], level, sequence=sequence, time_boot_ms=ms,
+                                arguments=args, internal_level=internal)

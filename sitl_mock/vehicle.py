@@ -1,6 +1,7 @@
 """Point-mass quadrotor in local NED with a cascaded position/velocity controller.
 
-z is down; the ground is z = 0 and the vehicle can never go below it.
+z is down; the ground is the plane z = ``ground_z`` (0 unless set: PX4's local origin is
+where its estimator started, usually above the ground) and the vehicle can never go below it.
 """
 
 from __future__ import annotations
@@ -99,9 +100,10 @@ RESPONSES: dict[str, VehicleParams] = {
 
 
 class Vehicle:
-    def __init__(self, params: VehicleParams | None = None) -> None:
+    def __init__(self, params: VehicleParams | None = None, ground_z: float = 0.0) -> None:
         self.params = params or RESPONSES["calibrated"]
-        self.state = VehicleState()
+        self.ground_z = float(ground_z)
+        self.state = VehicleState(pos=np.array([0.0, 0.0, self.ground_z]))
         self.acc_cmd = np.zeros(3)
         self._t = 0.0
         self._pending: collections.deque[tuple[float, Target | None]] = collections.deque()
@@ -118,7 +120,7 @@ class Vehicle:
         return self._applied if self._applied is not None else target
 
     def reset(self, pos: np.ndarray | None = None) -> None:
-        self.state = VehicleState()
+        self.state = VehicleState(pos=np.array([0.0, 0.0, self.ground_z]))
         self._pending.clear()
         self._applied = None
         if pos is not None:
@@ -168,14 +170,15 @@ class Vehicle:
         total = s.acc + p.drag * wind if armed and not s.on_ground else s.acc
         s.vel = s.vel + total * dt
         s.pos = s.pos + s.vel * dt
-        if s.pos[2] >= 0.0:
-            s.pos[2] = 0.0
+        g = self.ground_z
+        if s.pos[2] >= g:
+            s.pos[2] = g
             s.vel[2] = min(s.vel[2], 0.0)
             if s.acc[2] >= 0.0 or not armed:
                 # Resting on the ground: friction stops horizontal motion.
                 s.vel[:] = 0.0
                 s.acc[2] = min(s.acc[2], 0.0) if armed else 0.0
-        s.on_ground = bool(s.pos[2] >= -0.02 and s.vel[2] >= -0.05 and self.acc_cmd[2] >= -0.05)
+        s.on_ground = bool(s.pos[2] >= g - 0.02 and s.vel[2] >= -0.05 and self.acc_cmd[2] >= -0.05)
         self._step_yaw(dt, target if armed else None)
 
     def _step_yaw(self, dt: float, target: Target | None) -> None:

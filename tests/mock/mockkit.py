@@ -13,7 +13,10 @@ os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mav
 
+from companion.wire import dialect
 from sitl_mock import MockAutopilot
+
+dialect.install()  # the PX4 flavour reports with EVENT (410), which pymavlink's common lacks
 
 CUSTOM = mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
 
@@ -70,6 +73,36 @@ class Client:
         assert ack is not None, f"no COMMAND_ACK for command {command}"
         return int(ack.result)
 
+    def command_collect(self, command: int, *params: float, target: int = 1,
+                        timeout: float = 3.0) -> tuple[int, list[Any]]:
+        """Send a command; its result and every message that came before the ACK."""
+        p = [*params, *([0.0] * (7 - len(params)))]
+        self.drain()
+        self.mav.command_long_send(target, 1, command, 0, *p)
+        seen: list[Any] = []
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            msg = self.conn.recv_match(blocking=True, timeout=max(0.01, end - time.monotonic()))
+            if msg is None:
+                continue
+            if msg.get_type() == "COMMAND_ACK" and msg.command == command:
+                return int(msg.result), seen
+            seen.append(msg)
+        raise AssertionError(f"no COMMAND_ACK for command {command}")
+
+    def collect(self, timeout: float, until: Callable[[Any], bool] | None = None) -> list[Any]:
+        """Every message for `timeout` seconds, or up to and including the first `until` accepts."""
+        seen: list[Any] = []
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            msg = self.conn.recv_match(blocking=True, timeout=max(0.01, end - time.monotonic()))
+            if msg is None or msg.get_type() == "BAD_DATA":
+                continue
+            seen.append(msg)
+            if until is not None and until(msg):
+                break
+        return seen
+
     def setpoint(self, x: float = 0.0, y: float = 0.0, z: float = -2.0, *, mask: int = 0b0000_1111_1111_1000,
                  frame: int = mav.MAV_FRAME_LOCAL_NED, vel: tuple[float, float, float] = (0, 0, 0),
                  acc: tuple[float, float, float] = (0, 0, 0), target: int = 1, yaw: float = 0.0) -> None:
@@ -116,6 +149,11 @@ class Streamer:
 
     def __exit__(self, *exc: object) -> None:
         self.stop()
+
+
+def events(msgs: list[Any]) -> list[dialect.EventInfo]:
+    """The EVENT messages among `msgs`, decoded (id, level, PX4 name)."""
+    return [dialect.decode_event(m) for m in msgs if m.get_type() == "EVENT"]
 
 
 def records(mock: MockAutopilot, kind: str | None = None) -> list[dict[str, Any]]:

@@ -55,10 +55,11 @@ def test_control_socket_pause_reboot_state(make_mock) -> None:  # type: ignore[n
     mock, c = make_mock("px4", speed=2.0, control=f"127.0.0.1:{port}")
     with ControlClient("127.0.0.1", port) as ctl:
         state = ctl.state()
-        assert state["ok"] and state["mode"] == "POSCTL" and not state["armed"] and state["landed"]
+        assert state["ok"] and state["mode"] == "LOITER" and not state["armed"] and state["landed"]
+        ground = state["ground_z"]
         assert c.command(mav.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, float("nan")) == mav.MAV_RESULT_ACCEPTED
         assert c.command(400, 1) == mav.MAV_RESULT_ACCEPTED
-        assert wait_for(lambda: ctl.state()["position"][2] < -1.0, 5)
+        assert wait_for(lambda: ctl.state()["position"][2] < ground - 2.0, 5)
         # Pause: no heartbeat for the pause duration.
         assert ctl.pause_link(1.0)["ok"]
         c.drain()
@@ -69,7 +70,7 @@ def test_control_socket_pause_reboot_state(make_mock) -> None:  # type: ignore[n
         before = c.wait("LOCAL_POSITION_NED").time_boot_ms
         assert ctl.reboot()["ok"]
         st = ctl.state()
-        assert st["rebooting"] and not st["armed"] and st["position"] == [0.0, 0.0, 0.0]
+        assert st["rebooting"] and not st["armed"] and st["position"] == [0.0, 0.0, ground]
         c.drain()
         assert c.wait("HEARTBEAT", 1.0) is None
         hb = c.wait("HEARTBEAT", 3.0)
@@ -82,13 +83,13 @@ def test_control_socket_pause_reboot_state(make_mock) -> None:  # type: ignore[n
         assert "'fraction' must be a number" in ctl.request("drop", fraction="lots")["error"]
         assert ctl.drop(0.0)["ok"] and ctl.latency(0)["ok"]
         assert ctl.reject_arming(True)["ok"]
-        assert c.command(400, 1) == mav.MAV_RESULT_DENIED
+        assert c.command(400, 1) == mav.MAV_RESULT_TEMPORARILY_REJECTED
     assert any(r["event"] == "reboot" for r in records(mock, "event"))
 
 
 def test_reject_arming_fault(make_mock) -> None:  # type: ignore[no-untyped-def]
     mock, c = make_mock("px4", speed=4.0, faults=FaultSpec(reject_arming=True))
-    assert c.command(400, 1) == mav.MAV_RESULT_DENIED
+    assert c.command(400, 1) == mav.MAV_RESULT_TEMPORARILY_REJECTED  # as PX4 answers a denied arming
     assert not mock.snapshot()["armed"]
     status = c.wait("SYS_STATUS")
     assert not status.onboard_control_sensors_health & mav.MAV_SYS_STATUS_PREARM_CHECK
