@@ -198,15 +198,14 @@ def cmd_run(args: argparse.Namespace) -> int:
     # `kill -USR1 PID` dumps every thread's stack: how to see where a stuck service is.
     faulthandler.register(signal.SIGUSR1, all_threads=True)
     from companion.service import run
+    from planner_core import use_compiled_kernel
 
-    if cfg.planner.executor == "process":
-        from planner_core import disable_kernel
-
-        # Missions are planned by worker processes (which use the compiled pass); what this
-        # process plans itself (local replans, stops) is a few jets at a time, so the numpy
-        # path there keeps numba and LLVM (~150 MB resident) out of the service process.
-        # Decided here, by the process entry point, not by Service: it is process-wide.
-        disable_kernel("companion service process: long plans run in the planner workers")
+    # The numpy path everywhere in this process (urgent replans, local replans, stops; missions
+    # too with executor "thread"): numba and LLVM would add ~105 MB resident for ~0.3 s of a
+    # 1000-waypoint plan (benchmarks/footprint.py). Planner processes start fresh and follow
+    # [planner] compiled. Decided here, by the process entry point, not by Service: it is
+    # process-wide.
+    use_compiled_kernel(False, "companion service process (memory): numpy path")
 
     async def main() -> bool:
         # First SIGINT/SIGTERM: brake, hand the vehicle over to the autopilot, exit 0 once it

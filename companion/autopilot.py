@@ -1,8 +1,10 @@
 """What the autopilot reports, and how the vehicle's situation follows it.
 
-Heartbeats (mode, armed), the landed state, STATUSTEXT and link loss update `Flight`; a mode
-we did not ask for is a pilot takeover and a disarm we did not ask for a failsafe: control
-is released at once and never retaken without a new `start`.
+Heartbeats (armed first, then mode), the landed state, EVENT/STATUSTEXT and link loss update
+`Flight`; a mode we did not ask for is a pilot takeover and a disarm we did not ask for a
+failsafe: control is released at once and never retaken without a new `start`. While the
+companion itself is stalled (or just woke from a stall), what the autopilot did meanwhile is
+put down to that stall, not to a pilot or to the link.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ import numpy as np
 from companion.config import Config
 from companion.flight import IN_OUR_MODE, Flight, State, on_mode_report
 from companion.report import Reporter
-from companion.wire.mavlink import WANTED, MavlinkLink
+from companion.wire.mavlink import WANTED, CommandFailed, MavlinkLink
 
 log = logging.getLogger("companion")
 S = State
@@ -42,14 +44,20 @@ GROUND_FOR = 1.0  # ... for this long
 class AutopilotWatch:
     def __init__(self, cfg: Config, flight: Flight, link: MavlinkLink, report: Reporter,
                  release_control: Callable[[], None],
-                 on_position: Callable[[float], None] | None = None) -> None:
+                 on_position: Callable[[float], None] | None = None,
+                 stalled: Callable[[], bool] = lambda: False) -> None:
         self.cfg = cfg
+        # True while the companion itself is stalled or just woke from a stall (its loop has
+        # not beaten, or the setpoint thread withholds setpoints): what the autopilot did
+        # meanwhile is a consequence of that stall, not a pilot's action nor a lost link.
+        self.stalled = stalled
+        self._event_seq: int | None = None
+        self._lost_at = -math.inf
         self.flight = flight
         self.link = link
         self.report = report
         self.release_control = release_control
         self.on_position_sample = on_position  # each LOCAL_POSITION_NED, with its arrival time
-        self.ground_z: float | None = None  # NED z where the vehicle last stood disarmed
         self._on_ground_since = math.inf
         self._telemetry_task: asyncio.Task[None] | None = None
         self._waiting_said = -math.inf
@@ -72,7 +80,10 @@ class AutopilotWatch:
         except OSError as exc:
             log.warning("telemetry request not sent: %s", exc)
             answers = {}
+        await self._ask_home()
         await asyncio.sleep(max(0.0, since + TELEMETRY_CHECK - time.monotonic()))
+        if self.link.state.home is None:
+            await self._ask_home()
         missing = self.link.missing_telemetry(since)
         self.missing_telemetry = missing
         if not missing:
@@ -86,6 +97,15 @@ class AutopilotWatch:
         log.warning("%s", msg)
         self.report.event("telemetry", msg, missing=missing, answers=answers, hint=hint)
 
+    async def _ask_home(self) -> None:
+        """HOME_POSITION (origin 'home' messages need it); a refusal is said, not fatal."""
+        try:
+            await self.link.request_home()
+        except (CommandFailed, OSError) as exc:
+            log.warning("HOME_POSITION not available: %s", exc)
+            self.report.event("telemetry", f"HOME_POSITION not available ({exc}): messages with origin 'home' "
+                              "are refused until the autopilot reports it", missing=["HOME_POSITION"])
+
     def on_message(self, kind: str, msg: Any) -> None:
         if kind == "HEARTBEAT":
             self.on_heartbeat()
@@ -96,8 +116,25 @@ class AutopilotWatch:
                 self.on_position_sample(now)
         elif kind == "EXTENDED_SYS_STATE":
             self.on_landed_state(int(msg.landed_state))
-        elif kind == "STATUSTEXT":
-            self.report.event("autopilot", f"autopilot says: {msg.text}", severity=int(msg.severity))
+        elif kind in ("STATUSTEXT", "EVENT"):
+            self.on_note(kind, msg)
+
+    def on_note(self, kind: str, msg: Any) -> None:
+        """STATUSTEXT (ArduPilot, PX4 before 1.14) and EVENT (PX4 >= 1.14), relayed as `autopilot`."""
+        note = self.link.state.notes[-1] if self.link.state.notes else None
+        if note is None:
+            return
+        if kind == "STATUSTEXT":
+            self.report.event("autopilot", f"autopilot says: {note.text}", source="statustext",
+                              severity=int(msg.severity), level=note.level)
+            return
+        seq = int(msg.sequence)
+        if seq == self._event_seq:  # a resent event
+            return
+        self._event_seq = seq
+        what = note.name or f"event {note.event_id} (not known to the companion)"
+        self.report.event("autopilot", f"autopilot event: {what} ({note.level})", source="event",
+                          event_id=note.event_id, level=note.level, name=note.name, sequence=seq)
 
     def on_landed_state(self, landed: int) -> None:
         fl = self.flight
@@ -115,14 +152,14 @@ class AutopilotWatch:
             return
         z = float(st.position[2])
         if not st.armed:
-            self.ground_z = z
+            fl.ground_z = z
             self._on_ground_since = math.inf
             return
-        if now - st.last_landed_state < LANDED_STATE_STALE or self.ground_z is None:
+        if now - st.last_landed_state < LANDED_STATE_STALE or fl.ground_z is None:
             return
         if fl.state in (S.ARMING, S.TAKEOFF):
             return  # our own takeoff decides when it is complete
-        height = self.ground_z - z
+        height = fl.ground_z - z
         if height > AIR_HEIGHT:
             self._on_ground_since = math.inf
             if not fl.airborne:
@@ -147,30 +184,45 @@ class AutopilotWatch:
         if fl.link_lost:
             fl.link_lost = False
             self.ask_telemetry("link restored (the autopilot may have rebooted)")
-            self.report.event("link_restored", f"MAVLink link restored: autopilot in {st.mode}, "
+            lost_s = time.monotonic() - self._lost_at + self.cfg.mavlink.link_timeout
+            self.report.event("link_restored", f"MAVLink link restored after about {lost_s:.1f} s without the "
+                              f"autopilot (cause: the link): autopilot in {st.mode}, "
                               f"{'armed' if st.armed else 'disarmed'}; send 'start' to take control again",
-                              mode=st.mode, armed=st.armed)
+                              mode=st.mode, armed=st.armed, cause="link", silence_s=round(lost_s, 1))
         state = fl.state
-        reaction = on_mode_report(state, st.in_follow_mode(), fl.exit_requested)
-        if reaction is not None:
-            self.release_control()
-            self.report.go(reaction[0], f"{reaction[1]} (mode {st.mode})")
-            self.report.event("pilot_takeover", f"autopilot switched to {st.mode}: stopped commanding; "
-                              "send 'start' to take control again", mode=st.mode)
-            return
+        self.report.dirty = True
+        # Armed state first: a disarmed vehicle flies nothing, whatever mode it reports (PX4
+        # reports OFFBOARD while disarmed after an offboard landing).
         if not st.armed:
+            stalled = " after the companion stalled" if self.stalled() else ""
             if state in IN_OUR_MODE and not fl.disarm_requested:
                 self.release_control()
                 fl.landed()
-                self.report.go(S.IDLE, "the autopilot disarmed the vehicle")
-                self.report.event("failsafe", "the autopilot disarmed the vehicle", mode=st.mode)
+                self.report.go(S.IDLE, f"the autopilot disarmed the vehicle{stalled}")
+                self.report.event("failsafe", f"the autopilot disarmed the vehicle{stalled} (mode {st.mode})",
+                                  mode=st.mode, cause="companion" if stalled else "autopilot")
             elif state in (S.LANDING, S.PILOT, S.FAILSAFE):
                 fl.landed()
                 self.report.go(S.IDLE, "landed and disarmed" if state is S.LANDING
-                               else f"the vehicle disarmed ({state.value} before)")
+                               else f"the vehicle disarmed ({state.value} before): following the autopilot")
             elif state is S.IDLE:
                 fl.landed()
-        self.report.dirty = True
+            return
+        reaction = on_mode_report(state, st.in_follow_mode(), fl.exit_requested)
+        if reaction is None:
+            return
+        self.release_control()
+        if self.stalled():
+            # the autopilot's offboard-loss failsafe, set off by our own silence
+            self.report.go(S.FAILSAFE, f"the autopilot left OFFBOARD/GUIDED for {st.mode} while the companion "
+                           "was stalled (no setpoints)")
+            self.report.event("failsafe", f"the autopilot switched to {st.mode} while the companion was stalled: "
+                              "stopped commanding; send 'start' to take control again", mode=st.mode,
+                              cause="companion")
+            return
+        self.report.go(reaction[0], f"{reaction[1]} (mode {st.mode})")
+        self.report.event("pilot_takeover", f"autopilot switched to {st.mode}: stopped commanding; "
+                          "send 'start' to take control again", mode=st.mode)
 
     def check_link(self) -> None:
         fl = self.flight
@@ -186,10 +238,16 @@ class AutopilotWatch:
             return
         if not fl.seen_link or fl.link_lost or self.link.link_ok():
             return
+        if self.stalled():
+            # Silence seen by a loop that did not run says nothing about the link: what the
+            # autopilot sent meanwhile waits in the socket and is read first.
+            return
         fl.link_lost = True
+        self._lost_at = time.monotonic()
         was = fl.state
         if fl.controlling:
             self.release_control()
             self.report.go(S.FAILSAFE, "MAVLink link lost: no autopilot heartbeat")
         self.report.event("link_lost", f"MAVLink link lost (nothing from the autopilot for {self.cfg.mavlink.link_timeout} s) "
-                          f"while {was.value}; stopped commanding", previous_state=was.value)
+                          f"while {was.value}; stopped commanding (cause: the link; the companion ran)",
+                          previous_state=was.value, cause="link")

@@ -23,7 +23,7 @@ from companion.navigator import Navigator
 from companion.report import Reporter
 from companion.wire.mavlink import CommandFailed, MavlinkLink
 from companion.wire.messages import Command, bounds_from
-from planner_core import Problem, allocate_times, plan, splice
+from planner_core import Problem, allocate_times, plan, splice, takeoff_duration
 
 log = logging.getLogger("companion")
 S = State
@@ -58,6 +58,7 @@ class Commands:
         self.lag_estimate: float | None = None
         self._lag_sums = np.zeros(5)  # e.v, v.v, e.a, v.a, a.a (see _estimate_lag)
         self.lead_target: Any = None  # the setpoint thread (its `lead` is set here)
+        self._stall_task: asyncio.Task[None] | None = None  # what a stall of the companion set off
 
     def cancel_sequence(self) -> None:
         if self.task is not None and self.task is not asyncio.current_task() and not self.task.done():
@@ -89,9 +90,15 @@ class Commands:
             self.report.refuse(name, why, by="companion")
             return
         self.report.event("accepted", f"command {name}", key="command", command=name)
+        if name == "takeoff" and cmd.origin == "home" and st.home is None:
+            self.report.refuse(name, "a takeoff altitude above home needs HOME_POSITION, which the autopilot has "
+                               "not reported yet (send it without origin: above the ground where the vehicle stands)",
+                               by="companion")
+            return
         if name in ("arm", "takeoff", "start"):
             self.cancel_sequence()
-            body = {"arm": self.arm, "takeoff": lambda: self.takeoff(cmd.altitude or self.cfg.safety.takeoff_altitude),
+            body = {"arm": self.arm,
+                    "takeoff": lambda: self.takeoff(cmd.altitude or self.cfg.safety.takeoff_altitude, cmd.origin),
                     "start": lambda: self.start(arrived)}[name]()
             self.task = asyncio.create_task(self._sequence(name, body))
             return
@@ -119,7 +126,7 @@ class Commands:
         try:
             await coro
         except CommandFailed as exc:
-            self.report.refuse(name, f"failed: {exc}", by="autopilot")
+            self.report.refuse(name, f"failed: {exc}", by="autopilot", **exc.fields())
             if self.flight.state in (S.ARMING, S.TAKEOFF):
                 self.nav.release()
                 self.control.release()
@@ -160,32 +167,48 @@ class Commands:
                 await self.link.restore_mode(before[0], before[1])
                 await self.link.wait_for(lambda s: s.mode == before[2], 3.0, f"the autopilot to confirm {before[2]}")
             except CommandFailed as again:
-                raise CommandFailed(f"{exc}; and the previous mode {before[2]} was not restored: {again}") from exc
-            raise CommandFailed(f"{exc}; the autopilot is back in {before[2]}") from exc
+                raise exc.chained(f"{exc}; and the previous mode {before[2]} was not restored: {again}") from exc
+            raise exc.chained(f"{exc}; the autopilot is back in {before[2]}") from exc
         where = "in the air" if self.flight.airborne else "on the ground"
         self.report.go(S.READY, f"armed in {self.link.state.mode} ({where}): holding")
 
-    async def takeoff(self, altitude: float) -> None:
+    def takeoff_target(self, altitude: float, origin: str = "ground") -> tuple[np.ndarray, str]:
+        """Where a takeoff to `altitude` ends (NED, local frame), and what it is above.
+
+        Above the ground where the vehicle stands (the z it last stood at disarmed, or where it
+        is when on the ground), or above home (`origin` "home"): never `z = -altitude` in the
+        local frame, whose origin is not the ground (PX4's ground is often at z = +1.5 m)."""
+        st, fl = self.link.state, self.flight
+        here = st.position.copy()
+        if origin == "home" and st.home is not None:
+            return np.array([here[0], here[1], float(st.home[2]) - altitude]), "home"
+        on_ground = not fl.airborne and st.landed_state != MAV_LANDED_IN_AIR
+        if on_ground or fl.ground_z is None:
+            return here + np.array([0.0, 0.0, -altitude]), "the ground"
+        return np.array([here[0], here[1], fl.ground_z - altitude]), "the ground"
+
+    async def takeoff(self, altitude: float, origin: str = "ground") -> None:
         st = self.link.state
         if not st.armed:
             await self.arm()
         elif self.flight.state not in (S.READY, S.HOLDING):
             await self._take_follow_mode("takeoff command")
-        ground = st.position.copy()
-        target = ground + np.array([0.0, 0.0, -altitude])
-        self.report.go(S.TAKEOFF, f"taking off to {altitude:.2f} m")
+        target, above = self.takeoff_target(altitude, origin)
+        self.report.go(S.TAKEOFF, f"taking off to {altitude:.2f} m above {above} (local z {target[2]:.2f} m NED)")
         tol = self.cfg.safety.arrival_tolerance
         if st.autopilot == "px4":
             await self._px4_climb(target)
         else:
             self.control.pause()
-            await self.link.takeoff(altitude)
+            # ArduPilot's takeoff altitude is above home
+            home_z = float(st.home[2]) if st.home is not None else float(st.position[2])
+            await self.link.takeoff(max(0.1, home_z - float(target[2])))
             rest = self.cfg.safety.rest_speed
             await self.link.wait_for(lambda s: abs(s.position[2] - target[2]) <= tol and at_rest(s.velocity, rest),
                                      10.0 + altitude / 0.3, f"altitude {altitude:.2f} m, at rest")
             self.take_control("takeoff complete")
         self.flight.airborne = True
-        self.report.go(S.READY, f"airborne at {altitude:.2f} m: holding")
+        self.report.go(S.READY, f"airborne at {altitude:.2f} m above {above}: holding")
         pending = self.nav.pending
         if pending is not None and pending.autostart and not self.flight.starting:
             await self.nav.fly(pending, None)
@@ -198,8 +221,15 @@ class Commands:
         jet = base.jet(t_split)
         bounds = bounds_from(None, self.cfg)
         points = np.vstack([jet[0], target])
-        times = allocate_times(points, bounds, t0=t_split)
-        problem = Problem.from_waypoints(points, np.diff(times), bounds, initial=jet, t0=t_split)
+        climb = target - jet[0]
+        height = float(np.linalg.norm(climb))
+        if height > 1e-3 and at_rest(jet[1], self.cfg.safety.rest_speed):
+            # the fastest rest-to-rest climb the planner certifies (issue 12); from a moving start
+            # the planner's recovery stretches it if it must
+            durations = np.array([takeoff_duration(height, bounds, up=tuple(climb / height))])
+        else:
+            durations = np.diff(allocate_times(points, bounds, t0=t_split))
+        problem = Problem.from_waypoints(points, durations, bounds, initial=jet, t0=t_split)
         result = await self.nav.runtime.plan(plan, problem)
         if not result.ok or result.trajectory is None:
             raise CommandFailed(f"no verified climb: {result.message}")
@@ -247,7 +277,7 @@ class Commands:
         try:
             await self.link.land()
         except CommandFailed as exc:
-            self.report.refuse("land", f"failed: {exc}", by="autopilot")
+            self.report.refuse("land", f"failed: {exc}", by="autopilot", **exc.fields())
             return False
         return True
 
@@ -412,8 +442,50 @@ class Commands:
         try:
             await self.link.arm(False)
         except CommandFailed as exc:
-            self.report.refuse("disarm", f"failed: {exc}", by="autopilot")
+            self.report.refuse("disarm", f"failed: {exc}", by="autopilot", **exc.fields())
             return False
         self.flight.landed()
         self.report.go(S.IDLE, "disarmed on command")
         return True
+
+    # -- after a stall of the companion ------------------------------------------------------
+
+    def after_stall(self, reason: str) -> asyncio.Task[None] | None:
+        """The companion stalled (its loop or the setpoint thread): setpoints were withheld
+        from the stall on. Stop commanding (FAILSAFE: control is taken back only by `start`)
+        and, if the autopilot still flies in our mode, ask it to hold (its LOITER) rather than
+        leave it to its offboard-loss failsafe. Returns the hold request's task, if any."""
+        fl, st = self.flight, self.link.state
+        if not fl.controlling:
+            return None
+        was = fl.state
+        in_air = fl.airborne or st.landed_state == MAV_LANDED_IN_AIR or was is S.TAKEOFF
+        ours = st.armed and st.in_follow_mode()
+        self.release_control()
+        self.report.go(S.FAILSAFE, f"{reason}: stopped commanding ({was.value} before); send 'start' to take "
+                       "control again")
+        if not (ours and in_air):
+            return None
+        self._stall_task = asyncio.get_running_loop().create_task(self._hold_after_stall(reason))
+        return self._stall_task
+
+    def hold_after_stall(self, reason: str) -> str:
+        """A stall after which the autopilot still flies our plan: stop the mission and hold
+        (braking to a verified stop; what is left waits for `resume`). Says what it did."""
+        fl = self.flight
+        if fl.state is S.STREAMING and fl.airborne and self.control.streaming:
+            self._stall_task = asyncio.get_running_loop().create_task(self.nav.hold(reason, None))
+            return "stopping the mission and holding (send 'resume' to continue)"
+        return "in control as before" if fl.controlling else "not in control"
+
+    async def _hold_after_stall(self, reason: str) -> None:
+        st = self.link.state
+        try:
+            await self.link.set_mode("LOITER")
+            await self.link.wait_for(lambda s: s.mode == "LOITER", 3.0, "the autopilot to confirm LOITER")
+        except CommandFailed as exc:
+            self.report.event("error", f"{reason}: asking the autopilot to hold (LOITER) failed: {exc}",
+                              mode=st.mode, **exc.fields())
+            return
+        self.report.event("handover", f"{reason}: the autopilot holds the vehicle in {st.mode}", mode=st.mode,
+                          reason=reason, cause="companion")

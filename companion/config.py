@@ -84,6 +84,11 @@ class SetpointConfig:
     # so that the vehicle, which lags its setpoints, flies the plan on time. "auto": the lag
     # estimated in flight from telemetry (status `lag_estimate_ms`); 0: none. At most 0.12 s.
     lead: float | str = 0.0
+    # The event loop not running for this long (s) is a stall of the companion: the setpoint
+    # thread withholds setpoints from then on (it does so too when it itself wakes 0.5 s late).
+    # Awake again, the companion holds (setpoints silent under 0.5 s: the autopilot still flies
+    # its plan) or releases control and asks the autopilot to hold (FAILSAFE, `start` again).
+    loop_stall_limit: float = 1.5
 
 
 @dataclass(frozen=True)
@@ -109,6 +114,18 @@ class PlannerConfig:
     executor: str = "process"
     # Planner workers; one keeps planning serialised.
     workers: int = 1
+    # Where full replans that race a braking deadline run (never queued behind a mission plan):
+    # "thread" of the service (rare and short; no second planner process, ~65 MB less) or a
+    # "process" of their own.
+    urgent: str = "thread"
+    # Planner processes load the compiled pass (numba): ~105 MB more resident each, ~0.3 s
+    # less per 1000-waypoint plan (benchmarks/footprint.py). The service process never loads it.
+    compiled: bool = False
+    # Durations of a mission that gives none: "default" (planner_core.allocate_times: the 3-piece
+    # certificate's rest-to-rest leg takes 2.64 L / v) or "fastest" (planner_core.plan_mission's
+    # fastest allocation: ~0.65-0.75x the flight time, but it flies at the bounds, so a pop-up's
+    # local replan often finds no slack and the vehicle brakes and holds instead of swerving).
+    timing: str = "default"
     # Fault injection for tests and drills: hold back the result of the full-replan fallback
     # (after a failed local replan) this many seconds, as on an overloaded computer. The
     # braking deadline must then stop the vehicle. 0 in flight.
@@ -120,6 +137,10 @@ class GeofenceConfig:
     # NED box; z is down, so the ceiling is the most negative z.
     min: tuple[float, float, float] = (-100.0, -100.0, -50.0)
     max: tuple[float, float, float] = (100.0, 100.0, 0.5)
+    # "home": the box is relative to HOME_POSITION once the autopilot reports it (the local
+    # frame until then), so its floor follows the ground (PX4's local z on the ground is
+    # often +1.5 m); "local": the box is in the autopilot's local frame.
+    origin: str = "home"
 
 
 @dataclass(frozen=True)
@@ -195,13 +216,17 @@ _CHOICES: dict[str, tuple[str, ...]] = {
     "setpoints.yaw_mode": ("hold", "fixed", "velocity"),
     "planner.method": ("iterative", "global"),
     "planner.executor": ("process", "thread"),
+    "planner.urgent": ("process", "thread"),
+    "planner.timing": ("default", "fastest"),
     "safety.on_exit": ("hold", "land", "rtl"),
+    "geofence.origin": ("home", "local"),
 }
 _POSITIVE = {
     "mavlink.heartbeat_hz",
     "mavlink.link_timeout",
     "mavlink.command_timeout",
     "setpoints.rate_hz",
+    "setpoints.loop_stall_limit",
     "planner.bounds.velocity",
     "planner.bounds.acceleration",
     "planner.bounds.jerk",

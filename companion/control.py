@@ -175,6 +175,8 @@ class Control:
         The periodic statistics ignore it."""
         if not self._streaming or self._active is None or self._t_base is None:
             return
+        if getattr(self.target, "withheld", False):  # after a stall, until control is released
+            return
         now = time.monotonic()
         try:
             self.send(sample(self._active, now - self._t_base + getattr(self.target, "lead", 0.0), self.yaw))

@@ -36,8 +36,11 @@ def plan_with_detours(
     initial: FloatArray,
     obstacles: Known | Sequence[Polytope],
     cfg: Config,
+    *,
+    allocate: bool = False,
 ) -> Outcome:
-    """plan_route, inserting detour points around obstacles that block straight legs.
+    """plan_route, inserting detour points around obstacles that block straight legs
+    (`allocate`: as plan_route's, for every attempt).
 
     Up to MAX_DETOURS obstacles are detoured, one after the other. A detoured plan is
     verified like any other (plan_route); its stats carry "detour" (the points) and
@@ -46,7 +49,7 @@ def plan_with_detours(
     index into `obstacles`, and its message says why each way around it failed.
     """
     known = as_known(obstacles)
-    outcome = plan_route(mission, points, times, labels, initial, known, cfg)
+    outcome = plan_route(mission, points, times, labels, initial, known, cfg, allocate=allocate)
     detours: list[Any] = []
     around: list[int] = []
     for _ in range(MAX_DETOURS):
@@ -54,7 +57,7 @@ def plan_with_detours(
             break
         notes: list[str] = []
         detoured = detour(mission, points, times, labels, initial, known, cfg,
-                          outcome.blocked_segment, outcome.obstacle, notes=notes)
+                          outcome.blocked_segment, outcome.obstacle, notes=notes, allocate=allocate)
         if detoured is None:
             why = "; ".join(notes) or "no way around it inside the map"
             outcome = replace(outcome, message=f"{outcome.message}; no detour around {known.name(outcome.obstacle)} "
@@ -149,6 +152,7 @@ def detour(
     segment: int,
     obstacle: int,
     notes: list[str] | None = None,
+    allocate: bool = False,
 ) -> tuple[Outcome, FloatArray, FloatArray, FloatArray] | None:
     """Insert synthetic waypoints around the obstacle that blocks `segment` and re-plan.
 
@@ -183,7 +187,7 @@ def detour(
             if seg is not None and seg > segment + k and best is None:
                 # this obstacle is cleared; another one blocks a later leg
                 tms = _detour_times(mission, points, times, pts, segment, k, initial, None)
-                outcome = plan_route(mission, pts, tms, lab, initial, known, cfg)
+                outcome = plan_route(mission, pts, tms, lab, initial, known, cfg, allocate=allocate)
                 outcome.stats["detour"] = [c.round(3).tolist() for c in cs]
                 best = (outcome, pts, tms, lab)
             else:
@@ -193,7 +197,7 @@ def detour(
             notes.append(f"{name}: corridor construction failed: {exc!r}")
             continue
         tms = _detour_times(mission, points, times, pts, segment, k, initial, corridors[0])
-        outcome = plan_route(mission, pts, tms, lab, initial, known, cfg)
+        outcome = plan_route(mission, pts, tms, lab, initial, known, cfg, allocate=allocate)
         if outcome.ok:
             outcome.stats["detour"] = [c.round(3).tolist() for c in cs]
             return outcome, pts, tms, lab

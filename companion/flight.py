@@ -72,6 +72,7 @@ class Flight:
     exit_requested: bool = False  # we asked the autopilot to leave our mode (land)
     disarm_requested: bool = False  # we asked for the disarm (it is not a failsafe)
     starting: bool = False  # a `start` sequence is running (its takeoff must not fly the pending mission)
+    ground_z: float | None = None  # NED z (local frame) where the vehicle last stood disarmed
     history: list[dict[str, Any]] = field(default_factory=list)
 
     def can(self, to: State) -> bool:

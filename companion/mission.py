@@ -74,7 +74,11 @@ def start_mission(mission: MissionSpec, initial: FloatArray, t_start: float, kno
     else:
         durations = allocate_durations(points, mission.bounds, jet[1])
     times = t_start + np.concatenate([[0.0], np.cumsum(durations)])
-    return plan_with_detours(mission, points, times, lab, jet, as_known(known) + Known.of(mission.obstacles), cfg)
+    # No durations given and [planner] timing = "fastest": the fastest the bounds allow (the
+    # allocation above then only gives t0 and the detour points' first guess).
+    fastest = mission.durations is None and cfg.planner.timing == "fastest"
+    return plan_with_detours(mission, points, times, lab, jet, as_known(known) + Known.of(mission.obstacles), cfg,
+                             allocate=fastest)
 
 
 def check_mission(mission: MissionSpec, initial: FloatArray, t_start: float, known: Known | Sequence[Polytope],

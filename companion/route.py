@@ -11,7 +11,7 @@ from __future__ import annotations
 import enum
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -27,9 +27,7 @@ from planner_core import (
     Problem,
     Trajectory,
     allocate_times,
-    plan,
-    rest_jet,
-    verify,
+    plan_mission,
 )
 from planner_core import build_corridors as _build_corridors
 
@@ -86,21 +84,6 @@ class OutcomeStatus(enum.Enum):
     INFEASIBLE = "infeasible"  # no plan within the bounds (or not verified)
 
 
-def _plan_problem(problem: Problem, cfg: Config) -> tuple[Trajectory | None, str]:
-    opts: dict[str, Any] = {}
-    if cfg.planner.method == "iterative":
-        opts["window"] = cfg.planner.window
-    result = plan(problem, method=cfg.planner.method, **opts)
-    if not result.ok or result.trajectory is None:
-        return None, result.message
-    traj = result.trajectory
-    checked = problem if np.array_equal(traj.times, problem.times) else replace(problem, times=traj.times)
-    report = verify(traj, checked)
-    if not report.ok:  # plan() verifies too; never fly on one check alone being trusted
-        return None, "verification failed: " + report.summary()
-    return traj, result.message
-
-
 def plan_route(
     mission: MissionSpec,
     waypoints: FloatArray,
@@ -109,8 +92,16 @@ def plan_route(
     initial: FloatArray,
     obstacles: Known | Sequence[Polytope],
     cfg: Config,
+    *,
+    allocate: bool = False,
 ) -> Outcome:
-    """Corridors, plan, verify. `initial` is the jet at waypoints[0] (time times[0])."""
+    """Corridors, plan, verify. `initial` is the jet at waypoints[0] (time times[0]).
+
+    `allocate`: the mission gave no durations, so only times[0] counts and the planner chooses
+    the fastest durations the bounds and corridors allow (`planner_core.plan_mission`); it may
+    insert knots on long legs, which join the route as synthetic waypoints (label -1), like
+    detour points, so no mission index ever counts one.
+    """
     t0 = time.perf_counter()
     known = as_known(obstacles)
     try:
@@ -124,14 +115,17 @@ def plan_route(
     except Exception as exc:  # a geometry bug must be a refusal, not a crash
         return Outcome(False, message=f"corridor construction failed: {exc!r}",
                        stats={"plan_seconds": time.perf_counter() - t0})
-    final = rest_jet(waypoints[-1])
-    problem = Problem(waypoints, times, mission.bounds, initial, final, corridors)
-    traj, message = _plan_problem(problem, cfg)
-    stats = {"plan_seconds": time.perf_counter() - t0}
-    if traj is None:
-        return Outcome(False, message=message, stats=stats)
-    problem = replace(problem, times=traj.times)
-    return Outcome(True, Route(mission, waypoints, traj.times, labels, problem, traj), message, stats=stats)
+    opts: dict[str, Any] = {"window": cfg.planner.window} if cfg.planner.method == "iterative" else {}
+    given = None if allocate else np.diff(times)
+    # plan_mission verifies the plan once more itself: never fly on one check alone being trusted
+    mp = plan_mission(waypoints, mission.bounds, corridors, given, initial=initial, t0=float(times[0]),
+                      method=cfg.planner.method, **opts)
+    stats: dict[str, Any] = {"plan_seconds": time.perf_counter() - t0, "timing": mp.timing}
+    if not mp.ok or mp.trajectory is None:
+        return Outcome(False, message=mp.message, stats=stats)
+    p = mp.problem
+    return Outcome(True, Route(mission, p.waypoints, p.times, mp.relabel(labels), p, mp.trajectory),
+                   mp.message, stats=stats)
 
 
 def clip_velocity(v: FloatArray, bounds: Bounds) -> FloatArray:

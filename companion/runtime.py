@@ -1,15 +1,25 @@
 """Where work runs: executors and their priorities, garbage collection paced by the setpoints,
 and logging kept off the loop.
 
-Long mission plans go to planner processes (low priority); replans and stops never queue
-behind them: an urgent process of their own, a thread for local replans (a few ms: pickling
-to a process would cost more), two threads for stops, one each for encoding and decoding.
+Long mission plans go to one planner process (low priority); replans and stops never queue
+behind them: an urgent thread for full replans (the fallback after a failed local replan), a
+thread for local replans (a few ms: pickling to a process would cost more), two threads for
+stops, one each for encoding and decoding.
+
+Footprint (benchmarks/footprint.py): numba and LLVM cost ~105 MB resident in each process that
+loads the compiled pass and save ~0.3 s of the QPs of a 1000-waypoint plan (a mission of 1000
+waypoints: ~1 s with it, ~1.5-3 s without, on a busy 2-core machine), so by default no process
+of the service loads them (`[planner] compiled`). A mission plan in a thread of the service (no
+second interpreter: ~65 MB less) holds the GIL for most of a second and stalls the setpoints
+and the pop-up replans (measured: jitter p99 8 ms, pop-up 75 ms), so missions go to a process;
+the urgent replans are rare and short, and a thread of their own spares a second process.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import ctypes
 import gc
 import logging
 import logging.handlers
@@ -18,6 +28,7 @@ import multiprocessing
 import os
 import queue
 import signal
+import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import BrokenExecutor, Executor, ProcessPoolExecutor, ThreadPoolExecutor
@@ -33,21 +44,61 @@ PLANNER_NICE = 10
 URGENT_NICE = 3
 
 
-def background_priority(increment: int) -> None:
-    """A planner process: lower priority, and no KeyboardInterrupt traceback of its own when
-    the operator presses Ctrl-C (the service shuts it down)."""
+def background_priority(increment: int, compiled: bool = False) -> None:
+    """A planner process: lower priority, no KeyboardInterrupt traceback of its own when the
+    operator presses Ctrl-C (the service shuts it down), and the compiled pass only if asked."""
     with contextlib.suppress(OSError):
         os.nice(increment)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _exit_with_parent(os.getppid())
+    if not compiled:
+        from planner_core import use_compiled_kernel
+
+        use_compiled_kernel(False, "companion planner process: [planner] compiled = false (memory)")
+
+
+def _exit_with_parent(parent: int, period: float = 0.5) -> None:
+    """A planner process whose service died (SIGKILL, a crash, a watchdog abort) would wait on
+    its call queue forever and hold its memory: it leaves as soon as it is re-parented."""
+
+    def watch() -> None:
+        while os.getppid() == parent:
+            time.sleep(period)
+        os._exit(0)
+
+    threading.Thread(target=watch, name="parent-watch", daemon=True).start()
+
+
+def trim_heap() -> None:
+    """Hand the heap a big plan freed back to the system: glibc keeps it for reuse (~70 MB
+    after a 1000-waypoint plan), and an idle planner process should be small. A no-op off glibc."""
+    gc.collect()
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL(None).malloc_trim(0)
+
+
+def run_and_trim(fn: Callable[..., Any], *args: Any) -> Any:
+    """fn(*args) in a planner process, then `trim_heap`."""
+    try:
+        return fn(*args)
+    finally:
+        trim_heap()
 
 
 def make_planner_pool(cfg: Config, workers: int | None = None, nice: int = PLANNER_NICE) -> Executor:
     n = cfg.planner.workers if workers is None else workers
     if cfg.planner.executor == "process":
         return ProcessPoolExecutor(n, mp_context=multiprocessing.get_context("spawn"),
-                                   initializer=background_priority, initargs=(nice,))
+                                   initializer=background_priority, initargs=(nice, cfg.planner.compiled))
     # Threads keep normal priority: a low-priority thread holding the GIL would hold it longer.
     return ThreadPoolExecutor(n, thread_name_prefix="planner")
+
+
+def make_urgent_pool(cfg: Config) -> Executor:
+    """Full replans that race a braking deadline: never behind a mission plan."""
+    if cfg.planner.urgent == "process":
+        return make_planner_pool(cfg, workers=1, nice=URGENT_NICE)
+    return ThreadPoolExecutor(1, thread_name_prefix="urgent")
 
 
 class Runtime:
@@ -57,7 +108,7 @@ class Runtime:
         self.cfg = cfg
         self.on_planner_died = on_planner_died
         self.pool: Executor = make_planner_pool(cfg)
-        self.urgent_pool: Executor = make_planner_pool(cfg, workers=1, nice=URGENT_NICE)
+        self.urgent_pool: Executor = make_urgent_pool(cfg)
         self.replan_pool = ThreadPoolExecutor(1, thread_name_prefix="replan")
         self.io_pool = ThreadPoolExecutor(1, thread_name_prefix="encode")
         self.decode_pool = ThreadPoolExecutor(1, thread_name_prefix="decode")
@@ -70,13 +121,17 @@ class Runtime:
         return (self.pool, self.urgent_pool, self.replan_pool, self.io_pool, self.decode_pool, self.brake_pool)
 
     async def plan(self, fn: Any, *args: Any, urgent: bool = False) -> Any:
-        """fn(*args) in a planner process (restarted if it died: this request then fails)."""
+        """fn(*args) in a planner process or thread (a process is restarted if it died: this
+        request then fails)."""
         assert self.loop is not None
+        pool = self.urgent_pool if urgent else self.pool
+        if isinstance(pool, ProcessPoolExecutor):
+            fn, args = run_and_trim, (fn, *args)
         try:
-            return await self.loop.run_in_executor(self.urgent_pool if urgent else self.pool, fn, *args)
+            return await self.loop.run_in_executor(pool, fn, *args)
         except BrokenExecutor:
             if urgent:
-                self.urgent_pool = make_planner_pool(self.cfg, workers=1, nice=URGENT_NICE)
+                self.urgent_pool = make_urgent_pool(self.cfg)
             else:
                 self.pool = make_planner_pool(self.cfg)
             self.on_planner_died()

@@ -37,7 +37,14 @@ from companion.navigator import Navigator
 from companion.report import Reporter
 from companion.runtime import GcPacer, Runtime, log_off_loop, restore_logging
 from companion.sdnotify import Notifier
-from companion.setpoints import DeadlineScheduler, SetpointSender, Tick, YawPolicy, sleep_until
+from companion.setpoints import (
+    DeadlineScheduler,
+    Liveness,
+    SetpointSender,
+    Tick,
+    YawPolicy,
+    sleep_until,
+)
 from companion.wire import encode as enc
 from companion.wire.mavlink import MavlinkLink
 from companion.wire.messages import (
@@ -59,6 +66,9 @@ from planner_core import FloatArray, Trajectory, hold
 log = logging.getLogger("companion")
 
 INLINE_DECODE_BYTES = 4096
+# s: setpoints withheld after a stall for less than this (half PX4's default COM_OF_LOSS_T):
+# the autopilot still flies our plan, so the companion keeps control and holds
+STALL_HOLD_WITHIN = 0.5
 
 
 class Service:
@@ -83,8 +93,10 @@ class Service:
                                on_new_plan=self.publish_trajectory, on_latency=self._latency_event)
         self.navigator = Navigator(cfg, self.flight, self.control, self.runtime, self.report, self._position)
         self.commands = Commands(cfg, self.flight, self.control, self.link, self.navigator, self.report)
+        self.liveness = Liveness(cfg.setpoints.loop_stall_limit)
+        self.sender.liveness = self.liveness
         self.watch = AutopilotWatch(cfg, self.flight, self.link, self.report, self.commands.release_control,
-                                    on_position=self.commands.check_tracking)
+                                    on_position=self.commands.check_tracking, stalled=self._stalled)
         self.link.on_message = self.watch.on_message
         # lag compensation: a fixed lead, or "auto" (set by Commands from its estimate)
         self.commands.lead_target = self.sender
@@ -236,7 +248,13 @@ class Service:
             "airborne": self.flight.airborne,
             "autopilot": st.autopilot,
             "mode": st.mode,
+            # a disarmed PX4 reports its last user mode (OFFBOARD after an offboard landing):
+            # that flies nothing
+            "active_mode": st.mode if st.armed else None,
             "armed": st.armed,
+            "origin": "local",
+            "home": enc.vec(st.home) if st.home is not None else None,
+            "ground_z": enc.num(self.flight.ground_z),
             "link": self.link.link_ok() if self.flight.seen_link else False,
             "streaming": ctl.streaming,
             **self.navigator.status_fields(),
@@ -266,7 +284,7 @@ class Service:
             kind, payload, arrived = await self.zio.inbox.get()
             try:
                 if kind == "obstacles" and len(payload) <= INLINE_DECODE_BYTES:
-                    self._dispatch(kind, payload, arrived, read(kind, payload, self.cfg))
+                    self._dispatch(kind, payload, arrived, read(kind, payload, self.cfg, self.link.state.home))
                 elif self._ordered.qsize() >= self.cfg.limits.max_queued_messages:
                     self._dropped(kind, len(payload))
                 else:
@@ -282,7 +300,7 @@ class Service:
             # spares two thread hand-offs. One message at a time, so the order is kept.
             try:
                 assert self.loop is not None
-                job = functools.partial(read, kind, payload, self.cfg)
+                job = functools.partial(read, kind, payload, self.cfg, self.link.state.home)
                 msg = job() if len(payload) <= INLINE_DECODE_BYTES else \
                     await self.loop.run_in_executor(self.runtime.decode_pool, job)
                 self._dispatch(kind, payload, arrived, msg)
@@ -367,6 +385,61 @@ class Service:
                 self.report.event("error", f"setpoints stopped leaving: none sent for {(now - since) * 1000:.0f} ms "
                                   "while streaming", silence_ms=round((now - since) * 1000, 1))
 
+    # -- the companion's own liveness ------------------------------------------------------------
+
+    def _stalled(self) -> bool:
+        """The companion is stalled or just woke from a stall (see setpoints.Liveness); not
+        before the setpoint thread runs (the warm-up does not beat)."""
+        if self.sender.native_id is None:
+            return False
+        return self.liveness.stale() or self.sender.withheld
+
+    async def loop_liveness(self) -> None:
+        """Beats every setpoint period, so the setpoint thread knows the loop runs. When this
+        loop did not run for `[setpoints] loop_stall_limit`, or the setpoint thread withheld
+        setpoints (it saw the loop, or itself, stall): say that the companion - not the link -
+        caused the episode, and deal with it before setpoints leave again. Setpoints silent for
+        under STALL_HOLD_WITHIN: the autopilot still flies our plan; stop the mission and hold
+        (it waits for `resume`). Longer: the autopilot may have left OFFBOARD on its own;
+        release control (FAILSAFE; the autopilot is asked to hold) and wait for `start`."""
+        period = 1.0 / self.cfg.setpoints.rate_hz
+        limit = self.cfg.setpoints.loop_stall_limit
+        live = self.liveness
+        live.beat()
+        was = self.flight.state
+        while not self.stop.is_set():
+            await asyncio.sleep(period)
+            gap = live.beat()
+            withheld = live.withheld
+            if gap <= limit and withheld is None:
+                was = self.flight.state  # as it was before any stall
+                continue
+            now = time.monotonic()
+            what = "the setpoint thread" if withheld is not None and withheld[1] == "thread" else "its event loop"
+            stall = max(gap, withheld[2] if withheld is not None else 0.0)
+            silence = now - live.last_sent
+            reason = f"the companion stalled ({what} did not run for {stall * 1000:.0f} ms)"
+            if not self.flight.controlling:
+                reaction = "not in control"
+            elif withheld is not None and silence >= STALL_HOLD_WITHIN:
+                self.commands.after_stall(reason)
+                reaction = "released control"
+            else:
+                reaction = self.commands.hold_after_stall(reason)
+            live.release()
+            link = self.link.link_ok()
+            silent = (f"setpoints were withheld for {silence * 1000:.0f} ms" if withheld is not None
+                      else "no setpoint was withheld")
+            self.report.event(
+                "stalled", f"{reason} while {was.value}: cause the companion, not the link (the autopilot "
+                f"{'is heard' if link else 'is not heard either'}); {silent}; {reaction}; now "
+                f"{self.flight.state.value}, mode {self.link.state.mode}",
+                cause="companion", stalled=what.removeprefix("its ").replace(" ", "_"), stall_ms=round(stall * 1000, 1),
+                setpoints_withheld=withheld is not None,
+                silence_ms=enc.ms(silence, 1) if withheld is not None else None,
+                previous_state=was.value, link=link, mode=self.link.state.mode)
+            was = self.flight.state
+
     async def _guard(self, kind: str, coro: Any) -> None:
         try:
             await coro
@@ -405,10 +478,11 @@ class Service:
         await self._warm_up()
         self.gc.start(time.monotonic())
         self._sender_failure = self.loop.create_future()
+        self.liveness.beat()  # the warm-up above is not a stall
         self.sender.start(rtsched.starter())
         log.info("setpoint thread: %.0f Hz, %s scheduling", self.cfg.setpoints.rate_hz, self.sender.scheduling)
         periodic = [asyncio.create_task(c) for c in (self.heartbeat_loop(), self.telemetry_loop(), self.status_loop(),
-                                                       self.setpoint_watchdog())]
+                                                       self.setpoint_watchdog(), self.loop_liveness())]
         inbound = [asyncio.create_task(c) for c in (self.inbox_loop(), self.ordered_loop())]
         sender = asyncio.ensure_future(self._sender_failure)
         runners: list[asyncio.Future[Any]] = [*periodic, *inbound, sender]

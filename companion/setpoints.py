@@ -110,6 +110,60 @@ class Tick:
 log = logging.getLogger("companion")
 
 
+THREAD_STALL = 0.5  # s: the setpoint thread waking this late stalled (PX4's COM_OF_LOSS_T is 1 s)
+
+
+class Liveness:
+    """The event loop's pulse as the setpoint thread sees it, and the thread's latch.
+
+    The loop `beat()`s every setpoint period. Before each send the thread checks that the last
+    beat is at most `limit` old and that it itself woke within THREAD_STALL of its previous
+    tick; if either fails, the companion stalled: the thread withholds setpoints (`withheld`,
+    latched) until the loop, awake again, has decided what to do and calls `release()`. So no
+    setpoint of a plan the loop could not supervise leaves after a stall, and the autopilot
+    never re-enters OFFBOARD on one (PX4 does, on resumed setpoints, while OFFBOARD is still
+    the user's mode). A loop stall alone does not starve the autopilot (the thread keeps
+    sending until `limit`), so `limit` may be longer than THREAD_STALL.
+    """
+
+    def __init__(self, limit: float, clock: Callable[[], float] = time.monotonic) -> None:
+        self.limit = limit
+        self.clock = clock
+        self.stamp = clock()
+        self.last_sent = -math.inf  # when the thread last let a setpoint leave
+        self._lock = threading.Lock()
+        self.withheld: tuple[float, str, float] | None = None  # (since, "loop" | "thread", stall s)
+
+    def beat(self) -> float:
+        """On the loop: stamp it alive; returns the time since the previous beat."""
+        now = self.clock()
+        gap, self.stamp = now - self.stamp, now
+        return gap
+
+    def stale(self, now: float | None = None) -> bool:
+        """The loop has not beaten for longer than `limit` (it is stalled, or just woke)."""
+        return (self.clock() if now is None else now) - self.stamp > self.limit
+
+    def check(self, now: float, thread_gap: float) -> bool:
+        """In the setpoint thread, before a send: True when setpoints may leave."""
+        with self._lock:
+            if self.withheld is None:
+                loop_gap = now - self.stamp
+                if loop_gap > self.limit:
+                    self.withheld = (now, "loop", loop_gap)
+                elif thread_gap > THREAD_STALL:
+                    self.withheld = (now, "thread", thread_gap)
+                else:
+                    self.last_sent = now
+            return self.withheld is None
+
+    def release(self) -> tuple[float, str, float] | None:
+        """On the loop, once it has dealt with the stall: setpoints may leave again."""
+        with self._lock:
+            was, self.withheld = self.withheld, None
+        return was
+
+
 class SetpointSender:
     """Periodic setpoints from a thread of their own, on absolute deadlines.
 
@@ -138,6 +192,7 @@ class SetpointSender:
         self.priority = priority
         self.clock = clock
         self.feed: Feed | None = None
+        self.liveness: Liveness | None = None  # None: no stall check (unit tests)
         self.lead = 0.0  # s: setpoints are sampled this far ahead on the trajectory (lag compensation)
         self.scheduling = "normal"  # as the thread found or set it, for the logs and status
         self.native_id: int | None = None
@@ -171,16 +226,25 @@ class SetpointSender:
             log.critical("the setpoint thread failed", exc_info=True)
             self.on_failure(exc)
 
+    @property
+    def withheld(self) -> bool:
+        """Setpoints are withheld after a stall (see Liveness) until the loop releases them."""
+        return self.liveness is not None and self.liveness.withheld is not None
+
     def _run(self) -> None:
         sched = DeadlineScheduler(self.clock(), self.rate)
         last: float | None = None
+        woke = self.clock()
         while not self._stop.is_set():
             deadline = sched.next_deadline(self.clock())
             delay = deadline - self.clock()
             if delay > 0:
                 time.sleep(delay)
             now = self.clock()
+            thread_gap, woke = now - woke, now
             feed = self.feed
+            if feed is not None and self.liveness is not None and not self.liveness.check(now, thread_gap):
+                feed = None
             gap = error = sp = None
             if feed is not None:
                 sp = sample(feed.trajectory, now - feed.t_base + self.lead, self.yaw)

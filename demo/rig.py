@@ -18,6 +18,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from companion.config import (
     Config,
     GeofenceConfig,
@@ -165,6 +167,22 @@ class Rig:
     control_port: int
     config: Config
     events: list[Sample] = field(default_factory=list)
+    # HOME_POSITION's local position (NED) as the companion reports it in `status`: the demo's
+    # messages are home-relative ("origin": "home"), what it measures is in the local frame
+    home: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    def wait_home(self, timeout: float = 15.0) -> np.ndarray:
+        """Until the companion reports home (it asks the autopilot at link-up)."""
+        deadline = time.monotonic() + timeout
+        while True:
+            status = self.peer.query("status", timeout=1.0) or {}
+            home = status.get("home")
+            if isinstance(home, list) and len(home) == 3:
+                self.home = np.asarray(home, dtype=float)
+                return self.home
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"the companion reported no home within {timeout:.0f} s (status {status})")
+            time.sleep(0.2)
 
     def check_alive(self) -> str | None:
         for child in (self.mock, self.companion):

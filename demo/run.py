@@ -76,6 +76,7 @@ def lifted_mission(scenario: dict[str, Any], mission_id: str, dz: float = LIFT) 
         m["map"] = {"min": lo.tolist(), "max": hi.tolist()}
     # The demo flies the vehicle onto waypoint 0 first (see transit), so the scenario starts there.
     m["start"] = "first_waypoint"
+    m["origin"] = "home"  # z above the ground the vehicle took off from, whatever the local origin
     return m
 
 
@@ -93,7 +94,7 @@ def transit(mission: dict[str, Any], here: np.ndarray | None, altitude: float = 
     out: list[dict[str, Any]] = []
     for i, pts in enumerate(legs):
         first = here is None and not out  # on the ground: the companion takes off first
-        out.append({"id": f"transit-{mission['id']}-{i}", "frame": "enu",
+        out.append({"id": f"transit-{mission['id']}-{i}", "frame": "enu", "origin": "home",
                     "start": "current" if first else "first_waypoint",
                     "waypoints": [[round(float(v), 4) for v in p] for p in (pts[1:] if first else pts)],
                     "bounds": {"velocity": 5.0, "acceleration": 4.0, "jerk": 10.0, "snap": 40.0}})
@@ -126,6 +127,7 @@ def clear_of_route(popup: dict[str, Any], mission: dict[str, Any], margin: float
 def lifted_obstacles(popup: dict[str, Any], dz: float = LIFT) -> dict[str, Any]:
     return {
         "frame": "enu",
+        "origin": "home",
         "add": [{"id": f"popup-{i}", **lift_region(o, dz)} for i, o in enumerate(popup["obstacles"])],
     }
 
@@ -133,6 +135,7 @@ def lifted_obstacles(popup: dict[str, Any], dz: float = LIFT) -> dict[str, Any]:
 def lifted_change(change: dict[str, Any], dz: float = LIFT) -> dict[str, Any]:
     out = {k: v for k, v in change.items() if k != "description"}
     out["frame"] = "enu"
+    out["origin"] = "home"
     for key in ("move_waypoint", "insert_waypoint"):
         if key in out:
             out[key] = {**out[key], "position": (np.asarray(out[key]["position"]) + dz * UP).tolist()}
@@ -335,7 +338,7 @@ def analyse(name: str, mission: dict[str, Any], outcome: FlightOutcome, r: Rig,
     # the companion times each in-flight message to the first setpoint of the plan it caused
     result.message_to_setpoint_ms = [v for e, v in _event_values(outcome.events, "latency", "latency_ms")
                                      if not str(e.data.get("what", "")).startswith("mission")]
-    samples = mission_trajectories(outcome.trajectories, mission)
+    samples = mission_trajectories(outcome.trajectories, mission, r.home)
     if samples:
         (r.out / f"{name}_trajectories.json").write_text(json.dumps([s.data for s in samples]))
         result.trajectories = [trajectory_of(s) for s in samples]
@@ -398,15 +401,27 @@ def analyse(name: str, mission: dict[str, Any], outcome: FlightOutcome, r: Rig,
     return result
 
 
-def mission_trajectories(samples: list[Sample], mission: dict[str, Any]) -> list[Sample]:
+def local_ned(points: Any, mission: dict[str, Any], home: np.ndarray) -> np.ndarray:
+    """A message's positions in the autopilot's local NED frame (what the plans and the mock's
+    log are in): ENU swapped, home-relative ones shifted by home (NED)."""
+    pts = np.asarray(points, dtype=float)
+    if mission.get("frame", "ned") == "enu":
+        pts = swap_points(pts)
+    return pts + home if mission.get("origin", "local") == "home" else pts
+
+
+def local_enu(points: Any, mission: dict[str, Any], home: np.ndarray) -> np.ndarray:
+    """A message's ENU positions in the local frame, as ENU (for the figures)."""
+    return swap_points(local_ned(points, mission, home))
+
+
+def mission_trajectories(samples: list[Sample], mission: dict[str, Any], home: np.ndarray) -> list[Sample]:
     """The mission's trajectory and its replans: those ending at the mission's last waypoint.
 
     (Zenoh does not order messages across keys, so "the trajectory published just before the
     STREAMING event" is not a reliable way to find it.)
     """
-    end = np.asarray(mission["waypoints"][-1], dtype=float)
-    if mission.get("frame", "ned") == "enu":
-        end = swap_points(end)
+    end = local_ned(mission["waypoints"][-1], mission, home)
     out = []
     for s in samples:
         with contextlib.suppress(KeyError, IndexError, TypeError, ValueError):
@@ -449,17 +464,19 @@ def figures(name: str, title: str, mission: dict[str, Any], result: rep.MissionR
             popup: dict[str, Any] | None = None, change: dict[str, Any] | None = None) -> list[Path]:
     if not result.trajectories:
         return []
-    scene = rep.Scene(waypoints=np.asarray(mission["waypoints"], dtype=float))
-    scene.obstacles = [rep.region_vertices_enu(o, "enu") for o in mission.get("obstacles", [])]
+    # the scene in the local frame (ENU), where the plans and the flown path are
+    scene = rep.Scene(waypoints=local_enu(mission["waypoints"], mission, r.home))
+    scene.obstacles = [local_enu(rep.region_vertices_enu(o, "enu"), mission, r.home)
+                       for o in mission.get("obstacles", [])]
     if popup is not None:
-        scene.popups = [rep.region_vertices_enu(o, "enu") for o in popup["add"]]
+        scene.popups = [local_enu(rep.region_vertices_enu(o, "enu"), popup, r.home) for o in popup["add"]]
     final = result.trajectories[-1]
     if final.corridors is not None:
         verts = [rep.polytope_vertices(c.A, c.b) for c in final.corridors if c is not None]
         scene.corridors = [swap_points(v) for v in verts if len(v)]
     if change is not None and "move_waypoint" in change:
         mv = change["move_waypoint"]
-        scene.moved = [(scene.waypoints[mv["index"]], np.asarray(mv["position"], dtype=float))]
+        scene.moved = [(scene.waypoints[mv["index"]], local_enu(mv["position"], change, r.home))]
     planned = [("planned", final)]
     if len(result.trajectories) > 1:
         planned = [("first plan", result.trajectories[0]), ("after replans", final)]
@@ -501,6 +518,7 @@ def _quick_mission() -> dict[str, Any]:
     return {
         "id": "quick",
         "frame": "enu",
+        "origin": "home",
         "start": "current",
         "waypoints": [[2.0, 1.0, LIFT + 0.5], [4.0, 3.0, LIFT + 1.0]],
         "bounds": {"velocity": 3, "acceleration": 3, "jerk": 10, "snap": 50},
@@ -529,6 +547,9 @@ def main(argv: list[str] | None = None, prog: str = "python -m demo") -> int:
     try:
         with rig(out, args.autopilot, lead=args.lead) as r:
             print(f"  companion pid {r.companion.pid}, mock pid {r.mock.pid}, logs in {out}/")
+            home = r.wait_home()
+            print(f"  home (the ground where the vehicle stands) at local NED {home.round(2).tolist()}: "
+                  "the demo's positions are home-relative")
             to_sim = sim_clock(r)
             plans: list[tuple[str, str, dict[str, Any], list[Action], dict[str, Any] | None, dict[str, Any] | None]] = []
             if args.quick:

@@ -117,6 +117,9 @@ def change_to_ned(obj: dict[str, Any]) -> dict[str, Any]:
     for kind, body in obj.items():
         if kind == "frame":
             continue
+        if not isinstance(body, dict):  # "origin"
+            out[kind] = body
+            continue
         body = dict(body)
         if "position" in body:
             body["position"] = swap_points(body["position"]).tolist()

@@ -10,6 +10,7 @@ packet sequence counter is not thread-safe.
 from __future__ import annotations
 
 import asyncio
+import collections
 import math
 import os
 import threading
@@ -26,7 +27,9 @@ from pymavlink import mavutil
 
 from companion.config import Config
 from companion.setpoints import Setpoint
+from companion.wire import dialect
 
+dialect.install()  # PX4 >= 1.14 says what happens in EVENT (410), which pymavlink lacks
 mavlink = mavutil.mavlink
 
 # Position + velocity + acceleration + yaw: only the yaw-rate bit is set.
@@ -49,6 +52,10 @@ APM_STREAMS: dict[str, tuple[int, str]] = {
     "EXTENDED_SYS_STATE": (mavlink.MAV_DATA_STREAM_EXTENDED_STATUS, "MAV1_EXT_STAT (SR1_EXT_STAT before 4.7)"),
 }
 POSITION_STALE = 1.0  # s without LOCAL_POSITION_NED: no position estimate
+# What the autopilot says (EVENT, STATUSTEXT) this long before a refusing COMMAND_ACK, or up
+# to NOTE_AFTER after it, is taken as the refusal's reason.
+NOTE_BEFORE = 1.0
+NOTE_AFTER = 0.3
 
 _IGNORED_TYPES = {
     mavlink.MAV_TYPE_GCS,
@@ -58,8 +65,50 @@ _IGNORED_TYPES = {
 }
 
 
+def result_name(result: int) -> str:
+    """MAV_RESULT's name for a COMMAND_ACK result (the number when unknown)."""
+    entry = mavlink.enums["MAV_RESULT"].get(result)
+    return entry.name if entry is not None else str(result)
+
+
+@dataclass(frozen=True)
+class Note:
+    """Something the autopilot said: an EVENT (PX4 >= 1.14) or a STATUSTEXT."""
+
+    at: float  # monotonic arrival
+    source: str  # "event" | "statustext"
+    text: str  # the known event name, "event <id>", or the STATUSTEXT text
+    level: str  # EVENT log level or MAV_SEVERITY name, without its prefix
+    event_id: int | None = None
+    name: str | None = None  # the known PX4 event name
+
+    def fields(self) -> dict[str, Any]:
+        if self.source == "event":
+            return {"event": {"id": self.event_id, "level": self.level, "name": self.name}}
+        return {"statustext": {"text": self.text, "severity": self.level}}
+
+
 class CommandFailed(RuntimeError):
-    pass
+    """A command sequence failed; `result` (MAV_RESULT name) and `note` (what the autopilot
+    said around the refusal) when the autopilot refused a COMMAND_LONG."""
+
+    def __init__(self, message: str, result: str | None = None, note: Note | None = None) -> None:
+        super().__init__(message)
+        self.result = result
+        self.note = note
+
+    def fields(self) -> dict[str, Any]:
+        """For the `refused` event: the result code and the EVENT/STATUSTEXT, when known."""
+        out: dict[str, Any] = {}
+        if self.result is not None:
+            out["result"] = self.result
+        if self.note is not None:
+            out.update(self.note.fields())
+        return out
+
+    def chained(self, message: str) -> CommandFailed:
+        """The same refusal with a longer message."""
+        return CommandFailed(message, self.result, self.note)
 
 
 @dataclass
@@ -82,7 +131,9 @@ class VehicleState:
     received: dict[str, float] = field(default_factory=dict)  # message type -> last arrival
     landed_state: int = 0  # MAV_LANDED_STATE; 0 unknown
     last_landed_state: float = -math.inf  # when EXTENDED_SYS_STATE last arrived
-    statustext: str = ""
+    # HOME_POSITION's local x, y, z (NED, the autopilot's local frame); None until reported
+    home: np.ndarray | None = None
+    notes: collections.deque[Note] = field(default_factory=lambda: collections.deque(maxlen=16))
 
     @property
     def has_position(self) -> bool:
@@ -240,8 +291,17 @@ class MavlinkLink:
         elif kind == "EXTENDED_SYS_STATE":
             st.landed_state = msg.landed_state
             st.last_landed_state = now
+        elif kind == "HOME_POSITION":
+            home = np.array([msg.x, msg.y, msg.z], dtype=float)
+            if np.all(np.isfinite(home)):
+                st.home = home
         elif kind == "STATUSTEXT":
-            st.statustext = str(msg.text)
+            sev = mavlink.enums["MAV_SEVERITY"].get(int(msg.severity))
+            level = sev.name.removeprefix("MAV_SEVERITY_") if sev is not None else str(msg.severity)
+            st.notes.append(Note(now, "statustext", str(msg.text), level))
+        elif kind == "EVENT":
+            info = dialect.decode_event(msg)
+            st.notes.append(Note(now, "event", info.name or f"event {info.id}", info.level, info.id, info.name))
         elif kind == "COMMAND_ACK":
             fut = self._acks.pop(msg.command, None)
             if fut is not None and not fut.done():
@@ -308,11 +368,33 @@ class MavlinkLink:
                 del self._acks[command]
 
     async def command_ok(self, what: str, command: int, *params: float) -> None:
+        sent = time.monotonic()
         result = await self.command(command, *params)
         if result != mavlink.MAV_RESULT_ACCEPTED:
-            name = mavlink.enums["MAV_RESULT"][result].name if result in mavlink.enums["MAV_RESULT"] else str(result)
-            text = f" ({self.state.statustext})" if self.state.statustext else ""
-            raise CommandFailed(f"{what} refused by the autopilot: {name}{text}")
+            name = result_name(result)
+            note = await self.note_around(time.monotonic(), since=sent - NOTE_BEFORE)
+            text = "" if note is None else f" ({note.source} {note.text!r}, {note.level})"
+            raise CommandFailed(f"{what} refused by the autopilot: {name}{text}", name, note)
+
+    async def note_around(self, acked: float, since: float) -> Note | None:
+        """The last EVENT/STATUSTEXT from `since` to the ACK, else the first within NOTE_AFTER
+        after it (PX4 may send its event just after the ACK)."""
+        before = [n for n in self.state.notes if since <= n.at <= acked]
+        if before:
+            return before[-1]
+        deadline = acked + NOTE_AFTER
+        while time.monotonic() < deadline:
+            await asyncio.sleep(0.02)
+            after = [n for n in self.state.notes if n.at > acked]
+            if after:
+                return after[0]
+        return None
+
+    async def request_home(self) -> None:
+        """Ask for HOME_POSITION once (MAV_CMD_REQUEST_MESSAGE); the answer is the message."""
+        result = await self.command(mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_HOME_POSITION)
+        if result != mavlink.MAV_RESULT_ACCEPTED:
+            raise CommandFailed(f"HOME_POSITION request refused: {result_name(result)}", result_name(result))
 
     async def set_follow_mode(self) -> None:
         """OFFBOARD (PX4) or GUIDED (ArduPilot) via MAV_CMD_DO_SET_MODE."""
@@ -349,8 +431,7 @@ class MavlinkLink:
                 answers[name] = str(exc)
                 continue
             if result != mavlink.MAV_RESULT_ACCEPTED:
-                answers[name] = mavlink.enums["MAV_RESULT"][result].name if result in mavlink.enums["MAV_RESULT"] \
-                    else str(result)
+                answers[name] = result_name(result)
         return answers
 
     def missing_telemetry(self, since: float) -> list[str]:

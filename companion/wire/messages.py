@@ -31,6 +31,7 @@ from companion.wire.frames import (
     obstacles_to_ned,
     scenario_to_ned,
 )
+from companion.wire.origin import change_from_home, obstacles_from_home, scenario_from_home
 from planner_core import (
     Bounds,
     FieldError,
@@ -312,7 +313,7 @@ def validate(kind: str, obj: Any, lim: LimitsConfig | None = None) -> dict[str, 
 
 # What each command takes besides `command` (the schema says the same; this says it plainly).
 COMMAND_FIELDS: dict[str, frozenset[str]] = {
-    "arm": frozenset(), "takeoff": frozenset({"altitude"}), "start": frozenset(), "hold": frozenset(),
+    "arm": frozenset(), "takeoff": frozenset({"altitude", "origin"}), "start": frozenset(), "hold": frozenset(),
     "resume": frozenset(), "land": frozenset(), "abort": frozenset(), "disarm": frozenset(),
 }
 
@@ -505,6 +506,7 @@ CHANGE_KEYS: dict[type, str] = {MoveChange: "move_waypoint", InsertChange: "inse
 class Command:
     name: str
     altitude: float | None = None
+    origin: str = "ground"  # takeoff: the altitude is above the ground where the vehicle stands, or above home
 
 
 Message = MissionSpec | ObstacleUpdate | Change | Command
@@ -645,22 +647,56 @@ def change_from_message(obj: dict[str, Any], cfg: Config, frame: str = "ned") ->
     return Change(body, frame)
 
 
-def read(kind: str, payload: bytes | Oversized, cfg: Config) -> Message | MessageError:
-    """Bytes -> a typed NED message, or the MessageError that says why not. Never raises:
-    anything unforeseen comes back as an `InternalError` (a rejection the service also
-    reports as an `error` event)."""
+def to_local(kind: str, obj: dict[str, Any], home: FloatArray | None) -> dict[str, Any]:
+    """A NED message dict in the autopilot's local frame: shifted by `home` when it says
+    `"origin": "home"` (see companion.wire.origin), refused while home is unknown."""
+    if obj.get("origin", "local") != "home" or kind not in ("mission", "obstacles", "change"):
+        return obj
+    if home is None or not np.all(np.isfinite(home)):
+        raise MessageError("origin", "a home-relative message (origin 'home') cannot be placed yet: the autopilot "
+                                     "has not reported HOME_POSITION (requested at link-up); send positions in "
+                                     "its local frame (origin 'local', the default) or wait for home")
+    shift = {"mission": scenario_from_home, "obstacles": obstacles_from_home, "change": change_from_home}[kind]
+    return shift(obj, np.asarray(home, dtype=float))
+
+
+def fence_at_home(cfg: Config, home: FloatArray | None) -> Config:
+    """`cfg` with its geofence box in the local frame: shifted by home for `[geofence] origin =
+    "home"` once home is known (until then the local frame's origin stands for home)."""
+    if cfg.geofence.origin != "home" or home is None or not np.all(np.isfinite(home)):
+        return cfg
+    h = np.asarray(home, dtype=float)
+    lo, hi = np.asarray(cfg.geofence.min) + h, np.asarray(cfg.geofence.max) + h
+    fence = dataclasses.replace(cfg.geofence, min=(float(lo[0]), float(lo[1]), float(lo[2])),
+                                max=(float(hi[0]), float(hi[1]), float(hi[2])))
+    return dataclasses.replace(cfg, geofence=fence)
+
+
+def read(kind: str, payload: bytes | Oversized, cfg: Config, home: FloatArray | None = None) -> Message | MessageError:
+    """Bytes -> a typed NED message in the autopilot's local frame, or the MessageError that
+    says why not. `home`: HOME_POSITION's local position, for messages with `"origin":
+    "home"`. Never raises: anything unforeseen comes back as an `InternalError` (a rejection
+    the service also reports as an `error` event)."""
     try:
         obj = decode(kind, payload, limits=cfg.limits)
         frame = str(obj.get("frame", "ned"))
-        if kind == "mission":
-            return mission_from_message(scenario_to_ned(obj), cfg, frame)
-        if kind == "obstacles":
-            return obstacles_from_message(obstacles_to_ned(obj), frame, cfg.limits)
-        if kind == "change":
-            return change_from_message(change_to_ned(obj), cfg, frame)
+        cfg = fence_at_home(cfg, home)
+        try:
+            if kind == "mission":
+                return mission_from_message(to_local(kind, scenario_to_ned(obj), home), cfg, frame)
+            if kind == "obstacles":
+                return obstacles_from_message(to_local(kind, obstacles_to_ned(obj), home), frame, cfg.limits)
+            if kind == "change":
+                return change_from_message(to_local(kind, change_to_ned(obj), home), cfg, frame)
+        except MessageError as exc:
+            if obj.get("origin") != "home" or exc.field == "origin" or home is None:
+                raise
+            # positions in reasons are local: say how they relate to what was sent
+            raise MessageError(exc.field, f"{exc.reason} (local frame: the message's home-relative positions "
+                                          f"plus home {fmt_point(home)} NED)") from None
         if kind == "command":
             alt = obj.get("altitude")
-            return Command(str(obj["command"]), None if alt is None else float(alt))
+            return Command(str(obj["command"]), None if alt is None else float(alt), str(obj.get("origin", "ground")))
         return MessageError("", f"unknown message kind {quote(kind, 40)}")
     except MessageError as exc:
         return exc

@@ -105,7 +105,7 @@ def test_oversized_payload_is_refused_from_its_size() -> None:
 def test_commands_take_only_their_fields() -> None:
     assert read("command", b'{"command": "takeoff", "altitude": 3}', CFG) == Command("takeoff", 3.0)
     assert read("command", b'{"command": "arm"}', CFG) == Command("arm", None)
-    assert messages.schema("command")["else"] == {"properties": {"altitude": False}}
+    assert messages.schema("command")["else"] == {"properties": {"altitude": False, "origin": False}}
 
 
 def test_limits_are_configurable_and_named() -> None:
@@ -173,7 +173,7 @@ def test_loop_boundary_guard_reports_and_goes_on() -> None:
     stop = asyncio.Event()
     fake = SimpleNamespace(
         zio=SimpleNamespace(inbox=inbox, on_dropped=None), stop=stop, cfg=CFG, report=report,
-        _ordered=asyncio.Queue(), _dispatch=dispatch, _dropped=lambda *a: None)
+        link=SimpleNamespace(state=SimpleNamespace(home=None)), _ordered=asyncio.Queue(), _dispatch=dispatch, _dropped=lambda *a: None)
     fake._unforeseen = lambda kind, payload, exc: service_mod.Service._unforeseen(fake, kind, payload, exc)  # type: ignore[arg-type]
 
     async def main() -> None:

@@ -170,3 +170,27 @@ def test_obstacles_must_be_bounded_and_solid(region: dict, field: str, words: st
     with pytest.raises(MessageError) as info:
         parse_region({"id": "o", **region}, "add[0]")
     assert info.value.field == field and words in info.value.reason
+
+
+def test_fastest_timing_flies_faster_keeps_mission_indices_and_verifies() -> None:
+    """[planner] timing = "fastest": a mission without durations gets the fastest allocation;
+    knots it puts on long legs are synthetic waypoints (-1), never counted as mission waypoints."""
+    fast = config_from_dict({"planner": {"vehicle_radius": 0.25, "timing": "fastest",
+                                         "bounds": {"velocity": 3, "acceleration": 4, "jerk": 20, "snap": 120}}})
+    wps = [[12, 0, -1.5], [12, 3, -1.5], [0, 3, -1.5]]
+    spec = mission_from_message({"id": "m", "waypoints": wps}, CFG)
+    start = rest_jet(np.array([0.0, 0.0, -1.5]))
+    slow = start_mission(spec, start, 1.0, [], CFG)
+    quick = start_mission(spec, start, 1.0, [], fast)
+    assert slow.ok and quick.ok and slow.route is not None and quick.route is not None, quick.message
+    r = quick.route
+    assert r.t_end < slow.route.t_end
+    assert verify(r.trajectory, r.problem).ok
+    assert np.count_nonzero(r.labels < 0) > 1  # knots were inserted (beyond the start point)
+    mission_labels = r.labels[r.labels >= 0]
+    assert mission_labels.tolist() == [0.0, 1.0, 2.0]  # in order, each once
+    for i, p in enumerate(wps):
+        k = int(np.flatnonzero(r.labels == i)[0])
+        assert np.allclose(r.trajectory.evaluate(r.times[k]), p, atol=1e-6)
+    with pytest.raises(Exception, match="timing"):
+        config_from_dict({"planner": {"timing": "quickest"}})

@@ -30,6 +30,25 @@ _BINOM = np.array([comb(DEGREE, k) for k in range(DEGREE + 1)], dtype=float)
 VELOCITY_BOUND = 3.0
 ACCELERATION_BOUND = 4.0
 WAYPOINT_TOL = 1e-6
+CERT_PIECES = 3  # the planner certifies each hodograph on 3 de Casteljau pieces (issue 12)
+
+
+def _pieces(pts: np.ndarray, pieces: int = CERT_PIECES) -> np.ndarray:
+    """Control points of the curve's restrictions to [i/p, (i+1)/p], one piece after the other
+    (de Casteljau splits): their hull holds the curve, tighter than the whole polygon's."""
+    out = []
+    rest = np.asarray(pts, dtype=float)
+    for i in range(pieces - 1):
+        u = 1.0 / (pieces - i)
+        work, left, right = rest, [rest[0]], [rest[-1]]
+        for _ in range(len(rest) - 1):
+            work = (1.0 - u) * work[:-1] + u * work[1:]
+            left.append(work[0])
+            right.append(work[-1])
+        out.append(np.array(left))
+        rest = np.array(right[::-1])
+    out.append(rest)
+    return np.concatenate(out)
 
 
 @dataclass(frozen=True)
@@ -77,8 +96,8 @@ class Plan:
         return np.einsum("nk,nkd->nd", basis, self.ctrl[j])
 
     def bound_violations(self) -> list[str]:
-        """Convex-hull certificate, rechecked: hodograph control points within the bounds and
-        control points inside each segment's corridor (1e-6 slack)."""
+        """Convex-hull certificate, rechecked: the control points of the hodographs' CERT_PIECES
+        pieces within the bounds and control points inside each segment's corridor (1e-6 slack)."""
         out: list[str] = []
         for s in range(len(self.ctrl)):
             span = self.times[s + 1] - self.times[s]
@@ -87,7 +106,8 @@ class Plan:
                 out.append(f"segment {s}: non-positive duration {span}")
                 continue
             vel = DEGREE / span * np.diff(p, axis=0)
-            acc = (DEGREE - 1) / span * np.diff(vel, axis=0)
+            acc = _pieces((DEGREE - 1) / span * np.diff(vel, axis=0))
+            vel = _pieces(vel)
             if np.max(np.abs(vel)) > VELOCITY_BOUND + 1e-6:
                 out.append(f"segment {s} [{self.times[s]:.3f}, {self.times[s + 1]:.3f}]: "
                            f"velocity control point {np.max(np.abs(vel)):.4f} > {VELOCITY_BOUND}")

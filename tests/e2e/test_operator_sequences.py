@@ -129,6 +129,7 @@ class OperatorSequences(RuleBasedStateMachine):
             self.rig.stop()
             raise
         self.lift_sent: float | None = None  # mock time of the first takeoff/start
+        self.ground_z = 0.0  # local z of the ground, from the mock
         self.mission: dict[str, Any] | None = None  # id, wps (NED), pending, changeable
         self.seen_at: list[tuple[int, float] | None] = []  # per model waypoint: (epoch, junction time)
         self.mission_started_mock_t: float | None = None
@@ -208,6 +209,7 @@ class OperatorSequences(RuleBasedStateMachine):
     @initialize(start=st.sampled_from(["on the ground", "airborne", "flying a mission"]), points=waypoint_lists)
     def init(self, start: str, points: list[tuple[float, float, float]]) -> None:
         self.note(f"init({start})")
+        self.ground_z = float(self.rig.mock().get("ground_z", 0.0))  # the ground's local z (PX4's is not 0)
         if start != "on the ground":
             since = self.rig.mark()
             self.command("arm")
@@ -509,7 +511,7 @@ class OperatorSequences(RuleBasedStateMachine):
         if self.lift_sent is not None:
             return
         ms = self.rig.mock()
-        if not ms["landed"] or ms["position"][2] < -0.25:
+        if not ms["landed"] or ms["position"][2] < self.ground_z - 0.25:
             self.violate("b", f"vehicle off the ground without takeoff/start: mock z {ms['position'][2]:.2f} m, "
                          f"mode {ms['mode']}, companion {self.rig.state()}")
             self.lift_sent = -1.0  # report once
@@ -575,7 +577,7 @@ class OperatorSequences(RuleBasedStateMachine):
             limit = self.lift_sent if self.lift_sent is not None and self.lift_sent >= 0 else None
             if self.lift_sent is None or limit is not None:
                 early = [r for r in log if r["type"] == "state" and (limit is None or r["t"] < limit)
-                         and r["pos"][2] < -0.25]
+                         and r["pos"][2] < self.ground_z - 0.25]
                 if early:
                     self.violate("b", f"flight log: vehicle at z {early[0]['pos'][2]:.2f} m at mock t "
                                  f"{early[0]['t']:.2f} before any takeoff/start (sent at {limit})")

@@ -40,19 +40,26 @@ def clear_obstacles(rig: Rig) -> None:
     rig.wait_event(lambda e: e["type"] == "accepted" and e.get("key") == "obstacles", 5, "obstacles cleared", since)
 
 
+def home(rig: Rig) -> np.ndarray:
+    """HOME_POSITION's local position (NED): PX4's ground is not at the local origin."""
+    return np.asarray(rig.control.state()["home"], dtype=float)
+
+
 def test_mission_with_static_obstacle(rig: Rig) -> None:
     obstacle = box([0.7, 0.7, -3.0], [1.3, 1.3, 0.0])
-    mission = {"id": "px4-square", "frame": "ned", "obstacles": [obstacle],
+    # home-relative, as the takeoff (1 m above the ground) is
+    mission = {"id": "px4-square", "frame": "ned", "origin": "home", "obstacles": [obstacle],
                "waypoints": [[2.0, 0.0, -1.2], [2.0, 2.0, -1.2], [0.0, 2.0, -1.5]]}
+    h = home(rig)
     t0, t1, accepted = rig.fly(mission)
     log = rig.log()
     assert "planned and verified" in accepted["message"]
     assert tracking_rms(log, t0, t1) <= 0.15
     final = np.asarray(rig.control.state()["position"])
-    assert np.linalg.norm(final - mission["waypoints"][-1]) <= 0.1
+    assert np.linalg.norm(final - (h + mission["waypoints"][-1])) <= 0.1
     assert max_gap(setpoints(log, t0, t1)) <= 0.060
     assert arrival_gap(setpoints(log, t0, t1)) <= 0.5
-    track = np.array([r["pos"] for r in states(log, t0, t1)])
+    track = np.array([r["pos"] for r in states(log, t0, t1)]) - h
     assert not np.any(inside(track, polytope(obstacle), RADIUS - TRACKING_ALLOWANCE))
     seen = rig.statuses[-1]
     assert seen["state"] == "HOLDING" and seen["mission"] == "px4-square"
@@ -142,7 +149,9 @@ def test_obstacle_across_the_path_is_flown_around(rig: Rig) -> None:
 def test_bad_messages_are_rejected_and_the_flight_continues(rig: Rig) -> None:
     clear_obstacles(rig)
     since = rig.mark()
-    mission = {"id": "px4-bad", "waypoints": [[-1.5, 2.5, -1.5], [-1.5, -1.0, -1.5], [1.0, -1.0, -1.5]]}
+    mission = {"id": "px4-bad", "origin": "home",
+               "waypoints": [[-1.5, 2.5, -1.5], [-1.5, -1.0, -1.5], [1.0, -1.0, -1.5]]}
+    h = home(rig)
     t_start = rig.mock_time()
     rig.put("mission", mission)
     rig.wait_event(lambda e: e["type"] == "state" and e.get("to") == "STREAMING", 10, "streaming", since)
@@ -179,7 +188,7 @@ def test_bad_messages_are_rejected_and_the_flight_continues(rig: Rig) -> None:
     assert arrival_gap(setpoints(log, t_start, t_end)) <= 0.5
     assert tracking_rms(log, t_start, t_end) <= 0.15
     final = np.asarray(rig.control.state()["position"])
-    assert np.linalg.norm(final - mission["waypoints"][-1]) <= 0.1
+    assert np.linalg.norm(final - (h + mission["waypoints"][-1])) <= 0.1
 
 
 def test_pilot_takeover_stops_streaming_until_start(rig: Rig) -> None:

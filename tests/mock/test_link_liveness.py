@@ -40,6 +40,9 @@ def test_half_the_packets_lost_is_not_a_lost_link_but_silence_is(tmp_path: Path)
             mock.pause_link(3.0)  # silence
             await until(lambda: events.of("link_lost"), 5, "link lost on silence")
             await until(lambda: events.of("link_restored"), 10, "link restored")
+            # the link, not the companion: its loop and setpoint thread ran throughout
+            assert events.of("link_lost")[0]["cause"] == "link" and events.of("link_restored")[0]["cause"] == "link"
+            assert not events.of("stalled")
         finally:
             mock.link_faults.drop = 0.0
             svc.requested.set()

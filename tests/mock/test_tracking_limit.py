@@ -28,7 +28,10 @@ def test_tracking_error_over_the_limit_brakes_and_holds(tmp_path: Path) -> None:
             assert not events.of("tracking"), events.of("tracking")  # hovering: well within
             # a slow link: the vehicle's answer comes 0.6 s late both ways
             mock.link_faults.latency_s = 0.3
-            spec = read("mission", b'{"id": "far", "waypoints": [[8, 0, -1.0]]}', svc.cfg)
+            await until(lambda: svc.link.state.home is not None, 10, "home")
+            # 1 m above home (PX4's ground is not at the local origin)
+            spec = read("mission", b'{"id": "far", "origin": "home", "waypoints": [[8, 0, -1.0]]}', svc.cfg,
+                        svc.link.state.home)
             await svc.navigator.on_mission(spec, time.monotonic())  # type: ignore[arg-type]
             try:
                 await until(lambda: events.of("tracking"), 20, "the tracking event")

@@ -1,0 +1,246 @@
+"""What a real PX4 1.15 does that the companion must follow (issue 15), below the service:
+home-relative messages, the takeoff altitude above the ground, PX4's mode reports (armed
+state first) and the setpoint thread's stall latch."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from typing import Any
+
+import numpy as np
+import pytest
+
+from companion.autopilot import AutopilotWatch
+from companion.commands import Commands
+from companion.config import Config
+from companion.flight import Flight, State
+from companion.report import Reporter
+from companion.setpoints import Feed, Liveness, SetpointSender, Tick, YawPolicy
+from companion.wire.mavlink import VehicleState, decode_mode
+from companion.wire.messages import Command, MessageError, MissionSpec, ObstacleUpdate, read
+from planner_core import hold
+
+S = State
+CFG = Config()
+HOME = np.array([0.5, -1.0, 1.6])  # NED: PX4's ground sits 1.6 m below its local origin
+
+
+def mission(**extra: Any) -> bytes:
+    return json.dumps({"id": "m", "waypoints": [[1.0, 0.0, -2.0], [3.0, 0.0, -2.0]], **extra}).encode()
+
+
+def test_home_relative_mission_and_obstacles_are_shifted_into_the_local_frame() -> None:
+    local = read("mission", mission(), CFG, HOME)
+    assert isinstance(local, MissionSpec)
+    np.testing.assert_allclose(local.waypoints, [[1.0, 0.0, -2.0], [3.0, 0.0, -2.0]])
+    box = {"id": "b", "A": [[1, 0, 0], [-1, 0, 0], [0, 1, 0], [0, -1, 0], [0, 0, 1], [0, 0, -1]],
+           "b": [2.5, -1.5, 1, 1, 3, 0]}
+    rel = read("mission", mission(origin="home", obstacles=[box]), CFG, HOME)
+    assert isinstance(rel, MissionSpec)
+    np.testing.assert_allclose(rel.waypoints, local.waypoints + HOME)
+    # the same solid, moved by home: a point inside it relative to home is inside it in local
+    poly = rel.obstacles[0][1]
+    inside = np.array([2.0, 0.0, 1.0]) + HOME
+    assert np.all(poly.A @ inside <= poly.b) and not np.all(poly.A @ np.array([2.0, 0.0, 1.0]) <= poly.b)
+    # ENU in, home-relative: the swap first (z up), then the shift
+    enu = read("mission", json.dumps({"id": "e", "origin": "home", "frame": "enu", "waypoints": [[1, 0, 2]]}).encode(),
+               CFG, HOME)
+    assert isinstance(enu, MissionSpec)
+    np.testing.assert_allclose(enu.waypoints[0], np.array([0.0, 1.0, -2.0]) + HOME)
+    obs = read("obstacles", json.dumps({"origin": "home", "add": [{"id": "v", "vertices": [
+        [x, y, z] for x in (0, 1) for y in (0, 1) for z in (-1, 0)]}]}).encode(), CFG, HOME)
+    assert isinstance(obs, ObstacleUpdate)
+    change = read("change", json.dumps({"origin": "home", "move_waypoint": {"index": 1, "position": [0, 0, -2]}})
+                  .encode(), CFG, HOME)
+    np.testing.assert_allclose(change.body.position, np.array([0.0, 0.0, -2.0]) + HOME)  # type: ignore[union-attr]
+
+
+def test_a_home_relative_message_is_refused_while_home_is_unknown() -> None:
+    for kind, payload in (("mission", mission(origin="home")),
+                          ("obstacles", b'{"origin": "home", "clear": true}'),
+                          ("change", b'{"origin": "home", "remove_waypoint": {"index": 1}}')):
+        err = read(kind, payload, CFG, None)
+        assert isinstance(err, MessageError), kind
+        assert err.field == "origin" and "HOME_POSITION" in err.reason
+    # the local frame needs no home
+    assert isinstance(read("mission", mission(origin="local"), CFG, None), MissionSpec)
+
+
+def test_a_refusal_of_a_shifted_position_says_the_frame_it_names() -> None:
+    err = read("mission", json.dumps({"id": "m", "origin": "home", "waypoints": [[0, 0, -1.0]]}).encode(),
+               config_with_fence(), HOME)
+    assert isinstance(err, MessageError)
+    assert "local frame" in err.reason and "[0.5, -1, 1.6]" in err.reason, err.reason
+
+
+def config_with_fence() -> Config:
+    from companion.config import config_from_dict
+    return config_from_dict({"geofence": {"min": [-10, -10, -10], "max": [10, 10, 0.0], "origin": "local"}})
+
+
+def test_the_geofence_follows_home_so_its_floor_follows_the_ground() -> None:
+    low = json.dumps({"id": "low", "waypoints": [[0.0, 0.0, 1.0]]}).encode()  # 0.6 m above PX4's ground
+    assert isinstance(read("mission", low, CFG, HOME), MissionSpec)  # [geofence] origin = "home"
+    local = read("mission", low, config_with_fence(), HOME)
+    assert isinstance(local, MessageError) and "geofence" in local.reason
+    spec = read("mission", mission(), CFG, HOME)
+    assert isinstance(spec, MissionSpec)
+    np.testing.assert_allclose(spec.map_hi, np.asarray(CFG.geofence.max) + HOME)
+
+
+def test_takeoff_takes_origin_and_only_takeoff_does() -> None:
+    assert read("command", b'{"command": "takeoff", "altitude": 2, "origin": "home"}', CFG) == \
+        Command("takeoff", 2.0, "home")
+    assert read("command", b'{"command": "takeoff"}', CFG) == Command("takeoff", None, "ground")
+    err = read("command", b'{"command": "land", "origin": "home"}', CFG)
+    assert isinstance(err, MessageError) and err.field == "origin"
+
+
+class _Link:
+    def __init__(self, st: VehicleState) -> None:
+        self.state = st
+
+    def link_ok(self) -> bool:
+        return time.monotonic() - self.state.last_heartbeat <= CFG.mavlink.link_timeout
+
+
+def _commands(st: VehicleState, fl: Flight) -> Commands:
+    return Commands(CFG, fl, None, _Link(st), None, Reporter(fl))  # type: ignore[arg-type]
+
+
+def test_takeoff_altitude_is_above_the_ground_where_the_vehicle_stands() -> None:
+    st, fl = VehicleState(autopilot="px4", home=HOME.copy()), Flight()
+    st.position = np.array([0.5, -1.0, 1.6])  # on the ground, PX4's local z +1.6
+    cmds = _commands(st, fl)
+    target, above = cmds.takeoff_target(3.0)
+    assert above == "the ground" and target[2] == pytest.approx(1.6 - 3.0)  # 3 m up, not z = -3
+    # in the air (a second takeoff from READY): above the ground it stood on, not above here
+    fl.airborne, fl.ground_z = True, 1.6
+    st.position = np.array([0.5, -1.0, -0.4])
+    assert cmds.takeoff_target(3.0)[0][2] == pytest.approx(-1.4)
+    # above home: home's z, wherever the vehicle is
+    st.home = np.array([0.0, 0.0, 1.2])
+    target, above = cmds.takeoff_target(2.0, "home")
+    assert above == "home" and target[2] == pytest.approx(-0.8)
+
+
+def _hb(st: VehicleState, mode_custom: int, armed: bool) -> None:
+    st.autopilot, st.custom_mode, st.armed = "px4", mode_custom, armed
+    st.base_mode = 1 | (128 if armed else 0)
+    st.mode = decode_mode("px4", 2, st.base_mode, mode_custom)
+
+
+PX4_LOITER = (4 << 16) | (3 << 24)  # AUTO.LOITER: main 4, sub 3
+PX4_OFFBOARD = 6 << 16
+PX4_LAND = (4 << 16) | (6 << 24)
+
+
+def _watch(stalled: bool = False) -> tuple[AutopilotWatch, Flight, VehicleState, list[dict[str, Any]]]:
+    fl, st = Flight(seen_link=True), VehicleState()
+    events: list[dict[str, Any]] = []
+    rep = Reporter(fl, lambda _k, body: events.append(body))
+    released: list[bool] = []
+    w = AutopilotWatch(CFG, fl, _Link(st), rep, lambda: released.append(True),  # type: ignore[arg-type]
+                       stalled=lambda: stalled)
+    return w, fl, st, events
+
+
+def test_px4_modes_as_reported_boot_loiter_and_offboard_while_disarmed() -> None:
+    w, fl, st, events = _watch()
+    _hb(st, PX4_LOITER, armed=False)
+    assert st.mode == "LOITER"  # PX4 >= 1.14 boots in AUTO.LOITER
+    w.on_heartbeat()
+    assert fl.state is S.IDLE and not events
+    # a landing and auto-disarm in OFFBOARD: PX4 reports OFFBOARD while disarmed
+    fl.state, fl.airborne = S.LANDING, True
+    _hb(st, PX4_OFFBOARD, armed=False)
+    w.on_heartbeat()
+    assert fl.state is S.IDLE and not fl.airborne
+    w.on_heartbeat()
+    assert fl.state is S.IDLE and not [e for e in events if e["type"] in ("pilot_takeover", "failsafe")]
+
+
+def test_armed_state_first_a_disarm_with_a_mode_change_is_not_a_pilot_takeover() -> None:
+    w, fl, st, events = _watch()
+    fl.state, fl.airborne = S.STREAMING, True
+    _hb(st, PX4_LAND, armed=False)  # PX4's fallback landed and disarmed (one heartbeat shows both)
+    w.on_heartbeat()
+    assert fl.state is S.IDLE
+    kinds = [e["type"] for e in events]
+    assert "pilot_takeover" not in kinds and "failsafe" in kinds
+
+
+@pytest.mark.parametrize("stalled", [False, True])
+def test_leaving_offboard_is_put_down_to_the_companion_when_it_stalled(stalled: bool) -> None:
+    w, fl, st, events = _watch(stalled)
+    fl.state, fl.airborne = S.STREAMING, True
+    _hb(st, PX4_LAND, armed=True)
+    w.on_heartbeat()
+    if stalled:
+        assert fl.state is S.FAILSAFE
+        assert next(e for e in events if e["type"] == "failsafe")["cause"] == "companion"
+        assert not [e for e in events if e["type"] == "pilot_takeover"]
+    else:
+        assert fl.state is S.PILOT and [e for e in events if e["type"] == "pilot_takeover"]
+    # then PX4 lands and disarms: the companion follows it out of FAILSAFE/PILOT
+    _hb(st, PX4_OFFBOARD if stalled else PX4_LAND, armed=False)
+    w.on_heartbeat()
+    assert fl.state is S.IDLE
+
+
+def test_check_link_says_nothing_while_the_companion_itself_stalled() -> None:
+    w, fl, st, events = _watch(stalled=True)
+    st.last_heartbeat = time.monotonic() - 10.0  # silence, as a loop that did not run sees it
+    w.check_link()
+    assert not fl.link_lost and not events
+
+
+def _until(pred: Any, timeout: float = 5.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while not pred():
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.01)
+    return True
+
+
+def test_the_setpoint_thread_withholds_setpoints_once_the_loop_stops_beating() -> None:
+    """A real thread and clock: while the loop beats, setpoints leave; once it stops for the
+    limit, none leaves (none sampled after the limit) until the loop releases them."""
+    sent: list[float] = []
+    ticks: list[Tick] = []
+    live = Liveness(0.4)
+    sender = SetpointSender(100.0, lambda sp: sent.append(time.monotonic()), YawPolicy("hold", 0.0, 0.3),
+                            ticks.append, lambda exc: None)
+    sender.liveness = live
+    sender.feed = Feed(hold(np.zeros(3), 0.0), time.monotonic())
+    stop = threading.Event()
+
+    def loop() -> None:
+        while not stop.is_set():
+            live.beat()
+            time.sleep(0.01)
+
+    beater = threading.Thread(target=loop, daemon=True)
+    beater.start()
+    sender.start()
+    try:
+        assert _until(lambda: len(sent) >= 5) and not sender.withheld
+        stop.set()  # the loop stalls
+        beater.join()
+        stalled_at = live.stamp
+        assert _until(lambda: sender.withheld)
+        assert live.withheld is not None and live.withheld[1] == "loop"
+        # no setpoint sampled after the loop had been silent for the limit
+        assert max(t.now for t in ticks if t.setpoint is not None) <= stalled_at + live.limit
+        n = len(sent)
+        live.beat()  # the loop is back: still withheld until it releases
+        time.sleep(0.1)
+        assert len(sent) == n
+        assert live.release() is not None
+        live.beat()
+        assert _until(lambda: len(sent) > n, 0.3)
+    finally:
+        sender.stop()
