@@ -306,6 +306,23 @@ def arrival_gap(records: list[dict[str, Any]]) -> float:
     return float(np.max(np.diff(t))) if len(t) > 1 else math.inf
 
 
+# The calibrated mock follows its setpoints with ~60-70 ms of effective lag on circles (as
+# ArduCopter SITL measured) and more on short, hard-accelerating legs, so the flown position
+# trails a setpoint by about speed x lag: what "tracks well" means depends on how fast the plan
+# flies (the 3-piece certificate made plans ~3x faster). Measured on the PX4 tests' missions:
+# 1.06x the allowance at 80 ms, so 100 ms leaves ~10 %.
+TRACKING_LAG = 0.10  # s
+TRACKING_FLOOR = 0.05  # m
+
+
+def tracking_allowance(log: list[dict[str, Any]], t0: float, t1: float) -> float:
+    """TRACKING_FLOOR + TRACKING_LAG x the RMS commanded speed in [t0, t1]: the tracking RMS a
+    vehicle lagging its setpoints by TRACKING_LAG would show, plus a floor."""
+    vel = np.array([r["raw_vel"] for r in setpoints(log, t0, t1) if r.get("raw_vel") is not None])
+    assert vel.size, "no setpoints with velocities during the window"
+    return TRACKING_FLOOR + TRACKING_LAG * float(np.sqrt(np.mean(np.sum(vel * vel, axis=1))))
+
+
 def tracking_rms(log: list[dict[str, Any]], t0: float, t1: float) -> float:
     """RMS distance between the flown position and the setpoint in force at that time."""
     sps = [r for r in setpoints(log, t0, t1) if r.get("raw_pos") is not None]
