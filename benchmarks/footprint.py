@@ -31,6 +31,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import functools
 import importlib.util
 import itertools
 import json
@@ -235,17 +236,6 @@ LAYOUTS: dict[str, dict[str, Any]] = {
 }
 
 
-def _tree(pid: int) -> list[int]:
-    out, todo = [], [pid]
-    while todo:
-        p = todo.pop()
-        out.append(p)
-        with contextlib.suppress(OSError):
-            for task in Path(f"/proc/{p}/task").iterdir():
-                todo += [int(c) for c in (task / "children").read_text().split()]
-    return out
-
-
 def _kb(path: str, key: str) -> float:
     with contextlib.suppress(OSError):
         for line in Path(path).read_text().splitlines():
@@ -257,7 +247,7 @@ def _kb(path: str, key: str) -> float:
 def tree_peaks(pid: int) -> tuple[float, float]:
     """Peak resident memory (VmHWM, MB) of pid itself, and the largest among its descendants
     (the planner worker: the other child, multiprocessing's resource tracker, stays ~13 MB)."""
-    procs = _tree(pid)
+    procs = _service_bench()._tree(pid)  # pid and its descendants
     own = _kb(f"/proc/{pid}/status", "VmHWM") / 1024
     children = [_kb(f"/proc/{p}/status", "VmHWM") / 1024 for p in procs if p != pid]
     return own, max(children, default=0.0)
@@ -265,7 +255,7 @@ def tree_peaks(pid: int) -> tuple[float, float]:
 
 def tree_memory(pid: int) -> tuple[float, float, int]:
     """(RSS sum, PSS sum) in MB over pid and its descendants, and how many processes."""
-    procs = _tree(pid)
+    procs = _service_bench()._tree(pid)  # pid and its descendants
     rss = sum(_kb(f"/proc/{p}/status", "VmRSS") for p in procs) / 1024
     pss = sum(_kb(f"/proc/{p}/smaps_rollup", "Pss") for p in procs) / 1024
     return rss, pss, len(procs)
@@ -288,6 +278,7 @@ def _layout(overrides: dict[str, Any]) -> Iterator[None]:
         demo_rig.demo_config = original  # type: ignore[assignment]
 
 
+@functools.cache
 def _service_bench() -> Any:
     spec = importlib.util.spec_from_file_location("service_bench", Path(__file__).with_name("service.py"))
     assert spec is not None and spec.loader is not None
