@@ -237,13 +237,18 @@ def to_planned(
         if not 0 <= s <= n - 2:
             raise _out_of_range(field, "segment", s, 0, n - 2, n)
 
+    def open_waypoint(i: int, field: str, lo: int) -> int:
+        """The planned index of user waypoint i (lo..n-1-lo allowed), not yet flown at from_time."""
+        if not lo <= i <= n - 1 - lo:
+            raise _out_of_range(field, "waypoint", i, lo, n - 1 - lo, n)
+        j = int(idx[i])
+        if j <= last:
+            raise ChangeError(field, f"waypoint {i} is at or before from_time")
+        return j
+
     for e in change.edits:
         if isinstance(e, MoveWaypoint):
-            if not 0 <= e.index <= n - 1:
-                raise _out_of_range("move.index", "waypoint", e.index, 0, n - 1, n)
-            j = int(idx[e.index])
-            if j <= last:
-                raise ChangeError("move.index", f"waypoint {e.index} is at or before from_time")
+            j = open_waypoint(e.index, "move.index", 0)
             moved[e.index] = np.asarray(e.position, dtype=float)
             edits.append(replace(e, index=j))
         elif isinstance(e, SetDuration):
@@ -280,11 +285,7 @@ def to_planned(
             structural = ("insert", e.index, p)
             edits.append(replace(e, index=p, time=t))
         elif isinstance(e, RemoveWaypoint):
-            if not 1 <= e.index <= n - 2:
-                raise _out_of_range("remove.index", "waypoint", e.index, 1, n - 2, n)
-            j = int(idx[e.index])
-            if j <= last:
-                raise ChangeError("remove.index", f"waypoint {e.index} is at or before from_time")
+            j = open_waypoint(e.index, "remove.index", 1)
             structural = ("remove", e.index, j)
             edits.append(replace(e, index=j))
             if e.corridor is not None:  # the merged pieces j - 1, j get it from the removal itself

@@ -7,9 +7,11 @@ import signal
 import sys
 from types import FrameType
 
+from companion.wire.signing import read_signing_key
+
 from .faults import _seconds, parse_faults
 from .server import MockAutopilot, MockConfig
-from .transport import PX4_SITL_ENDPOINT, read_signing_key
+from .transport import PX4_SITL_ENDPOINT
 from .vehicle import RESPONSES
 
 

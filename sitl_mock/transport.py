@@ -80,21 +80,6 @@ SIGNED_ONLY = frozenset({
 })
 
 
-def read_signing_key(path: str) -> bytes:
-    """A MAVLink 2 signing key from a file: 32 raw bytes, or 64 hex digits (whitespace ignored)."""
-    with open(path, "rb") as fh:
-        raw = fh.read()
-    text = raw.strip()
-    if len(text) == 64:
-        try:
-            return bytes.fromhex(text.decode("ascii"))
-        except (UnicodeDecodeError, ValueError):
-            pass
-    if len(raw) == 32:
-        return raw
-    raise ValueError(f"{path}: a signing key is 32 bytes (raw) or 64 hex digits, got {len(raw)} bytes")
-
-
 def new_parser(signing_key: bytes | None = None) -> Any:
     parser = mav.MAVLink(None)
     parser.robust_parsing = True

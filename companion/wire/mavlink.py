@@ -28,6 +28,7 @@ from pymavlink import mavutil
 from companion.config import Config
 from companion.setpoints import Setpoint
 from companion.wire import dialect
+from companion.wire.signing import read_signing_key
 
 dialect.install()  # PX4 >= 1.14 says what happens in EVENT (410), which pymavlink lacks
 mavlink = mavutil.mavlink
@@ -191,21 +192,6 @@ def parse_url(url: str) -> tuple[str, int]:
     if sep and tail.isdigit():
         return head, int(tail)
     return device, 57600
-
-
-def read_signing_key(path: str) -> bytes:
-    """A MAVLink 2 signing key from a file: 32 raw bytes, or 64 hex digits (whitespace ignored)."""
-    with open(path, "rb") as fh:
-        raw = fh.read()
-    text = raw.strip()
-    if len(text) == 64:
-        try:
-            return bytes.fromhex(text.decode("ascii"))
-        except (UnicodeDecodeError, ValueError):
-            pass
-    if len(raw) == 32:
-        return raw
-    raise OSError(f"{path}: a signing key is 32 bytes (raw) or 64 hex digits, got {len(raw)} bytes")
 
 
 class MavlinkLink:
