@@ -13,8 +13,12 @@ Also: the certificate's conservatism on the rest-to-rest segment per number of d
 pieces (the planner certifies each hodograph on constraints.HULL_PIECES of them), the takeoff
 climb (`allocation.takeoff_duration`) and the time weight (`allocation.weighted_durations`,
 min J + rho T) on a few missions, and the fastest allocation's cost against the mission size
-(`--scale`: benchmarks/scale.py scenes without their durations, 10 to 1000 waypoints). `lb_turn` is a tighter valid lower bound than the per-axis
-one (`turning_lower_bound`: acceleration at the axis' turning points).
+(`--scale`: benchmarks/scale.py scenes without their durations, 10 to 1000 waypoints).
+
+`proven` is a proven lower bound for any curve within v, a, j (planner_core.flight_time_lower_bound:
+per axis, the runs between turning points, each from a stop to a stop, under v/a and a/j);
+`proven_x` = proven / per-axis bound: a mission whose `proven_x` exceeds 1.5 cannot be flown
+within 1.5x the per-axis bound by any planner.
 
 For each: the allocation (`default`: planner_core.timing.allocate_times, what a
 scenario without times gets; `fastest`: planner_core.fastest_durations), our flight
@@ -30,7 +34,6 @@ as such.
 from __future__ import annotations
 
 import argparse
-import itertools
 import json
 import sys
 import time
@@ -41,7 +44,15 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from planner_core import Bounds, Problem, Trajectory, allocate_times, plan, warm_up
+from planner_core import (
+    Bounds,
+    Problem,
+    Trajectory,
+    allocate_times,
+    flight_time_lower_bound,
+    plan,
+    warm_up,
+)
 from planner_core.bezier import end_map, hodograph_matrix, start_map, subdivision_matrix
 from planner_core.constraints import HULL_PIECES, certified_points
 
@@ -74,32 +85,10 @@ def axis_lower_bound(waypoints: np.ndarray, bounds: Bounds) -> float:
     return float(np.sum(np.max(np.abs(np.diff(waypoints, axis=0)) / vmax, axis=1)))
 
 
-def turning_lower_bound(waypoints: np.ndarray, bounds: Bounds) -> float:
-    """A tighter valid lower bound with acceleration: per axis, the waypoints' coordinates are
-    visited in order, so between two turning points (a local max then min, or the start/end at
-    rest) the axis' velocity is zero at the curve's extreme beyond each, and the stretch takes at
-    least the bang-bang time from rest to rest under v and a (acceleration free at the turns: jerk
-    and snap ignored, so it stays a lower bound). The flight takes at least the slowest axis' sum,
-    and at least `axis_lower_bound`."""
-    vmax = np.minimum(bounds.hi[0], -bounds.lo[0])
-    amax = np.minimum(bounds.hi[1], -bounds.lo[1])
-    worst = 0.0
-    for ax in range(3):
-        x = waypoints[:, ax]
-        dx = np.diff(x)
-        dx = dx[np.abs(dx) > 1e-12]
-        if dx.size == 0:
-            continue
-        runs: list[float] = [abs(float(dx[0]))]
-        for a, b in itertools.pairwise(dx):
-            if np.sign(a) == np.sign(b):
-                runs[-1] += abs(float(b))
-            else:
-                runs.append(abs(float(b)))
-        v, acc = float(vmax[ax]), float(amax[ax])
-        t = sum(dd / v + v / acc if dd >= v * v / acc else 2.0 * np.sqrt(dd / acc) for dd in runs)
-        worst = max(worst, t)
-    return max(worst, axis_lower_bound(waypoints, bounds))
+def proven_lower_bound(waypoints: np.ndarray, bounds: Bounds) -> float:
+    """planner_core.flight_time_lower_bound: no curve within v, a, j through these waypoints from
+    rest to rest is faster (per axis, the runs between turning points under v/a and a/j)."""
+    return flight_time_lower_bound(waypoints, bounds).value
 
 
 def peak_fractions(traj: Trajectory, problem: Problem) -> dict[str, float]:
@@ -137,13 +126,13 @@ def plan_timed(problem: Problem, how: str, repeats: int = 3) -> tuple[Any, float
 
 def _row(kind: str, name: str, how: str, problem: Problem, res: Any, t_plan: float, lb: float,
          ruck: float | None) -> Row:
-    lb_turn = turning_lower_bound(problem.waypoints, problem.bounds)
+    proven = proven_lower_bound(problem.waypoints, problem.bounds)
     row: Row = {"kind": kind, "name": name, "alloc": how, "m": problem.m, "ok": bool(res.ok),
-                "lower_bound": lb, "lb_turn": lb_turn, "ruckig": ruck, "plan_ms": 1e3 * t_plan}
+                "lower_bound": lb, "proven": proven, "proven_x": proven / lb, "ruckig": ruck, "plan_ms": 1e3 * t_plan}
     if res.ok and res.trajectory is not None:
         traj = res.trajectory
         flight = traj.t_end - traj.t0
-        row.update(flight=flight, vs_lb=flight / lb, vs_lb_turn=flight / lb_turn, vs_ruckig=None if ruck is None else flight / ruck,
+        row.update(flight=flight, vs_lb=flight / lb, vs_proven=flight / proven, vs_ruckig=None if ruck is None else flight / ruck,
                    **peak_fractions(traj, problem if problem.m == traj.n_segments + 1 else
                                     Problem(traj.waypoints, traj.times, problem.bounds, problem.initial,
                                             problem.final)))
@@ -193,7 +182,7 @@ def _fmt(v: Any) -> str:
 
 
 COLS = ["kind", "name", "alloc", "m", "segs", "ok", "flight", "ruckig", "vs_ruckig", "lower_bound", "vs_lb",
-        "lb_turn", "vs_lb_turn",
+        "proven", "proven_x", "vs_proven",
         "peak_v", "peak_a", "peak_j", "peak_s", "hull_v", "plan_ms", "plans"]
 
 
@@ -211,7 +200,8 @@ def summary(rows: list[Row]) -> list[str]:
         lg = [r["vs_ruckig"] for r in rows if r["kind"] == "leg" and r["alloc"] == how and r.get("vs_ruckig")
               and r["name"] != "1 m"]
         ms = [r["vs_lb"] for r in rows if r["kind"] == "mission" and r["alloc"] == how and r.get("vs_lb")]
-        mt = [r["vs_lb_turn"] for r in rows if r["kind"] == "mission" and r["alloc"] == how and r.get("vs_lb_turn")]
+        mt = [r["vs_proven"] for r in rows if r["kind"] == "mission" and r["alloc"] == how and r.get("vs_proven")]
+        px = [r["proven_x"] for r in rows if r["kind"] == "mission" and r["alloc"] == how]
         n_ms = sum(1 for r in rows if r["kind"] == "mission" and r["alloc"] == how)
         ok = sum(1 for r in rows if r["kind"] == "mission" and r["alloc"] == how and r["ok"])
         pt = [r["plan_ms"] for r in rows if r["kind"] == "mission" and r["alloc"] == how and r["m"] == 10]
@@ -219,7 +209,8 @@ def summary(rows: list[Row]) -> list[str]:
             f"{how}: legs 5-50 m flight / ruckig {min(lg, default=float('nan')):.2f}-"
             f"{max(lg, default=float('nan')):.2f}x (target <= 1.25); missions median flight / per-axis "
             f"lower bound {float(np.median(ms)) if ms else float('nan'):.2f}x (target <= 1.5; "
-            f"{float(np.median(mt)) if mt else float('nan'):.2f}x the turning-point v/a bound), {ok}/{n_ms} planned"
+            f"{float(np.median(mt)) if mt else float('nan'):.2f}x the proven bound, which is itself "
+            f"{float(np.median(px)) if px else float('nan'):.2f}x the per-axis one in the median), {ok}/{n_ms} planned"
             + (f"; 10-waypoint plan time median {float(np.median(pt)):.1f} ms (target <= 50)" if pt else "")
         )
     return out

@@ -60,6 +60,7 @@ if TYPE_CHECKING:
     from planner_core.formats.io import trajectory_from_dict, trajectory_to_dict
     from planner_core.indices import PlannedChange, WaypointMap, to_planned
     from planner_core.iterative import IterativeOptions, warm_up
+    from planner_core.lower_bound import FlightTimeBound, flight_time_lower_bound
     from planner_core.missions import MissionPlan, plan_mission
     from planner_core.planning import plan
     from planner_core.problem import Bounds, FloatArray, Polytope, Problem, Trajectory, rest_jet
@@ -111,6 +112,8 @@ _WHERE: dict[str, tuple[str, str]] = {
     "weighted_durations": ("planner_core.allocation", "weighted_durations"),
     "FieldError": ("planner_core.errors", "FieldError"),
     "first_hit": ("planner_core.collision", "first_hit"),
+    "flight_time_lower_bound": ("planner_core.lower_bound", "flight_time_lower_bound"),
+    "FlightTimeBound": ("planner_core.lower_bound", "FlightTimeBound"),
     "FloatArray": ("planner_core.problem", "FloatArray"),
     "hold": ("planner_core.trajectory", "hold"),
     "inflate": ("planner_core.collision", "inflate"),
@@ -171,6 +174,7 @@ __all__ = [
     "Environment",
     "FastestAllocation",
     "FieldError",
+    "FlightTimeBound",
     "FloatArray",
     "InsertWaypoint",
     "IterativeOptions",
@@ -199,6 +203,7 @@ __all__ = [
     "end_jet",
     "fastest_durations",
     "first_hit",
+    "flight_time_lower_bound",
     "hold",
     "inflate",
     "parse_change",
