@@ -121,11 +121,15 @@ class PlannerConfig:
     # Planner processes load the compiled pass (numba): ~105 MB more resident each, ~0.3 s
     # less per 1000-waypoint plan (benchmarks/footprint.py). The service process never loads it.
     compiled: bool = False
-    # Durations of a mission that gives none: "default" (planner_core.allocate_times: the 3-piece
-    # certificate's rest-to-rest leg takes 2.64 L / v) or "fastest" (planner_core.plan_mission's
-    # fastest allocation: ~0.65-0.75x the flight time, but it flies at the bounds, so a pop-up's
-    # local replan often finds no slack and the vehicle brakes and holds instead of swerving).
-    timing: str = "default"
+    # Durations of a mission that gives none: "fastest" (planner_core.plan_mission's fastest
+    # allocation within the reserve below) or "default" (planner_core.allocate_times: the 3-piece
+    # certificate's rest-to-rest leg takes 2.64 L / v; ~1.5x the fastest flight time).
+    timing: str = "fastest"
+    # Share of every bound a mission's allocated plan leaves unused (planned within (1 - reserve) x
+    # the bounds; replans are checked against the full bounds): what a pop-up's swerve or a stop
+    # has left. At 0 a plan flies at the bounds, and a pop-up obstacle near the path more often
+    # ends in a verified stop and a hold than in a swerve (docs: README, "Timing").
+    reserve: float = 0.2
     # Fault injection for tests and drills: hold back the result of the full-replan fallback
     # (after a failed local replan) this many seconds, as on an overloaded computer. The
     # braking deadline must then stop the vehicle. 0 in flight.
@@ -257,7 +261,7 @@ _POSITIVE = {
 }
 
 
-_NON_NEGATIVE = {"planner.fallback_delay"}
+_NON_NEGATIVE = {"planner.fallback_delay", "planner.reserve"}
 
 
 LEAD_MAX = 0.12  # s: below [planner] split_ahead's default, so a swap is never sampled before its split
@@ -320,6 +324,8 @@ def _build(cls: type, table: dict[str, Any], prefix: str = "") -> Any:
             raise ConfigError(key, f"must be > 0, got {value!r}")
         if key in _NON_NEGATIVE and value < 0:
             raise ConfigError(key, f"must be >= 0, got {value!r}")
+        if key == "planner.reserve" and value >= 0.9:
+            raise ConfigError(key, f"must be < 0.9 (the share of each bound left unused), got {value!r}")
         kwargs[f.name] = value
     return cls(**kwargs)
 

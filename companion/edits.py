@@ -10,7 +10,7 @@ replan of the remainder. What cannot be done is a `Refused` naming the field and
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -70,6 +70,7 @@ class Resolved:
     times: FloatArray
     labels: FloatArray
     description: str
+    allocate: bool = False  # the remainder's durations are chosen again (replan_remainder)
 
 
 @dataclass(frozen=True)
@@ -117,6 +118,19 @@ def _outside_map(route: Route, points: FloatArray, field: str, frame: str) -> Re
     where = f"{field}[{k}]" if points.ndim == 2 else field
     return Refused(where, f"position {fmt_point(pts[k], frame)} ({frame.upper()}) is outside the mission's map "
                    f"{fmt_box(m.map_lo, m.map_hi, frame)}")
+
+
+def resolve_planned(route: Route, change: Change, t_split: float, allocated: bool) -> Resolved | Refused:
+    """`resolve` as the navigator applies it. `allocated`: the mission gave no durations and the
+    planner chose them, so the remainder is allocated again (a set duration excepted: it keeps
+    the times), and the change is read between mission waypoints without the planner's knots;
+    with knots dropped there is no local edit (its indices would count them)."""
+    view = route.without_knots() if allocated else route
+    out = resolve(view, change, t_split)
+    if isinstance(out, Refused):
+        return out
+    return replace(out, local=out.local if view is route else None,
+                   allocate=allocated and not isinstance(change.body, DurationChange))
 
 
 def resolve(route: Route, change: Change, t_split: float) -> Resolved | Refused:

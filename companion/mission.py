@@ -20,7 +20,7 @@ from companion.config import Config
 from companion.detours import plan_with_detours
 from companion.edits import LocalEdit
 from companion.obstacles import Known, as_known, blocked_text
-from companion.route import Outcome, Route, allocate_durations, clip_velocity
+from companion.route import KNOT, Outcome, Route, allocate_durations, clip_velocity
 from companion.wire.messages import MissionSpec, mission_from_message
 from planner_core import (
     AddObstacles,
@@ -89,16 +89,18 @@ def check_mission(mission: MissionSpec, initial: FloatArray, t_start: float, kno
 
 def replan_remainder(route: Route, active: Trajectory, t_split: float, known: Known | Sequence[Polytope], cfg: Config,
                      waypoints: FloatArray | None = None, times: FloatArray | None = None,
-                     labels: FloatArray | None = None) -> Outcome:
+                     labels: FloatArray | None = None, *, allocate: bool = False) -> Outcome:
     """Re-plan everything after t_split from the jet of `active` at t_split.
 
     `waypoints/times/labels` (defaults: the route's) may carry an edit; only the entries
-    later than t_split are kept.
+    later than t_split are kept. `allocate`: the mission gave no durations, so the planner
+    chooses them again from the split (`plan_route`), and places its own knots: the old ones
+    are dropped (one may now lie in an obstacle).
     """
     wps = route.waypoints if waypoints is None else waypoints
     tms = route.times if times is None else times
     lab = route.labels if labels is None else labels
-    keep = tms > t_split + 1e-6
+    keep = (tms > t_split + 1e-6) & ((lab != KNOT) | (not allocate))
     if not np.any(keep):
         return Outcome(False, message="mission already complete: nothing left to replan")
     jet = active.jet(t_split)
@@ -110,7 +112,7 @@ def replan_remainder(route: Route, active: Trajectory, t_split: float, known: Kn
     if new_times[1] - new_times[0] < min_first:
         new_times[1:] += min_first - (new_times[1] - new_times[0])
     return plan_with_detours(route.mission, points, new_times, new_labels, jet,
-                             as_known(known) + Known.of(route.mission.obstacles), cfg)
+                             as_known(known) + Known.of(route.mission.obstacles), cfg, allocate=allocate)
 
 
 def remaining(route: Route, t: float) -> MissionSpec | None:

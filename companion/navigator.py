@@ -14,6 +14,7 @@ import math
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, replace
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -21,7 +22,7 @@ import numpy as np
 from companion.braking import Brakes, Replanned, StopContext, brake_deadline
 from companion.config import Config
 from companion.control import Control
-from companion.edits import LocalEdit, Refused, resolve
+from companion.edits import LocalEdit, Refused, resolve_planned
 from companion.flight import Flight, State
 from companion.mission import (
     check_mission,
@@ -279,13 +280,14 @@ class Navigator:
             async def plan_at(base: Trajectory, t_split: float) -> Outcome:
                 assert self.route is not None
                 r = trim(self.route, self.control.now())
-                resolved = resolve(r, change, t_split)
+                resolved = resolve_planned(r, change, t_split, self.allocates(r))
                 if isinstance(resolved, Refused):
                     refused.append(resolved)
                     return Outcome(False, message=resolved.reason)
                 description[:] = [resolved.description]
                 remainder = (resolved.waypoints, resolved.times, resolved.labels)
-                return await self._replan_outcome(r, base, t_split, resolved.local, remainder)
+                return await self._replan_outcome(r, base, t_split, resolved.local, remainder,
+                                                  allocate=resolved.allocate)
 
             done = await self._replan_swapped(f"change ({change.key})", arrived, plan_at)
             what = description[0] if description else change.key
@@ -300,9 +302,11 @@ class Navigator:
 
     async def _replan_outcome(self, r: Route, base: Trajectory, t_split: float, local: LocalEdit | None,
                               remainder: tuple[FloatArray, FloatArray, FloatArray] | None,
-                              notes: list[str] | None = None, on_fallback: Callable[[], None] | None = None) -> Outcome:
+                              notes: list[str] | None = None, on_fallback: Callable[[], None] | None = None,
+                              allocate: bool | None = None) -> Outcome:
         """A local replan (in this process: a few ms), then a replan of the whole remainder in
-        the urgent worker."""
+        the urgent worker (`allocate`: with durations chosen again; default: when the mission's
+        durations were the planner's)."""
         messages = notes if notes is not None else []
         if local is not None:
             out: Outcome = await self.runtime.run(self.runtime.replan_pool, local_replan, r, t_split, local,
@@ -314,13 +318,20 @@ class Navigator:
         if on_fallback is not None:
             on_fallback()
         extra = () if remainder is None else remainder
-        out = await self.runtime.plan(replan_remainder, r, base, t_split, self.known(), self.cfg, *extra, urgent=True)
+        if allocate is None:
+            allocate = self.allocates(r)
+        out = await self.runtime.plan(partial(replan_remainder, allocate=allocate), r, base, t_split, self.known(),
+                                      self.cfg, *extra, urgent=True)
         if self.cfg.planner.fallback_delay > 0:
             await asyncio.sleep(self.cfg.planner.fallback_delay)
         out.stats["method"] = "detour" if out.stats.get("detour") else "remainder"
         if not out.ok:
             messages.append(f"full replan: {out.message}")
         return out
+
+    def allocates(self, r: Route) -> bool:
+        """Durations the mission did not give are the planner's to choose again from the split."""
+        return r.mission.durations is None and self.cfg.planner.timing == "fastest"
 
     async def _replan_swapped(self, what: str, arrived: float, plan_at: Callable[[Trajectory, float], Awaitable[Outcome]],
                               hit: float | None = None, notes: list[str] | None = None) -> Swapped:

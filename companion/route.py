@@ -2,8 +2,9 @@
 one is planned: corridors against the known obstacles, plan, verify.
 
 Pure (no asyncio, no I/O). NED, in the flight's time base. A route's labels say which
-mission waypoint each of its waypoints is (-1 for a synthetic one: the split point of a
-replan, a detour point).
+mission waypoint each of its waypoints is: -1 for a synthetic one the companion placed (the
+split point of a replan, a detour point), KNOT (-2) for one the planner's fastest allocation
+placed on a long leg (a replan that allocates again drops them: the planner places its own).
 """
 
 from __future__ import annotations
@@ -11,7 +12,7 @@ from __future__ import annotations
 import enum
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -43,6 +44,9 @@ def build_corridors(waypoints: FloatArray, obstacles: Sequence[Polytope], missio
 
 
 
+KNOT = -2.0
+
+
 @dataclass(frozen=True)
 class Route:
     mission: MissionSpec
@@ -55,6 +59,14 @@ class Route:
     @property
     def t_end(self) -> float:
         return float(self.trajectory.t_end)
+
+    def without_knots(self) -> Route:
+        """The route's waypoints without the planner's knots (the plan itself unchanged): what an
+        edit is read against when the remainder is allocated again."""
+        keep = self.labels != KNOT
+        if np.all(keep):
+            return self
+        return replace(self, waypoints=self.waypoints[keep], times=self.times[keep], labels=self.labels[keep])
 
 
 @dataclass(frozen=True)
@@ -99,8 +111,8 @@ def plan_route(
 
     `allocate`: the mission gave no durations, so only times[0] counts and the planner chooses
     the fastest durations the bounds and corridors allow (`planner_core.plan_mission`); it may
-    insert knots on long legs, which join the route as synthetic waypoints (label -1), like
-    detour points, so no mission index ever counts one.
+    insert knots on long legs, which join the route as synthetic waypoints (label KNOT), so no
+    mission index ever counts one.
     """
     t0 = time.perf_counter()
     known = as_known(obstacles)
@@ -118,13 +130,18 @@ def plan_route(
     opts: dict[str, Any] = {"window": cfg.planner.window} if cfg.planner.method == "iterative" else {}
     given = None if allocate else np.diff(times)
     # plan_mission verifies the plan once more itself: never fly on one check alone being trusted
+    reserve = cfg.planner.reserve if allocate else 0.0
     mp = plan_mission(waypoints, mission.bounds, corridors, given, initial=initial, t0=float(times[0]),
-                      method=cfg.planner.method, **opts)
+                      method=cfg.planner.method, reserve=reserve, **opts)
+    if not mp.ok and reserve > 0.0:
+        # the reserve is what a replan may spend: a pop-up's swerve from a fast start jet may need it
+        mp = plan_mission(waypoints, mission.bounds, corridors, None, initial=initial, t0=float(times[0]),
+                          method=cfg.planner.method, **opts)
     stats: dict[str, Any] = {"plan_seconds": time.perf_counter() - t0, "timing": mp.timing}
     if not mp.ok or mp.trajectory is None:
         return Outcome(False, message=mp.message, stats=stats)
     p = mp.problem
-    return Outcome(True, Route(mission, p.waypoints, p.times, mp.relabel(labels), p, mp.trajectory),
+    return Outcome(True, Route(mission, p.waypoints, p.times, mp.relabel(labels, KNOT), p, mp.trajectory),
                    mp.message, stats=stats)
 
 

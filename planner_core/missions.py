@@ -11,6 +11,11 @@ in; the verified trajectory and the way back to the caller's waypoint indices ou
 - "default": the given durations, else `timing.allocate_times` (the slower allocation that
   was the default before the fastest one).
 `time_weight` (rho > 0) chooses the durations minimising J + rho T instead, whatever the mode.
+`reserve` (0 <= r < 1) keeps a share of every bound unused by an allocated plan: the durations
+are chosen, and the trajectory planned and verified, within (1 - r) x the bounds, while the
+planned problem keeps the full bounds. A later replan (a pop-up obstacle, a moved waypoint) is
+checked against the full bounds, so it has the reserve to swerve or brake with. Given
+durations ignore it.
 
 The fastest allocation may split long legs with knots (extra waypoints on the straight leg,
 inside its corridor). The planned problem then has more waypoints than the caller gave:
@@ -94,6 +99,7 @@ def plan_mission(
     *,
     timing: str = "auto",
     time_weight: float | None = None,
+    reserve: float = 0.0,
     initial: ArrayLike | None = None,
     final: ArrayLike | None = None,
     t0: float = 0.0,
@@ -108,6 +114,8 @@ def plan_mission(
         raise FieldError("timing", f"expected one of {', '.join(TIMINGS)}, got {timing!r}")
     if time_weight is not None and not (np.isfinite(time_weight) and time_weight > 0.0):
         raise FieldError("time_weight", f"must be finite and > 0, got {time_weight}")
+    if not (np.isfinite(reserve) and 0.0 <= reserve < 1.0):
+        raise FieldError("reserve", f"must be in [0, 1), got {reserve}")
     if not np.isfinite(t0):
         raise FieldError("t0", f"must be finite, got {t0}")
     wps = np.asarray(waypoints, dtype=float)
@@ -134,22 +142,30 @@ def plan_mission(
     same = np.arange(m, dtype=np.int64)
     if time_weight is None and given is not None and timing != "fastest":
         return _planned(Problem.from_waypoints(wps, given, bounds, cors, init, fin, t0), same, "given", method, opts)
+    within = bounds.scaled(1.0 - reserve) if reserve > 0.0 else bounds
     if time_weight is None and timing == "default":
         from planner_core.timing import allocate_times
 
         # as the loader and the companion always did: from the legs and the start velocity alone
-        times = np.asarray(allocate_times(wps, bounds, t0=t0, initial_velocity=init[1]), dtype=float)
-        return _planned(Problem(wps, times, bounds, init, fin, cors), same, "default", method, opts)
+        times = np.asarray(allocate_times(wps, within, t0=t0, initial_velocity=init[1]), dtype=float)
+        return _full(_planned(Problem(wps, times, within, init, fin, cors), same, "default", method, opts), bounds)
     from planner_core.allocation import fastest_durations, weighted_durations
 
-    seed = Problem.from_waypoints(wps, np.ones(m - 1), bounds, cors, init, fin, t0)  # only t0 of its times counts
+    seed = Problem.from_waypoints(wps, np.ones(m - 1), within, cors, init, fin, t0)  # only t0 of its times counts
     if time_weight is not None:
         alloc = weighted_durations(seed, time_weight, method, **opts)
         mode = "time-weight"
     else:
         alloc = fastest_durations(seed, method, **opts)
         mode = "fastest"
-    return _checked(MissionPlan(alloc.result, alloc.problem, alloc.waypoint_index, mode))
+    return _full(_checked(MissionPlan(alloc.result, alloc.problem, alloc.waypoint_index, mode)), bounds)
+
+
+def _full(mp: MissionPlan, bounds: Bounds) -> MissionPlan:
+    """The plan found within the reserve, as a problem with the full bounds (what replans get)."""
+    if mp.problem.bounds is bounds:
+        return mp
+    return _checked(replace(mp, problem=replace(mp.problem, bounds=bounds)))
 
 
 def _jet(jet: ArrayLike | None, position: FloatArray, name: str) -> FloatArray:

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from companion.config import config_from_dict
-from companion.edits import Refused, Resolved, resolve
+from companion.edits import Refused, Resolved, resolve, resolve_planned
 from companion.flight import State, refuse_command
 from companion.mission import local_replan, remaining, replan_remainder, start_mission, trim
 from companion.obstacles import Known
-from companion.route import Route
+from companion.route import KNOT, Route
 from companion.wire.messages import (
     Change,
     MessageError,
@@ -39,14 +39,14 @@ def flying(waypoints: list[list[float]]) -> Route:
 def apply(route: Route, change: Change, now: float, split: float = 0.3) -> Route:
     """What Navigator.on_change does: trim, resolve, local replan, else the remainder."""
     r = trim(route, now)
-    resolved = resolve(r, change, now + split)
+    resolved = resolve_planned(r, change, now + split, r.mission.durations is None)  # CFG: timing "fastest"
     assert isinstance(resolved, Resolved), resolved
     out = None
     if resolved.local is not None:
         out = local_replan(r, now + split, resolved.local, Known(), CFG)
     if out is None or not out.ok:
         out = replan_remainder(r, route.trajectory, now + split, Known(), CFG,
-                               resolved.waypoints, resolved.times, resolved.labels)
+                               resolved.waypoints, resolved.times, resolved.labels, allocate=resolved.allocate)
     assert out.ok and out.route is not None, out.message
     assert verify(out.route.trajectory, out.route.problem).ok
     return out.route
@@ -119,3 +119,29 @@ def test_an_armed_vehicle_on_the_ground_does_not_hold_or_resume() -> None:
     for cmd in ("hold", "resume"):
         assert refuse_command(State.READY, cmd, armed=True, auto_arm=False, has_mission=True, airborne=False)
         assert refuse_command(State.READY, cmd, armed=True, auto_arm=False, has_mission=True, airborne=True) is None
+
+
+LONG = [[12.0, 0.0, -3.0], [12.0, 3.0, -3.0], [0.0, 3.0, -3.0]]  # 12 m legs: the fastest plan puts knots on them
+
+
+def test_changes_on_a_fastest_plan_are_read_between_mission_waypoints_not_knots() -> None:
+    """The planner's knots are not mission waypoints: a set duration counts from mission
+    waypoint to mission waypoint, and a moved waypoint's legs are replanned without the old
+    knots (which lay on the old straight legs)."""
+    r0 = flying(LONG)
+    assert np.any(r0.labels == KNOT)
+    # 1. mission waypoint 1 moved 1.5 m sideways and 1 m up, while the vehicle flies to waypoint 0
+    new1 = [12.0, 1.5, -2.0]
+    r1 = apply(r0, move(1, new1), 0.5)
+    assert passes(r1, new1) <= 1e-6
+    i0, i1 = int(np.flatnonzero(r1.labels == 0)[0]), int(np.flatnonzero(r1.labels == 1)[0])
+    a, b = r1.waypoints[i0], r1.waypoints[i1]
+    for p in r1.waypoints[i0 + 1 : i1]:  # whatever lies between is on the new straight leg
+        assert np.linalg.norm(np.cross(b - a, p - a)) / np.linalg.norm(b - a) <= 1e-6
+    assert r1.labels[r1.labels >= 0].tolist() == [0, 1, 2]
+    # 2. segment 1 (mission waypoints 1 -> 2, knots between) set to 9 s
+    at = float(r1.times[r1.labels == 0][0]) + 0.3
+    r2 = apply(r1, change_from_message({"duration": {"index": 1, "value": 9.0}}, CFG), at)
+    t1, t2 = (float(r2.times[r2.labels == i][0]) for i in (1, 2))
+    assert t2 - t1 == pytest.approx(9.0, abs=1e-6)
+    assert r2.labels[r2.labels >= 0].tolist() == [0, 1, 2]

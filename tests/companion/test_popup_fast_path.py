@@ -15,7 +15,7 @@ from planner_core import first_hit, inflate, verify_changed
 from planner_core.changes import AddObstacles
 from planner_core.problem import Polytope, Trajectory
 from planner_core.verify import verify
-from tests.companion.test_route import CFG, box, fly
+from tests.companion.test_route import SLOW, box, fly
 
 
 def brute_first_hit(traj, t_from, obstacles, radius, dt=0.01):  # type: ignore[no-untyped-def]
@@ -43,9 +43,11 @@ def test_first_hit_equals_sampling_every_segment() -> None:
 
 
 def popup_replan() -> tuple[Route, Outcome, Polytope]:
-    r = fly([[3, 0, -1.5], [3, 3, -1.5], [0, 3, -1.5], [0, 0, -1.5]], [0, 0, -1.5])
+    # a plan with slack ([planner] timing = "default"): the local replan keeps later segments
+    # bit for bit, which the incremental verification must recognise
+    r = fly([[3, 0, -1.5], [3, 3, -1.5], [0, 3, -1.5], [0, 0, -1.5]], [0, 0, -1.5], cfg=SLOW)
     ob = box([3.55, 0.8, -3], [4.3, 2.2, 0])
-    out = local_replan(trim(r, 2.0), 2.15, LocalEdit((AddObstacles((ob,)),), "avoid"), [], CFG)
+    out = local_replan(trim(r, 2.0), 2.15, LocalEdit((AddObstacles((ob,)),), "avoid"), [], SLOW)
     assert out.ok and out.route is not None, out.message
     return r, out, ob
 

@@ -1,13 +1,15 @@
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from companion.braking import brake, corridor_at
-from companion.config import config_from_dict
+from companion.config import Config, ConfigError, config_from_dict
 from companion.edits import LocalEdit, Refused, resolve
 from companion.mission import local_replan, replan_remainder, start_mission, trim
-from companion.route import Route
+from companion.route import KNOT, Route
 from companion.wire.messages import (
     MessageError,
     change_from_message,
@@ -29,9 +31,15 @@ def box(lo: list[float], hi: list[float]) -> Polytope:
     return Polytope(np.vstack([eye, -eye]), np.concatenate([hi, -np.asarray(lo)]))
 
 
-def fly(waypoints: list[list[float]], start: list[float], t0: float = 1.0, obstacles: tuple = ()) -> Route:
-    spec = mission_from_message({"id": "m", "waypoints": waypoints}, CFG)
-    out = start_mission(spec, rest_jet(np.asarray(start, dtype=float)), t0, list(obstacles), CFG)
+# [planner] timing = "default": slower plans, with slack everywhere (the default is "fastest")
+SLOW = config_from_dict({"planner": {"vehicle_radius": 0.25, "timing": "default",
+                                     "bounds": {"velocity": 3, "acceleration": 4, "jerk": 20, "snap": 120}}})
+
+
+def fly(waypoints: list[list[float]], start: list[float], t0: float = 1.0, obstacles: tuple = (),
+        cfg: Config = CFG) -> Route:
+    spec = mission_from_message({"id": "m", "waypoints": waypoints}, cfg)
+    out = start_mission(spec, rest_jet(np.asarray(start, dtype=float)), t0, list(obstacles), cfg)
     assert out.ok and out.route is not None, out.message
     return out.route
 
@@ -68,7 +76,8 @@ def test_start_first_waypoint_requires_being_there() -> None:
     far = start_mission(spec, rest_jet(np.array([1.0, 0, -1])), 0.0, [], CFG)
     assert not far.ok and "waypoint 0" in far.message
     near = start_mission(spec, rest_jet(np.array([0.05, 0, -1])), 0.0, [], CFG)
-    assert near.ok and near.route is not None and near.route.labels.tolist() == [0, 1]
+    assert near.ok and near.route is not None and near.route.labels[0] == 0
+    assert near.route.labels[near.route.labels >= 0].tolist() == [0, 1]  # knots between are not counted
 
 
 def test_splice_keeps_the_flown_piece_and_fills_waits_with_a_hold() -> None:
@@ -149,16 +158,21 @@ def test_braking_stops_inside_the_corridor() -> None:
     assert np.allclose(traj.jet(t), jet, atol=1e-9)
 
 
-def test_obstacle_across_the_path_gets_a_detour() -> None:
-    r = fly([[6, 0, -1.5], [6, 3, -1.5]], [0, 0, -1.5])
-    block = box([3.5, -0.6, -2.5], [4.3, 0.6, -0.5])  # across the straight leg
-    out = replan_remainder(r, r.trajectory, 2.0, [block], CFG)
+@pytest.mark.parametrize("cfg", [CFG, SLOW], ids=["fastest", "default"])
+def test_obstacle_across_the_path_gets_a_detour(cfg: Config) -> None:
+    r = fly([[6, 0, -1.5], [6, 3, -1.5]], [0, 0, -1.5], cfg=cfg)
+    allocated = cfg.planner.timing == "fastest"
+    assert np.any(r.labels == KNOT) == allocated  # the fastest plan puts knots on the 6 m leg
+    block = box([3.5, -0.6, -2.5], [4.3, 0.6, -0.5])  # across the straight leg, over a knot
+    # the service's fallback for a pop-up: durations the mission did not give are allocated again
+    out = replan_remainder(r, r.trajectory, 2.0, [block], cfg, allocate=allocated)
     assert out.ok and out.route is not None, out.message
     assert out.stats["detour"]
     assert (out.route.labels == -1).sum() >= 2  # the split point and the detour point(s)
-    assert out.route.labels[-2:].tolist() == [0, 1]
+    mission = out.route.labels[out.route.labels >= 0]
+    assert mission.tolist() == [0, 1] and out.route.labels[-1] == 1
     assert first_hit(out.route.trajectory, 2.0, [block], 0.25 - 1e-6) is None
-    assert np.allclose(out.route.trajectory.jet(2.0), r.trajectory.jet(2.0), atol=1e-9)
+    assert verify(out.route.trajectory, out.route.problem).ok
 
 
 @pytest.mark.parametrize(("region", "field", "words"), [
@@ -173,20 +187,19 @@ def test_obstacles_must_be_bounded_and_solid(region: dict, field: str, words: st
 
 
 def test_fastest_timing_flies_faster_keeps_mission_indices_and_verifies() -> None:
-    """[planner] timing = "fastest": a mission without durations gets the fastest allocation;
-    knots it puts on long legs are synthetic waypoints (-1), never counted as mission waypoints."""
-    fast = config_from_dict({"planner": {"vehicle_radius": 0.25, "timing": "fastest",
-                                         "bounds": {"velocity": 3, "acceleration": 4, "jerk": 20, "snap": 120}}})
+    """[planner] timing = "fastest" (the default): a mission without durations gets the fastest
+    allocation; knots it puts on long legs are synthetic waypoints (KNOT), never counted as mission
+    waypoints."""
     wps = [[12, 0, -1.5], [12, 3, -1.5], [0, 3, -1.5]]
     spec = mission_from_message({"id": "m", "waypoints": wps}, CFG)
     start = rest_jet(np.array([0.0, 0.0, -1.5]))
-    slow = start_mission(spec, start, 1.0, [], CFG)
-    quick = start_mission(spec, start, 1.0, [], fast)
+    slow = start_mission(spec, start, 1.0, [], SLOW)
+    quick = start_mission(spec, start, 1.0, [], CFG)
     assert slow.ok and quick.ok and slow.route is not None and quick.route is not None, quick.message
     r = quick.route
     assert r.t_end < slow.route.t_end
     assert verify(r.trajectory, r.problem).ok
-    assert np.count_nonzero(r.labels < 0) > 1  # knots were inserted (beyond the start point)
+    assert np.count_nonzero(r.labels == KNOT) > 0  # knots were inserted
     mission_labels = r.labels[r.labels >= 0]
     assert mission_labels.tolist() == [0.0, 1.0, 2.0]  # in order, each once
     for i, p in enumerate(wps):
@@ -194,3 +207,27 @@ def test_fastest_timing_flies_faster_keeps_mission_indices_and_verifies() -> Non
         assert np.allclose(r.trajectory.evaluate(r.times[k]), p, atol=1e-6)
     with pytest.raises(Exception, match="timing"):
         config_from_dict({"planner": {"timing": "quickest"}})
+
+
+@pytest.mark.parametrize("reserve", [0.0, 0.2, 0.4])
+def test_reserve_leaves_a_share_of_every_bound_unused_for_replans(reserve: float) -> None:
+    """[planner] reserve: an allocated mission flies within (1 - reserve) x the bounds by dense
+    sampling, while its problem (what replans are checked against) keeps the full bounds; a
+    larger reserve flies slower."""
+    cfg = config_from_dict({"planner": {"vehicle_radius": 0.25, "reserve": reserve,
+                                        "bounds": {"velocity": 3, "acceleration": 4, "jerk": 20, "snap": 120}}})
+    r = fly([[6, 0, -1.5], [6, 3, -1.5], [2, 4, -2.0]], [0, 0, -1.5], cfg=cfg)
+    assert np.array_equal(r.problem.bounds.hi, r.mission.bounds.hi)
+    ts = np.linspace(r.trajectory.t0, r.trajectory.t_end, 4000)
+    for k in range(1, 5):
+        peak = np.max(np.abs(r.trajectory.evaluate(ts, k)) / r.mission.bounds.hi[k - 1])
+        assert peak <= (1.0 - reserve) * (1 + 1e-6), (k, peak)
+    tighter = fly([[6, 0, -1.5], [6, 3, -1.5], [2, 4, -2.0]], [0, 0, -1.5], cfg=replace(
+        cfg, planner=replace(cfg.planner, reserve=reserve + 0.2)))
+    assert tighter.t_end > r.t_end
+
+
+@pytest.mark.parametrize("value", [-0.1, 0.9, 1.5])
+def test_reserve_is_a_share_below_one(value: float) -> None:
+    with pytest.raises(ConfigError, match=r"planner\.reserve"):
+        config_from_dict({"planner": {"reserve": value}})

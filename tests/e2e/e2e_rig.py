@@ -313,14 +313,24 @@ def arrival_gap(records: list[dict[str, Any]]) -> float:
 # 1.06x the allowance at 80 ms, so 100 ms leaves ~10 %.
 TRACKING_LAG = 0.10  # s
 TRACKING_FLOOR = 0.05  # m
+# While it accelerates, the calibrated response (ArduCopter's: half the acceleration fed forward,
+# sitl_mock/vehicle.py RESPONSES) needs a position error to make up the other half:
+# (1 - acc_ff_gain) / (kp_pos kv_vel) = 0.5 / 4 s^2 x the commanded acceleration. The fastest
+# allocation (the companion's default) accelerates at up to 80 % of the bound, and the speed term
+# alone no longer covers it (0.228 m against 0.207 on the ArduPilot mission).
+TRACKING_ACC = 0.125  # s^2
 
 
 def tracking_allowance(log: list[dict[str, Any]], t0: float, t1: float) -> float:
-    """TRACKING_FLOOR + TRACKING_LAG x the RMS commanded speed in [t0, t1]: the tracking RMS a
-    vehicle lagging its setpoints by TRACKING_LAG would show, plus a floor."""
-    vel = np.array([r["raw_vel"] for r in setpoints(log, t0, t1) if r.get("raw_vel") is not None])
+    """TRACKING_FLOOR + TRACKING_LAG x the RMS commanded speed + TRACKING_ACC x the RMS commanded
+    acceleration in [t0, t1]: the tracking RMS (by the triangle inequality, at most) of a vehicle
+    lagging its setpoints by TRACKING_LAG and short of half their acceleration, plus a floor."""
+    sps = setpoints(log, t0, t1)
+    vel = np.array([r["raw_vel"] for r in sps if r.get("raw_vel") is not None])
+    acc = np.array([r["raw_acc"] for r in sps if r.get("raw_acc") is not None])
     assert vel.size, "no setpoints with velocities during the window"
-    return TRACKING_FLOOR + TRACKING_LAG * float(np.sqrt(np.mean(np.sum(vel * vel, axis=1))))
+    rms_acc = float(np.sqrt(np.mean(np.sum(acc * acc, axis=1)))) if acc.size else 0.0
+    return TRACKING_FLOOR + TRACKING_LAG * float(np.sqrt(np.mean(np.sum(vel * vel, axis=1)))) + TRACKING_ACC * rms_acc
 
 
 def tracking_rms(log: list[dict[str, Any]], t0: float, t1: float) -> float:

@@ -118,12 +118,30 @@ def test_given_durations_and_the_default_opt_out() -> None:
     ("kw", "field"),
     [({"timing": "quick"}, "timing"), ({"timing": None}, "timing"), ({"durations": [1.0]}, "durations"),
      ({"durations": [1.0, -2.0]}, "durations[1]"), ({"time_weight": 0.0}, "time_weight"),
-     ({"initial": np.zeros((5, 3))}, "initial[0]")],
+     ({"initial": np.zeros((5, 3))}, "initial[0]"), ({"reserve": 1.0}, "reserve"), ({"reserve": -0.1}, "reserve"),
+     ({"reserve": float("nan")}, "reserve")],
 )
 def test_bad_input_names_the_field(kw: dict[str, Any], field: str) -> None:
     with pytest.raises(FieldError) as e:
         plan_mission([[1.0, 0.0, 0.0], [3.0, 0.0, 0.0], [3.0, 2.0, 0.0]], DEFAULTS, **kw)
     assert e.value.field == field
+
+
+@pytest.mark.parametrize("timing", ["fastest", "default"])
+def test_reserve_plans_within_a_share_of_the_bounds_and_keeps_the_full_ones(timing: str) -> None:
+    """plan_mission(reserve=r): the flown curve stays within (1 - r) x every bound (dense
+    sampling), the planned problem keeps the full bounds (what a replan is checked against) and
+    the plan verifies against them; a reserve costs time."""
+    wps = [[0.0, 0.0, 1.0], [8.0, 0.0, 1.0], [8.0, 4.0, 2.0], [2.0, 5.0, 1.0]]
+    free = plan_mission(wps, DEFAULTS, timing=timing)
+    kept = plan_mission(wps, DEFAULTS, timing=timing, reserve=0.25)
+    assert free.ok and kept.ok and free.trajectory is not None and kept.trajectory is not None
+    traj = kept.trajectory
+    assert kept.problem.bounds is DEFAULTS and verify(traj, kept.problem).ok
+    ts = np.linspace(traj.t0, traj.t_end, 6000)
+    for k in range(1, 5):
+        assert np.max(np.abs(traj.evaluate(ts, k)) / DEFAULTS.hi[k - 1]) <= 0.75 * (1 + 1e-6)
+    assert traj.t_end - traj.t0 > free.trajectory.t_end - free.trajectory.t0
 
 
 def test_scenario_timing_values() -> None:
