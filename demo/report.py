@@ -201,8 +201,11 @@ def tracking_error(trajs: Sequence[Trajectory], starts: Sequence[float], flown: 
 
 
 def planned_peaks(traj: Trajectory, samples_per_segment: int = 400) -> FloatArray:
-    """Max |d^k/dt^k| per axis for k = 1..4, sampled densely, shape (4, 3)."""
+    """Max |d^k/dt^k| per axis for k = 1..4, sampled densely, shape (4, 3), from where the plan
+    begins (stats `spliced_at`: the pieces before it were flown under the previous plan, such as a
+    transit at the companion's bounds, not this mission's)."""
     t = _sample_times(traj, samples_per_segment)
+    t = t[t >= float(traj.stats.get("spliced_at", -np.inf)) - 1e-9]
     return np.array([np.abs(traj.evaluate(t, k)).max(axis=0) for k in range(1, 5)])
 
 

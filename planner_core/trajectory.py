@@ -73,7 +73,9 @@ def splice(old: Trajectory, new: Trajectory) -> Trajectory:
         nc = new.corridors or (None,) * new.n_segments
         cors = (*hc[:k], *nc)
     # Keep the spliced trajectory short: pieces long past are never sampled again.
-    return Trajectory(times, ctrl, cors, dict(new.stats))
+    # `spliced_at`: where the new plan begins; a reader of the whole (a client checking the
+    # plan against its bounds) tells the flown history apart from the plan
+    return Trajectory(times, ctrl, cors, {**new.stats, "spliced_at": float(new.t0)})
 
 
 def trim_before(traj: Trajectory, t: float) -> Trajectory:

@@ -88,6 +88,10 @@ def test_splice_keeps_the_flown_piece_and_fills_waits_with_a_hold() -> None:
     assert np.allclose(spliced.evaluate(ts), [0, 0, -1.5])
     ts = np.linspace(2.5, r.trajectory.t_end, 50)
     assert np.array_equal(spliced.evaluate(ts), r.trajectory.evaluate(ts))
+    # where the new plan begins (published with it): the segments from there on are its own
+    assert spliced.stats["spliced_at"] == 2.5
+    first = int(np.searchsorted(spliced.times, spliced.stats["spliced_at"]))
+    assert np.array_equal(spliced.control_points[first:], r.trajectory.control_points)
     # A split inside a segment is exact (de Casteljau).
     split, k = split_at(r.trajectory, 3.3)
     ts = np.linspace(r.trajectory.t0, r.trajectory.t_end, 300)
