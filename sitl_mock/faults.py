@@ -79,6 +79,10 @@ class LinkFaults:
     def paused(self, now: float) -> bool:
         return now < self.pause_until
 
+    def heal(self) -> None:
+        """No more drops, latency or pause (packets already delayed still arrive when due)."""
+        self.drop, self.latency_s, self.pause_until = 0.0, 0.0, -1.0
+
     def pause(self, now: float, seconds: float) -> None:
         self.pause_until = max(self.pause_until, now + seconds)
 

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import socket
 import time
+from collections.abc import AsyncIterator, Callable
 from typing import Any
 
 from companion.config import config_from_dict
@@ -64,3 +66,20 @@ async def until(pred: Any, timeout: float, what: str) -> None:
     while not pred():
         assert time.monotonic() < deadline, f"timed out waiting for {what}"
         await asyncio.sleep(0.05)
+
+
+@contextlib.asynccontextmanager
+async def serving(svc: Service, before_stop: Callable[[], None] | None = None,
+                  timeout: float = 60.0) -> AsyncIterator[asyncio.Task[Any]]:
+    """The service running and up (`up`) for the body, then stopped as the unit stops it (the
+    SIGTERM request: hand over, leave) whatever the body did; `before_stop` first (heal the
+    link faults a test injected, so that the hand-over can be heard)."""
+    task = asyncio.create_task(svc.run())
+    try:
+        await up(svc, task, timeout)
+        yield task
+    finally:
+        if before_stop is not None:
+            before_stop()
+        svc.requested.set()
+        await asyncio.wait_for(task, 30)

@@ -7,7 +7,7 @@ import asyncio
 from pathlib import Path
 from typing import Any
 
-from companionkit import Events, service_for, until, up
+from companionkit import Events, service_for, serving, until
 
 from companion.wire.messages import Command
 from sitl_mock import MockAutopilot, MockConfig
@@ -16,14 +16,9 @@ from sitl_mock import MockAutopilot, MockConfig
 async def _run(mock: MockAutopilot, check: Any) -> None:
     svc = service_for(mock)
     events = Events(svc)
-    task = asyncio.create_task(svc.run())
-    try:
-        await up(svc, task)
+    async with serving(svc):
         await until(lambda: events.of("telemetry"), 10, "the telemetry check")
         await check(svc, events)
-    finally:
-        svc.requested.set()
-        await asyncio.wait_for(task, 30)
 
 
 def test_streams_requested_on_a_fresh_ardupilot_link(tmp_path: Path) -> None:

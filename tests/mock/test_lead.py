@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from companionkit import Events, service_for, until, up
+from companionkit import Events, service_for, serving, until
 
 from companion.config import ConfigError, config_from_dict
 from companion.wire.messages import read
@@ -42,18 +42,13 @@ async def _fly(mock: MockAutopilot, lead: Any) -> tuple[float, Any, float]:
             errors.append(svc.commands.tracking_error)
 
     svc.watch.on_position_sample = record
-    task = asyncio.create_task(svc.run())
-    try:
-        await up(svc, task)
+    async with serving(svc):
         await until(lambda: svc.link.state.position_problem() is None, 10, "position")
         await svc.commands.takeoff(1.5)
         await svc.navigator.on_mission(read("mission", MISSION, svc.cfg), time.monotonic())  # type: ignore[arg-type]
         await until(lambda: svc.flight.state.value == "STREAMING", 10, "streaming")
         await until(lambda: svc.flight.state.value == "HOLDING", 40, "mission complete")
         status = svc.status()
-    finally:
-        svc.requested.set()
-        await asyncio.wait_for(task, 30)
     rms = math.sqrt(sum(e * e for e in errors) / len(errors))
     return rms, status["lag_estimate_ms"], status["lead_ms"]
 

@@ -8,7 +8,7 @@ import asyncio
 import time
 from pathlib import Path
 
-from companionkit import Events, service_for, until, up
+from companionkit import Events, service_for, serving, until
 
 from sitl_mock import MockAutopilot, MockConfig
 
@@ -20,9 +20,7 @@ def test_half_the_packets_lost_is_not_a_lost_link_but_silence_is(tmp_path: Path)
     async def go() -> None:
         svc = service_for(mock)
         events = Events(svc)
-        task = asyncio.create_task(svc.run())
-        try:
-            await up(svc, task)
+        async with serving(svc, before_stop=mock.link_faults.heal):
             mock.link_faults.drop = 0.5
             t0 = time.monotonic()
             gaps, last_hb, beats = 0.0, svc.link.state.last_heartbeat, 0
@@ -43,10 +41,6 @@ def test_half_the_packets_lost_is_not_a_lost_link_but_silence_is(tmp_path: Path)
             # the link, not the companion: its loop and setpoint thread ran throughout
             assert events.of("link_lost")[0]["cause"] == "link" and events.of("link_restored")[0]["cause"] == "link"
             assert not events.of("stalled")
-        finally:
-            mock.link_faults.drop = 0.0
-            svc.requested.set()
-            await asyncio.wait_for(task, 30)
 
     try:
         asyncio.run(go())

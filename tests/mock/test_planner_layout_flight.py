@@ -12,7 +12,7 @@ from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
-from companionkit import Events, service_for, until, up
+from companionkit import Events, service_for, serving, until
 
 from companion.wire.messages import read
 from sitl_mock import MockAutopilot, MockConfig
@@ -43,9 +43,7 @@ def test_default_layout_plans_in_its_process_and_replans_a_popup(tmp_path: Path)
         events = Events(svc)
         assert isinstance(svc.runtime.pool, ProcessPoolExecutor)
         assert isinstance(svc.runtime.urgent_pool, ThreadPoolExecutor)
-        task = asyncio.create_task(svc.run())
-        try:
-            await up(svc, task)
+        async with serving(svc):
             await until(lambda: svc.link.state.position_problem() is None, 10, "position")
             await svc.commands.takeoff(1.0)
             mission = read("mission", json.dumps(bench.flight_mission(laps=1)).encode(), svc.cfg)
@@ -71,9 +69,6 @@ def test_default_layout_plans_in_its_process_and_replans_a_popup(tmp_path: Path)
             # the mission itself was planned in the planner process, which never loaded numba
             probe = await svc.runtime.plan(_numba_loaded)
             assert probe is False
-        finally:
-            svc.requested.set()
-            await asyncio.wait_for(task, 30)
 
     try:
         asyncio.run(go())

@@ -12,7 +12,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from companionkit import Events, service_for, until, up
+from companionkit import Events, service_for, serving, until
 
 from companion.wire.messages import Command, MissionSpec, read
 from sitl_mock import MockAutopilot, MockConfig
@@ -31,10 +31,8 @@ def test_px4_ground_events_refusal_home_mission_and_a_companion_stall(tmp_path: 
         svc = service_for(mock, safety={"auto_arm": True, "takeoff_altitude": 1.0},
                           setpoints={"loop_stall_limit": LIMIT})
         events = Events(svc)
-        task = asyncio.create_task(svc.run())
         st = svc.link.state
-        try:
-            await up(svc, task)
+        async with serving(svc):
             await until(lambda: st.home is not None and st.position_problem() is None, 10, "home and position")
             assert ground > 1.0 and abs(st.home[2] - ground) < 0.05  # type: ignore[index]
             status = svc.status()
@@ -71,7 +69,10 @@ def test_px4_ground_events_refusal_home_mission_and_a_companion_stall(tmp_path: 
             await until(lambda: float(np.linalg.norm(st.velocity)) < 0.2, 10, "at rest")
             np.testing.assert_allclose(st.position, st.home + np.array([1.5, 0.0, -1.5]), atol=0.25)  # type: ignore[operator]
 
-            # 4. the companion's own loop stalls (a blocking call on it)
+            # 4. the companion's own loop stalls (a blocking call on it). The report names the state
+            # as of the liveness loop's last beat (every setpoint period): let it beat in HOLDING
+            # first (a fast plan is at rest as soon as it completes)
+            await asyncio.sleep(0.2)
             before = len(events.all)
             t_stall = time.monotonic()
             time.sleep(STALL)
@@ -116,9 +117,6 @@ def test_px4_ground_events_refusal_home_mission_and_a_companion_stall(tmp_path: 
             assert [e["setpoints_withheld"] for e in after if e["type"] == "stalled"] == [True, True]
             assert any(e["type"] == "handover" and e.get("cause") == "companion" for e in after), after
             assert not [e for e in after if e["type"] in ("link_lost", "pilot_takeover")], after
-        finally:
-            svc.requested.set()
-            await asyncio.wait_for(task, 30)
 
     try:
         asyncio.run(go())

@@ -8,7 +8,7 @@ import os
 import time
 from pathlib import Path
 
-from companionkit import service_for, until, up
+from companionkit import service_for, serving, until
 from mockkit import Client, records, wait_for
 from pymavlink.dialects.v20 import common as mav
 
@@ -58,15 +58,10 @@ def test_companion_signs_with_its_key_file(tmp_path: Path) -> None:
 
     async def go() -> None:
         svc = service_for(mock, mavlink={"signing_key_file": str(key_file)})
-        task = asyncio.create_task(svc.run())
-        try:
-            await up(svc, task)
+        async with serving(svc):
             await until(lambda: svc.link.state.position_problem() is None, 10, "position")
             await svc.commands.arm()  # OFFBOARD (signed setpoints for 1.1 s), then arm
             assert mock.snapshot()["armed"] and mock.snapshot()["mode"] == "OFFBOARD"
-        finally:
-            svc.requested.set()
-            await asyncio.wait_for(task, 30)
 
     try:
         asyncio.run(go())

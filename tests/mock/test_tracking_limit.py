@@ -7,7 +7,7 @@ import asyncio
 import time
 from pathlib import Path
 
-from companionkit import Events, service_for, until, up
+from companionkit import Events, service_for, serving, until
 
 from companion.wire.messages import read
 from sitl_mock import MockAutopilot, MockConfig
@@ -20,9 +20,7 @@ def test_tracking_error_over_the_limit_brakes_and_holds(tmp_path: Path) -> None:
     async def go() -> None:
         svc = service_for(mock, safety={"max_tracking_error": 0.2, "takeoff_altitude": 1.0})
         events = Events(svc)
-        task = asyncio.create_task(svc.run())
-        try:
-            await up(svc, task)
+        async with serving(svc, before_stop=mock.link_faults.heal):
             await until(lambda: svc.link.state.position_problem() is None, 10, "position")
             await svc.commands.takeoff(1.0)
             assert not events.of("tracking"), events.of("tracking")  # hovering: well within
@@ -44,10 +42,6 @@ def test_tracking_error_over_the_limit_brakes_and_holds(tmp_path: Path) -> None:
             await until(lambda: svc.flight.state.value == "HOLDING", 15, "holding")
             assert any(e["type"] == "braking" and "tracking error" in e["message"] for e in events.all)
             assert svc.navigator.interrupted is not None  # the mission waits for `resume`
-        finally:
-            mock.link_faults.latency_s = 0.0
-            svc.requested.set()
-            await asyncio.wait_for(task, 30)
 
     try:
         asyncio.run(go())
