@@ -71,6 +71,7 @@ class Resolved:
     labels: FloatArray
     description: str
     allocate: bool = False  # the remainder's durations are chosen again (replan_remainder)
+    sets_times: bool = False  # the change gives times (a set duration, appended durations)
 
 
 @dataclass(frozen=True)
@@ -121,16 +122,19 @@ def _outside_map(route: Route, points: FloatArray, field: str, frame: str) -> Re
 
 
 def resolve_planned(route: Route, change: Change, t_split: float, allocated: bool) -> Resolved | Refused:
-    """`resolve` as the navigator applies it. `allocated`: the mission gave no durations and the
-    planner chose them, so the remainder is allocated again (a set duration excepted: it keeps
-    the times), and the change is read between mission waypoints without the planner's knots;
-    with knots dropped there is no local edit (its indices would count them)."""
-    view = route.without_knots() if allocated else route
+    """`resolve` as the navigator applies it. The change is read between mission waypoints,
+    without the planner's knots (with knots dropped there is no local edit: its indices would
+    count them). `allocated`: the mission gave no durations and the planner chose them, so the
+    remainder is allocated again, unless the change gives times (a set duration, appended
+    durations): those are kept."""
+    view = route.without_knots()
     out = resolve(view, change, t_split)
     if isinstance(out, Refused):
         return out
-    return replace(out, local=out.local if view is route else None,
-                   allocate=allocated and not isinstance(change.body, DurationChange))
+    body = change.body
+    times = isinstance(body, DurationChange) or (isinstance(body, AppendChange) and body.durations is not None)
+    return replace(out, local=out.local if view is route else None, allocate=allocated and not times,
+                   sets_times=times)
 
 
 def resolve(route: Route, change: Change, t_split: float) -> Resolved | Refused:

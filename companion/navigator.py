@@ -70,6 +70,9 @@ class Navigator:
         self.route: Route | None = None  # the mission being flown (its plan is in control)
         self.pending: MissionSpec | None = None  # loaded, waits for `start`
         self.interrupted: MissionSpec | None = None  # what a stop left of the mission, for `resume`
+        # a change gave the flown mission times (a set duration, appended durations): from then on
+        # its replans keep times, as a mission that gave durations (a new mission clears it)
+        self.user_timed = False
         self.lock = asyncio.Lock()  # one plan change at a time
         self.plan_latency: float | None = None
         self.replan_latency: float | None = None
@@ -234,6 +237,7 @@ class Navigator:
                     self.report.reject("mission", "", f"mission {spec.id}: {done.reason}", mission=spec.id)
                 return False
             assert done.outcome is not None and done.outcome.route is not None
+            self.user_timed = False
             if self.pending is spec:
                 self.pending = None
             self.report.go(S.STREAMING, f"flying mission {spec.id}")
@@ -276,6 +280,7 @@ class Navigator:
         async with self.lock:
             refused: list[Refused] = []
             description: list[str] = []
+            timed: list[bool] = [False]
 
             async def plan_at(base: Trajectory, t_split: float) -> Outcome:
                 assert self.route is not None
@@ -285,6 +290,7 @@ class Navigator:
                     refused.append(resolved)
                     return Outcome(False, message=resolved.reason)
                 description[:] = [resolved.description]
+                timed[:] = [resolved.sets_times]
                 remainder = (resolved.waypoints, resolved.times, resolved.labels)
                 return await self._replan_outcome(r, base, t_split, resolved.local, remainder,
                                                   allocate=resolved.allocate)
@@ -294,6 +300,7 @@ class Navigator:
             if refused:
                 self.report.reject("change", refused[0].field, refused[0].reason)
             elif done.ok:
+                self.user_timed = self.user_timed or timed[0]
                 self.report.event("accepted", f"change: {what}", key="change")
             else:
                 # The current plan is still safe: a change that cannot be planned is refused.
@@ -331,7 +338,7 @@ class Navigator:
 
     def allocates(self, r: Route) -> bool:
         """Durations the mission did not give are the planner's to choose again from the split."""
-        return r.mission.durations is None and self.cfg.planner.timing == "fastest"
+        return r.mission.durations is None and self.cfg.planner.timing == "fastest" and not self.user_timed
 
     async def _replan_swapped(self, what: str, arrived: float, plan_at: Callable[[Trajectory, float], Awaitable[Outcome]],
                               hit: float | None = None, notes: list[str] | None = None) -> Swapped:

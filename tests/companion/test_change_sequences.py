@@ -145,3 +145,26 @@ def test_changes_on_a_fastest_plan_are_read_between_mission_waypoints_not_knots(
     t1, t2 = (float(r2.times[r2.labels == i][0]) for i in (1, 2))
     assert t2 - t1 == pytest.approx(9.0, abs=1e-6)
     assert r2.labels[r2.labels >= 0].tolist() == [0, 1, 2]
+
+
+def test_changes_that_give_times_keep_them_on_an_allocated_mission() -> None:
+    """On a mission without durations the remainder is allocated again after a change, unless
+    the change gives times (a set duration, appended durations): those are flown as given, and
+    the navigator keeps the mission's times from then on (Navigator.user_timed)."""
+    r = flying(LONG)
+    t = 0.5
+    cases = [
+        ({"duration": {"index": 1, "value": 9.0}}, False),
+        ({"append": {"waypoints": [[0.0, 0.0, -3.0]], "durations": [4.0]}}, False),
+        ({"append": {"waypoints": [[0.0, 0.0, -3.0]]}}, True),
+        ({"move_waypoint": {"index": 1, "position": [12.0, 2.0, -3.0]}}, True),
+    ]
+    for msg, allocates in cases:
+        got = resolve_planned(trim(r, t), change_from_message(msg, CFG), t + 0.3, True)
+        assert isinstance(got, Resolved), got
+        assert got.allocate is allocates and got.sets_times is not allocates, msg
+        kept = resolve_planned(trim(r, t), change_from_message(msg, CFG), t + 0.3, False)
+        assert isinstance(kept, Resolved) and not kept.allocate  # a timed mission keeps its times
+    appended = apply(r, change_from_message(cases[1][0], CFG), t)
+    last = int(np.flatnonzero(appended.labels == 3)[0])
+    assert appended.times[last] - appended.times[last - 1] == pytest.approx(4.0, abs=1e-6)
