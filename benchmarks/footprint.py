@@ -279,6 +279,7 @@ def _layout(overrides: dict[str, Any]) -> Iterator[None]:
 
 
 @functools.cache
+@functools.cache
 def _service_bench() -> Any:
     spec = importlib.util.spec_from_file_location("service_bench", Path(__file__).with_name("service.py"))
     assert spec is not None and spec.loader is not None
@@ -355,11 +356,7 @@ def service_row(name: str, out: Path, idle_s: float = 4.0, plans: int = 4) -> di
 def table(rows: list[dict[str, Any]], columns: list[tuple[str, str, str]]) -> str:
     head = [c[0] for c in columns]
     body = [[fmt.format(r.get(key, float("nan"))) for _, key, fmt in columns] for r in rows]
-    widths = [max(len(x) for x in col) for col in zip(head, *body, strict=True)]
-    lines = [" | ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(row, widths, strict=True)))
-             for row in [head, *body]]
-    lines.insert(1, "-+-".join("-" * w for w in widths))
-    return "\n".join(lines)
+    return str(_service_bench().grid(head, body))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -619,6 +619,12 @@ def format_table(results: list[dict[str, Any]]) -> str:
     ]
     head = ["", *[column(r) for r in results]]
     body = [[label, *[fmt.format(r.get(key, float("nan"))) for r in results]] for label, key, fmt in rows]
+    return grid(head, body)
+
+
+def grid(head: list[str], body: list[list[str]]) -> str:
+    """Cells as a text table: the first column left-aligned, the others right-aligned, a rule
+    under the head."""
     widths = [max(len(row[i]) for row in [head, *body]) for i in range(len(head))]
     lines = [" | ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(row, widths, strict=True)))
              for row in [head, *body]]

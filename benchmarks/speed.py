@@ -81,8 +81,8 @@ def ruckig_time(length: float, bounds: Bounds) -> float | None:
 
 
 def axis_lower_bound(waypoints: np.ndarray, bounds: Bounds) -> float:
-    vmax = np.minimum(bounds.hi[0], -bounds.lo[0])
-    return float(np.sum(np.max(np.abs(np.diff(waypoints, axis=0)) / vmax, axis=1)))
+    """The issue's per-axis bound sum_j max_axis |dW_j| / v_max (planner_core's `per_segment`)."""
+    return flight_time_lower_bound(waypoints, bounds).per_segment
 
 
 def proven_lower_bound(waypoints: np.ndarray, bounds: Bounds) -> float:

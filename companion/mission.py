@@ -100,7 +100,9 @@ def replan_remainder(route: Route, active: Trajectory, t_split: float, known: Kn
     wps = route.waypoints if waypoints is None else waypoints
     tms = route.times if times is None else times
     lab = route.labels if labels is None else labels
-    keep = (tms > t_split + 1e-6) & ((lab != KNOT) | (not allocate))
+    keep = tms > t_split + 1e-6
+    if allocate:
+        keep &= lab != KNOT
     if not np.any(keep):
         return Outcome(False, message="mission already complete: nothing left to replan")
     jet = active.jet(t_split)

@@ -130,13 +130,13 @@ def plan_route(
     opts: dict[str, Any] = {"window": cfg.planner.window} if cfg.planner.method == "iterative" else {}
     given = None if allocate else np.diff(times)
     # plan_mission verifies the plan once more itself: never fly on one check alone being trusted
-    reserve = cfg.planner.reserve if allocate else 0.0
-    mp = plan_mission(waypoints, mission.bounds, corridors, given, initial=initial, t0=float(times[0]),
-                      method=cfg.planner.method, reserve=reserve, **opts)
-    if not mp.ok and reserve > 0.0:
-        # the reserve is what a replan may spend: a pop-up's swerve from a fast start jet may need it
-        mp = plan_mission(waypoints, mission.bounds, corridors, None, initial=initial, t0=float(times[0]),
-                          method=cfg.planner.method, **opts)
+    # the reserve is what a replan may spend: a pop-up's swerve from a fast start jet may need it
+    reserves = (cfg.planner.reserve, 0.0) if allocate and cfg.planner.reserve > 0.0 else (0.0,)
+    for reserve in reserves:
+        mp = plan_mission(waypoints, mission.bounds, corridors, given, initial=initial, t0=float(times[0]),
+                          method=cfg.planner.method, reserve=reserve, **opts)
+        if mp.ok:
+            break
     stats: dict[str, Any] = {"plan_seconds": time.perf_counter() - t0, "timing": mp.timing}
     if not mp.ok or mp.trajectory is None:
         return Outcome(False, message=mp.message, stats=stats)

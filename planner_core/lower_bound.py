@@ -46,8 +46,9 @@ def run_time(distance: FloatArray | float, v: float, a: float, j: float) -> Floa
     d = np.abs(np.asarray(distance, dtype=float))
     t = np.zeros_like(d)
     if np.isfinite(a):
-        cruise = d >= v * v / a if np.isfinite(v) else np.zeros(d.shape, bool)
-        t = np.where(cruise, d / v + v / a if np.isfinite(v) else 0.0, 2.0 * np.sqrt(d / a))
+        t = 2.0 * np.sqrt(d / a)
+        if np.isfinite(v):
+            t = np.where(d >= v * v / a, d / v + v / a, t)
     elif np.isfinite(v):
         t = d / v
     if np.isfinite(j):

@@ -162,10 +162,11 @@ def plan_mission(
 
 
 def _full(mp: MissionPlan, bounds: Bounds) -> MissionPlan:
-    """The plan found within the reserve, as a problem with the full bounds (what replans get)."""
+    """The plan found within the reserve, as a problem with the full bounds (what replans get).
+    Not verified again: `_checked` verified it within the reserve, which the full bounds contain."""
     if mp.problem.bounds is bounds:
         return mp
-    return _checked(replace(mp, problem=replace(mp.problem, bounds=bounds)))
+    return replace(mp, problem=replace(mp.problem, bounds=bounds))
 
 
 def _jet(jet: ArrayLike | None, position: FloatArray, name: str) -> FloatArray:
