@@ -61,6 +61,17 @@ def _limits(bounds: Bounds) -> FloatArray:
     return np.asarray(np.concatenate((bounds.lo, bounds.hi), axis=None)[_LIM_IDX].reshape(2, _N_HODO, 3))
 
 
+def _norm_excess(h: FloatArray, bounds: Bounds) -> FloatArray | None:
+    """(..., n) how far each certified hodograph point (h (..., n, 3)) lies outside its order's
+    horizontal polygon (`constraints.polygon_excess`; -inf where no norm bound), or None without
+    a norm bound."""
+    if not bounds.has_norm:
+        return None
+    from planner_core.constraints import polygon_excess
+
+    return polygon_excess(h, bounds.horizontal[_ORDER_OF_ROW - 1], bounds.sides)
+
+
 @lru_cache(maxsize=1)
 def _jet_rows() -> tuple[FloatArray, FloatArray]:
     """(5, 5) maps from P^0..P^4 (resp. P^5..P^9) to the unscaled start (end) jet."""
@@ -132,7 +143,8 @@ def segment_ctrl(jet0: FloatArray, jet1: FloatArray, duration: float) -> FloatAr
 
 
 def _hull_failure_one(
-    ctrl: FloatArray, d: float, lim: FloatArray, poly: Polytope | None, tol: float, name: int
+    ctrl: FloatArray, d: float, lim: FloatArray, poly: Polytope | None, tol: float, name: int,
+    bounds: Bounds | None = None,
 ) -> str | None:
     h = _hodograph_stack(d) @ ctrl  # (n, 3)
     worst = np.maximum(h - lim[1], lim[0] - h)
@@ -140,6 +152,10 @@ def _hull_failure_one(
     if not w <= tol:  # NaN fails too
         k = int(_ORDER_OF_ROW[int(np.argmax(worst.max(axis=1)))])
         return f"{ORDER_NAMES[k]} bound exceeded by {w:.3g} on segment {name}"
+    ex = None if bounds is None else _norm_excess(h, bounds)
+    if ex is not None and not float(ex.max()) <= tol:
+        k = int(_ORDER_OF_ROW[int(np.argmax(ex))])
+        return f"horizontal {ORDER_NAMES[k]} norm bound (polygon) exceeded by {float(ex.max()):.3g} on segment {name}"
     if poly is not None and poly.A.shape[0] > 0:
         v = float((ctrl @ poly.A.T - poly.b).max())
         if not v <= tol:
@@ -157,14 +173,14 @@ def hull_violation(
 ) -> str | None:
     """First hull certificate failure of segments (s, 10, 3), or None when all pass.
 
-    Checks every certified hodograph point of orders 1..4 against the bounds and
-    all 10 control points against the corridor. `labels` are the segments'
+    Checks every certified hodograph point of orders 1..4 against the bounds (the box, and
+    the horizontal norm's polygon) and all 10 control points against the corridor. `labels` are the segments'
     indices to name in the message (default 0..s-1). NaN never passes.
     """
     names = list(range(ctrl.shape[0])) if labels is None else list(labels)
     lim = _limits(bounds)
     for i in range(ctrl.shape[0]):
-        msg = _hull_failure_one(ctrl[i], float(durations[i]), lim, corridors[i], tol, names[i])
+        msg = _hull_failure_one(ctrl[i], float(durations[i]), lim, corridors[i], tol, names[i], bounds)
         if msg is not None:
             return msg
     return None
@@ -207,6 +223,9 @@ def certify_rebuilt(
     h = _take(Y, [at[s] for s in rebuild])[:, :_N_HODO]
     lim = _limits(bounds)
     hull_ok = float(np.maximum(h - lim[1], lim[0] - h).max()) <= tol
+    ex = _norm_excess(h, bounds)
+    if hull_ok and ex is not None:
+        hull_ok = float(ex.max()) <= tol
     if hull_ok and corridors is not None:
         hull_ok = _corridors_hold(ctrl, rebuild, corridors, tol)
     if not hull_ok:  # name the first failure (in segment order, bounds before corridor)

@@ -30,7 +30,7 @@ from planner_core.bezier import (
     stacked_pieces,
     start_map,
 )
-from planner_core.problem import DEGREE, JET_ORDER, N_CTRL, FloatArray, Polytope
+from planner_core.problem import DEGREE, JET_ORDER, N_CTRL, Bounds, FloatArray, Polytope
 
 IntArray = NDArray[np.int64]
 
@@ -95,6 +95,7 @@ def _bound_q_rows() -> IntArray:
 
 @lru_cache(maxsize=1)
 def _bound_meta() -> tuple[IntArray, IntArray, IntArray, NDArray[np.bool_]]:
+    """Per box row (point * 3 + axis): order, point index, axis, depends on the start jet only."""
     q1, _, row_order, row_index = _unit_templates()
     rows = _bound_q_rows()
     order = np.repeat(row_order[rows], 3)
@@ -106,8 +107,98 @@ def _bound_meta() -> tuple[IntArray, IntArray, IntArray, NDArray[np.bool_]]:
     return order, index, axis, half
 
 
+# --- bound rows: the box's axes and the horizontal norm's polygon ---------------------------
+
+CODE_NORM = 3  # a bound row's direction code: 0..2 an axis, CODE_NORM a horizontal polygon direction
+
+
+@lru_cache(maxsize=8)
+def polygon_normals(sides: int) -> FloatArray:
+    """(sides / 2, 2) unit normals of the edges of the regular polygon with vertices at angles
+    2 pi j / sides on the circle, one per pair of opposite edges (angles pi (2 i + 1) / sides).
+    A point c is inside the polygon of circumradius r iff |n_i . c| <= r cos(pi / sides) for all i."""
+    ang = np.pi * (2.0 * np.arange(sides // 2) + 1.0) / sides
+    out = np.stack([np.cos(ang), np.sin(ang)], axis=1)
+    out.setflags(write=False)
+    return out
+
+
+def polygon_excess(points: FloatArray, radius: FloatArray | float, sides: int) -> FloatArray:
+    """(...,) max_i |n_i . (x, y)| - radius cos(pi / sides) of points (..., 2 or 3): > 0 outside the
+    certifying polygon of the norm bound `radius` (broadcast against points[..., 0]; inf: none,
+    -inf out). NaN stays NaN."""
+    proj = np.abs(np.asarray(points)[..., :2] @ polygon_normals(sides).T)
+    out: FloatArray = proj.max(axis=-1) - np.asarray(radius, dtype=float) * np.cos(np.pi / sides)
+    return out
+
+
+@dataclass(frozen=True)
+class BoundLayout:
+    """The bound rows of one segment, in their canonical order: the box rows (point * 3 + axis,
+    as before norm bounds existed), then, for each order with a horizontal norm bound, each of
+    its certified points' `sides / 2` polygon directions. Row value = direction . point."""
+
+    point: IntArray  # certified hodograph point (hull row 10 + point) of each row
+    code: IntArray  # 0..2 its axis, CODE_NORM a horizontal direction
+    direction: FloatArray  # (R, 3): the unit axis or (cos, sin, 0)
+    order: IntArray
+    lo: FloatArray
+    hi: FloatArray
+    start_only: NDArray[np.bool_]  # depends on the start jet only
+    end_only: NDArray[np.bool_]
+
+
+@lru_cache(maxsize=16)
+def _layout_structure(norm_orders: tuple[bool, ...], sides: int) -> tuple[IntArray, IntArray, FloatArray, IntArray]:
+    order, index, axis, _ = _bound_meta()
+    q_order = _unit_templates()[2][_bound_q_rows()]  # order of each certified point
+    point = np.repeat(np.arange(q_order.size), 3)
+    code = axis.astype(np.int64)
+    direction = np.eye(3)[axis]
+    orders = order.astype(np.int64)
+    normals = polygon_normals(sides)
+    nd = normals.shape[0]
+    for k in range(1, 5):
+        if not norm_orders[k - 1]:
+            continue
+        pts = np.flatnonzero(q_order == k)
+        point = np.concatenate([point, np.repeat(pts, nd)])
+        code = np.concatenate([code, np.full(pts.size * nd, CODE_NORM)])
+        dirs = np.zeros((nd, 3))
+        dirs[:, :2] = normals
+        direction = np.concatenate([direction, np.tile(dirs, (pts.size, 1))])
+        orders = np.concatenate([orders, np.full(pts.size * nd, k)])
+    for a in (point, code, direction, orders):
+        a.setflags(write=False)
+    return point.astype(np.int64), code, direction, orders
+
+
+@lru_cache(maxsize=64)
+def _bound_layout(key: bytes, norm_orders: tuple[bool, ...], sides: int) -> BoundLayout:
+    vals = np.frombuffer(key, dtype=np.float64)
+    lo4, hi4, hor = vals[:12].reshape(4, 3), vals[12:24].reshape(4, 3), vals[24:28]
+    point, code, direction, order = _layout_structure(norm_orders, sides)
+    box = code < CODE_NORM
+    axis = np.where(box, code, 0)
+    r = hor[order - 1] * np.cos(np.pi / sides)
+    lo = np.where(box, lo4[order - 1, axis], -r)
+    hi = np.where(box, hi4[order - 1, axis], r)
+    q1 = _unit_templates()[0]
+    qrows = _bound_q_rows()[point]
+    start_only = np.all(q1[qrows, JET_ORDER:] == 0.0, axis=1)
+    end_only = np.all(q1[qrows, :JET_ORDER] == 0.0, axis=1)
+    for a in (lo, hi, start_only, end_only):
+        a.setflags(write=False)
+    return BoundLayout(point, code, direction, order, lo, hi, start_only, end_only)
+
+
+def bound_layout(bounds: Bounds) -> BoundLayout:
+    """The bound rows `bounds` needs (cached per distinct bounds)."""
+    return _bound_layout(bounds.key(), tuple(bool(v) for v in np.isfinite(bounds.horizontal)), bounds.sides)
+
+
 def bound_sides() -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
-    """Per bound row (point * 3 + axis): depends on the start jet only; on the end jet only."""
+    """Per box row (point * 3 + axis): depends on the start jet only; on the end jet only."""
     q1 = _unit_templates()[0]
     rows = _bound_q_rows()
     a_only = np.repeat(np.all(q1[rows, JET_ORDER:] == 0.0, axis=1), 3)
@@ -115,14 +206,13 @@ def bound_sides() -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
     return a_only, b_only
 
 
-def bound_rows(hull: FloatArray, lo: FloatArray, hi: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Rows (3 n, 30), lower and upper limits of the dynamic-bound constraints of one segment.
-
-    `lo`, `hi` are the Bounds arrays (4, 3).
-    """
-    rows: FloatArray = np.kron(hull[_bound_q_rows()], np.eye(3)).astype(np.float64)
-    order, _, axis, _ = _bound_meta()
-    return rows, lo[order - 1, axis], hi[order - 1, axis]
+def bound_rows(hull: FloatArray, bounds: Bounds) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Rows (R, 30), lower and upper limits of the dynamic-bound constraints of one segment
+    (`bound_layout`: the box's, then the horizontal norm's polygon)."""
+    lay = bound_layout(bounds)
+    q = hull[N_CTRL + lay.point]  # (R, 10)
+    rows: FloatArray = (q[:, :, None] * lay.direction[:, None, :]).reshape(q.shape[0], 3 * q.shape[1])
+    return rows, np.asarray(lay.lo), np.asarray(lay.hi)
 
 
 def corridor_rows(hull: FloatArray, poly: Polytope) -> tuple[FloatArray, FloatArray]:
@@ -136,12 +226,6 @@ def corridor_half_mask(n_faces: int) -> NDArray[np.bool_]:
     return np.repeat(_CORR_Q_ROWS <= JET_ORDER - 1, n_faces)
 
 
-def bound_half_mask() -> NDArray[np.bool_]:
-    return _bound_meta()[3]
-
-
-def bound_row_orders() -> IntArray:
-    return _bound_meta()[0]
 
 
 # --- costs -------------------------------------------------------------------
@@ -197,10 +281,11 @@ class SegmentRows:
     order: IntArray  # derivative order for bound rows, 0 for corridor rows
 
 
-def segment_rows(hull: FloatArray, lo: FloatArray, hi: FloatArray, poly: Polytope | None) -> SegmentRows:
-    brows, blo, bhi = bound_rows(hull, lo, hi)
-    bhalf = bound_half_mask()
-    border = bound_row_orders()
+def segment_rows(hull: FloatArray, bounds: Bounds, poly: Polytope | None) -> SegmentRows:
+    brows, blo, bhi = bound_rows(hull, bounds)
+    lay = bound_layout(bounds)
+    bhalf = lay.start_only
+    border = lay.order
     if poly is None or poly.A.shape[0] == 0:
         return SegmentRows(
             brows,

@@ -122,14 +122,11 @@ class SegBlocks:
         return slice(self.n1 + self.n2, n) if role == "a" else slice(0, self.n1)
 
 
-def _bound_groups() -> tuple[NDArray[np.int64], int, int]:
+def _bound_groups(start_only: NDArray[np.bool_], end_only: NDArray[np.bool_]) -> tuple[NDArray[np.int64], int, int]:
     """Permutation of the bound rows into [start only | both | end only] and group sizes."""
-    from planner_core.constraints import bound_sides
-
-    a_only, b_only = bound_sides()
-    both = ~a_only & ~b_only
-    perm = np.concatenate([np.flatnonzero(a_only), np.flatnonzero(both), np.flatnonzero(b_only)])
-    return perm, int(a_only.sum()), int(both.sum())
+    both = ~start_only & ~end_only
+    perm = np.concatenate([np.flatnonzero(start_only), np.flatnonzero(both), np.flatnonzero(end_only)])
+    return perm, int(start_only.sum()), int(both.sum())
 
 
 class ProblemCache:
@@ -141,10 +138,13 @@ class ProblemCache:
     segments it touches). The hull maps of every segment (`hull`, ~7 MB at
     m = 1000) are built only for the compiled pass, which reads them all;
     the numpy paths build those of the segments they touch (`hull_of`).
+
+    Bound rows (`constraints.bound_layout`, in block order): `_bpt` the certified point of each,
+    `_bcode` its axis (0..2) or `constraints.CODE_NORM` (a horizontal polygon direction, `_bdir`).
     """
 
     def __init__(self, problem: Problem) -> None:
-        from planner_core.constraints import _bound_meta, bound_row_orders
+        from planner_core.constraints import bound_layout
 
         self.problem = problem
         self.durations = problem.durations
@@ -152,16 +152,17 @@ class ProblemCache:
         # again, and a long mission's many recoveries would otherwise keep ~0.1 MB a segment
         self._blocks: dict[int, SegBlocks] = {}
         self._cost: dict[int, FloatArray] = {}
-        perm, self._bn1, self._bn2 = _bound_groups()
+        lay = bound_layout(problem.bounds)
+        perm, self._bn1, self._bn2 = _bound_groups(lay.start_only, lay.end_only)
         self._bperm = perm
-        orders = bound_row_orders()[perm]
-        axes = _bound_meta()[2][perm]
-        b = problem.bounds
-        lo = np.clip(b.lo[orders - 1, axes], -INF, INF)
-        hi = np.clip(b.hi[orders - 1, axes], -INF, INF)
+        self._bpt = lay.point[perm]
+        self._bcode = lay.code[perm]
+        self._bdir = np.ascontiguousarray(lay.direction[perm])
+        lo = np.clip(lay.lo[perm], -INF, INF)
+        hi = np.clip(lay.hi[perm], -INF, INF)
         self._blo, self._bhi = lo, hi
         self._blo_t, self._bhi_t = _tighten(lo, hi)
-        self._border = orders.astype(np.int64)
+        self._border = lay.order[perm].astype(np.int64)
 
     @cached_property
     def hull(self) -> FloatArray:
@@ -179,20 +180,19 @@ class ProblemCache:
         return hull_maps(self.durations[segments])
 
     def bound_rows(self, s: int) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """Bound rows of segment s in block order: (A (3 n, 12), B (3 n, 12), c0 (3 n,))."""
-        qb = self.hull_of(s)[10:]  # (n, 10) certified hodograph points, per axis
-        nb = 3 * qb.shape[0]
-        eye = np.eye(3)
-        rows_a = np.einsum("rc,de->rdce", qb[:, 1:5], eye).reshape(nb, 12)
-        rows_b = np.einsum("rc,de->rdce", qb[:, 6:10], eye).reshape(nb, 12)
+        """Bound rows of segment s in block order: (A (R, 12), B (R, 12), c0 (R,))."""
+        qb = self.hull_of(s)[10:][self._bpt]  # (R, 10) the certified point of each row
+        nb = qb.shape[0]
+        dirs = self._bdir
+        rows_a = (qb[:, 1:5, None] * dirs[:, None, :]).reshape(nb, 12)
+        rows_b = (qb[:, 6:10, None] * dirs[:, None, :]).reshape(nb, 12)
         w = self.problem.waypoints
-        c0 = (qb[:, 0, None] * w[s] + qb[:, 5, None] * w[s + 1]).reshape(nb)
-        perm = self._bperm
-        return rows_a[perm], rows_b[perm], c0[perm]
+        # direction . waypoint: exactly the coordinate for an axis row (products with 0 and 1)
+        c0 = qb[:, 0] * (dirs @ w[s]) + qb[:, 5] * (dirs @ w[s + 1])
+        return rows_a, rows_b, c0
 
     def rows(self, s: int) -> SegmentRows:
-        b = self.problem.bounds
-        return segment_rows(self.hull_of(s), b.lo, b.hi, self.problem.corridor(s))
+        return segment_rows(self.hull_of(s), self.problem.bounds, self.problem.corridor(s))
 
     def blocks(self, s: int) -> SegBlocks:
         blk = self._blocks.pop(s, None)  # re-inserted below: the dict's order is last use

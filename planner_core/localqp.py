@@ -124,7 +124,7 @@ def solve_local(
     for s in segments:
         d = float(durations[s])
         hull = hull_maps(np.array([d]))[0]
-        rows = segment_rows(hull, bounds.lo, bounds.hi, corridor_of(s))
+        rows = segment_rows(hull, bounds, corridor_of(s))
         z = np.concatenate([jets[s].ravel(), jets[s + 1].ravel()])
         colmap = np.concatenate([cols.get(s, none_free), cols.get(s + 1, none_free)])
         fc = colmap >= 0
@@ -618,13 +618,27 @@ def solve_derivatives(
         infinite = np.abs(lim[:, :nb]) >= _INF
     tight = _tightened(lim[:, :nl], nb, infinite)
     q = st.grad.dot(J).ravel()
+    Gs = G[:nl]
+    norm = None
+    if bounds.has_norm:
+        norm = _norm_rows(bounds, k, st.hodo.dot(J).reshape(-1), G[:nb], pt.live_b, n)
+        Gn, limn, live = norm
+        dead_v = (limn[:, ~live] * _SIGN).max(axis=0)  # a row with no free column: its value is 0
+        if dead_v.size and not float(dead_v.max()) <= CHECK_TOL:  # NaN fails too
+            i = int(np.flatnonzero(~live)[int(np.argmax(dead_v))]) // _norm_rows_per_segment(bounds)
+            return LocalSolution(False, {}, f"horizontal norm bound of segment {segs[i]} exceeded by "
+                                 f"{float(dead_v.max()):.3g} by jets held fixed", 0.0, n, 0)
+        Gs = np.vstack([Gs, Gn[live]])
+        tight = np.concatenate([tight, _tightened(limn[:, live], int(live.sum()), None)], axis=1)
     t0 = time.perf_counter()
-    x, status = _solve_dense(st.P.copy(), q, G[:nl], tight[0], tight[1], backend)
+    x, status = _solve_dense(st.P.copy(), q, Gs, tight[0], tight[1], backend)
     qp_time = time.perf_counter() - t0
     if x is None:
         fixed = _fixed_failure(jets, durations, bounds, corridor_of, segs, pos, n)
         return fixed or LocalSolution(False, {}, f"QP {status} for jets {free}", qp_time, n, nl)
     viol = max(float(((lim - G.dot(x)) * _SIGN).max()), 0.0)  # lo - Gx and Gx - hi, every row
+    if norm is not None:
+        viol = max(viol, float(((norm[1] - norm[0].dot(x)) * _SIGN).max()))
     if not viol <= CHECK_TOL:  # NaN fails too
         fixed = _fixed_failure(jets, durations, bounds, corridor_of, segs, pos, n)
         return fixed or LocalSolution(False, {}, f"QP solution misses a row by {viol:.3g} for jets {free}", qp_time, n, nl)
@@ -634,6 +648,44 @@ def solve_derivatives(
         jet[1:] = x[_NV * p : _NV * p + _NV].reshape(JET_ORDER - 1, 3)
         out[j] = jet
     return LocalSolution(True, out, "ok", qp_time, n, nl)
+
+
+def _norm_points(bounds: Bounds) -> tuple[NDArray[np.int64], FloatArray, FloatArray]:
+    """The certified points with a horizontal norm bound, the polygon's normals (d, 2) and each
+    point's limit r cos(pi / sides)."""
+    from planner_core.constraints import polygon_normals
+
+    r = bounds.polygon_radius[_ORDER_OF_ROW - 1]
+    pts = np.flatnonzero(np.isfinite(r))
+    return pts, polygon_normals(bounds.sides), r[pts]
+
+
+def _norm_rows_per_segment(bounds: Bounds) -> int:
+    pts, normals, _ = _norm_points(bounds)
+    return int(pts.size * normals.shape[0])
+
+
+def _norm_rows(
+    bounds: Bounds, k: int, values: FloatArray, g_live: FloatArray, live_b: NDArray[np.int64], n: int
+) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
+    """The horizontal norm's polygon rows of the k segments of a local QP: rows (R, n) in the free
+    variables, limits (2, R) less the fixed part, and which rows depend on a free variable.
+
+    A row is normal . (x, y) of one certified point: the same combination of that point's x and
+    y rows (`g_live`, the live bound rows at the values `live_b`) and fixed values (`values`,
+    every certified value of the k segments, point-major, then axis)."""
+    pts, normals, lim = _norm_points(bounds)
+    full = np.zeros((k * 3 * _N_HODO, n))
+    full[live_b] = g_live
+    base = (np.arange(k)[:, None] * _N_HODO + pts[None, :]).ravel() * 3  # (k p,) the x value of each point
+    gx, gy = full[base], full[base + 1]  # (k p, n)
+    cx, cy = values[base], values[base + 1]
+    nx_, ny_ = normals[:, 0], normals[:, 1]
+    rows = (nx_[None, :, None] * gx[:, None, :] + ny_[None, :, None] * gy[:, None, :]).reshape(-1, n)
+    const = (nx_[None, :] * cx[:, None] + ny_[None, :] * cy[:, None]).ravel()
+    r = np.repeat(np.tile(lim, k), normals.shape[0])
+    limits = np.stack([-r - const, r - const])
+    return rows, limits, np.any(rows != 0.0, axis=1)
 
 
 def _fixed_failure(

@@ -353,7 +353,7 @@ class _RowStore:
         n_seg = problem.m - 1
         self.polys = list(problem.corridors) if problem.corridors is not None else [None] * n_seg
         self.faces = np.array([0 if p is None else p.b.size for p in self.polys], dtype=np.int64)
-        nb = cache._bperm.size
+        nb = cache._bpt.size
         off = np.concatenate([[0], np.cumsum(nb + 8 * self.faces)])
         n_rows = int(off[-1])
         self.n_rows = n_rows
@@ -429,15 +429,14 @@ class _RowStore:
         # fill_rows writes segment s at off[s]: offsets shifted to the store's first row; it skips
         # the working limits when limw has no columns (the global QP's store)
         kernel.fill_rows(
-            segments, self._off - self.row0, cache.hull, cache.problem.waypoints, self.cs, cache._bperm,
-            int(cache._bn1), self._blim, self._face_off, self._pa, self._pb, INF, MARGIN, self.ab, self.c0, self.lim,
+            segments, self._off - self.row0, cache.hull, cache.problem.waypoints, self.cs, cache._bpt,
+            cache._bcode, cache._bdir, int(cache._bn1), self._blim, self._face_off, self._pa, self._pb, INF, MARGIN, self.ab, self.c0, self.lim,
             self.limw, ADD_TOL,
         )
 
     def _fill_group(self, segs: NDArray[np.int64], f: int) -> None:
         cache, cs = self.cache, self.cs
-        perm = cache._bperm
-        nb = perm.size
+        nb = cache._bpt.size
         bn1 = cache._bn1
         w = cache.problem.waypoints
         g = segs.size
@@ -449,14 +448,15 @@ class _RowStore:
         blk = np.zeros((g, nrow, 2 * NV))
         cblk = np.empty((g, nrow))
         lblk = np.empty((4, g, nrow))
-        eye = np.eye(3)
-        qb = hull[:, 10:]  # (g, n, 10) certified hodograph points
-        ra = np.einsum("src,de->srdce", qb[:, :, 1:5], eye).reshape(g, nb, NV)[:, perm]
-        rb = np.einsum("src,de->srdce", qb[:, :, 6:10], eye).reshape(g, nb, NV)[:, perm]
+        dirs = cache._bdir  # (nb, 3) the direction of each bound row: an axis or a horizontal one
+        qb = hull[:, 10:][:, cache._bpt]  # (g, nb, 10) the certified hodograph point of each row
+        ra = (qb[:, :, 1:5, None] * dirs[None, :, None, :]).reshape(g, nb, NV)
+        rb = (qb[:, :, 6:10, None] * dirs[None, :, None, :]).reshape(g, nb, NV)
         blk[:, bpos, :NV] = ra * cs[segs, None, :]
         blk[:, bpos, NV:] = rb * cs[segs + 1, None, :]
-        cb0 = qb[:, :, 0, None] * w[segs, None, :] + qb[:, :, 5, None] * w[segs + 1, None, :]
-        cblk[:, bpos] = cb0.reshape(g, nb)[:, perm]
+        # direction . waypoint: exactly the coordinate for an axis row (products with 0 and 1)
+        cb0 = qb[:, :, 0] * (w[segs] @ dirs.T) + qb[:, :, 5] * (w[segs + 1] @ dirs.T)
+        cblk[:, bpos] = cb0
         blim = np.stack([cache._blo_t, cache._bhi_t, cache._blo, cache._bhi])  # (4, nb)
         lblk[:, :, bpos] = blim[:, None, :]
         if f:
@@ -494,13 +494,13 @@ class _CompactRows:
     off: NDArray[np.int64]
     n1: NDArray[np.int64]
     n2: NDArray[np.int64]
-    pr: NDArray[np.int64]  # hodograph row (0..29) of each bound row, in stacking order
-    pd: NDArray[np.int64]  # its axis
+    pr: NDArray[np.int64]  # certified hodograph point of each bound row, in stacking order
+    pd: NDArray[np.int64]  # its axis (3: a horizontal norm's polygon direction, b6[6:8])
     bn1: int
     nb: int
     face_off: NDArray[np.int64]
     pa: FloatArray
-    b6: FloatArray  # (6, nb) per bound row: lo_t, hi_t, lo, hi, lo_w, hi_w
+    b6: FloatArray  # (8, nb) per bound row: lo_t, hi_t, lo, hi, lo_w, hi_w, direction x, y
     f6: FloatArray  # (6, faces) the same per corridor face (lower limits -INF)
 
 
@@ -511,15 +511,14 @@ def _widen(lo_t: FloatArray, hi_t: FloatArray) -> tuple[FloatArray, FloatArray]:
 
 def _compact_rows(store: _RowStore) -> _CompactRows:
     cache = store.cache
-    perm = cache._bperm
     blo_t, bhi_t = cache._blo_t, cache._bhi_t
-    b6 = np.stack([blo_t, bhi_t, cache._blo, cache._bhi, *_widen(blo_t, bhi_t)])
+    b6 = np.stack([blo_t, bhi_t, cache._blo, cache._bhi, *_widen(blo_t, bhi_t), cache._bdir[:, 0], cache._bdir[:, 1]])
     hi = np.clip(store._pb, -INF, INF)
     lo = np.full(hi.shape, -INF)
     lo_t, hi_t = _tighten(lo, hi)
     f6 = np.stack([lo_t, hi_t, lo, hi, *_widen(lo_t, hi_t)])
     return _CompactRows(
         np.asarray(store.off, dtype=np.int64), np.asarray(store.n1, dtype=np.int64),
-        np.asarray(store.n2, dtype=np.int64), (perm // 3).astype(np.int64), (perm % 3).astype(np.int64),
-        int(cache._bn1), int(perm.size), store._face_off, np.ascontiguousarray(store._pa, dtype=float), b6, f6,
+        np.asarray(store.n2, dtype=np.int64), cache._bpt.astype(np.int64), cache._bcode.astype(np.int64),
+        int(cache._bn1), int(cache._bpt.size), store._face_off, np.ascontiguousarray(store._pa, dtype=float), b6, f6,
     )

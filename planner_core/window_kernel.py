@@ -345,14 +345,22 @@ def _seg_check(
     _seg_points(s, ua, ub, hull, w, f, nz, lra < n1, lrb > n1, pts)
     nbad = 0
     for lr in range(max(lra, 0), min(lrb, bn1)):
-        v = pts[10 + pr[lr], pd[lr]]
+        d = pd[lr]
+        if d < 3:
+            v = pts[10 + pr[lr], d]
+        else:  # a horizontal polygon direction, in b6[6:8]
+            v = b6[6, lr] * pts[10 + pr[lr], 0] + b6[7, lr] * pts[10 + pr[lr], 1]
         if v > b6[khi, lr] + tol or v < b6[klo, lr] - tol:
             bad[nbad] = lr
             nbad += 1
     c0, c1 = bn1 + 4 * f, nb + 4 * f
     for lr in range(max(lra, c0), min(lrb, c1)):
         t = lr - 4 * f
-        v = pts[10 + pr[t], pd[t]]
+        d = pd[t]
+        if d < 3:
+            v = pts[10 + pr[t], d]
+        else:
+            v = b6[6, t] * pts[10 + pr[t], 0] + b6[7, t] * pts[10 + pr[t], 1]
         if v > b6[khi, t] + tol or v < b6[klo, t] - tol:
             bad[nbad] = lr
             nbad += 1
@@ -413,13 +421,22 @@ def _materialize(
         kind, idx, pt = _row_loc(r0 + i - off[s], bn1, nb, face_off[s + 1] - fo)
         for k in range(2 * NV):
             wab[i, k] = 0.0
-        if kind == 0:
+        if kind == 0 and pd[idx] < 3:
             d = pd[idx]
             r = 10 + pr[idx]
             for c in range(4):
                 wab[i, 3 * c + d] = hull[s, r, 1 + c] * cs[s, 3 * c + d]
                 wab[i, NV + 3 * c + d] = hull[s, r, 6 + c] * cs[s + 1, 3 * c + d]
             g = hull[s, r, 0] * w[s, d] + hull[s, r, 5] * w[s + 1, d]
+        elif kind == 0:  # a horizontal polygon direction (b6[6:8]) on a certified point
+            r = 10 + pr[idx]
+            for e in range(2):
+                de = b6[6 + e, idx]
+                for c in range(4):
+                    wab[i, 3 * c + e] = hull[s, r, 1 + c] * de * cs[s, 3 * c + e]
+                    wab[i, NV + 3 * c + e] = hull[s, r, 6 + c] * de * cs[s + 1, 3 * c + e]
+            g = hull[s, r, 0] * (b6[6, idx] * w[s, 0] + b6[7, idx] * w[s, 1]) + hull[s, r, 5] * (
+                b6[6, idx] * w[s + 1, 0] + b6[7, idx] * w[s + 1, 1])
         elif kind == 1:
             face = fo + idx
             r = 1 + pt
@@ -732,9 +749,10 @@ def run_pass(
 
     Rows: `hull` (S, 10 + n, 10) maps each segment's [p0, start derivatives, p1, end derivatives] to
     its control and hodograph points; `cs` the column scales; `pr`/`pd` the hodograph row and axis
-    of each bound row (in `_RowStore`'s order, `bn1` of them start-only, `nb` in all); corridor
-    faces `pa` (segment s: rows face_off[s]:face_off[s+1]); limits per bound row `b6` and per face
-    `f6` (6, .): lo_t, hi_t, lo, hi, lo_w, hi_w (see `_lim`); `off`/`n1`/`n2` the stacked row
+    of each bound row (in `_RowStore`'s order, `bn1` of them start-only, `nb` in all; axis 3: a
+    horizontal norm's polygon direction, (b6[6], b6[7]) its x, y components); corridor
+    faces `pa` (segment s: rows face_off[s]:face_off[s+1]); limits per bound row `b6` (8, .) and per
+    face `f6` (6, .): lo_t, hi_t, lo, hi, lo_w, hi_w (see `_lim`), b6 then the direction; `off`/`n1`/`n2` the stacked row
     offsets, for `active` (the rows active at the last solution). `clock`: libc's clock_gettime
     (see `_now`), `ts` two int64 for its answer."""
     hmax = window
@@ -779,7 +797,7 @@ def run_pass(
 
 @njit
 def fill_rows(
-    segs: Any, off: Any, hull: Any, w: Any, cs: Any, perm: Any, bn1: int, blim: Any,
+    segs: Any, off: Any, hull: Any, w: Any, cs: Any, pr: Any, pd: Any, bdir: Any, bn1: int, blim: Any,
     face_off: Any, pa: Any, pb: Any, inf: float, margin: float,
     ab: Any, c0: Any, lim: Any, limw: Any, add_tol: float,
 ) -> None:
@@ -789,7 +807,7 @@ def fill_rows(
     (tightened, and tightened widened by `add_tol` relative; skipped when it has no columns).
     The numpy + daqp window path and the global QP read these; the compiled pass builds the
     rows it needs itself (`_materialize`)."""
-    nb = perm.size
+    nb = pr.size
     extras = limw.shape[1] > 0
     for si in range(segs.size):
         s = segs[si]
@@ -806,15 +824,22 @@ def fill_rows(
         wa = w[s]
         wb = w[s + 1]
         for t in range(nb):
-            o = perm[t]
-            rr = o // 3
-            d = o % 3
+            d = pd[t]
             row = blk[t + (4 * f if t >= bn1 else 0)]
-            hr = hs[10 + rr]
-            for c in range(4):
-                row[3 * c + d] = hr[1 + c] * csa[3 * c + d]
-                row[NV + 3 * c + d] = hr[6 + c] * csb[3 * c + d]
-            cz[t + (4 * f if t >= bn1 else 0)] = hr[0] * wa[d] + hr[5] * wb[d]
+            hr = hs[10 + pr[t]]
+            if d < 3:
+                for c in range(4):
+                    row[3 * c + d] = hr[1 + c] * csa[3 * c + d]
+                    row[NV + 3 * c + d] = hr[6 + c] * csb[3 * c + d]
+                cz[t + (4 * f if t >= bn1 else 0)] = hr[0] * wa[d] + hr[5] * wb[d]
+            else:  # a horizontal polygon direction bdir[t] (z component 0)
+                for e in range(2):
+                    de = bdir[t, e]
+                    for c in range(4):
+                        row[3 * c + e] = hr[1 + c] * de * csa[3 * c + e]
+                        row[NV + 3 * c + e] = hr[6 + c] * de * csb[3 * c + e]
+                cz[t + (4 * f if t >= bn1 else 0)] = hr[0] * (bdir[t, 0] * wa[0] + bdir[t, 1] * wa[1]) + hr[5] * (
+                    bdir[t, 0] * wb[0] + bdir[t, 1] * wb[1])
         for k in range(4):
             lk = lim[k, base : base + n]
             bk = blim[k]
