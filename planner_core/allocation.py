@@ -469,7 +469,7 @@ def takeoff_duration(height: float, bounds: Bounds, *, up: tuple[float, float, f
     the answer is `timing.durations_from_lengths` at safety 1 (the certificate's exact minimum at
     rest ends), checked here against the certificate itself; `tol` only guards rounding."""
     from planner_core.bezier import segment_from_jets
-    from planner_core.constraints import certified_points
+    from planner_core.constraints import certified_points, polygon_excess
     from planner_core.problem import rest_jet
 
     if not (np.isfinite(height) and height > 0.0):
@@ -483,7 +483,10 @@ def takeoff_duration(height: float, bounds: Bounds, *, up: tuple[float, float, f
     ctrl = segment_from_jets(rest_jet(wps[0]), rest_jet(wps[1]), float(t))[None]
     for _ in range(8):  # the table's last digits: stretch until the certificate holds outright
         if all(np.all(certified_points(ctrl, k, np.array([t])) <= bounds.hi[k - 1])
-               and np.all(certified_points(ctrl, k, np.array([t])) >= bounds.lo[k - 1]) for k in range(1, 5)):
+               and np.all(certified_points(ctrl, k, np.array([t])) >= bounds.lo[k - 1])
+               and not np.any(polygon_excess(certified_points(ctrl, k, np.array([t])),
+                                             bounds.horizontal[k - 1], bounds.sides) > 0.0)
+               for k in range(1, 5)):
             return float(t)
         t *= 1.0 + tol
         ctrl = segment_from_jets(rest_jet(wps[0]), rest_jet(wps[1]), float(t))[None]

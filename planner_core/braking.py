@@ -20,6 +20,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from planner_core.bezier import segments_from_jets
+from planner_core.constraints import polygon_excess
 from planner_core.localqp import solve_local
 from planner_core.problem import (
     JET_ORDER,
@@ -47,12 +48,17 @@ def stop_time_scale(velocity: FloatArray, acceleration: FloatArray, bounds: Boun
     """|v| / a_max (braking) plus |a| / j_max (unwinding the current acceleration), on the worst
     axis of the worst of the states (n, 3) or (3,): the time scale of a stop from them."""
 
-    def limit(row: int) -> FloatArray:
-        lim = np.minimum(-bounds.lo[row], bounds.hi[row])
+    lo, hi = bounds.axis_limits()
+
+    def limit(lim: FloatArray) -> FloatArray:
         return np.where(np.isfinite(lim) & (lim > 0), lim, np.inf)
 
-    t_axis = np.abs(np.atleast_2d(velocity)) / limit(1) + np.abs(np.atleast_2d(acceleration)) / limit(2)
-    return float(np.max(t_axis))
+    v, a = np.atleast_2d(velocity), np.atleast_2d(acceleration)
+    t_axis = np.abs(v) / limit(np.minimum(-lo[1], hi[1])) + np.abs(a) / limit(np.minimum(-lo[2], hi[2]))
+    # a horizontal norm bound: the horizontal speed brakes at the norm's rate, not each axis's
+    r = limit(bounds.horizontal)
+    t_h = np.hypot(v[:, 0], v[:, 1]) / r[1] + np.hypot(a[:, 0], a[:, 1]) / r[2]
+    return float(max(np.max(t_axis), np.max(t_h)))
 
 
 def _first_duration(jet: FloatArray, bounds: Bounds) -> float:
@@ -132,6 +138,13 @@ def braking_trajectory(
             axis = int(np.argmax(excess))
             return _infeasible(
                 f"current {ORDER_NAMES[k]} on axis {axis} ({jet[k, axis]:.4g}) is already outside its bounds"
+            )
+        r = float(bounds.horizontal[k - 1])
+        if np.isfinite(r) and float(polygon_excess(jet[k], r, bounds.sides)) > 1e-9:
+            # the stop's first hodograph point is this derivative: it must be in the certified polygon
+            return _infeasible(
+                f"current horizontal {ORDER_NAMES[k]} ({float(np.hypot(jet[k, 0], jet[k, 1])):.4g}) is already "
+                f"outside the polygon that certifies its norm bound {r:.4g} (radius {r:.4g} x cos(pi/{bounds.sides}))"
             )
     tries = list(durations) if durations is not None else [
         _first_duration(jet, bounds) * GROWTH**i for i in range(N_TRIES)

@@ -150,7 +150,7 @@ class BoundLayout:
 
 @lru_cache(maxsize=16)
 def _layout_structure(norm_orders: tuple[bool, ...], sides: int) -> tuple[IntArray, IntArray, FloatArray, IntArray]:
-    order, index, axis, _ = _bound_meta()
+    order, _, axis, _ = _bound_meta()
     q_order = _unit_templates()[2][_bound_q_rows()]  # order of each certified point
     point = np.repeat(np.arange(q_order.size), 3)
     code = axis.astype(np.int64)

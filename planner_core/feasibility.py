@@ -28,7 +28,7 @@ MAX_SCALE = 64.0
 SCALE_TOL = 0.005  # relative width of the final bracket
 _TIE = 1e-3  # usages this close to the largest are named as candidates too
 
-__all__ = ["Binding", "ScaleSearch", "binding_bound", "bound_usage", "scale_search", "scaled"]
+__all__ = ["Binding", "ScaleSearch", "binding_bound", "bound_usage", "norm_usage", "scale_search", "scaled"]
 
 
 @dataclass(frozen=True)
@@ -40,12 +40,14 @@ class Binding:
     waypoints: tuple[int, int]  # the waypoints the segment joins, as given
     usage: float  # fraction of the bound the certificate uses (corridor: 1 at a face)
     order: int | None = None  # 1..4 for bounds
-    axis: int | None = None  # 0..2 for bounds
-    side: str | None = None  # "max" | "min"
+    axis: int | None = None  # 0..2 for box bounds; None for the horizontal norm
+    side: str | None = None  # "max" | "min" | "norm" (the horizontal norm bound, on its polygon)
     candidates: tuple[str, ...] = ()  # other constraints within a hair of the same usage
 
     def describe(self) -> str:
         where = f"segment {self.segment} (waypoint {self.waypoints[0]} -> {self.waypoints[1]})"
+        if self.kind == "bounds" and self.side == "norm" and self.order is not None:
+            return f"horizontal {ORDER_NAMES[self.order]} norm in {where}"
         if self.kind == "corridor" or self.order is None or self.axis is None:
             return f"corridor of {where}"
         return f"{ORDER_NAMES[self.order]} {self.side} on axis {'xyz'[self.axis]} in {where}"
@@ -112,6 +114,25 @@ def bound_usage(traj: Trajectory, problem: Problem) -> tuple[FloatArray, FloatAr
     return up, dn
 
 
+def norm_usage(traj: Trajectory, problem: Problem) -> FloatArray:
+    """(s, 4) per segment and order, the certificate's use of the horizontal norm bound: the
+    largest max_i |n_i . c| / (r cos(pi / N)) over the certified points (1 = on the polygon);
+    0 where there is no norm bound."""
+    from planner_core.constraints import polygon_normals
+
+    ctrl = traj.control_points
+    d = np.diff(traj.times)
+    out = np.zeros((ctrl.shape[0], 4))
+    b = problem.bounds
+    for k in range(1, 5):
+        lim = float(b.polygon_radius[k - 1])
+        if not np.isfinite(lim):
+            continue
+        h = certified_points(ctrl, k, d)  # (s, points, 3)
+        out[:, k - 1] = np.abs(h[..., :2] @ polygon_normals(b.sides).T).max(axis=(1, 2)) / lim
+    return out
+
+
 def _corridor_usage(traj: Trajectory, problem: Problem) -> FloatArray:
     """(s,) 1 - (smallest face slack of the control points) / (corridor size); 0 without one."""
     out = np.zeros(traj.n_segments)
@@ -136,10 +157,14 @@ def binding_bound(traj: Trajectory, problem: Problem) -> Binding | None:
     up, dn = bound_usage(traj, problem)
     both = np.stack([up, dn])  # (2, s, 4, 3)
     best = float(both.max())
+    norms = norm_usage(traj, problem) if problem.bounds.has_norm else np.zeros((traj.n_segments, 4))
     corr = _corridor_usage(traj, problem)
-    if best < 1.0 - 2 * SCALE_TOL and corr.size and float(corr.max()) > 1.0 - 1e-6:
+    if max(best, float(norms.max())) < 1.0 - 2 * SCALE_TOL and corr.size and float(corr.max()) > 1.0 - 1e-6:
         seg = int(np.argmax(corr))
         return Binding("corridor", seg, (seg, seg + 1), float(corr[seg]))
+    if float(norms.max()) > best:
+        seg, k = (int(i) for i in np.unravel_index(int(np.argmax(norms)), norms.shape))
+        return Binding("bounds", seg, (seg, seg + 1), float(norms[seg, k]), k + 1, None, "norm")
     if best <= 0.0:
         return None
     side, seg, k, ax = (int(i) for i in np.unravel_index(int(np.argmax(both)), both.shape))

@@ -284,7 +284,8 @@ def _sharpest_turn(problem: Problem, j: int, window: list[int]) -> list[int]:
     v_in = (w[k] - w[k - 1]) / d[k - 1, None]
     v_out = (w[k + 1] - w[k]) / d[k, None]
     a = np.abs(v_out - v_in) / (0.5 * (d[k - 1] + d[k]))[:, None]
-    hi = np.maximum(problem.bounds.hi[1], -problem.bounds.lo[1])
+    lo_b, hi_b = problem.bounds.axis_limits()
+    hi = np.maximum(hi_b[1], -lo_b[1])
     need = np.max(a / np.where(np.isfinite(hi) & (hi > 0), hi, np.inf), axis=1)
     worst = int(k[int(np.argmax(need))])
     return [worst - 1, worst]

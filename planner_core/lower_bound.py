@@ -17,7 +17,8 @@ Two bounds; the flight takes at least the larger (`FlightTimeBound.value`):
   the boundary accelerations are left free, so a real rest start (a = 0) only makes it looser.
 
 V, A, J are each axis' larger bound magnitude (asymmetric bounds: the side that helps, so the
-bound stays valid). Pure numpy; nothing here plans.
+bound stays valid); a horizontal norm bound r caps x and y at r, and `per_segment` also counts
+each leg's horizontal distance at r. Pure numpy; nothing here plans.
 """
 
 from __future__ import annotations
@@ -75,8 +76,13 @@ def flight_time_lower_bound(waypoints: FloatArray, bounds: Bounds) -> FlightTime
     """The proven lower bound for a flight from rest at waypoints[0] through every waypoint, in
     order, to rest at the last (see the module docstring)."""
     w = np.asarray(waypoints, dtype=float)
-    mag = np.maximum(bounds.hi, -bounds.lo)  # (4, 3)
-    per_segment = float(np.sum(np.max(np.abs(np.diff(w, axis=0)) / mag[0], axis=1))) if len(w) > 1 else 0.0
+    lo, hi = bounds.axis_limits()  # a horizontal norm bound r limits |x| and |y| to r too
+    mag = np.maximum(hi, -lo)  # (4, 3)
+    step = np.diff(w, axis=0)
+    per_leg = np.max(np.abs(step) / mag[0], axis=1)
+    if bounds.has_norm:  # the horizontal distance at the horizontal speed bound
+        per_leg = np.maximum(per_leg, np.hypot(step[:, 0], step[:, 1]) / bounds.horizontal[0])
+    per_segment = float(np.sum(per_leg)) if len(w) > 1 else 0.0
     best, axis = 0.0, 0
     for ax in range(w.shape[1]):
         t = float(np.sum(run_time(axis_runs(w[:, ax]), *(float(mag[k, ax]) for k in range(3)))))

@@ -390,7 +390,8 @@ def _allocate(start: FloatArray, positions: FloatArray, work: _Work) -> FloatArr
         times = allocate_times(pts, work.bounds, t0=0.0)
         return np.asarray(np.diff(times), dtype=float)
     except ImportError:
-        vmax = float(np.min(np.minimum(-work.bounds.lo[0], work.bounds.hi[0])))
+        lo, hi = work.bounds.axis_limits()
+        vmax = float(np.min(np.minimum(-lo[0], hi[0])))
         dist = np.linalg.norm(np.diff(pts, axis=0), axis=1)
         return np.asarray(np.maximum(2.0 * dist / max(vmax, 1e-3), 1.0), dtype=float)
 

@@ -88,18 +88,32 @@ def _directions(waypoints: FloatArray) -> tuple[FloatArray, FloatArray]:
 
 
 def _symmetric(bounds: Bounds) -> FloatArray:
-    """(4, 3): per order and axis, the bound that holds in both senses."""
-    return np.minimum(bounds.hi, -bounds.lo)
+    """(4, 3): per order and axis, the bound that holds in both senses (a horizontal norm bound
+    limits x and y too: `Bounds.axis_limits`)."""
+    lo, hi = bounds.axis_limits()
+    return np.minimum(hi, -lo)
+
+
+def _norm_along(bounds: Bounds, units: FloatArray) -> FloatArray:
+    """(s, 4) the largest magnitude along each unit direction that the horizontal norm bound's
+    certifying polygon allows: r cos(pi / N) / max_i |n_i . u_xy| (exact for the polygon; inf
+    where no norm bound or no horizontal component)."""
+    from planner_core.constraints import polygon_normals
+
+    reach = np.abs(units[:, :2] @ polygon_normals(bounds.sides).T).max(axis=1)  # (s,)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = bounds.polygon_radius[None, :] / reach[:, None]
+    return np.asarray(np.where(reach[:, None] > _EPS, out, np.inf))
 
 
 def directional_bounds(bounds: Bounds, units: FloatArray) -> FloatArray:
     """(s, 4) usable magnitude of derivatives 1..4 along each unit direction.
 
     Velocity uses the bound on the side of travel; higher orders the
-    two-sided bound. A zero direction gets the smallest axis bound.
+    two-sided bound; a horizontal norm bound limits them too, through its polygon. A zero
+    direction gets the smallest axis bound.
     """
-    hi = np.asarray(bounds.hi, dtype=float)
-    lo = np.asarray(bounds.lo, dtype=float)
+    lo, hi = bounds.axis_limits()
     sym = _symmetric(bounds)
     if np.any(sym <= 0.0):
         order, axis = np.argwhere(sym <= 0.0)[0]
@@ -115,6 +129,8 @@ def directional_bounds(bounds: Bounds, units: FloatArray) -> FloatArray:
     with np.errstate(divide="ignore", over="ignore"):
         ratio = np.where(comp[:, None, :] > _EPS, per_axis / comp[:, None, :], np.inf)
     out = np.min(ratio, axis=2)
+    if bounds.has_norm:
+        out = np.minimum(out, _norm_along(bounds, units))
     zero = ~np.any(comp > _EPS, axis=1)
     out[zero] = np.min(sym, axis=1)
     return np.asarray(out)

@@ -9,12 +9,15 @@ Checks, each with the place of its worst case:
   pieces of every hodograph of orders 1..4 inside the bounds (the planner's own rows;
   this is the guarantee: it implies the bound in continuous time);
 - bounds by sampling: dense samples of orders 1..4 (an independent check);
+- a horizontal norm bound (`Bounds.horizontal`), where there is one: the same certified points
+  inside the polygon inscribed in its disc (the guarantee), and the samples' norm (a check); the
+  report gives the largest sampled norm per order (`horizontal_peak`);
 - corridors by hull (all 10 control points) and by sampling.
 """
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from functools import cache
 from typing import Any
 
@@ -53,13 +56,20 @@ class VerifyReport:
     corridor_violation_hull: Worst
     corridor_violation_sampled: Worst
     structure_error: str = ""
+    # the horizontal norm bound (Bounds.horizontal), where there is one: the certified points
+    # outside the polygon that certifies it (the guarantee), the samples' norm over the bound
+    # (an independent check), and the largest sampled norm per order 1..4 (None: no norm bound)
+    norm_violation_hull: Worst = field(default_factory=lambda: Worst(-np.inf))
+    norm_violation_sampled: Worst = field(default_factory=lambda: Worst(-np.inf))
+    horizontal_peak: tuple[float, float, float, float] | None = None
 
     def failures(self) -> list[str]:
         out = []
         if self.structure_error:
             out.append(self.structure_error)
         for name in ("waypoint_error", "boundary_error", "bound_violation_hull", "bound_violation_sampled",
-                     "corridor_violation_hull", "corridor_violation_sampled"):
+                     "norm_violation_hull", "norm_violation_sampled", "corridor_violation_hull",
+                     "corridor_violation_sampled"):
             w: Worst = getattr(self, name)
             if w.value > self.tol:
                 out.append(f"{name} {w.value:.3g}{_where(w)}")
@@ -70,10 +80,17 @@ class VerifyReport:
     def summary(self) -> str:
         head = "OK" if self.ok else "FAILED: " + "; ".join(self.failures())
         lines = [f"verify: {head}"]
-        for name in ("waypoint_error", "boundary_error", "continuity_error", "bound_violation_hull",
-                     "bound_violation_sampled", "corridor_violation_hull", "corridor_violation_sampled"):
+        names = ["waypoint_error", "boundary_error", "continuity_error", "bound_violation_hull",
+                 "bound_violation_sampled", "corridor_violation_hull", "corridor_violation_sampled"]
+        if self.horizontal_peak is not None:
+            names[5:5] = ["norm_violation_hull", "norm_violation_sampled"]
+        for name in names:
             w = getattr(self, name)
             lines.append(f"  {name:28s} {w.value: .3e}{_where(w)}")
+        if self.horizontal_peak is not None:
+            peaks = ", ".join(f"{ORDER_NAMES[k + 1]} {v:.4g}" for k, v in enumerate(self.horizontal_peak)
+                              if np.isfinite(v))
+            lines.append(f"  {'horizontal_peak':28s} {peaks}")
         return "\n".join(lines)
 
     def to_dict(self) -> dict[str, Any]:
@@ -86,7 +103,7 @@ class VerifyReport:
 def _finite(obj: Any) -> Any:
     if isinstance(obj, dict):
         return {k: _finite(v) for k, v in obj.items()}
-    if isinstance(obj, list):
+    if isinstance(obj, list | tuple):
         return [_finite(v) for v in obj]
     if isinstance(obj, float) and not np.isfinite(obj):
         return None
@@ -130,8 +147,42 @@ def verify(traj: Trajectory, problem: Problem, tol: float = 1e-9, continuity_tol
     bh, bs = _bounds(hods, d, traj.times, problem, pieces)
     ch, cs = _corridors(ctrl, traj.times, problem)
     checks = [wp, bnd, bh, bs, ch, cs]
-    ok = all(w.value <= tol for w in checks) and cont.value <= continuity_tol
-    return VerifyReport(ok, tol, continuity_tol, wp, bnd, cont, bh, bs, ch, cs)
+    if not problem.bounds.has_norm:
+        ok = all(w.value <= tol for w in checks) and cont.value <= continuity_tol
+        return VerifyReport(ok, tol, continuity_tol, wp, bnd, cont, bh, bs, ch, cs)
+    nh, ns, peak = _norms(hods, d, traj.times, problem, pieces)
+    ok = all(w.value <= tol for w in [*checks, nh, ns]) and cont.value <= continuity_tol
+    return VerifyReport(ok, tol, continuity_tol, wp, bnd, cont, bh, bs, ch, cs,
+                        norm_violation_hull=nh, norm_violation_sampled=ns, horizontal_peak=peak)
+
+
+def _norms(hods: list[FloatArray], d: FloatArray, times: FloatArray, problem: Problem,
+           pieces: int) -> tuple[Worst, Worst, tuple[float, float, float, float]]:
+    """The horizontal norm bound: certified points against its polygon (the guarantee: inside the
+    polygon is inside the disc), dense samples' norm against the bound, the largest sampled norm
+    per order (nan where not bounded)."""
+    from planner_core.constraints import polygon_excess
+
+    b = problem.bounds
+    u = _sample_params(SAMPLES_PER_SEGMENT)
+    hull, samp = Worst(-np.inf), Worst(-np.inf)
+    peak = [float("nan")] * 4
+    for k in range(1, 5):
+        r = float(b.horizontal[k - 1])
+        if not np.isfinite(r):
+            continue
+        cert = _pieces(hods[k], pieces)  # (points, s, 3)
+        ex = polygon_excess(cert, r, b.sides).max(axis=0)  # (s,)
+        i = int(np.argmax(ex))
+        if ex[i] > hull.value:
+            hull = Worst(float(ex[i]), i, k)
+        vals = np.einsum("ui,isd->usd", _sample_basis(DEGREE - k, SAMPLES_PER_SEGMENT), hods[k][:, :, :2])
+        norm = np.sqrt(vals[..., 0] ** 2 + vals[..., 1] ** 2)  # (samples, s)
+        t, sg = np.unravel_index(int(np.argmax(norm)), norm.shape)
+        peak[k - 1] = float(norm[t, sg])
+        if norm[t, sg] - r > samp.value:
+            samp = Worst(float(norm[t, sg] - r), int(sg), k, time=float(times[sg] + u[t] * d[sg]))
+    return hull, samp, (peak[0], peak[1], peak[2], peak[3])
 
 
 
@@ -165,8 +216,7 @@ def verify_changed(
     ends = np.concatenate([ctrl[:, 0], ctrl[-1:, -1]])
     if float(np.max(np.abs(ends - problem.waypoints))) > tol:
         return "a segment does not start or end at its waypoint"
-    same_bounds = bool(np.array_equal(old_problem.bounds.lo, problem.bounds.lo)
-                       and np.array_equal(old_problem.bounds.hi, problem.bounds.hi))
+    same_bounds = old_problem.bounds.same_as(problem.bounds)
     old_d = np.diff(old_traj.times)
     old_cors = old_problem.corridors or (None,) * old_traj.n_segments
     known: dict[bytes, list[Polytope | None]] = {}
