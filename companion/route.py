@@ -146,4 +146,10 @@ def plan_route(
 
 
 def clip_velocity(v: FloatArray, bounds: Bounds) -> FloatArray:
-    return np.asarray(np.clip(v, 0.98 * bounds.lo[0], 0.98 * bounds.hi[0]), dtype=float)
+    out = np.asarray(np.clip(v, 0.98 * bounds.lo[0], 0.98 * bounds.hi[0]), dtype=float)
+    # a horizontal norm bound is certified inside its polygon (radius r cos(pi / sides))
+    cap = 0.98 * float(bounds.polygon_radius[0])
+    h = float(np.hypot(out[0], out[1]))
+    if h > cap:
+        out[:2] *= cap / h
+    return out

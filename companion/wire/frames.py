@@ -60,7 +60,11 @@ def fmt_box(lo: Any, hi: Any, frame: str = "ned") -> str:
 
 
 def _swap_bound(value: Any) -> Any:
-    """A scenario bound B: number | [lo, hi] | [[lo,hi]] * 3 (per axis)."""
+    """A scenario bound B: number | [lo, hi] | [[lo,hi]] * 3 (per axis) | the vehicle form
+    {"horizontal", "up", "down" | "vertical", "box": B} (up, down and the norm are physical: only
+    its box turns)."""
+    if isinstance(value, dict):
+        return {k: _swap_bound(v) if k == "box" else v for k, v in value.items()}
     if isinstance(value, int | float):
         return value
     if len(value) == 2 and all(isinstance(v, int | float) for v in value):

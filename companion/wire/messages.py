@@ -40,6 +40,7 @@ from planner_core import (
     parse_polytope,
     polytope_vertices,
     rest_jet,
+    vehicle_bound,
 )
 
 KINDS = ("mission", "obstacles", "change", "command")
@@ -526,14 +527,30 @@ def _bound(value: Any, field_name: str) -> tuple[FloatArray, FloatArray]:
     return lo, hi
 
 
+def _vehicle_bound(value: dict[str, Any], field_name: str) -> tuple[FloatArray, FloatArray, float]:
+    """{"horizontal": h, "up": u, "down": d} (or "vertical", optionally "box"): the planner's
+    grammar (`planner_core.vehicle_bound`), in NED (up is -z)."""
+    try:
+        lo, hi, h = vehicle_bound(value, field_name, False)
+    except FieldError as exc:
+        raise MessageError(exc.field, exc.reason) from exc
+    if np.any(lo >= 0) or np.any(hi <= 0):
+        raise MessageError(f"{field_name}.box", "each interval must contain 0 (lo < 0 < hi)")
+    return lo, hi, h
+
+
 def bounds_from(obj: dict[str, Any] | None, cfg: Config) -> Bounds:
     b = cfg.planner.bounds
     base = Bounds.symmetric(b.velocity, b.acceleration, b.jerk, b.snap)
     lo, hi = base.lo.copy(), base.hi.copy()
+    hor = np.full(4, np.inf)
     for row, name in enumerate(("velocity", "acceleration", "jerk", "snap")):
         if obj and name in obj:
-            lo[row], hi[row] = _bound(obj[name], f"bounds.{name}")
-    return Bounds(lo, hi)
+            if isinstance(obj[name], dict):  # the vehicle form: replaces the order's limits
+                lo[row], hi[row], hor[row] = _vehicle_bound(obj[name], f"bounds.{name}")
+            else:
+                lo[row], hi[row] = _bound(obj[name], f"bounds.{name}")
+    return Bounds(lo, hi, horizontal=hor)
 
 
 def parse_region(obj: dict[str, Any], field_name: str, lim: LimitsConfig | None = None) -> Polytope:

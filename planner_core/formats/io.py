@@ -36,7 +36,16 @@ import numpy as np
 from numpy.typing import NDArray
 
 from planner_core.errors import FieldError
-from planner_core.problem import DEGREE, Bounds, FloatArray, Polytope, Problem, Trajectory, rest_jet
+from planner_core.problem import (
+    DEGREE,
+    POLYGON_SIDES,
+    Bounds,
+    FloatArray,
+    Polytope,
+    Problem,
+    Trajectory,
+    rest_jet,
+)
 
 TRAJECTORY_FORMAT = "bezier-trajectory/1"
 SCENARIO_KEYS = frozenset({
@@ -132,6 +141,81 @@ def _bound(x: Any, name: str) -> tuple[FloatArray, FloatArray]:
     raise ScenarioError(name, "expected a number, [lo, hi] or [[lo, hi], [lo, hi], [lo, hi]]")
 
 
+NORM_KEYS = ("horizontal", "up", "down", "vertical", "box")
+
+
+def _positive(x: Any, name: str) -> float:
+    v = _number(x, name)
+    if v <= 0:
+        raise ScenarioError(name, f"must be > 0, got {v:g}")
+    return v
+
+
+def vehicle_bound(obj: Any, name: str, z_up: bool) -> tuple[FloatArray, FloatArray, float]:
+    """One order's bound in the vehicle form (docs/bounds.md):
+    {"horizontal": h, "up": u, "down": d} (or "vertical": v for both senses), optionally with
+    "box": any per-axis form (both apply). h bounds the norm of the (x, y) part; up and down
+    are magnitudes along the vertical, +z when `z_up` (ENU), -z otherwise (NED). Every axis must
+    be bounded: x and y by "horizontal" or "box", z by "up" and "down", "vertical" or "box".
+    Returns the per-axis lo, hi (3,) and the norm bound (inf: none)."""
+    raw = _keys(obj, name, NORM_KEYS)
+    lo, hi = np.full(3, -np.inf), np.full(3, np.inf)
+    if "box" in raw:
+        lo, hi = _bound(raw["box"], f"{name}.box")
+    h = _positive(raw["horizontal"], f"{name}.horizontal") if "horizontal" in raw else np.inf
+    if "vertical" in raw and ("up" in raw or "down" in raw):
+        raise ScenarioError(f"{name}.vertical", "give either 'vertical' or 'up' and 'down', not both")
+    if ("up" in raw) != ("down" in raw):
+        missing = "down" if "up" in raw else "up"
+        raise ScenarioError(f"{name}.{missing}", "missing ('up' and 'down' come together; 'vertical' for both)")
+    if "vertical" in raw:
+        up = down = _positive(raw["vertical"], f"{name}.vertical")
+    elif "up" in raw:
+        up, down = _positive(raw["up"], f"{name}.up"), _positive(raw["down"], f"{name}.down")
+    else:
+        up = down = np.inf
+    z_lo, z_hi = (-down, up) if z_up else (-up, down)
+    lo[2], hi[2] = max(lo[2], z_lo), min(hi[2], z_hi)
+    if lo[2] > hi[2]:
+        raise ScenarioError(name, f"the vertical limits and the box leave z no room ([{lo[2]:g}, {hi[2]:g}])")
+    if not np.isfinite(h) and not (np.all(np.isfinite(lo[:2])) and np.all(np.isfinite(hi[:2]))):
+        raise ScenarioError(f"{name}.horizontal", "missing (x and y need 'horizontal' or a 'box')")
+    if not (np.isfinite(lo[2]) and np.isfinite(hi[2])):
+        raise ScenarioError(f"{name}.up", "missing (z needs 'up' and 'down', 'vertical' or a 'box')")
+    return lo, hi, h
+
+
+def bounds_to_dict(bounds: Bounds, frame: str = "enu") -> dict[str, Any]:
+    """The scenario file's "bounds" for `bounds` (what `load_scenario` reads back to the same
+    limits): per order the per-axis form, or the vehicle form where there is a norm bound
+    ("up"/"down" in `frame`; a "box" where x or y also has finite per-axis limits). Orders
+    without any bound are left out. ValueError for limits the file cannot say (a norm bound with
+    partly infinite per-axis limits besides z)."""
+    if frame not in ("enu", "ned"):
+        raise ValueError(f"frame: expected 'enu' or 'ned', got {frame!r}")
+    out: dict[str, Any] = {}
+    for k, key in enumerate(BOUND_KEYS):
+        lo, hi, h = bounds.lo[k], bounds.hi[k], float(bounds.horizontal[k])
+        finite = np.isfinite(lo) & np.isfinite(hi)
+        per_axis = [[float(a), float(b)] for a, b in zip(lo, hi, strict=True)]
+        if not np.isfinite(h):
+            if np.all(finite):
+                out[key] = per_axis
+            elif np.any(np.isfinite(lo)) or np.any(np.isfinite(hi)):
+                raise ValueError(f"bounds.{key}: per-axis limits must be all finite or all infinite")
+            continue
+        if np.all(finite):
+            out[key] = {"horizontal": h, "box": per_axis}
+        elif not np.any(np.isfinite(lo[:2]) | np.isfinite(hi[:2])) and finite[2] and lo[2] < 0.0 < hi[2]:
+            up, down = (float(hi[2]), float(-lo[2])) if frame == "enu" else (float(-lo[2]), float(hi[2]))
+            out[key] = {"horizontal": h, "up": up, "down": down}
+        else:
+            raise ValueError(f"bounds.{key}: a norm bound with these per-axis limits has no file form")
+    if bounds.sides != POLYGON_SIDES:
+        out["polygon_sides"] = bounds.sides
+    return out
+
+
 def _polytope(obj: Any, name: str, allow_vertices: bool) -> Polytope:
     keys = ("A", "b", "vertices") if allow_vertices else ("A", "b")
     _keys(obj, name, keys)
@@ -191,7 +275,7 @@ def load_scenario(obj: Any) -> Scenario:
     if "waypoints" not in raw:
         raise ScenarioError("waypoints", "missing")
     wps = _matrix(raw["waypoints"], "waypoints", 3, 2)
-    bounds = _bounds(raw)
+    bounds = _bounds(raw, str(frame))
     init = _state(raw.get("initial", {}), "initial", wps[0])
     fin = _state(raw.get("final", {}), "final", wps[-1])
     radius = _number(raw.get("vehicle_radius", 0.0), "vehicle_radius")
@@ -222,19 +306,39 @@ def _list(x: Any, name: str) -> Sequence[Any]:
     return x
 
 
-def _bounds(raw: Mapping[str, Any]) -> Bounds:
+def _bounds(raw: Mapping[str, Any], frame: str = "enu") -> Bounds:
     if "bounds" not in raw:
         raise ScenarioError("bounds", "missing")
-    bobj = _keys(raw["bounds"], "bounds", BOUND_KEYS)
-    lo = np.full((4, 3), -np.inf)
-    hi = np.full((4, 3), np.inf)
+    bobj = _keys(raw["bounds"], "bounds", (*BOUND_KEYS, "polygon_sides"))
+    return parse_bounds(bobj, "bounds", z_up=frame == "enu")
+
+
+def parse_bounds(bobj: Mapping[str, Any], name: str, z_up: bool, *, required: Sequence[str] = BOUND_KEYS[:2],
+                 base: Bounds | None = None) -> Bounds:
+    """The "bounds" object (keys `BOUND_KEYS`, optional "polygon_sides"): per order a per-axis
+    form (`_bound`) or the vehicle form (`vehicle_bound`). Orders not given come from `base`
+    (unbounded without one); `required` orders must be given."""
+    lo = np.full((4, 3), -np.inf) if base is None else np.array(base.lo, dtype=float)
+    hi = np.full((4, 3), np.inf) if base is None else np.array(base.hi, dtype=float)
+    hor = np.full(4, np.inf) if base is None else np.array(base.horizontal, dtype=float)
     for k, key in enumerate(BOUND_KEYS):
-        if key in bobj:
-            lo[k], hi[k] = _bound(bobj[key], f"bounds.{key}")
-    for key in BOUND_KEYS[:2]:
         if key not in bobj:
-            raise ScenarioError(f"bounds.{key}", "missing (velocity and acceleration bounds are required)")
-    return Bounds(lo, hi)
+            continue
+        if isinstance(bobj[key], Mapping):
+            lo[k], hi[k], hor[k] = vehicle_bound(bobj[key], f"{name}.{key}", z_up)
+        else:
+            lo[k], hi[k] = _bound(bobj[key], f"{name}.{key}")
+            hor[k] = np.inf
+    for key in required:
+        if key not in bobj:
+            raise ScenarioError(f"{name}.{key}", "missing (velocity and acceleration bounds are required)")
+    sides = POLYGON_SIDES if base is None else base.sides
+    if "polygon_sides" in bobj:
+        n = bobj["polygon_sides"]
+        if isinstance(n, bool) or not isinstance(n, int) or n < 4 or n % 2 or n > 1024:
+            raise ScenarioError(f"{name}.polygon_sides", f"expected an even integer in 4..1024, got {n!r}")
+        sides = n
+    return Bounds(lo, hi, horizontal=hor, sides=sides)
 
 
 def _map(raw: Mapping[str, Any]) -> tuple[FloatArray, FloatArray] | None:
