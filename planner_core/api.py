@@ -58,7 +58,12 @@ if TYPE_CHECKING:
     from planner_core.errors import FieldError
     from planner_core.feasibility import Binding, ScaleSearch, scale_search
     from planner_core.feasibility import scaled as scaled_durations
-    from planner_core.formats.io import bounds_to_dict, trajectory_from_dict, trajectory_to_dict, vehicle_bound
+    from planner_core.formats.io import (
+        bounds_to_dict,
+        trajectory_from_dict,
+        trajectory_to_dict,
+        vehicle_bound,
+    )
     from planner_core.indices import PlannedChange, WaypointMap, to_planned
     from planner_core.iterative import IterativeOptions, warm_up
     from planner_core.lower_bound import FlightTimeBound, flight_time_lower_bound
@@ -166,8 +171,6 @@ _WHERE: dict[str, tuple[str, str]] = {
 
 __all__ = [
     "DEFAULT_MIN_DURATION",
-    "bounds_to_dict",
-    "vehicle_bound",
     "AddObstacles",
     "AppendWaypoints",
     "Binding",
@@ -201,6 +204,7 @@ __all__ = [
     "VerifyReport",
     "WaypointMap",
     "allocate_times",
+    "bounds_to_dict",
     "braking_trajectory",
     "build_corridors",
     "corridor_cap",
@@ -232,6 +236,7 @@ __all__ = [
     "trajectory_to_dict",
     "trim_before",
     "use_compiled_kernel",
+    "vehicle_bound",
     "verify",
     "verify_changed",
     "warm_up",
