@@ -176,8 +176,9 @@ def _norms(hods: list[FloatArray], d: FloatArray, times: FloatArray, problem: Pr
         i = int(np.argmax(ex))
         if ex[i] > hull.value:
             hull = Worst(float(ex[i]), i, k)
-        vals = np.einsum("ui,isd->usd", _sample_basis(DEGREE - k, SAMPLES_PER_SEGMENT), hods[k][:, :, :2])
-        norm = np.sqrt(vals[..., 0] ** 2 + vals[..., 1] ** 2)  # (samples, s)
+        pts = hods[k]  # (n, s, 3): one matmul for every segment's samples, as `_sample_extremes`
+        vals = (_sample_basis(DEGREE - k, SAMPLES_PER_SEGMENT) @ pts.reshape(pts.shape[0], -1)).reshape(-1, *pts.shape[1:])
+        norm = np.hypot(vals[..., 0], vals[..., 1])  # (samples, s)
         t, sg = np.unravel_index(int(np.argmax(norm)), norm.shape)
         peak[k - 1] = float(norm[t, sg])
         if norm[t, sg] - r > samp.value:

@@ -344,12 +344,24 @@ def _seg_check(
     n1 = bn1 + 4 * f  # rows [0, n1) involve the start jet only
     _seg_points(s, ua, ub, hull, w, f, nz, lra < n1, lrb > n1, pts)
     nbad = 0
+    # a horizontal norm's polygon rows (axis 3) come in runs of one point's directions, with one
+    # limit: a point inside the circle of that radius satisfies all of them (|n . c| <= |c|)
+    last = -1
+    inside = False
+    x = y = 0.0
     for lr in range(max(lra, 0), min(lrb, bn1)):
         d = pd[lr]
         if d < 3:
             v = pts[10 + pr[lr], d]
         else:  # a horizontal polygon direction, in b6[6:8]
-            v = b6[6, lr] * pts[10 + pr[lr], 0] + b6[7, lr] * pts[10 + pr[lr], 1]
+            if pr[lr] != last:
+                last = pr[lr]
+                x, y = pts[10 + last, 0], pts[10 + last, 1]
+                lim = min(b6[khi, lr], -b6[klo, lr]) + tol
+                inside = lim > 0.0 and x * x + y * y <= lim * lim
+            if inside:
+                continue
+            v = b6[6, lr] * x + b6[7, lr] * y
         if v > b6[khi, lr] + tol or v < b6[klo, lr] - tol:
             bad[nbad] = lr
             nbad += 1
@@ -360,7 +372,14 @@ def _seg_check(
         if d < 3:
             v = pts[10 + pr[t], d]
         else:
-            v = b6[6, t] * pts[10 + pr[t], 0] + b6[7, t] * pts[10 + pr[t], 1]
+            if pr[t] != last:
+                last = pr[t]
+                x, y = pts[10 + last, 0], pts[10 + last, 1]
+                lim = min(b6[khi, t], -b6[klo, t]) + tol
+                inside = lim > 0.0 and x * x + y * y <= lim * lim
+            if inside:
+                continue
+            v = b6[6, t] * x + b6[7, t] * y
         if v > b6[khi, t] + tol or v < b6[klo, t] - tol:
             bad[nbad] = lr
             nbad += 1

@@ -80,7 +80,7 @@ def test_bounds_api() -> None:
     assert np.array_equal(b.lo[:, 2], [-2.5, -1, -10, -40]) and np.array_equal(b.hi[:, 2], [1.5, 1, 10, 40])  # NED
     assert np.all(np.isinf(b.lo[:, :2])) and b.has_norm and b.sides == 16
     lo, hi = b.axis_limits()
-    assert np.array_equal(hi[:2, :2], [[5, 5], [4, 4]]) and np.isinf(hi[2, 0])
+    assert np.array_equal(hi[:2, :2], [[5, 5], [4, 4]]) and np.array_equal(lo[:2, :2], -hi[:2, :2]) and np.isinf(hi[2, 0])
     z_up = Bounds.vehicle(horizontal=(5, 4, 9, 9), up=(2.5, 1, 9, 9), down=(1.5, 1, 9, 9), z_up=True)
     assert z_up.hi[0, 2] == 2.5 and z_up.lo[0, 2] == -1.5
     boxed = Bounds.vehicle(horizontal=(5, 4, 9, 9), up=(2.5, 1, 9, 9), down=(1.5, 1, 9, 9), box=Bounds.symmetric(3, 3, 3, 3))
