@@ -2,6 +2,7 @@
 
     python benchmarks/planner.py [--sizes 10 100 1000] [--window H] [--json PATH]
     python benchmarks/planner.py --window-sweep     # cost / global for windows 1..5
+    python benchmarks/planner.py --norm --sizes 100  # with a horizontal norm bound (docs/bounds.md)
 
 Every function returns plain dict rows so other benchmarks can reuse them.
 Timings are wall clock on whatever machine runs this; compare ratios, not
@@ -29,8 +30,9 @@ from planner_core.iterative import DEFAULT_WINDOW, plan_iterative
 Row = dict[str, Any]
 
 
-def random_problem(m: int, seed: int = 0, pad: float = 1.0) -> Problem:
-    """Random walk of waypoints, generous durations, a padded box corridor per segment."""
+def random_problem(m: int, seed: int = 0, pad: float = 1.0, norm: bool = False) -> Problem:
+    """Random walk of waypoints, generous durations, a padded box corridor per segment; `norm`:
+    a horizontal norm bound on velocity and acceleration too (5, 4.5: below the box's diagonal)."""
     rng = np.random.default_rng(seed)
     steps = rng.normal(size=(m - 1, 3))
     steps[:, 2] *= 0.3
@@ -45,7 +47,10 @@ def random_problem(m: int, seed: int = 0, pad: float = 1.0) -> Problem:
         )
         for i in range(m - 1)
     )
-    return Problem.from_waypoints(wps, durations, Bounds.symmetric(7.0, 6.5, 15.0, 60.0), cors)
+    bounds = Bounds.symmetric(7.0, 6.5, 15.0, 60.0)
+    if norm:
+        bounds = Bounds(bounds.lo, bounds.hi, horizontal=np.array([5.0, 4.5, np.inf, np.inf]))
+    return Problem.from_waypoints(wps, durations, bounds, cors)
 
 
 BACKEND_ROWS = {
@@ -100,10 +105,11 @@ def bench_global(problem: Problem, warm_start: bool = True) -> Row:
             "cost": res.stats["integrated_snap"]}
 
 
-def bench_sizes(sizes: list[int], window: int, seed: int = 0, global_max_m: int = 1000) -> list[Row]:
+def bench_sizes(sizes: list[int], window: int, seed: int = 0, global_max_m: int = 1000,
+                norm: bool = False) -> list[Row]:
     rows: list[Row] = []
     for m in sizes:
-        problem = random_problem(m, seed)
+        problem = random_problem(m, seed, norm=norm)
         it = {b: bench_iterative(problem, b, window) for b in BACKEND_ROWS}
         rows.extend(it.values())
         if m <= global_max_m:
@@ -197,6 +203,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sizes", type=int, nargs="+", default=[10, 100, 1000])
     ap.add_argument("--window", type=int, default=DEFAULT_WINDOW)
     ap.add_argument("--window-sweep", action="store_true")
+    ap.add_argument("--norm", action="store_true",
+                    help="problems with a horizontal norm bound on velocity and acceleration (docs/bounds.md)")
     ap.add_argument("--json", type=Path, default=None)
     ap.add_argument("--quality", action="store_true", help="also run benchmarks/quality.py (~40 s)")
     ap.add_argument("--minsnap", action="store_true",
@@ -213,7 +221,7 @@ def main(argv: list[str] | None = None) -> int:
         out["window_sweep"] = window_sweep([1, 2, 3, 4, 5])
         print(_table(out["window_sweep"], list(out["window_sweep"][0])))
     else:
-        rows = bench_sizes(args.sizes, args.window)
+        rows = bench_sizes(args.sizes, args.window, norm=args.norm)
         out["sizes"] = rows
         cols = ["method", "backend", "window", "m", "ok", "time_total_ms", "step_median_us", "step_build_us",
                 "step_solve_us", "step_check_us", "compiled_steps", "verify_ms", "recoveries", "cost",
