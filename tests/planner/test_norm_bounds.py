@@ -336,3 +336,25 @@ def test_mission_message_carries_norm_bounds() -> None:
     with pytest.raises(MessageError) as info2:
         bounds_from({"velocity": {"horizontal": 5, "up": 1}}, Config())
     assert info2.value.field == "bounds.velocity.down"
+
+
+def test_scale_search_and_binding_see_the_norm() -> None:
+    """Durations too short for a diagonal under the norm: the uniform scale search finds a larger
+    scale than under the per-axis box of the same numbers, and names the norm as what binds."""
+    from planner_core.feasibility import binding_bound, scale_search
+
+    wps = np.array([[0.0, 0, 0], [20, 20, 0]])
+    box = Bounds.symmetric(4, 3, 10, 40)
+    normed = Bounds(box.lo, box.hi, horizontal=np.array([4.0, 3.0, np.inf, np.inf]))
+    found = {}
+    for name, b in (("box", box), ("norm", normed)):
+        problem = Problem.from_waypoints(wps, [3.0], b)
+        s = scale_search(problem, lambda p: plan(p, diagnose=False))
+        assert s.scale is not None and s.result is not None and s.result.ok
+        found[name] = (s.scale, s.binding, s.result.trajectory)
+    assert found["norm"][0] > 1.3 * found["box"][0]
+    binding = found["norm"][1]
+    assert binding is not None and binding.side == "norm" and binding.axis is None
+    assert "horizontal" in binding.describe() and binding.usage > 0.99
+    assert _hnorm(found["norm"][2], 1).max() <= 4.0 and _hnorm(found["norm"][2], 2).max() <= 3.0
+    assert binding_bound(found["box"][2], Problem.from_waypoints(wps, [3.0 * found["box"][0]], box)).side in ("max", "min")
