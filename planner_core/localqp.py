@@ -625,9 +625,10 @@ def solve_derivatives(
         Gn, limn, live = norm
         dead_v = (limn[:, ~live] * _SIGN).max(axis=0)  # a row with no free column: its value is 0
         if dead_v.size and not float(dead_v.max()) <= CHECK_TOL:  # NaN fails too
-            i = int(np.flatnonzero(~live)[int(np.argmax(dead_v))]) // _norm_rows_per_segment(bounds)
+            first = int(np.flatnonzero(~(dead_v <= CHECK_TOL))[0])  # segments in order, as _fixed_failure
+            i = int(np.flatnonzero(~live)[first]) // _norm_rows_per_segment(bounds)
             return LocalSolution(False, {}, f"horizontal norm bound of segment {segs[i]} exceeded by "
-                                 f"{float(dead_v.max()):.3g} by jets held fixed", 0.0, n, 0)
+                                 f"{float(dead_v[first]):.3g} by jets held fixed", 0.0, n, 0)
         Gs = np.vstack([Gs, Gn[live]])
         tight = np.concatenate([tight, _tightened(limn[:, live], int(live.sum()), None)], axis=1)
     t0 = time.perf_counter()

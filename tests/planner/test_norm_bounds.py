@@ -16,6 +16,7 @@ from planner_core import (
     Bounds,
     IterativeOptions,
     MoveWaypoint,
+    Polytope,
     Problem,
     allocate_times,
     bounds_to_dict,
@@ -358,3 +359,97 @@ def test_scale_search_and_binding_see_the_norm() -> None:
     assert "horizontal" in binding.describe() and binding.usage > 0.99
     assert _hnorm(found["norm"][2], 1).max() <= 4.0 and _hnorm(found["norm"][2], 2).max() <= 3.0
     assert binding_bound(found["box"][2], Problem.from_waypoints(wps, [3.0 * found["box"][0]], box)).side in ("max", "min")
+
+
+def test_compiled_rows_and_checks_agree_with_the_stacked_rows() -> None:
+    """With a norm bound, the compiled pass's rows built one at a time (`_materialize`) equal the
+    stacked rows, and its check (`_seg_check`, which passes a point inside its polygon's circle
+    without evaluating each row) flags exactly the stacked rows outside their limits."""
+    from planner_core import window
+    from planner_core.window import jet_scales
+
+    if window.kernel_unavailable() is not None:
+        pytest.skip(f"compiled pass unavailable: {window.kernel_unavailable()}")
+    from planner_core import window_kernel as wk
+
+    rng = np.random.default_rng(3)
+    steps = rng.normal(size=(7, 3))
+    steps *= 3.0 / np.linalg.norm(steps, axis=1, keepdims=True)
+    wps = np.concatenate([np.zeros((1, 3)), np.cumsum(steps, axis=0)])
+    eye = np.eye(3)
+    cors = tuple(Polytope(np.concatenate([eye, -eye]), np.concatenate([np.maximum(wps[i], wps[i + 1]) + 1,
+                                                                      -np.minimum(wps[i], wps[i + 1]) + 1]))
+                 for i in range(7))
+    b = Bounds.symmetric(7, 6.5, 15, 60)
+    normed = Bounds(b.lo, b.hi, horizontal=np.array([2.0, 1.5, 9.0, np.inf]))
+    problem = Problem.from_waypoints(wps, np.full(7, 2.5), normed, cors)
+    cache = ProblemCache(problem)
+    store = window._RowStore(cache, jet_scales(problem.durations), working=True)
+    store.hold(0, problem.m - 2)
+    c = window._compact_rows(store)
+    assert np.any(c.pd == 3)
+    pts = np.empty((cache.hull.shape[1] + 10, 3))
+    nz = wk._nonzero_runs(cache.hull)
+    bad = np.empty(int(np.max(np.diff(store.off))), dtype=np.int64)
+    flagged = 0
+    for s in range(problem.m - 1):
+        n = store.off[s + 1] - store.off[s]
+        rows = slice(store.off[s], store.off[s + 1])
+        ids = np.arange(n, dtype=np.int64)
+        fixed = np.full(n, -1, dtype=np.int64)
+        wab, nrm, lim4 = np.empty((n, 24)), np.empty(n), np.empty((4, n))
+        wk._materialize(ids, n, store.off[s], np.full(n, s, dtype=np.int64), fixed, fixed, c.off, cache.hull, store.cs,
+                        c.pr, c.pd, c.bn1, c.nb, c.face_off, c.pa, problem.waypoints, c.b6, c.f6, np.zeros(24), wab,
+                        nrm, lim4)
+        np.testing.assert_allclose(wab, store.ab[rows], rtol=1e-14, atol=1e-14)
+        np.testing.assert_allclose(lim4[:2], store.lim[:2, rows] - store.c0[rows], rtol=1e-12, atol=1e-12)
+        for scale in (0.05, 0.5, 2.0, 10.0):
+            xa, xb = scale * rng.normal(size=(4, 3)), scale * rng.normal(size=(4, 3))
+            x = np.concatenate([xa.ravel() / store.cs[s], xb.ravel() / store.cs[s + 1]])
+            vals = store.c0[rows] + store.ab[rows] @ x
+            lim = store.lim[:, rows]
+            out = (vals > lim[3]) | (vals < lim[2])
+            near = (np.abs(vals - lim[3]) < 1e-9) | (np.abs(vals - lim[2]) < 1e-9)
+            nbad = wk._seg_check(s, 0, n, xa, xb, 2, 3, 0.0, cache.hull, c.pr, c.pd, c.bn1, c.nb, c.face_off, c.pa,
+                                 problem.waypoints, c.b6, c.f6, nz, pts, bad)
+            want = {lr for lr in range(n) if out[lr] and not near[lr]}
+            got = set(bad[:nbad].tolist())
+            assert want <= got and got - want <= {lr for lr in range(n) if near[lr]}
+            f = 6  # faces of every corridor here: bound rows are [0, bn1) and [bn1 + 4 f, nb + 4 f)
+            polygon = {lr for lr in want if (lr < c.bn1 and c.pd[lr] == 3)
+                       or (c.bn1 + 4 * f <= lr < c.nb + 4 * f and c.pd[lr - 4 * f] == 3)}
+            flagged += len(polygon)
+    assert flagged > 0  # the random jets did put points outside the polygons
+
+
+def test_local_qp_names_a_norm_the_fixed_jets_break() -> None:
+    """The replan's QP (`localqp.solve_derivatives`): with the neighbours' jets fixed, its
+    solution's certified points are inside the polygon; when a fixed jet itself is outside it,
+    the failure says so by name instead of a bare "infeasible"."""
+    from planner_core.certificate import hull_violation
+    from planner_core.localqp import solve_derivatives
+
+    sc = load_scenario(json.loads((EXAMPLES / "scenario1.json").read_text()))
+    p = sc.problem
+    b = Bounds(p.bounds.lo, p.bounds.hi, horizontal=np.array([4.0, 3.0, np.inf, np.inf]))
+    problem = replace(p, bounds=b, times=p.times[0] + 0.7 * (p.times - p.times[0]))
+    res = plan(problem)
+    assert res.ok
+    traj = res.trajectory
+    jets = {i: traj.jet(float(t)) for i, t in enumerate(traj.times)}
+    durs = {s: float(traj.times[s + 1] - traj.times[s]) for s in range(traj.n_segments)}
+    j = 3
+    jets[j] = jets[j].copy()
+    jets[j][1:] *= 0.5  # a guess only: the free derivatives are solved
+    sol = solve_derivatives(jets, durs, b, problem.corridor, [j])
+    assert sol.ok, sol.message
+    from planner_core.bezier import segment_from_jets
+
+    ctrl = np.stack([segment_from_jets(jets[s] if s != j else sol.jets[j], sol.jets[j] if s + 1 == j else jets[s + 1],
+                                       durs[s]) for s in (j - 1, j)])
+    assert hull_violation(ctrl, np.array([durs[j - 1], durs[j]]), b, [problem.corridor(j - 1), problem.corridor(j)]) is None
+    speed = float(np.hypot(*jets[j - 1][1, :2]))
+    assert speed > 0.5
+    tight = Bounds(b.lo, b.hi, horizontal=np.array([0.5 * speed, 3.0, np.inf, np.inf]))
+    bad = solve_derivatives(jets, durs, tight, problem.corridor, [j])
+    assert not bad.ok and "horizontal" in bad.message and "held fixed" in bad.message and f"segment {j - 1}" in bad.message
