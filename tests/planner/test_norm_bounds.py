@@ -453,3 +453,15 @@ def test_local_qp_names_a_norm_the_fixed_jets_break() -> None:
     tight = Bounds(b.lo, b.hi, horizontal=np.array([0.5 * speed, 3.0, np.inf, np.inf]))
     bad = solve_derivatives(jets, durs, tight, problem.corridor, [j])
     assert not bad.ok and "horizontal" in bad.message and "held fixed" in bad.message and f"segment {j - 1}" in bad.message
+
+
+def test_allocation_is_exact_for_the_polygon() -> None:
+    """A straight rest-to-rest leg's shortest certified duration (`takeoff_duration`, which checks
+    the allocation against the certificate itself) is longer by exactly 1 / cos(pi / 16) at an
+    edge's midpoint than at a vertex (an axis, or 22.5 degrees)."""
+    from planner_core import takeoff_duration
+
+    b = Bounds.vehicle(horizontal=(4.0, 3.0, 10, 40), up=(2, 1, 10, 40), down=(1.5, 1, 10, 40))
+    at = {a: takeoff_duration(20.0, b, up=(np.cos(a), np.sin(a), 0.0)) for a in (0.0, np.pi / 16, np.pi / 8)}
+    assert at[np.pi / 8] == pytest.approx(at[0.0], rel=2e-3)
+    assert at[np.pi / 16] == pytest.approx(at[0.0] / np.cos(np.pi / 16), rel=2e-3)
