@@ -574,16 +574,15 @@ def solve_derivatives(
     s0 = segs[0]
     polys = [corridor_of(s) for s in segs]
     faces = [0 if p is None else int(p.A.shape[0]) for p in polys]
-    st = _structure(
-        len(free),
-        tuple((s - s0, pos.get(s, -1), pos.get(s + 1, -1), f) for s, f in zip(segs, faces, strict=True)),
-        tuple(float(durations[s]) for s in segs),
-    )
+    pat_key = tuple((s - s0, pos.get(s, -1), pos.get(s + 1, -1), f) for s, f in zip(segs, faces, strict=True))
+    ds_key = tuple(float(durations[s]) for s in segs)
+    st = _structure(len(free), pat_key, ds_key)
     pt = st.pat
     n, k, nb, nl = pt.n, len(segs), pt.n_bound, pt.n_live
     limits, finite = _bound_limits(_bounds_key(bounds), k)
     J = np.array([jets[s0 + o] for o in pt.jets]).reshape(-1, 3)  # (5 nj, 3)
-    room = limits - st.hodo.dot(J).reshape(-1)  # (2, 3 n k): limit - value of every hodograph point
+    values = st.hodo.dot(J).reshape(-1)  # every certified hodograph value (point-major, then axis)
+    room = limits - values  # (2, 3 n k): limit - value of every hodograph point
     vi = st.inner.dot(J)  # (9 k, 3): P^0..P^8 of every segment from the fixed entries
     G = st.G.copy()
     if pt.uniform_col is not None and st.uniform_qc is not None:  # one free side per segment, one face count
@@ -621,16 +620,20 @@ def solve_derivatives(
     Gs = G[:nl]
     norm = None
     if bounds.has_norm:
-        norm = _norm_rows(bounds, k, st.hodo.dot(J).reshape(-1), G[:nb], pt.live_b, n)
-        Gn, limn, live = norm
+        nr = _norm_structure(len(free), pat_key, ds_key, tuple(bool(v) for v in np.isfinite(bounds.horizontal)),
+                             bounds.sides)
+        limn = _norm_limits(nr, bounds, values)
+        live = nr.live
         dead_v = (limn[:, ~live] * _SIGN).max(axis=0)  # a row with no free column: its value is 0
         if dead_v.size and not float(dead_v.max()) <= CHECK_TOL:  # NaN fails too
             first = int(np.flatnonzero(~(dead_v <= CHECK_TOL))[0])  # segments in order, as _fixed_failure
-            i = int(np.flatnonzero(~live)[first]) // _norm_rows_per_segment(bounds)
+            i = int(np.flatnonzero(~live)[first]) // nr.per_segment
             return LocalSolution(False, {}, f"horizontal norm bound of segment {segs[i]} exceeded by "
                                  f"{float(dead_v[first]):.3g} by jets held fixed", 0.0, n, 0)
-        Gs = np.vstack([Gs, Gn[live]])
-        tight = np.concatenate([tight, _tightened(limn[:, live], int(live.sum()), None)], axis=1)
+        limn = limn[:, live]
+        norm = (nr.G, limn)
+        Gs = np.vstack([Gs, nr.G])
+        tight = np.concatenate([tight, _tightened(limn, limn.shape[1], None)], axis=1)
     t0 = time.perf_counter()
     x, status = _solve_dense(st.P.copy(), q, Gs, tight[0], tight[1], backend)
     qp_time = time.perf_counter() - t0
@@ -651,42 +654,52 @@ def solve_derivatives(
     return LocalSolution(True, out, "ok", qp_time, n, nl)
 
 
-def _norm_points(bounds: Bounds) -> tuple[NDArray[np.int64], FloatArray, FloatArray]:
-    """The certified points with a horizontal norm bound, the polygon's normals (d, 2) and each
-    point's limit r cos(pi / sides)."""
+@dataclass(frozen=True)
+class _NormRows:
+    """The horizontal norm's polygon rows of one local QP pattern at its durations (cached: they
+    depend on nothing else); per call only their constants and limits are computed."""
+
+    G: FloatArray  # (live rows, n): rows that depend on a free entry
+    live: NDArray[np.bool_]  # (R,)
+    base: NDArray[np.int64]  # (k p,) index of each normed point's x value among the certified values
+    normals: FloatArray  # (d, 2)
+    order: NDArray[np.int64]  # (R,) derivative order of each row
+    per_segment: int
+
+
+@lru_cache(maxsize=256)
+def _norm_structure(n_free: int, pat: tuple[tuple[int, int, int, int], ...], ds: tuple[float, ...],
+                    orders: tuple[bool, ...], sides: int) -> _NormRows:
+    """A row is normal . (x, y) of one certified point: the same combination of that point's x
+    and y bound rows (the structure's live bound rows; a dead value's row is zero)."""
     from planner_core.constraints import polygon_normals
 
-    r = bounds.polygon_radius[_ORDER_OF_ROW - 1]
-    pts = np.flatnonzero(np.isfinite(r))
-    return pts, polygon_normals(bounds.sides), r[pts]
-
-
-def _norm_rows_per_segment(bounds: Bounds) -> int:
-    pts, normals, _ = _norm_points(bounds)
-    return int(pts.size * normals.shape[0])
-
-
-def _norm_rows(
-    bounds: Bounds, k: int, values: FloatArray, g_live: FloatArray, live_b: NDArray[np.int64], n: int
-) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
-    """The horizontal norm's polygon rows of the k segments of a local QP: rows (R, n) in the free
-    variables, limits (2, R) less the fixed part, and which rows depend on a free variable.
-
-    A row is normal . (x, y) of one certified point: the same combination of that point's x and
-    y rows (`g_live`, the live bound rows at the values `live_b`) and fixed values (`values`,
-    every certified value of the k segments, point-major, then axis)."""
-    pts, normals, lim = _norm_points(bounds)
+    st = _structure(n_free, pat, ds)
+    pt = st.pat
+    k, n = len(pat), pt.n
+    normed = np.array([orders[o - 1] for o in _ORDER_OF_ROW])
+    pts = np.flatnonzero(normed)
+    normals = polygon_normals(sides)
     full = np.zeros((k * 3 * _N_HODO, n))
-    full[live_b] = g_live
-    base = (np.arange(k)[:, None] * _N_HODO + pts[None, :]).ravel() * 3  # (k p,) the x value of each point
+    full[pt.live_b] = st.G[: pt.n_bound]
+    base = ((np.arange(k)[:, None] * _N_HODO + pts[None, :]).ravel() * 3).astype(np.int64)
     gx, gy = full[base], full[base + 1]  # (k p, n)
-    cx, cy = values[base], values[base + 1]
-    nx_, ny_ = normals[:, 0], normals[:, 1]
-    rows = (nx_[None, :, None] * gx[:, None, :] + ny_[None, :, None] * gy[:, None, :]).reshape(-1, n)
-    const = (nx_[None, :] * cx[:, None] + ny_[None, :] * cy[:, None]).ravel()
-    r = np.repeat(np.tile(lim, k), normals.shape[0])
-    limits = np.stack([-r - const, r - const])
-    return rows, limits, np.any(rows != 0.0, axis=1)
+    rows = (normals[None, :, 0, None] * gx[:, None, :] + normals[None, :, 1, None] * gy[:, None, :]).reshape(-1, n)
+    live = np.any(rows != 0.0, axis=1)
+    order = np.repeat(np.tile(_ORDER_OF_ROW[pts], k), normals.shape[0]).astype(np.int64)
+    for a in (live, base, order):
+        a.setflags(write=False)
+    return _NormRows(_read_only(np.ascontiguousarray(rows[live])), live, base, normals, order,
+                     int(pts.size * normals.shape[0]))
+
+
+def _norm_limits(nr: _NormRows, bounds: Bounds, values: FloatArray) -> FloatArray:
+    """(2, R) the polygon rows' limits less their fixed part (`values`: every certified value of
+    the QP's segments, from the fixed entries)."""
+    cx, cy = values[nr.base], values[nr.base + 1]
+    const = (nr.normals[None, :, 0] * cx[:, None] + nr.normals[None, :, 1] * cy[:, None]).ravel()
+    r = bounds.polygon_radius[nr.order - 1]
+    return np.stack([-r - const, r - const])
 
 
 def _fixed_failure(
