@@ -8,6 +8,11 @@ when it has obstacles but no corridors, corridors come from
 `planner_core.corridors.build_corridors` (both imported lazily; a blocked
 segment raises that module's `CorridorError`, which is not an input error).
 
+Bounds: each order is a per-axis form (`_bound`) or the vehicle form {"horizontal", "up",
+"down" | "vertical", "box"} (`vehicle_bound`: a horizontal norm bound, vertical limits up and
+down in the scenario's frame); "polygon_sides" sets the norm's certifying polygon; the writer is
+`bounds_to_dict` (docs/bounds.md).
+
 Timing keys (what the planner CLI does with them; `planner_core.missions.plan_mission`):
 - "timing": "auto" (the default): the given times/durations, or when there are none the
   fastest durations the bounds and corridors allow (`allocation.fastest_durations`);
