@@ -465,3 +465,29 @@ def test_allocation_is_exact_for_the_polygon() -> None:
     at = {a: takeoff_duration(20.0, b, up=(np.cos(a), np.sin(a), 0.0)) for a in (0.0, np.pi / 16, np.pi / 8)}
     assert at[np.pi / 8] == pytest.approx(at[0.0], rel=2e-3)
     assert at[np.pi / 16] == pytest.approx(at[0.0] / np.cos(np.pi / 16), rel=2e-3)
+
+
+def test_companion_mission_with_vehicle_bounds_flies_within_the_norm() -> None:
+    """A mission message with the vehicle form, through the companion's own start of a mission:
+    the route's plan holds the norm (dense samples), the vertical up/down limits, and verifies."""
+    from companion.config import config_from_dict
+    from companion.mission import start_mission
+    from companion.wire.messages import mission_from_message
+    from planner_core import rest_jet
+
+    cfg = config_from_dict({"planner": {"vehicle_radius": 0.25,
+                                        "bounds": {"velocity": 3, "acceleration": 4, "jerk": 20, "snap": 120}}})
+    msg = {"id": "m", "waypoints": [[12, 12, -3], [24, 0, -6], [24, 14, -1.5]],
+           "bounds": {"velocity": {"horizontal": 2.5, "up": 1.2, "down": 0.8},
+                      "acceleration": {"horizontal": 1.5, "vertical": 1.0}}}
+    spec = mission_from_message(msg, cfg)
+    out = start_mission(spec, rest_jet(np.array([0.0, 0.0, -1.5])), 1.0, [], cfg)
+    assert out.ok and out.route is not None, out.message
+    traj = out.route.trajectory
+    assert verify(traj, out.route.problem).ok
+    assert _hnorm(traj, 1).max() <= 2.5 and _hnorm(traj, 2).max() <= 1.5
+    # the norm (within the planner's reserve), not the configured box (3 per axis: 4.2 on a
+    # diagonal), is what binds
+    assert _hnorm(traj, 1).max() > 0.7 * 2.5
+    vz = traj.evaluate(np.linspace(traj.t0, traj.t_end, DENSE), 1)[:, 2]
+    assert vz.min() >= -1.2 - 1e-9 and vz.max() <= 0.8 + 1e-9  # NED: climbing is -z
