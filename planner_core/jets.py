@@ -154,7 +154,6 @@ class ProblemCache:
         self._cost: dict[int, FloatArray] = {}
         lay = bound_layout(problem.bounds)
         perm, self._bn1, self._bn2 = _bound_groups(lay.start_only, lay.end_only)
-        self._bperm = perm
         self._bpt = lay.point[perm]
         self._bcode = lay.code[perm]
         self._bdir = np.ascontiguousarray(lay.direction[perm])
