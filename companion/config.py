@@ -80,6 +80,10 @@ class SetpointConfig:
     # scheduling otherwise). The systemd unit's CPUSchedulingPolicy=fifo does the
     # same without any capability (see companion/rtsched.py and docs/deploy.md).
     realtime_priority: int = 0
+    # The setpoint stream from a process of its own (true) or from a thread of the service's
+    # (false). A thread needs the service's GIL for every tick, which a loaded computer under
+    # normal scheduling does not always give it (companion/sendproc.py).
+    process: bool = True
     # Lag compensation: sample each setpoint this far ahead on the verified trajectory (s),
     # so that the vehicle, which lags its setpoints, flies the plan on time. "auto": the lag
     # estimated in flight from telemetry (status `lag_estimate_ms`); 0: none. At most 0.12 s.

@@ -37,6 +37,7 @@ from companion.navigator import Navigator
 from companion.report import Reporter
 from companion.runtime import GcPacer, Runtime, log_off_loop, restore_logging
 from companion.sdnotify import Notifier
+from companion.sendproc import SetpointProcess
 from companion.setpoints import (
     DeadlineScheduler,
     Liveness,
@@ -86,9 +87,15 @@ class Service:
             "error", "the planner process died; restarted it (this request failed)"))
         self.link = MavlinkLink(cfg)
         self.yaw = YawPolicy(cfg.setpoints.yaw_mode, cfg.setpoints.yaw, cfg.setpoints.yaw_min_speed)
-        self.sender = SetpointSender(cfg.setpoints.rate_hz, self.link.send_setpoint, self.yaw,
-                                     self._tick_from_thread, self._sender_failed,
-                                     priority=cfg.setpoints.realtime_priority)
+        self.sender: SetpointSender | SetpointProcess
+        if cfg.setpoints.process:
+            self.sender = SetpointProcess(cfg.setpoints.rate_hz, self.link.transport, self.yaw,
+                                          self._tick_from_thread, self._sender_failed,
+                                          priority=cfg.setpoints.realtime_priority)
+        else:
+            self.sender = SetpointSender(cfg.setpoints.rate_hz, self.link.send_setpoint, self.yaw,
+                                         self._tick_from_thread, self._sender_failed,
+                                         priority=cfg.setpoints.realtime_priority)
         self.control = Control(self.sender, self.link.send_setpoint, self.yaw, cfg.setpoints.rate_hz,
                                on_new_plan=self.publish_trajectory, on_latency=self._latency_event)
         self.navigator = Navigator(cfg, self.flight, self.control, self.runtime, self.report, self._position)
@@ -175,7 +182,8 @@ class Service:
 
         def fail() -> None:
             if not fut.done():
-                fut.set_exception(RuntimeError(f"the setpoint thread failed: {exc!r}"))
+                what = "process" if isinstance(self.sender, SetpointProcess) else "thread"
+                fut.set_exception(RuntimeError(f"the setpoint {what} failed: {exc!r}"))
 
         with contextlib.suppress(RuntimeError):
             loop.call_soon_threadsafe(fail)
@@ -186,6 +194,8 @@ class Service:
         self.notifier.watchdog()
         if tick.error is not None:
             log.warning("setpoint not sent: %s", tick.error)
+        elif tick.setpoint is not None and isinstance(self.sender, SetpointProcess):
+            self.link.sent_setpoints += 1  # sent by the process (the thread counts its own)
         t = self.control.on_tick(tick)
         if t is not None:
             self.navigator.progress(t)
@@ -480,7 +490,10 @@ class Service:
         self._sender_failure = self.loop.create_future()
         self.liveness.beat()  # the warm-up above is not a stall
         self.sender.start(rtsched.starter())
-        log.info("setpoint thread: %.0f Hz, %s scheduling", self.cfg.setpoints.rate_hz, self.sender.scheduling)
+        if isinstance(self.sender, SetpointProcess):
+            self.link.use_writer(self.sender)
+        log.info("setpoint %s: %.0f Hz, %s scheduling", "process" if self.cfg.setpoints.process else "thread",
+                 self.cfg.setpoints.rate_hz, self.sender.scheduling)
         periodic = [asyncio.create_task(c) for c in (self.heartbeat_loop(), self.telemetry_loop(), self.status_loop(),
                                                        self.setpoint_watchdog(), self.loop_liveness())]
         inbound = [asyncio.create_task(c) for c in (self.inbox_loop(), self.ordered_loop())]
