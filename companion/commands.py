@@ -12,6 +12,7 @@ import asyncio
 import contextlib
 import logging
 import math
+import time
 from typing import Any
 
 import numpy as np
@@ -143,8 +144,14 @@ class Commands:
         st = self.link.state
         self.report.go(S.ARMING, reason)
         if st.autopilot == "px4":
+            sent = self.link.sent_setpoints
             self.take_control(reason)
-            # PX4 refuses OFFBOARD unless setpoints have been streaming for a while.
+            # PX4 refuses OFFBOARD unless setpoints have been streaming for a while (COM_OF_LOSS_T-
+            # based, 1 s in the docs): counted from the first setpoint that left, not from when
+            # we asked for the stream, which a busy computer may start a few hundred ms late.
+            started = time.monotonic() + 3.0
+            while self.link.sent_setpoints == sent and time.monotonic() < started:
+                await asyncio.sleep(0.005)
             await asyncio.sleep(1.1)
         await self.link.set_follow_mode()
         await self.link.wait_for(lambda s: s.in_follow_mode(), 3.0, "the autopilot to confirm OFFBOARD/GUIDED")

@@ -352,6 +352,8 @@ def _child_main(start: _Start, inbox: multiprocessing.connection.Connection, rec
     writer = _Writer(start, start.fd)  # type: ignore[arg-type]
     scheduling = realtime_here(start.priority)
     dropped = 0
+    mode, fixed, min_speed = start.yaw
+    yaw = YawPolicy(mode, fixed, min_speed)
 
     def record(values: tuple[float, ...]) -> None:
         nonlocal dropped
@@ -362,8 +364,6 @@ def _child_main(start: _Start, inbox: multiprocessing.connection.Connection, rec
         except BrokenPipeError:
             raise SystemExit(0) from None
 
-    mode, fixed, min_speed = start.yaw
-    yaw = YawPolicy(mode, fixed, min_speed)
     live: Liveness | None = start.liveness
     feed: tuple[int, Feed] | None = None
     lead = 0.0
@@ -401,6 +401,13 @@ def _child_main(start: _Start, inbox: multiprocessing.connection.Connection, rec
             timeout = 0.0
         return os.getppid() == parent
 
+    # Pay for the imports and first calls of sampling and packing now: the first feed arrives when
+    # the companion takes control, and must fly from its first tick (PX4 counts the warm-up).
+    from planner_core import hold
+
+    warm = hold(np.zeros(3), 0.0)
+    writer.setpoint(sample(warm, 0.0, yaw))
+    writer.mav.seq = 0
     record((_HELLO, float(os.getpid()), float(_scheduling_code(scheduling)), *([0.0] * 15)))
     sched = DeadlineScheduler(time.monotonic(), start.rate)
     last: float | None = None
