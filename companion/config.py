@@ -181,6 +181,11 @@ class LimitsConfig:
     max_obstacles_held: int = 256
     max_pending_missions: int = 4
     max_queued_messages: int = 256
+    # Messages of one kind (mission, obstacles, change, command) taken per second, and at once:
+    # more is refused on arrival, before it costs the event loop anything, and said once a
+    # second with the count (a burst of 5,000 obstacle updates stalled the loop 0.6 s).
+    inbound_rate: float = 50.0
+    inbound_burst: int = 100
     # Seconds one message's obstacles may take to check (hulls, vertices; in the decode
     # thread for messages over 4 kB): past it the message is refused, naming this limit.
     decode_deadline: float = 0.5
@@ -256,6 +261,8 @@ _POSITIVE = {
     "limits.max_obstacles_held",
     "limits.max_pending_missions",
     "limits.max_queued_messages",
+    "limits.inbound_rate",
+    "limits.inbound_burst",
     "limits.decode_deadline",
     "safety.takeoff_altitude",
     "safety.arrival_tolerance",

@@ -290,6 +290,7 @@ class Service:
         does ends this loop: the last-resort guard turns it into a rejection and an error."""
         assert self.zio is not None
         self.zio.on_dropped = self._dropped
+        self.zio.on_refused = self._refused
         while not self.stop.is_set():
             kind, payload, arrived = await self.zio.inbox.get()
             try:
@@ -301,6 +302,9 @@ class Service:
                     self._ordered.put_nowait((kind, payload, arrived))
             except Exception as exc:
                 self._unforeseen(kind, payload, exc)
+            # one message per loop step: a backlog of small messages decoded here must not
+            # hold up the timers (periodic status, stall checks) behind it
+            await asyncio.sleep(0)
 
     async def ordered_loop(self) -> None:
         while not self.stop.is_set():
@@ -335,6 +339,16 @@ class Service:
             lim = self.cfg.limits.max_queued_messages
             self.report.reject(kind, "", f"{n} message(s) dropped: {lim} messages are already queued "
                                f"([limits] max_queued_messages = {lim})", bytes=size, dropped=n)
+
+    def _refused(self, counts: dict[str, int]) -> None:
+        """Messages refused on arrival over `[limits] inbound_rate`: one event for all of them."""
+        lim = self.cfg.limits
+        total = sum(counts.values())
+        each = ", ".join(f"{n} on {k}" for k, n in sorted(counts.items()))
+        self.report.reject(next(iter(sorted(counts))) if len(counts) == 1 else "", "",
+                           f"{total} message(s) refused on arrival ({each}): more than {lim.inbound_burst:g} at once "
+                           f"or {lim.inbound_rate:g} a second per key ([limits] inbound_rate, inbound_burst)",
+                           refused=counts)
 
     def _dispatch(self, kind: str, payload: bytes | Oversized, arrived: float, msg: Message | MessageError) -> None:
         if isinstance(msg, MessageError):
