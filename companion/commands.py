@@ -12,6 +12,7 @@ import asyncio
 import contextlib
 import logging
 import math
+import time
 from typing import Any
 
 import numpy as np
@@ -143,8 +144,14 @@ class Commands:
         st = self.link.state
         self.report.go(S.ARMING, reason)
         if st.autopilot == "px4":
+            sent = self.link.sent_setpoints
             self.take_control(reason)
-            # PX4 refuses OFFBOARD unless setpoints have been streaming for a while.
+            # PX4 refuses OFFBOARD unless setpoints have been streaming for a while (COM_OF_LOSS_T-
+            # based, 1 s in the docs): counted from the first setpoint that left, not from when
+            # we asked for the stream, which a busy computer may start a few hundred ms late.
+            started = time.monotonic() + 3.0
+            while self.link.sent_setpoints == sent and time.monotonic() < started:
+                await asyncio.sleep(0.005)
             await asyncio.sleep(1.1)
         await self.link.set_follow_mode()
         await self.link.wait_for(lambda s: s.in_follow_mode(), 3.0, "the autopilot to confirm OFFBOARD/GUIDED")
@@ -217,24 +224,37 @@ class Commands:
         """A verified vertical climb streamed in OFFBOARD (PX4 has no GUIDED-style takeoff for us)."""
         base = self.control.active
         assert base is not None
-        t_split = self.control.now() + self.cfg.planner.split_ahead
-        jet = base.jet(t_split)
         bounds = bounds_from(None, self.cfg)
-        points = np.vstack([jet[0], target])
-        climb = target - jet[0]
-        height = float(np.linalg.norm(climb))
-        if height > 1e-3 and at_rest(jet[1], self.cfg.safety.rest_speed):
-            # the fastest rest-to-rest climb the planner certifies (issue 12); from a moving start
-            # the planner's recovery stretches it if it must
-            durations = np.array([takeoff_duration(height, bounds, up=tuple(climb / height))])
-        else:
-            durations = np.diff(allocate_times(points, bounds, t0=t_split))
-        problem = Problem.from_waypoints(points, durations, bounds, initial=jet, t0=t_split)
-        result = await self.nav.runtime.plan(plan, problem)
-        if not result.ok or result.trajectory is None:
-            raise CommandFailed(f"no verified climb: {result.message}")
-        if not self.control.swap(splice(base, result.trajectory), t_split, None, "takeoff"):
-            raise CommandFailed("climb planning was too slow")
+        ahead = self.cfg.planner.split_ahead
+        # The climb starts from a hold at rest, so a plan that comes back after its split time
+        # (a busy computer: the planner process waits for a core) is planned again further
+        # ahead, once, by what it took: the vehicle only holds a little longer.
+        for attempt in (1, 2):
+            started = time.monotonic()
+            t_split = self.control.now() + ahead
+            jet = base.jet(t_split)
+            points = np.vstack([jet[0], target])
+            climb = target - jet[0]
+            height = float(np.linalg.norm(climb))
+            if height > 1e-3 and at_rest(jet[1], self.cfg.safety.rest_speed):
+                # the fastest rest-to-rest climb the planner certifies (issue 12); from a moving
+                # start the planner's recovery stretches it if it must
+                durations = np.array([takeoff_duration(height, bounds, up=tuple(climb / height))])
+            else:
+                durations = np.diff(allocate_times(points, bounds, t0=t_split))
+            problem = Problem.from_waypoints(points, durations, bounds, initial=jet, t0=t_split)
+            result = await self.nav.runtime.plan(plan, problem)
+            if not result.ok or result.trajectory is None:
+                raise CommandFailed(f"no verified climb: {result.message}")
+            if self.control.swap(splice(base, result.trajectory), t_split, None, "takeoff"):
+                break
+            took = time.monotonic() - started
+            if attempt == 2 or not at_rest(jet[1], self.cfg.safety.rest_speed):
+                raise CommandFailed(f"climb planning was too slow: {took * 1000:.0f} ms, past its split "
+                                    f"{ahead * 1000:.0f} ms ahead")
+            ahead = max(ahead, 2.0 * took + 0.05)
+            log.info("climb planned %.0f ms after the request, past its split: planning again %.0f ms ahead",
+                     took * 1000, ahead * 1000)
         tol, rest = self.cfg.safety.arrival_tolerance, self.cfg.safety.rest_speed
         end = result.trajectory.t_end
         await self.link.wait_for(

@@ -80,6 +80,10 @@ class SetpointConfig:
     # scheduling otherwise). The systemd unit's CPUSchedulingPolicy=fifo does the
     # same without any capability (see companion/rtsched.py and docs/deploy.md).
     realtime_priority: int = 0
+    # The setpoint stream from a process of its own (true) or from a thread of the service's
+    # (false). A thread needs the service's GIL for every tick, which a loaded computer under
+    # normal scheduling does not always give it (companion/sendproc.py).
+    process: bool = True
     # Lag compensation: sample each setpoint this far ahead on the verified trajectory (s),
     # so that the vehicle, which lags its setpoints, flies the plan on time. "auto": the lag
     # estimated in flight from telemetry (status `lag_estimate_ms`); 0: none. At most 0.12 s.
@@ -177,6 +181,11 @@ class LimitsConfig:
     max_obstacles_held: int = 256
     max_pending_missions: int = 4
     max_queued_messages: int = 256
+    # Messages of one kind (mission, obstacles, change, command) taken per second, and at once:
+    # more is refused on arrival, before it costs the event loop anything, and said once a
+    # second with the count (a burst of 5,000 obstacle updates stalled the loop 0.6 s).
+    inbound_rate: float = 50.0
+    inbound_burst: int = 100
     # Seconds one message's obstacles may take to check (hulls, vertices; in the decode
     # thread for messages over 4 kB): past it the message is refused, naming this limit.
     decode_deadline: float = 0.5
@@ -252,6 +261,8 @@ _POSITIVE = {
     "limits.max_obstacles_held",
     "limits.max_pending_missions",
     "limits.max_queued_messages",
+    "limits.inbound_rate",
+    "limits.inbound_burst",
     "limits.decode_deadline",
     "safety.takeoff_altitude",
     "safety.arrival_tolerance",

@@ -37,6 +37,7 @@ from companion.navigator import Navigator
 from companion.report import Reporter
 from companion.runtime import GcPacer, Runtime, log_off_loop, restore_logging
 from companion.sdnotify import Notifier
+from companion.sendproc import SetpointProcess
 from companion.setpoints import (
     DeadlineScheduler,
     Liveness,
@@ -86,9 +87,15 @@ class Service:
             "error", "the planner process died; restarted it (this request failed)"))
         self.link = MavlinkLink(cfg)
         self.yaw = YawPolicy(cfg.setpoints.yaw_mode, cfg.setpoints.yaw, cfg.setpoints.yaw_min_speed)
-        self.sender = SetpointSender(cfg.setpoints.rate_hz, self.link.send_setpoint, self.yaw,
-                                     self._tick_from_thread, self._sender_failed,
-                                     priority=cfg.setpoints.realtime_priority)
+        self.sender: SetpointSender | SetpointProcess
+        if cfg.setpoints.process:
+            self.sender = SetpointProcess(cfg.setpoints.rate_hz, self.link.transport, self.yaw,
+                                          self._tick_from_thread, self._sender_failed,
+                                          priority=cfg.setpoints.realtime_priority)
+        else:
+            self.sender = SetpointSender(cfg.setpoints.rate_hz, self.link.send_setpoint, self.yaw,
+                                         self._tick_from_thread, self._sender_failed,
+                                         priority=cfg.setpoints.realtime_priority)
         self.control = Control(self.sender, self.link.send_setpoint, self.yaw, cfg.setpoints.rate_hz,
                                on_new_plan=self.publish_trajectory, on_latency=self._latency_event)
         self.navigator = Navigator(cfg, self.flight, self.control, self.runtime, self.report, self._position)
@@ -175,7 +182,8 @@ class Service:
 
         def fail() -> None:
             if not fut.done():
-                fut.set_exception(RuntimeError(f"the setpoint thread failed: {exc!r}"))
+                what = "process" if isinstance(self.sender, SetpointProcess) else "thread"
+                fut.set_exception(RuntimeError(f"the setpoint {what} failed: {exc!r}"))
 
         with contextlib.suppress(RuntimeError):
             loop.call_soon_threadsafe(fail)
@@ -186,6 +194,8 @@ class Service:
         self.notifier.watchdog()
         if tick.error is not None:
             log.warning("setpoint not sent: %s", tick.error)
+        elif tick.setpoint is not None and isinstance(self.sender, SetpointProcess):
+            self.link.sent_setpoints += 1  # sent by the process (the thread counts its own)
         t = self.control.on_tick(tick)
         if t is not None:
             self.navigator.progress(t)
@@ -291,6 +301,9 @@ class Service:
                     self._ordered.put_nowait((kind, payload, arrived))
             except Exception as exc:
                 self._unforeseen(kind, payload, exc)
+            # one message per loop step: a backlog of small messages decoded here must not
+            # hold up the timers (periodic status, stall checks) behind it
+            await asyncio.sleep(0)
 
     async def ordered_loop(self) -> None:
         while not self.stop.is_set():
@@ -325,6 +338,16 @@ class Service:
             lim = self.cfg.limits.max_queued_messages
             self.report.reject(kind, "", f"{n} message(s) dropped: {lim} messages are already queued "
                                f"([limits] max_queued_messages = {lim})", bytes=size, dropped=n)
+
+    def _refused(self, counts: dict[str, int]) -> None:
+        """Messages refused on arrival over `[limits] inbound_rate`: one event for all of them."""
+        lim = self.cfg.limits
+        total = sum(counts.values())
+        each = ", ".join(f"{n} on {k}" for k, n in sorted(counts.items()))
+        self.report.reject(next(iter(sorted(counts))) if len(counts) == 1 else "", "",
+                           f"{total} message(s) refused on arrival ({each}): more than {lim.inbound_burst:g} at once "
+                           f"or {lim.inbound_rate:g} a second per key ([limits] inbound_rate, inbound_burst)",
+                           refused=counts)
 
     def _dispatch(self, kind: str, payload: bytes | Oversized, arrived: float, msg: Message | MessageError) -> None:
         if isinstance(msg, MessageError):
@@ -473,6 +496,7 @@ class Service:
         # switch interval bounds how long the setpoint thread can wait for it.
         sys.setswitchinterval(0.0005)
         self.zio = ZenohIO(self.cfg, self.loop)
+        self.zio.on_refused = self._refused
         self.zio.open({"plan": self.query_plan, "status": self.query_status})
         self.link.open(self.loop)
         await self._warm_up()
@@ -480,7 +504,10 @@ class Service:
         self._sender_failure = self.loop.create_future()
         self.liveness.beat()  # the warm-up above is not a stall
         self.sender.start(rtsched.starter())
-        log.info("setpoint thread: %.0f Hz, %s scheduling", self.cfg.setpoints.rate_hz, self.sender.scheduling)
+        if isinstance(self.sender, SetpointProcess):
+            self.link.use_writer(self.sender)
+        log.info("setpoint %s: %.0f Hz, %s scheduling", "process" if self.cfg.setpoints.process else "thread",
+                 self.cfg.setpoints.rate_hz, self.sender.scheduling)
         periodic = [asyncio.create_task(c) for c in (self.heartbeat_loop(), self.telemetry_loop(), self.status_loop(),
                                                        self.setpoint_watchdog(), self.loop_liveness())]
         inbound = [asyncio.create_task(c) for c in (self.inbox_loop(), self.ordered_loop())]

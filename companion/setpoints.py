@@ -12,11 +12,13 @@ import asyncio
 import contextlib
 import logging
 import math
+import multiprocessing
 import os
 import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 from planner_core import FloatArray, Trajectory, sampler
 
@@ -114,53 +116,90 @@ THREAD_STALL = 0.5  # s: the setpoint thread waking this late stalled (PX4's COM
 
 
 class Liveness:
-    """The event loop's pulse as the setpoint thread sees it, and the thread's latch.
+    """The event loop's pulse as the setpoint sender sees it, and the sender's latch.
 
-    The loop `beat()`s every setpoint period. Before each send the thread checks that the last
+    The loop `beat()`s every setpoint period. Before each send the sender checks that the last
     beat is at most `limit` old and that it itself woke within THREAD_STALL of its previous
-    tick; if either fails, the companion stalled: the thread withholds setpoints (`withheld`,
+    tick; if either fails, the companion stalled: the sender withholds setpoints (`withheld`,
     latched) until the loop, awake again, has decided what to do and calls `release()`. So no
     setpoint of a plan the loop could not supervise leaves after a stall, and the autopilot
     never re-enters OFFBOARD on one (PX4 does, on resumed setpoints, while OFFBOARD is still
-    the user's mode). A loop stall alone does not starve the autopilot (the thread keeps
+    the user's mode). A loop stall alone does not starve the autopilot (the sender keeps
     sending until `limit`), so `limit` may be longer than THREAD_STALL.
+
+    The pulse and the latch live in shared memory with a process-shared lock, so the sender may
+    be a thread of the service or a process of its own (companion.sendproc); CLOCK_MONOTONIC,
+    which `time.monotonic` reads, is one clock for every process of the machine.
     """
 
+    # slots of the shared array
+    _STAMP, _SENT, _HELD, _SINCE, _KIND, _STALL = range(6)
+    _KINDS = ("loop", "thread")
+
     def __init__(self, limit: float, clock: Callable[[], float] = time.monotonic) -> None:
+        ctx = multiprocessing.get_context("spawn")
         self.limit = limit
         self.clock = clock
-        self.stamp = clock()
-        self.last_sent = -math.inf  # when the thread last let a setpoint leave
-        self._lock = threading.Lock()
-        self.withheld: tuple[float, str, float] | None = None  # (since, "loop" | "thread", stall s)
+        self._v: Any = ctx.RawArray("d", 6)
+        self._lock: Any = ctx.Lock()
+        self._v[self._STAMP] = clock()
+        self._v[self._SENT] = -math.inf
+
+    @property
+    def stamp(self) -> float:
+        return float(self._v[self._STAMP])
+
+    @stamp.setter
+    def stamp(self, value: float) -> None:
+        self._v[self._STAMP] = value
+
+    @property
+    def last_sent(self) -> float:
+        """When the sender last let a setpoint leave."""
+        return float(self._v[self._SENT])
+
+    @property
+    def withheld(self) -> tuple[float, str, float] | None:
+        """(since, "loop" | "thread", stall s) while setpoints are withheld."""
+        with self._lock:
+            return self._held()
+
+    def _held(self) -> tuple[float, str, float] | None:
+        v = self._v
+        if not v[self._HELD]:
+            return None
+        return (float(v[self._SINCE]), self._KINDS[int(v[self._KIND])], float(v[self._STALL]))
 
     def beat(self) -> float:
         """On the loop: stamp it alive; returns the time since the previous beat."""
         now = self.clock()
-        gap, self.stamp = now - self.stamp, now
-        return gap
+        gap = now - self._v[self._STAMP]
+        self._v[self._STAMP] = now
+        return float(gap)
 
     def stale(self, now: float | None = None) -> bool:
         """The loop has not beaten for longer than `limit` (it is stalled, or just woke)."""
-        return (self.clock() if now is None else now) - self.stamp > self.limit
+        return bool((self.clock() if now is None else now) - self._v[self._STAMP] > self.limit)
 
     def check(self, now: float, thread_gap: float) -> bool:
-        """In the setpoint thread, before a send: True when setpoints may leave."""
+        """In the sender, before a send: True when setpoints may leave."""
+        v = self._v
         with self._lock:
-            if self.withheld is None:
-                loop_gap = now - self.stamp
+            if not v[self._HELD]:
+                loop_gap = now - v[self._STAMP]
                 if loop_gap > self.limit:
-                    self.withheld = (now, "loop", loop_gap)
+                    v[self._SINCE], v[self._KIND], v[self._STALL], v[self._HELD] = now, 0, loop_gap, 1
                 elif thread_gap > THREAD_STALL:
-                    self.withheld = (now, "thread", thread_gap)
+                    v[self._SINCE], v[self._KIND], v[self._STALL], v[self._HELD] = now, 1, thread_gap, 1
                 else:
-                    self.last_sent = now
-            return self.withheld is None
+                    v[self._SENT] = now
+            return not v[self._HELD]
 
     def release(self) -> tuple[float, str, float] | None:
         """On the loop, once it has dealt with the stall: setpoints may leave again."""
         with self._lock:
-            was, self.withheld = self.withheld, None
+            was = self._held()
+            self._v[self._HELD] = 0
         return was
 
 

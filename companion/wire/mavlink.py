@@ -26,6 +26,7 @@ os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil
 
 from companion.config import Config
+from companion.sendproc import Encoding
 from companion.setpoints import Setpoint
 from companion.wire import dialect
 from companion.wire.signing import read_signing_key
@@ -205,6 +206,7 @@ class MavlinkLink:
         self._boot = time.monotonic()
         self._send_lock = threading.Lock()
         self.sent_setpoints = 0
+        self._writer: Any = None  # companion.sendproc.SetpointProcess once it writes for us
 
     # -- lifecycle -----------------------------------------------------------
 
@@ -227,6 +229,37 @@ class MavlinkLink:
         loop.add_reader(self.conn.fd, self._readable)
         self.send_heartbeat()
 
+    def transport(self) -> tuple[int, bool, Encoding]:
+        """What a setpoint process needs to write to the autopilot itself: the link's
+        descriptor, whether it is a datagram socket, and how to pack (companion.sendproc)."""
+        conn, v = self.conn, self.cfg.vehicle
+        datagram = isinstance(conn, mavutil.mavudp)
+        fd = conn.port.fileno() if datagram else conn.fd
+        key = read_signing_key(self.cfg.mavlink.signing_key_file) if self.cfg.mavlink.signing_key_file else None
+        return fd, datagram, Encoding(v.sysid, v.component, v.sysid, v.autopilot_component, key, self._boot)
+
+    def use_writer(self, writer: Any) -> None:
+        """From now on `writer` (a running SetpointProcess) packs and writes every message we
+        send, so that one process owns the packet sequence and the signing timestamps; while it
+        does not run (before start, after stop) we write ourselves."""
+        direct = self.conn.mav.send
+
+        def send(msg: Any, force_mavlink1: bool = False) -> None:
+            if not writer.post_message(msg):
+                direct(msg, force_mavlink1=force_mavlink1)
+
+        self.conn.mav.send = send
+        self._writer = writer
+        self._update_route()
+
+    def _update_route(self) -> None:
+        conn = self.conn
+        if self._writer is None or not isinstance(conn, mavutil.mavudp):
+            return
+        # pymavlink's udpin answers every address it has heard from; so does the process
+        route = tuple(sorted(conn.clients)) if conn.udp_server else (conn.destination_addr,)
+        self._writer.route(route)
+
     def close(self) -> None:
         if self.conn is None:
             return
@@ -244,8 +277,9 @@ class MavlinkLink:
             except (OSError, ValueError):
                 return
             if msg is None:
-                return
+                break
             self._handle(msg)
+        self._update_route()
 
     def _handle(self, msg: Any) -> None:
         kind = msg.get_type()

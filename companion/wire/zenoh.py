@@ -12,6 +12,7 @@ import contextlib
 import ipaddress
 import json
 import logging
+import math
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -19,6 +20,7 @@ from typing import Any
 
 import zenoh
 
+from companion.admission import Admission
 from companion.config import Config, ZenohConfig
 from companion.wire.encode import encode
 from companion.wire.messages import Oversized
@@ -113,6 +115,12 @@ class ZenohIO:
         # counted; `on_dropped(kind, size)` (on the loop) says so.
         self.dropped = 0
         self.on_dropped: Callable[[str, int], None] | None = None
+        # [limits] inbound_rate / inbound_burst per kind, decided in Zenoh's threads;
+        # `on_refused({kind: count})` (on the loop, at most once a second) says what was refused.
+        self.admission = Admission(cfg.limits.inbound_rate, cfg.limits.inbound_burst)
+        self.on_refused: Callable[[dict[str, int]], None] | None = None
+        self._refusal_due = False
+        self._refusal_said = -math.inf
         self.session: Any = None
         self.exposure: list[str] = []
         self._decls: list[Any] = []
@@ -142,11 +150,27 @@ class ZenohIO:
 
         def callback(sample: Any) -> None:
             arrived = time.monotonic()
+            if not self.admission.allow(kind, arrived):
+                if not self._refusal_due:  # said by the loop, at most once a second
+                    self._refusal_due = True
+                    self.loop.call_soon_threadsafe(self._say_refusals)
+                return
             size = len(sample.payload)  # without copying it out of zenoh
             payload: bytes | Oversized = Oversized(size) if size > limit else sample.payload.to_bytes()
             self.loop.call_soon_threadsafe(self._enqueue, kind, payload, arrived)
 
         return callback
+
+    def _say_refusals(self) -> None:
+        wait = self._refusal_said + 1.0 - time.monotonic()
+        if wait > 0:
+            self.loop.call_later(wait, self._say_refusals)
+            return
+        self._refusal_said = time.monotonic()
+        self._refusal_due = False
+        counts = self.admission.refusals()
+        if counts and self.on_refused is not None:
+            self.on_refused(counts)
 
     def _enqueue(self, kind: str, payload: bytes | Oversized, arrived: float) -> None:
         if self.inbox.qsize() >= self.cfg.limits.max_queued_messages:

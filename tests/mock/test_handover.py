@@ -1,6 +1,6 @@
 """The hand-over on an internal failure, in process: the service against the in-process mock.
 
-The setpoint thread fails while the vehicle holds in OFFBOARD/GUIDED in the air: the service
+The setpoint sender (thread or process) fails while the vehicle holds in OFFBOARD/GUIDED in the air: the service
 must ask for the autopilot's own hold (and see it confirmed) before it stops, so the
 autopilot's offboard-loss failsafe never fires; then `run()` raises what failed.
 """
@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import asyncio
 import json
+import os
+import signal
 import socket
 import time
 from pathlib import Path
@@ -36,7 +38,7 @@ class Broken:
     t_base = 0.0
 
 
-async def _fly_then_fail(autopilot: str, log_path: Path) -> tuple[Service, BaseException | None]:
+async def _fly_then_fail(autopilot: str, log_path: Path, process: bool) -> tuple[Service, BaseException | None]:
     mock = MockAutopilot(MockConfig(autopilot=autopilot, endpoints=["udpin:127.0.0.1:0"], log_path=str(log_path),
                                     log_rate_hz=50)).start()
     try:
@@ -47,6 +49,7 @@ async def _fly_then_fail(autopilot: str, log_path: Path) -> tuple[Service, BaseE
             "zenoh": {"listen": [f"tcp/127.0.0.1:{_free_tcp()}"], "multicast_scouting": False},
             "planner": {"executor": "thread"},
             "safety": {"takeoff_altitude": 1.0},
+            "setpoints": {"process": process},
         })
         svc = Service(cfg)
         task = asyncio.create_task(svc.run())
@@ -58,7 +61,11 @@ async def _fly_then_fail(autopilot: str, log_path: Path) -> tuple[Service, BaseE
         await svc.commands.takeoff(1.0)  # arms first (as auto_arm would)
         assert svc.flight.state.value == "READY" and svc.flight.airborne
         await asyncio.sleep(0.5)
-        svc.sender.feed = Broken()  # type: ignore[assignment]
+        if process:  # the setpoint process dies (a crash, the OOM killer)
+            assert svc.sender.native_id is not None
+            os.kill(svc.sender.native_id, signal.SIGKILL)
+        else:  # the setpoint thread raises
+            svc.sender.feed = Broken()  # type: ignore[assignment]
         failure: BaseException | None = None
         try:
             await asyncio.wait_for(task, 30)
@@ -70,11 +77,12 @@ async def _fly_then_fail(autopilot: str, log_path: Path) -> tuple[Service, BaseE
         mock.stop()
 
 
-@pytest.mark.parametrize("autopilot", ["px4", "ardupilot"])
-def test_setpoint_thread_failure_hands_over_to_the_autopilot(autopilot: str, tmp_path: Path) -> None:
+@pytest.mark.parametrize(("autopilot", "process"), [("px4", False), ("ardupilot", False), ("px4", True),
+                                                     ("ardupilot", True)])
+def test_setpoint_sender_failure_hands_over_to_the_autopilot(autopilot: str, process: bool, tmp_path: Path) -> None:
     log_path = tmp_path / "flight.jsonl"
-    svc, failure = asyncio.run(_fly_then_fail(autopilot, log_path))
-    assert failure is not None and "setpoint thread failed" in str(failure)
+    svc, failure = asyncio.run(_fly_then_fail(autopilot, log_path, process))
+    assert failure is not None and f"setpoint {'process' if process else 'thread'} failed" in str(failure)
     records = [json.loads(line) for line in log_path.read_text().splitlines() if line.strip()]
     modes = [r for r in records if r["type"] == "mode"]
     assert modes[-1]["to"] == "LOITER" and modes[-1]["reason"] == "command", modes[-3:]
