@@ -424,6 +424,126 @@ def _run_rate(rate: float, flight: float, out: Path, popups: int, load: bool,
     return result
 
 
+# --- the loaded computer (issue 21): missions every 1.5 s beside a CPU hog, and a memory soak ----
+
+
+def small_mission(i: int, rng: np.random.Generator) -> dict[str, Any]:
+    """A valid 5-waypoint mission near the flown rectangle (ENU, 2.5-4 m up), new each time."""
+    base = np.array([4.0, 3.0, 3.2])
+    wps = base + rng.uniform([-3.0, -3.0, -0.6], [3.0, 3.0, 0.6], size=(5, 3))
+    return {"id": f"loaded-{i}", "frame": "enu", "waypoints": wps.round(2).tolist()}
+
+
+def _hog() -> subprocess.Popen[bytes]:
+    """A process spinning on a core, under normal scheduling, as another job on the computer."""
+    return subprocess.Popen([sys.executable, "-c", "while True: pass"])
+
+
+def run_loaded(out: Path, every: float, duration: float, soak: int, hog: bool) -> dict[str, Any]:
+    """Fly; send a valid 5-waypoint mission every `every` s for `duration` s (each replaces the
+    one flying); then `soak` 1000-waypoint missions (checked, kept pending, each replacing the
+    last) and obstacle additions and removals, then one small pending mission: the companion's
+    main and tree RSS before and after. Setpoint gaps at the relay over the mission phase."""
+    from demo.rig import rig
+
+    out.mkdir(parents=True, exist_ok=True)
+    mock_port, relay_port = _free_udp(), _free_udp()
+    stamps_path = out / "setpoint_stamps.json"
+    relay_proc = subprocess.Popen([sys.executable, __file__, "--relay", str(relay_port), str(mock_port),
+                                   str(stamps_path)])
+    hog_proc = _hog() if hog else None
+    result: dict[str, Any] = {"hog": hog, "every_s": every, "duration_s": duration}
+    rng = np.random.default_rng(7)
+    try:
+        with rig(out, "px4", mav_port=mock_port, companion_mav_port=relay_port) as r:
+            events = _EventLog(r.peer)
+            pid = r.companion.pid
+            t_put = r.peer.put("mission", flight_mission(laps=20))
+            events.wait(lambda e: e.get("type") == "accepted" and e.get("key") == "mission", t_put, 30.0)
+            r.peer.put("command", {"command": "start"})
+            t_stream = events.wait(lambda e: e.get("type") == "state" and e.get("to") == "STREAMING", t_put, 90.0)
+            if t_stream is None:
+                raise RuntimeError("the companion never started streaming\n" + r.companion.tail())
+            time.sleep(2.0)
+            result["rss_idle_mb"] = _status_kb(pid, "VmRSS") / 1024
+            result["rss_tree_idle_mb"] = sum(_status_kb(p, "VmRSS") for p in _tree(pid)) / 1024
+            sent, answers = 0, {}
+            t0 = time.monotonic()
+            while time.monotonic() - t0 < duration:
+                m = small_mission(sent, rng)
+                put = r.peer.put("mission", m)
+                sent += 1
+                mid = m["id"]
+                answers[mid] = (put, None)
+                _sleep_until(put + every)
+            t1 = time.monotonic()
+            time.sleep(3.0)  # the last answers
+            with events._lock:
+                for _, ev in events.items:
+                    mid = ev.get("mission")
+                    if mid in answers and ev.get("key") == "mission" and ev.get("type") in ("accepted", "rejected"):
+                        answers[mid] = (answers[mid][0], ev)
+            accepted = [a for a in answers.values() if a[1] is not None and a[1]["type"] == "accepted"]
+            rejected = [a[1] for a in answers.values() if a[1] is not None and a[1]["type"] == "rejected"]
+            result.update({"missions_sent": sent, "missions_accepted": len(accepted),
+                           "missions_rejected": len(rejected),
+                           "rejections": sorted({str(e.get("reason", ""))[:120] for e in rejected}),
+                           "stalled_events": sum(1 for _, ev in list(events.items) if ev.get("type") == "stalled")})
+            window = (t0 + 0.5, t1)
+            for i in range(soak):
+                big = big_mission(1000, seed=100 + i)
+                t = r.peer.put("mission", big)
+                events.wait(lambda e: e.get("key") == "mission" and e.get("type") in ("accepted", "rejected"), t, 120.0)
+                ids = [f"soak-{i}-{k}" for k in range(50)]
+                r.peer.put("obstacles", {"add": [{"id": n, "vertices": [[-40.0 + k, -40.0 + dx, -3.0 + dz] for dx in (0, 1)
+                                                                        for dz in (0, 1) for k in (0, 1)]}
+                                                 for n in ids]})
+                time.sleep(0.5)
+                r.peer.put("obstacles", {"remove": ids})
+            last = small_mission(9999, rng) | {"autostart": False}
+            t = r.peer.put("mission", last)
+            events.wait(lambda e: e.get("key") == "mission" and e.get("type") in ("accepted", "rejected"), t, 30.0)
+            time.sleep(5.0)
+            result["rss_after_soak_mb"] = _status_kb(pid, "VmRSS") / 1024
+            result["rss_tree_after_soak_mb"] = sum(_status_kb(p, "VmRSS") for p in _tree(pid)) / 1024
+            result["soak_missions"] = soak
+    finally:
+        for proc in (relay_proc, hog_proc):
+            if proc is not None:
+                proc.send_signal(signal.SIGTERM)
+                proc.wait(10)
+    stamps = np.asarray(json.loads(stamps_path.read_text()))
+    inside = stamps[(stamps >= window[0]) & (stamps <= window[1])]
+    gaps = np.diff(inside) * 1e3
+    result.update({"setpoints": len(inside), "gap_p99_ms": _pct(gaps, 99),
+                   "gap_max_ms": float(gaps.max()) if len(gaps) else float("nan")})
+    return result
+
+
+LOADED_TARGETS = {"gap_max_ms": 60.0, "missions_flown_percent": 100.0, "rss_regrowth_mb": 10.0}
+
+
+def format_loaded(r: dict[str, Any]) -> str:
+    flown = 100.0 * r["missions_accepted"] / max(r["missions_sent"], 1)
+    regrowth = r["rss_after_soak_mb"] - r["rss_idle_mb"]
+    rows = [
+        ["setpoints measured", f"{r['setpoints']}", ""],
+        ["setpoint gap p99 (ms)", f"{r['gap_p99_ms']:.1f}", ""],
+        ["setpoint gap max (ms)", f"{r['gap_max_ms']:.1f}", f"<= {LOADED_TARGETS['gap_max_ms']:.0f}"],
+        [f"missions accepted / sent (1 per {r['every_s']} s)", f"{r['missions_accepted']} / {r['missions_sent']}",
+         "all"],
+        ["stalled events", f"{r['stalled_events']}", "0"],
+        ["main RSS idle -> after soak (MB)", f"{r['rss_idle_mb']:.0f} -> {r['rss_after_soak_mb']:.0f}",
+         f"within {LOADED_TARGETS['rss_regrowth_mb']:.0f}"],
+        ["tree RSS idle -> after soak (MB)", f"{r['rss_tree_idle_mb']:.0f} -> {r['rss_tree_after_soak_mb']:.0f}", ""],
+    ]
+    text = grid(["loaded computer" + (" (CPU hog beside)" if r["hog"] else ""), "measured", "target"], rows)
+    if r["rejections"]:
+        text += "\nrejections: " + "; ".join(r["rejections"])
+    r["missions_flown_percent"], r["rss_regrowth_mb"] = flown, regrowth
+    return text
+
+
 class _EventLog:
     """Every event with its arrival time, kept apart from the demo peer's queue."""
 
@@ -650,6 +770,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--realtime-only", action="store_true", help="only the realtime run")
     p.add_argument("--out", type=Path, default=Path("out/bench/service"))
     p.add_argument("--json", type=Path, default=None)
+    p.add_argument("--loaded", action="store_true",
+                   help="only the loaded-computer run (issue 21): missions every --every s for --duration s "
+                   "beside a CPU hog (--no-hog: without), then a memory soak of --soak big missions")
+    p.add_argument("--every", type=float, default=1.5)
+    p.add_argument("--duration", type=float, default=20.0)
+    p.add_argument("--soak", type=int, default=6)
+    p.add_argument("--no-hog", action="store_true")
     p.add_argument("--relay", nargs=3, metavar=("LISTEN", "TARGET", "OUT"), help=argparse.SUPPRESS)
     p.add_argument("--floor", nargs=4, metavar=("RATE", "PRIO", "NICE", "OUT"), help=argparse.SUPPRESS)
     args = p.parse_args(argv)
@@ -657,6 +784,13 @@ def main(argv: list[str] | None = None) -> int:
         return relay(int(args.relay[0]), int(args.relay[1]), args.relay[2])
     if args.floor:
         return floor(float(args.floor[0]), int(args.floor[1]), int(args.floor[2]), args.floor[3])
+    if args.loaded:
+        res = run_loaded(args.out / "loaded", args.every, args.duration, args.soak, not args.no_hog)
+        print(format_loaded(res))
+        if args.json:
+            args.json.parent.mkdir(parents=True, exist_ok=True)
+            args.json.write_text(json.dumps({"targets": LOADED_TARGETS, "loaded": res}, indent=2))
+        return 0
     runs = [] if args.realtime_only else [(rate, not args.no_load, 0) for rate in args.rates]
     if not args.no_baseline and not args.no_load and not args.realtime_only:
         runs.append((50.0, False, 0))
