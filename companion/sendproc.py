@@ -98,6 +98,7 @@ class _Start:
     yaw: tuple[str, float, float]  # YawPolicy(mode, fixed, min_speed)
     priority: int
     liveness: Any  # setpoints.Liveness (shared memory)
+    sent: Any  # a shared counter of the setpoints the child wrote
 
 
 class SetpointProcess:
@@ -116,6 +117,9 @@ class SetpointProcess:
         self.scheduling = "normal"
         self.native_id: int | None = None
         self.dropped_records = 0  # tick records the child could not hand over (the parent was slow)
+        # written by the child alone, read by the loop's watchdog: counts the setpoints that left
+        # even while the loop is too busy to take the tick records
+        self._sent: Any = multiprocessing.get_context("spawn").RawValue("Q", 0)
         self._transport = transport  # (descriptor, is a datagram socket, encoding), once the link is open
         self._feed: Feed | None = None
         self._lead = 0.0
@@ -169,6 +173,11 @@ class SetpointProcess:
         return self._post(("message", msg))
 
     @property
+    def sent(self) -> int:
+        """Setpoints the child has written so far."""
+        return int(self._sent.value)
+
+    @property
     def running(self) -> bool:
         return self._proc is not None and self._proc.is_alive() and not self._stopping
 
@@ -199,7 +208,7 @@ class SetpointProcess:
         self._records = rd
         fd, datagram, encoding = self._transport()
         start = _Start(self.rate, _Fd(fd), datagram, encoding,
-                       (self.yaw.mode, self.yaw.last, self.yaw.min_speed), self.priority, self.liveness)
+                       (self.yaw.mode, self.yaw.last, self.yaw.min_speed), self.priority, self.liveness, self._sent)
         self._proc = ctx.Process(target=_child_main, args=(start, child_end, _Fd(wr)),
                                  name="companion-setpoints", daemon=True)
         spawned = threading.Event()
@@ -433,6 +442,7 @@ def _child_main(start: _Start, inbox: multiprocessing.connection.Connection, rec
             err = 0
             try:
                 writer.write(writer.setpoint(sp))
+                start.sent.value += 1
             except OSError as exc:
                 err = exc.errno or errno.EIO
             gap = math.nan if last is None else now - last

@@ -194,8 +194,6 @@ class Service:
         self.notifier.watchdog()
         if tick.error is not None:
             log.warning("setpoint not sent: %s", tick.error)
-        elif tick.setpoint is not None and isinstance(self.sender, SetpointProcess):
-            self.link.sent_setpoints += 1  # sent by the process (the thread counts its own)
         t = self.control.on_tick(tick)
         if t is not None:
             self.navigator.progress(t)

@@ -205,7 +205,7 @@ class MavlinkLink:
         self._acks: dict[int, asyncio.Future[int]] = {}
         self._boot = time.monotonic()
         self._send_lock = threading.Lock()
-        self.sent_setpoints = 0
+        self._sent = 0
         self._writer: Any = None  # companion.sendproc.SetpointProcess once it writes for us
 
     # -- lifecycle -----------------------------------------------------------
@@ -228,6 +228,12 @@ class MavlinkLink:
         self._loop = loop
         loop.add_reader(self.conn.fd, self._readable)
         self.send_heartbeat()
+
+    @property
+    def sent_setpoints(self) -> int:
+        """Setpoints that left: ours (a swap's immediate one; every one with a setpoint thread)
+        and, once it writes for us, the setpoint process's periodic ones."""
+        return self._sent + (self._writer.sent if self._writer is not None else 0)
 
     def transport(self) -> tuple[int, bool, Encoding]:
         """What a setpoint process needs to write to the autopilot itself: the link's
@@ -364,7 +370,7 @@ class MavlinkLink:
         )
         with self._send_lock:
             self.conn.mav.send(msg)
-            self.sent_setpoints += 1
+            self._sent += 1
 
     async def command(self, command: int, *params: float, timeout: float | None = None) -> int:
         """COMMAND_LONG and wait for its COMMAND_ACK; returns MAV_RESULT."""
