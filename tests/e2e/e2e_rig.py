@@ -125,6 +125,8 @@ takeoff_altitude = 1.0
         mock_cmd = [sys.executable, "-m", "sitl_mock", "--autopilot", self.autopilot,
                     "--endpoint", f"udpin:127.0.0.1:{self.mav_port}", "--log", str(self.log_path),
                     "--log-rate-hz", "50", "--control", f"127.0.0.1:{self.ctl_port}"]
+        if self.autopilot == "ardupilot":
+            mock_cmd += ["--ekf-origin-delay", "0"]  # FAST: not about the EKF origin (stock: 40 s)
         self.procs.append(subprocess.Popen(mock_cmd, cwd=REPO, env=env, stdout=subprocess.DEVNULL,
                                            preexec_fn=_raise_priority,
                                            stderr=open(self.tmp / f"{self.autopilot}-mock.err", "wb")))  # noqa: SIM115

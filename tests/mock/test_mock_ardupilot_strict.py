@@ -119,7 +119,7 @@ def test_rc_failsafe_continues_guided_only_with_fs_options(make_mock) -> None:  
 
 
 def test_no_rc_refuses_arming_with_the_throttle_failsafe_on(make_mock) -> None:  # type: ignore[no-untyped-def]
-    mock, c = make_mock("ardupilot", speed=4.0, rc_throttle=None)
+    _, c = make_mock("ardupilot", speed=4.0, rc_throttle=None)
     assert c.command(176, CUSTOM, GUIDED) == ACCEPTED
     result, seen = c.command_collect(400, 1)
     assert result == FAILED
