@@ -95,7 +95,7 @@ def shape_accel(accel_desired: float, accel: float, jerk_max: float, dt: float) 
 
 
 def shape_accel_xy(accel_desired: np.ndarray, accel: np.ndarray, jerk_max: float, dt: float) -> np.ndarray:
-    return accel + limit_length(accel_desired - accel, jerk_max * dt)
+    return np.asarray(accel + limit_length(accel_desired - accel, jerk_max * dt))
 
 
 def shape_vel_accel(vel_desired: float, accel_desired: float, vel: float, accel: float, accel_min: float,
@@ -196,7 +196,7 @@ class ApPath:
     # -- vertical helpers in ArduPilot's up-positive frame
 
     def _overspeed(self, lim: ApLimits) -> float:
-        up = -self.vel[2]
+        up = -float(self.vel[2])
         if lim.speed_down > 0.0 and up < -lim.speed_down:
             return OVERSPEED_GAIN_Z * up / -lim.speed_down
         if lim.speed_up > 0.0 and up > lim.speed_up:
