@@ -230,3 +230,15 @@ def test_guided_holds_when_the_companion_stops(make_mock) -> None:  # type: igno
     assert s["mode"] == "GUIDED" and math.dist(s["position"], held) < 0.02
     assert s["position"][2] == pytest.approx(-6.0, abs=0.05)
     assert s["position"][0] == pytest.approx(last_x + 3.0, abs=0.3)  # GUID_TIMEOUT 3 s at 1 m/s
+
+
+def test_cli_flags_reach_the_config() -> None:
+    from sitl_mock.__main__ import build_parser
+
+    args = build_parser().parse_args(["--autopilot", "ardupilot", "--rc-throttle", "none", "--ekf-origin-delay", "5",
+                                      "--spool-up", "1.5", "--no-shaping"])
+    assert (args.rc_throttle, args.ekf_origin_delay, args.spool_up, args.shaping) == (None, 5.0, 1.5, False)
+    args = build_parser().parse_args(["--rc-throttle", "1500"])
+    assert (args.rc_throttle, args.ekf_origin_delay, args.spool_up, args.shaping) == (1500, 40.0, 3.0, True)
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["--rc-throttle", "mid"])
