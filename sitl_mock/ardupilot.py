@@ -111,11 +111,15 @@ class ArduPilotRules:
         self.radio_failsafe = False
         self.path: ApPath | None = None
         self._cached: tuple[float, Target | None] | None = None
+        self._params: tuple[float, dict[str, float]] | None = None
 
     # ------------------------------------------------------------------ state per step
 
     def params(self, mock: MockAutopilot) -> dict[str, float]:
-        return {name: float(p.value) for name, p in mock.params.items()}
+        """The live parameter values, read once per simulated step (PARAM_SET applies at once)."""
+        if self._params is None or self._params[0] != mock.t:
+            self._params = (mock.t, {name: float(p.value) for name, p in mock.params.items()})
+        return self._params[1]
 
     def tick(self, mock: MockAutopilot) -> None:
         """Called every simulation step: EKF origin, RC frames, RC failsafe."""
@@ -217,7 +221,7 @@ class ArduPilotRules:
     def _path(self, mock: MockAutopilot) -> ApPath:
         if self.path is None:
             s = mock.vehicle.state
-            self.path = ApPath(s.pos, s.vel, s.acc)
+            self.path = ApPath(s.pos.tolist(), s.vel.tolist(), s.acc.tolist())
         return self.path
 
     def _ground(self, mock: MockAutopilot) -> Target:
@@ -245,7 +249,7 @@ class ArduPilotRules:
             if mock.landed:
                 return self._ground(mock)
             path = self._path(mock)
-            path.input_vel_accel(np.zeros(3), np.zeros(3), brake_limits(p), mock.dt, limit_total=True)
+            path.input_vel_accel([0.0, 0.0, 0.0], [0.0, 0.0, 0.0], brake_limits(p), mock.dt, limit_total=True)
             return self._flown(mock, path.pos, path.vel, path.acc, s.yaw)
         if mode in CLIMB_RATE_MODES:
             climb = pilot_climb_rate(self.rc_throttle, self.rc_seen, self.radio_failsafe, p)
@@ -255,13 +259,11 @@ class ArduPilotRules:
             path = self._path(mock)
             # Sticks centred: zero horizontal velocity (brake, then hold); the climb rate as
             # set_pos_target_z_from_climb_rate_cm shapes it.
-            path.input_vel_accel(np.array([0.0, 0.0, -climb]), np.zeros(3), pilot_limits(p), mock.dt,
-                                 limit_total=True)
+            path.input_vel_accel([0.0, 0.0, -climb], [0.0, 0.0, 0.0], pilot_limits(p), mock.dt, limit_total=True)
             if mode in HOLDS_XY:
                 return self._flown(mock, path.pos, path.vel, path.acc, s.yaw)
-            pos = np.array([math.nan, math.nan, path.pos[2]])
-            vel = np.array([math.nan, math.nan, path.vel[2]])
-            return self._flown(mock, pos, vel, np.array([0.0, 0.0, path.acc[2]]), s.yaw)
+            return self._flown(mock, [math.nan, math.nan, path.pos[2]], [math.nan, math.nan, path.vel[2]],
+                               [0.0, 0.0, path.acc[2]], s.yaw)
         if mode in MANUAL_THROTTLE:
             self.path = None
             thr = throttle_control(self.rc_throttle)
@@ -273,31 +275,31 @@ class ArduPilotRules:
         self.path = None
         return mock._base_target()
 
-    def _flown(self, mock: MockAutopilot, pos: np.ndarray, vel: np.ndarray, acc: np.ndarray,
+    def _flown(self, mock: MockAutopilot, pos: list[float], vel: list[float], acc: list[float],
                yaw: float) -> Target:
         # AC_PosControl limits the path, not the total velocity: the response's own
         # velocity clamps would be a second, wrong limit (tilt stays).
         mock.vehicle.limits = Limits(math.inf, math.inf, math.inf, mock.vehicle.params.max_tilt_deg)
-        return Target(pos.copy(), vel.copy(), acc.copy(), yaw, math.nan)
+        return Target(np.array(pos), np.array(vel), np.array(acc), yaw, math.nan)
 
     def _guided(self, mock: MockAutopilot, p: dict[str, float]) -> Target:
         ft = mock.follow_target if mock.follow_target is not None else mock.hold_target
         lim = guided_limits(p)
         path = self._path(mock)
-        zero = np.zeros(3)
-        has_pos = bool(np.all(np.isfinite(ft.pos)))
-        has_vel = bool(np.all(np.isfinite(ft.vel)))
-        acc = np.where(np.isfinite(ft.acc), ft.acc, 0.0)
+        pos, vel, acc = ft.pos.tolist(), ft.vel.tolist(), ft.acc.tolist()
+        has_pos = all(math.isfinite(v) for v in pos)
+        has_vel = all(math.isfinite(v) for v in vel)
+        acc = [a if math.isfinite(a) else 0.0 for a in acc]
         if has_pos:
-            vel = ft.vel if has_vel else zero
             # posvelaccel_control_run: limit_output false; the target moves on along its
             # velocity between messages (AC_PosControl writes it back).
-            new_pos, new_vel = path.input_pos_vel_accel(ft.pos, vel, acc, lim, mock.dt, limit_total=False)
-            ft.pos = new_pos
+            new_pos, new_vel = path.input_pos_vel_accel(pos, vel if has_vel else [0.0, 0.0, 0.0], acc, lim, mock.dt,
+                                                        limit_total=False)
+            ft.pos = np.array(new_pos)
             if has_vel:
-                ft.vel = new_vel
+                ft.vel = np.array(new_vel)
         elif has_vel:
-            ft.vel = path.input_vel_accel(ft.vel, acc, lim, mock.dt, limit_total=False)
+            ft.vel = np.array(path.input_vel_accel(vel, acc, lim, mock.dt, limit_total=False))
         else:
             path.input_accel(acc, lim, mock.dt)
         yaw = ft.yaw if math.isfinite(ft.yaw) else math.nan

@@ -31,7 +31,7 @@ from .protocol import (
     land_speed,
     target_matches,
 )
-from .shaping import px4_vehicle_limits
+from .shaping import PX4_LIMIT_PARAMS, px4_vehicle_limits
 from .transport import Encoder, Link, parse_endpoint
 from .vehicle import RESPONSES, Target, Vehicle, VehicleParams
 
@@ -559,7 +559,7 @@ class MockAutopilot:
         if self.flavour is Flavour.ARDUPILOT:
             return self.ap.target(self)
         if self.config.shaping:
-            self.vehicle.limits = px4_vehicle_limits({n: float(p.value) for n, p in self.params.items()})
+            self.vehicle.limits = px4_vehicle_limits({n: float(self.params[n].value) for n in PX4_LIMIT_PARAMS})
         return self._base_target()
 
     def _base_target(self) -> Target | None:

@@ -24,9 +24,8 @@ vertical maths (NEU, up positive) is done on ``-z``.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
-
-import numpy as np
 
 from .vehicle import Limits
 
@@ -58,35 +57,44 @@ def sqrt_controller(error: float, p: float, second_ord_lim: float, dt: float) ->
     return rate
 
 
-def sqrt_controller_xy(error: np.ndarray, p: float, second_ord_lim: float, dt: float) -> np.ndarray:
-    n = float(np.hypot(error[0], error[1]))
+Vec2 = tuple[float, float]
+
+
+def _len(v: Vec2) -> float:
+    return math.hypot(v[0], v[1])
+
+
+def sqrt_controller_xy(error: Vec2, p: float, second_ord_lim: float, dt: float) -> Vec2:
+    n = _len(error)
     if n <= 0.0:
-        return np.zeros(2)
-    return error * (sqrt_controller(n, p, second_ord_lim, dt) / n)
+        return (0.0, 0.0)
+    k = sqrt_controller(n, p, second_ord_lim, dt) / n
+    return (error[0] * k, error[1] * k)
 
 
-def limit_length(v: np.ndarray, limit: float) -> np.ndarray:
-    n = float(np.hypot(v[0], v[1]))
+def limit_length(v: Vec2, limit: float) -> Vec2:
+    n = _len(v)
     if limit > 0.0 and n > limit:
-        return v * (limit / n)
+        return (v[0] * limit / n, v[1] * limit / n)
     return v
 
 
-def limit_accel_corner_xy(vel: np.ndarray, accel: np.ndarray, accel_max: float) -> np.ndarray:
+def limit_accel_corner_xy(vel: Vec2, accel: Vec2, accel_max: float) -> Vec2:
     """Keep cross-track authority in turns: cross-track first (to a_max/sqrt 2), along-track the rest."""
     if accel_max <= 0.0:
         return accel
-    vn = float(np.hypot(vel[0], vel[1]))
+    vn = _len(vel)
     if vn <= 0.0:
         return limit_length(accel, accel_max)
-    unit = vel / vn
-    a_dir = float(unit @ accel)
-    cross = accel - unit * a_dir
-    if a_dir * a_dir <= float(cross @ cross):
+    ux, uy = vel[0] / vn, vel[1] / vn
+    a_dir = ux * accel[0] + uy * accel[1]
+    cross = (accel[0] - ux * a_dir, accel[1] - uy * a_dir)
+    if a_dir * a_dir <= cross[0] ** 2 + cross[1] ** 2:
         return limit_length(accel, accel_max)
     cross = limit_length(cross, CORNER_ACCELERATION_RATIO * accel_max)
-    max_dir = math.sqrt(max(0.0, accel_max * accel_max - float(cross @ cross)))
-    return cross + unit * min(max(a_dir, -max_dir), max_dir)
+    max_dir = math.sqrt(max(0.0, accel_max * accel_max - cross[0] ** 2 - cross[1] ** 2))
+    a_dir = min(max(a_dir, -max_dir), max_dir)
+    return (cross[0] + ux * a_dir, cross[1] + uy * a_dir)
 
 
 def shape_accel(accel_desired: float, accel: float, jerk_max: float, dt: float) -> float:
@@ -94,8 +102,9 @@ def shape_accel(accel_desired: float, accel: float, jerk_max: float, dt: float) 
     return accel + min(max(accel_desired - accel, -step), step)
 
 
-def shape_accel_xy(accel_desired: np.ndarray, accel: np.ndarray, jerk_max: float, dt: float) -> np.ndarray:
-    return np.asarray(accel + limit_length(accel_desired - accel, jerk_max * dt))
+def shape_accel_xy(accel_desired: Vec2, accel: Vec2, jerk_max: float, dt: float) -> Vec2:
+    d = limit_length((accel_desired[0] - accel[0], accel_desired[1] - accel[1]), jerk_max * dt)
+    return (accel[0] + d[0], accel[1] + d[1])
 
 
 def shape_vel_accel(vel_desired: float, accel_desired: float, vel: float, accel: float, accel_min: float,
@@ -109,11 +118,12 @@ def shape_vel_accel(vel_desired: float, accel_desired: float, vel: float, accel:
     return shape_accel(target, accel, jerk_max, dt)
 
 
-def shape_vel_accel_xy(vel_desired: np.ndarray, accel_desired: np.ndarray, vel: np.ndarray, accel: np.ndarray,
-                       accel_max: float, jerk_max: float, dt: float, limit_total: bool) -> np.ndarray:
-    target = sqrt_controller_xy(vel_desired - vel, jerk_max / accel_max, jerk_max, dt)
+def shape_vel_accel_xy(vel_desired: Vec2, accel_desired: Vec2, vel: Vec2, accel: Vec2,
+                       accel_max: float, jerk_max: float, dt: float, limit_total: bool) -> Vec2:
+    target = sqrt_controller_xy((vel_desired[0] - vel[0], vel_desired[1] - vel[1]), jerk_max / accel_max, jerk_max,
+                                dt)
     target = limit_accel_corner_xy(vel_desired, target, accel_max)
-    target = target + accel_desired
+    target = (target[0] + accel_desired[0], target[1] + accel_desired[1])
     if limit_total:
         target = limit_length(target, accel_max)
     return shape_accel_xy(target, accel, jerk_max, dt)
@@ -136,21 +146,27 @@ def shape_pos_vel_accel(pos_desired: float, vel_desired: float, accel_desired: f
     return shape_vel_accel(vel_target, accel_desired, vel, accel, accel_min, accel_max, jerk_max, dt, limit_total)
 
 
-def shape_pos_vel_accel_xy(pos_desired: np.ndarray, vel_desired: np.ndarray, accel_desired: np.ndarray,
-                           pos: np.ndarray, vel: np.ndarray, accel: np.ndarray, vel_max: float, accel_max: float,
-                           jerk_max: float, dt: float, limit_total: bool) -> np.ndarray:
-    vel_target = sqrt_controller_xy(pos_desired - pos, 0.5 * jerk_max / accel_max, 0.5 * accel_max, dt)
+def shape_pos_vel_accel_xy(pos_desired: Vec2, vel_desired: Vec2, accel_desired: Vec2, pos: Vec2, vel: Vec2,
+                           accel: Vec2, vel_max: float, accel_max: float, jerk_max: float, dt: float,
+                           limit_total: bool) -> Vec2:
+    vel_target = sqrt_controller_xy((pos_desired[0] - pos[0], pos_desired[1] - pos[1]), 0.5 * jerk_max / accel_max,
+                                    0.5 * accel_max, dt)
     if vel_max > 0.0:
         vel_target = limit_length(vel_target, vel_max)
-    vel_target = vel_target + vel_desired
+    vel_target = (vel_target[0] + vel_desired[0], vel_target[1] + vel_desired[1])
     if limit_total and vel_max > 0.0:
         vel_target = limit_length(vel_target, vel_max)
     return shape_vel_accel_xy(vel_target, accel_desired, vel, accel, accel_max, jerk_max, dt, limit_total)
 
 
-def project(pos: np.ndarray, vel: np.ndarray, accel: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray]:
+Vec3 = list[float]
+
+
+def project(pos: Vec3, vel: Vec3, accel: Vec3, dt: float) -> tuple[Vec3, Vec3]:
     """update_pos_vel_accel with no limit: move a target forward by dt along its own motion."""
-    return pos + vel * dt + accel * (0.5 * dt * dt), vel + accel * dt
+    h = 0.5 * dt * dt
+    return ([p + v * dt + a * h for p, v, a in zip(pos, vel, accel, strict=True)],
+            [v + a * dt for v, a in zip(vel, accel, strict=True)])
 
 
 # ----------------------------------------------------------------------------- ArduCopter
@@ -185,18 +201,17 @@ class ApPath:
 
     Each ``input_*`` call advances the path by dt and returns the input moved forward along
     its own velocity and acceleration, as AC_PosControl writes back into GUIDED's target
-    (so a GUIDED target with a velocity keeps moving between messages).
+    (so a GUIDED target with a velocity keeps moving between messages). Plain floats: this
+    runs every simulation step, in the companion's process in the in-process tests.
     """
 
-    def __init__(self, pos: np.ndarray, vel: np.ndarray, acc: np.ndarray | None = None) -> None:
-        self.pos = np.asarray(pos, dtype=float).copy()
-        self.vel = np.asarray(vel, dtype=float).copy()
-        self.acc = np.zeros(3) if acc is None else np.asarray(acc, dtype=float).copy()
-
-    # -- vertical helpers in ArduPilot's up-positive frame
+    def __init__(self, pos: Sequence[float], vel: Sequence[float], acc: Sequence[float] | None = None) -> None:
+        self.pos: Vec3 = [float(v) for v in pos]
+        self.vel: Vec3 = [float(v) for v in vel]
+        self.acc: Vec3 = [0.0, 0.0, 0.0] if acc is None else [float(v) for v in acc]
 
     def _overspeed(self, lim: ApLimits) -> float:
-        up = -float(self.vel[2])
+        up = -self.vel[2]  # ArduPilot's vertical maths is up-positive
         if lim.speed_down > 0.0 and up < -lim.speed_down:
             return OVERSPEED_GAIN_Z * up / -lim.speed_down
         if lim.speed_up > 0.0 and up > lim.speed_up:
@@ -206,36 +221,37 @@ class ApPath:
     def _advance(self, dt: float) -> None:
         self.pos, self.vel = project(self.pos, self.vel, self.acc, dt)
 
-    def input_pos_vel_accel(self, pos: np.ndarray, vel: np.ndarray, acc: np.ndarray, lim: ApLimits, dt: float,
-                            limit_total: bool) -> tuple[np.ndarray, np.ndarray]:
+    def input_pos_vel_accel(self, pos: Vec3, vel: Vec3, acc: Vec3, lim: ApLimits, dt: float,
+                            limit_total: bool) -> tuple[Vec3, Vec3]:
         gain = self._overspeed(lim)
         self._advance(dt)
-        self.acc[:2] = shape_pos_vel_accel_xy(pos[:2], vel[:2], acc[:2], self.pos[:2], self.vel[:2], self.acc[:2],
-                                              lim.speed_xy, lim.accel_xy, lim.jerk_xy, dt, limit_total)
+        ax, ay = shape_pos_vel_accel_xy((pos[0], pos[1]), (vel[0], vel[1]), (acc[0], acc[1]),
+                                        (self.pos[0], self.pos[1]), (self.vel[0], self.vel[1]),
+                                        (self.acc[0], self.acc[1]), lim.speed_xy, lim.accel_xy, lim.jerk_xy, dt,
+                                        limit_total)
         a_z = lim.accel_z * gain
         up_acc = shape_pos_vel_accel(-pos[2], -vel[2], -acc[2], -self.pos[2], -self.vel[2], -self.acc[2],
                                      -lim.speed_down, lim.speed_up, -min(max(a_z, 0.0), ACCEL_Z_DOWN_CAP), a_z,
                                      lim.jerk_z * gain, dt, limit_total)
-        self.acc[2] = -up_acc
+        self.acc = [ax, ay, -up_acc]
         return project(pos, vel, acc, dt)
 
-    def input_vel_accel(self, vel: np.ndarray, acc: np.ndarray, lim: ApLimits, dt: float,
-                        limit_total: bool) -> np.ndarray:
+    def input_vel_accel(self, vel: Vec3, acc: Vec3, lim: ApLimits, dt: float, limit_total: bool) -> Vec3:
         gain = self._overspeed(lim)
         self._advance(dt)
-        self.acc[:2] = shape_vel_accel_xy(vel[:2], acc[:2], self.vel[:2], self.acc[:2], lim.accel_xy, lim.jerk_xy,
-                                          dt, limit_total)
+        ax, ay = shape_vel_accel_xy((vel[0], vel[1]), (acc[0], acc[1]), (self.vel[0], self.vel[1]),
+                                    (self.acc[0], self.acc[1]), lim.accel_xy, lim.jerk_xy, dt, limit_total)
         a_z = lim.accel_z * gain
         up_acc = shape_vel_accel(-vel[2], -acc[2], -self.vel[2], -self.acc[2],
                                  -min(max(a_z, 0.0), ACCEL_Z_DOWN_CAP), a_z, lim.jerk_z * gain, dt, limit_total)
-        self.acc[2] = -up_acc
-        return vel + acc * dt
+        self.acc = [ax, ay, -up_acc]
+        return [v + a * dt for v, a in zip(vel, acc, strict=True)]
 
-    def input_accel(self, acc: np.ndarray, lim: ApLimits, dt: float) -> None:
+    def input_accel(self, acc: Vec3, lim: ApLimits, dt: float) -> None:
         """Acceleration-only targets: jerk-limited (AC_PosControl input_accel_xy / _z)."""
         self._advance(dt)
-        self.acc[:2] = shape_accel_xy(acc[:2], self.acc[:2], lim.jerk_xy, dt)
-        self.acc[2] = shape_accel(acc[2], self.acc[2], lim.jerk_z, dt)
+        ax, ay = shape_accel_xy((acc[0], acc[1]), (self.acc[0], self.acc[1]), lim.jerk_xy, dt)
+        self.acc = [ax, ay, shape_accel(acc[2], self.acc[2], lim.jerk_z, dt)]
 
 
 # ----------------------------------------------------------------------------- PX4
@@ -249,6 +265,9 @@ class Px4Limits:
     speed_up: float
     speed_down: float
     tilt_deg: float
+
+
+PX4_LIMIT_PARAMS = ("MPC_XY_VEL_MAX", "MPC_Z_VEL_MAX_UP", "MPC_Z_VEL_MAX_DN", "MPC_TILTMAX_AIR")
 
 
 def px4_limits(params: dict[str, float]) -> Px4Limits:
