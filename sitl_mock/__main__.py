@@ -36,6 +36,15 @@ def _param(text: str) -> tuple[str, float]:
     return name.strip().upper(), float(value)
 
 
+def _rc(text: str) -> int | None:
+    if text.strip().lower() in ("none", "off", "no"):
+        return None
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--rc-throttle: expected a pwm (e.g. 1000, 1500) or 'none', got {text!r}") from None
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m sitl_mock", description=__doc__)
     p.add_argument("--autopilot", choices=["px4", "ardupilot"], default="px4")
@@ -77,6 +86,16 @@ def build_parser() -> argparse.ArgumentParser:
                    "local origin as on PX4 SITL; ardupilot 0)")
     p.add_argument("--px4-statustext", action="store_true",
                    help="PX4: report with STATUSTEXT as PX4 < 1.14 did, instead of EVENT messages")
+    p.add_argument("--rc-throttle", type=_rc, default=1000, metavar="PWM|none",
+                   help="ArduPilot: the throttle pwm received (default 1000, as SITL with no transmitter: pilot "
+                   "modes descend; 1500 mid-stick holds; 'none': no RC ever seen)")
+    p.add_argument("--ekf-origin-delay", type=float, default=40.0, metavar="SECONDS",
+                   help="ArduPilot: seconds after boot until the EKF origin is set; before it no LOCAL_POSITION_NED, "
+                   "GPS_GLOBAL_ORIGIN, HOME_POSITION and no arming in GUIDED (default 40; SITL measured 43)")
+    p.add_argument("--spool-up", type=float, default=3.0, metavar="SECONDS",
+                   help="ArduPilot: no climb for this long after arming (default 3.0, as measured on SITL)")
+    p.add_argument("--no-shaping", dest="shaping", action="store_false",
+                   help="do not shape targets with the autopilot's limits (ArduCopter WPNAV_*, PX4 MPC_*)")
     return p
 
 
@@ -95,6 +114,8 @@ def main(argv: list[str] | None = None) -> int:
             offboard_warmup_s=args.offboard_warmup, vehicle=RESPONSES[args.response],
             signing_key=read_signing_key(args.signing_key) if args.signing_key else None,
             ground_z=args.ground_z, px4_statustext=args.px4_statustext,
+            rc_throttle=args.rc_throttle, ekf_origin_delay_s=args.ekf_origin_delay, spool_up_s=args.spool_up,
+            shaping=args.shaping,
         )
         mock = MockAutopilot(config)
         mock.bind()

@@ -128,6 +128,10 @@ class ControlClient:
     def reject_arming(self, value: bool = True) -> dict[str, Any]:
         return self.request("reject_arming", value=value)
 
+    def rc(self, throttle: int | None) -> dict[str, Any]:
+        """ArduPilot: the throttle pwm the autopilot receives from now on; None: RC lost."""
+        return self.request("rc", throttle=throttle)
+
     def state(self) -> dict[str, Any]:
         return self.request("state")
 

@@ -335,9 +335,17 @@ def default_params(flavour: Flavour) -> dict[str, Param]:
             Param("COM_DISARM_LAND", 2.0, f32),
             Param("MIS_TAKEOFF_ALT", 2.5, f32),
             Param("MPC_LAND_SPEED", 0.7, f32),
+            # Limits of multicopter position control, PX4's defaults (mc_pos_control_params.c):
+            # velocity and tilt bind offboard setpoints (sitl_mock.shaping); acceleration and
+            # jerk shape PX4's own flight tasks and are served for companions to read.
             Param("MPC_XY_VEL_MAX", 12.0, f32),
             Param("MPC_Z_VEL_MAX_UP", 3.0, f32),
             Param("MPC_Z_VEL_MAX_DN", 1.5, f32),
+            Param("MPC_ACC_HOR_MAX", 5.0, f32),
+            Param("MPC_ACC_UP_MAX", 4.0, f32),
+            Param("MPC_ACC_DOWN_MAX", 3.0, f32),
+            Param("MPC_TILTMAX_AIR", 45.0, f32),
+            Param("MPC_JERK_MAX", 8.0, f32),
         ]
     else:
         items = [
@@ -345,9 +353,29 @@ def default_params(flavour: Flavour) -> dict[str, Param]:
             Param("DISARM_DELAY", 10, i32),
             Param("LAND_SPEED", 50, i32),
             Param("PILOT_TKOFF_ALT", 0.0, f32),
+            # GUIDED's shaping limits (AC_WPNav.h defaults, cm/s and cm/s^2; PSC_JERK_* m/s^3,
+            # AC_PosControl.cpp), read live by sitl_mock.shaping.
             Param("WPNAV_SPEED", 1000.0, f32),
-            Param("WPNAV_SPEED_UP", 300.0, f32),
+            Param("WPNAV_ACCEL", 250.0, f32),
+            Param("WPNAV_SPEED_UP", 250.0, f32),
             Param("WPNAV_SPEED_DN", 150.0, f32),
+            Param("WPNAV_ACCEL_Z", 100.0, f32),
+            Param("PSC_JERK_XY", 5.0, f32),
+            Param("PSC_JERK_Z", 5.0, f32),
+            # Pilot modes (sitl_mock.ardupilot): Parameters.cpp / AC_Loiter defaults.
+            Param("PILOT_SPEED_UP", 250, i32),
+            Param("PILOT_SPEED_DN", 0, i32),  # 0: PILOT_SPEED_UP
+            Param("PILOT_ACCEL_Z", 250, i32),
+            Param("THR_DZ", 100, i32),
+            Param("LOIT_SPEED", 1250.0, f32),
+            Param("LOIT_BRK_ACCEL", 250.0, f32),
+            Param("LOIT_BRK_JERK", 500.0, f32),
+            # RC failsafe: 1 RTL, FS_THR_VALUE pwm, RC_FS_TIMEOUT s; FS_OPTIONS 16 (bit 2, value 4,
+            # would continue GUIDED on RC loss: not set by default).
+            Param("FS_THR_ENABLE", 1, i32),
+            Param("FS_THR_VALUE", 975, i32),
+            Param("RC_FS_TIMEOUT", 1.0, f32),
+            Param("FS_OPTIONS", 16, i32),
             # Stream-group rates (Hz) at boot on the first MAVLink link, as ArduCopter 4.7 names
             # them (SR0_*/SR1_* before): 0 in a stock set, so nothing but HEARTBEAT and
             # STATUSTEXT goes out until a client asks (REQUEST_DATA_STREAM, SET_MESSAGE_INTERVAL).

@@ -16,6 +16,7 @@ from pymavlink.dialects.v20 import common as mav
 from companion.wire import dialect
 
 from . import telemetry as tm
+from .ardupilot import ArduPilotRules
 from .control import ControlServer, parse_hostport
 from .faults import FaultSpec, LinkFaults
 from .log import FlightLog
@@ -30,6 +31,7 @@ from .protocol import (
     land_speed,
     target_matches,
 )
+from .shaping import PX4_LIMIT_PARAMS, px4_vehicle_limits
 from .transport import Encoder, Link, parse_endpoint
 from .vehicle import RESPONSES, Target, Vehicle, VehicleParams
 
@@ -104,6 +106,16 @@ class MockConfig:
     ground_z: float | None = None
     # PX4: report with STATUSTEXT as PX4 < 1.14 did, instead of EVENT messages.
     px4_statustext: bool = False
+    # --- ArduPilot strictness and shaping (sitl_mock.ardupilot, sitl_mock.shaping)
+    # Throttle pwm the autopilot receives: 1000 is what SITL sends with no transmitter (stick
+    # down: pilot modes descend); 1500 mid-stick; None: no RC ever seen.
+    rc_throttle: int | None = 1000
+    # ArduPilot: seconds after boot until the EKF origin is set (stock SITL: 43 s after its start).
+    ekf_origin_delay_s: float = 40.0
+    # ArduPilot: seconds after arming before any climb (stock SITL: 3.0 s).
+    spool_up_s: float = 3.0
+    # Shape targets with the autopilot's own limits (ArduCopter GUIDED: WPNAV_*; PX4: MPC_*).
+    shaping: bool = True
 
     def validate(self) -> None:
         if self.autopilot not in ("px4", "ardupilot"):
@@ -120,6 +132,12 @@ class MockConfig:
             raise ValueError("endpoints: at least one endpoint is needed")
         if self.ground_z is not None and not (math.isfinite(self.ground_z) and abs(self.ground_z) <= 1000.0):
             raise ValueError(f"ground_z: must be a finite z in [-1000, 1000] m, got {self.ground_z}")
+        if self.rc_throttle is not None and not 800 <= self.rc_throttle <= 2200:
+            raise ValueError(f"rc_throttle: must be a pwm in 800..2200 or None (no RC), got {self.rc_throttle}")
+        for name in ("ekf_origin_delay_s", "spool_up_s"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0.0):
+                raise ValueError(f"{name}: must be a finite number of seconds >= 0, got {v}")
 
     @property
     def resolved_ground_z(self) -> float:
@@ -179,6 +197,7 @@ class MockAutopilot:
         self._snapshot: dict[str, Any] = {}
         self._last_reject_text: dict[str, float] = {}
         self._reboot_pending = False
+        self.ap = ArduPilotRules(config.rc_throttle, config.ekf_origin_delay_s, config.spool_up_s, config.shaping)
         self._reset_state()
 
     # ------------------------------------------------------------------ lifecycle
@@ -262,6 +281,7 @@ class MockAutopilot:
         self.takeoff_xy = np.zeros(2)
         self.rtl_landing = False
         self.rebooting_until = -math.inf
+        self.ap.reset()
         self.next_due = {mid: self.t for mid in DEFAULT_RATES}
         self.intervals = {mid: 1.0 / hz for mid, hz in DEFAULT_RATES.items()}
         if self.flavour is Flavour.ARDUPILOT:
@@ -314,6 +334,8 @@ class MockAutopilot:
                 "failsafe": self.failsafe_mode is not None,
                 "ground_z": self.ground_z,
                 "home": self.home_ned.tolist(),
+                "ekf_origin": self.flavour is Flavour.PX4 or self.ap.origin_set,
+                "rc_failsafe": self.ap.radio_failsafe,
             }
 
     # ------------------------------------------------------------------ loop
@@ -451,6 +473,8 @@ class MockAutopilot:
 
     def _rules(self) -> None:
         """Autopilot-side decisions that depend on time: failsafes, timeouts, auto-disarm."""
+        if self.flavour is Flavour.ARDUPILOT:
+            self.ap.tick(self)  # EKF origin, RC failsafe (sitl_mock.ardupilot)
         if (self.flavour is Flavour.PX4 and self.armed and self.user_mode == "OFFBOARD"
                 and self.failsafe_mode is None):
             loss_t = self._param("COM_OF_LOSS_T")
@@ -530,6 +554,15 @@ class MockAutopilot:
             self._disarm("auto-disarm: no takeoff")
 
     def _target(self) -> Target | None:
+        # --- flavour hooks: ArduPilot's modes and GUIDED shaping (sitl_mock.ardupilot); PX4's
+        # MPC_* velocity and tilt limits (sitl_mock.shaping)
+        if self.flavour is Flavour.ARDUPILOT:
+            return self.ap.target(self)
+        if self.config.shaping:
+            self.vehicle.limits = px4_vehicle_limits({n: float(self.params[n].value) for n in PX4_LIMIT_PARAMS})
+        return self._base_target()
+
+    def _base_target(self) -> Target | None:
         if not self.armed:
             return None
         s = self.vehicle.state
@@ -575,6 +608,7 @@ class MockAutopilot:
         if self.landed:
             self.hold_target.pos[2] = min(s.pos[2], self.ground_z)
         self.rtl_landing = False
+        self.ap.on_mode()
         if name == self.modes.follow_mode:
             # PX4 publishes trajectory setpoints only once in OFFBOARD, so it starts from
             # a hold until the next setpoint; GUIDED starts by holding too.
@@ -628,6 +662,10 @@ class MockAutopilot:
             why, event = "Arming denied: no offboard signal", "check_modes_offboard_no_signal"
         elif self.modes.prevents_arming(self.mode) and not force:
             why, event = f"Arming denied: not armable in {self.mode}", "mock_arm_denied_mode"
+        elif self.flavour is Flavour.ARDUPILOT and not force and (fails := self.ap.prearm_failures(self)):
+            for text in fails[1:]:  # ArduPilot reports every failing check
+                self._text(mav.MAV_SEVERITY_CRITICAL, text)
+            why, event = fails[0], ""
         if why:
             # PX4's arming checks report as errors; the old STATUSTEXT was critical.
             self._report(mav.MAV_SEVERITY_ERROR if self.events else mav.MAV_SEVERITY_CRITICAL, why, event)
@@ -646,6 +684,8 @@ class MockAutopilot:
             # PX4 (COM_HOME_EN) sets home where it arms, and streams the new home at once.
             self.home_ned = s.pos.copy()
             self._send(tm.home_position(self.enc.mav, self.origin, self.home_ned, int((self.t - self.boot_t) * 1e6)))
+        else:
+            self.ap.on_armed(self)  # ArduPilot: home where it arms, sent at once
         self._send_heartbeat()
         return int(mav.MAV_RESULT_ACCEPTED), ""
 
@@ -899,7 +939,10 @@ class MockAutopilot:
             self._last_reject_text[d.reason] = self.t
             self._report(mav.MAV_SEVERITY_CRITICAL, f"SET_POSITION_TARGET_LOCAL_NED {d.reason}", None)
         if d.stop:
-            self.follow_target = Target.hold(s.pos.copy(), s.yaw)
+            # ArduPilot with shaping: "stop" is GUIDED's init, zero velocity from where it is
+            # (sitl_mock.ardupilot.stop_target); else a hold at the current position.
+            self.follow_target = (self.ap.stop_target(self) if self.flavour is Flavour.ARDUPILOT and self.config.shaping
+                                  else Target.hold(s.pos.copy(), s.yaw))
             applied = True
         elif d.setpoint is not None and self.mode == self.modes.follow_mode:
             if self.flavour is Flavour.ARDUPILOT and self.landed and not self.guided_taken_off:
@@ -1011,6 +1054,8 @@ class MockAutopilot:
         ms = self.time_boot_ms
         t_usec = int((self.t - self.boot_t) * 1e6)
         s = self.vehicle.state
+        if self.flavour is Flavour.ARDUPILOT and not self.ap.sends(mid):
+            return  # no EKF origin yet (sitl_mock.ardupilot)
         if mid == mav.MAVLINK_MSG_ID_HEARTBEAT:
             self._send_heartbeat()
         elif mid == mav.MAVLINK_MSG_ID_SYS_STATUS:
@@ -1065,6 +1110,11 @@ class MockAutopilot:
             self.reboot()
         elif cmd == "reject_arming":
             self.reject_arming = bool(req.get("value", True))
+        elif cmd == "rc":
+            pwm = req.get("throttle")
+            if pwm is not None and (isinstance(pwm, bool) or not isinstance(pwm, int) or not 800 <= pwm <= 2200):
+                raise ValueError(f"rc: field 'throttle' must be a pwm in 800..2200 or null (RC lost), got {pwm!r}")
+            self.ap.set_rc(self, pwm)
         elif cmd == "set_param":
             name = str(req.get("name"))
             if name not in self.params:
@@ -1075,7 +1125,7 @@ class MockAutopilot:
         else:
             raise ValueError(
                 f"cmd: unknown command {cmd!r}; valid: state, set_mode, pause_link, drop, latency, "
-                "reboot, reject_arming, set_param, stop"
+                "reboot, reject_arming, rc, set_param, stop"
             )
         self.log.write("event", self.t, event="control", request=req)
         self._update_snapshot()

@@ -38,6 +38,17 @@ class VehicleParams:
         return G * math.tan(math.radians(self.max_tilt_deg))
 
 
+@dataclass(frozen=True)
+class Limits:
+    """Velocity and tilt limits that the autopilot's parameters set in flight (``shaping.py``),
+    in place of the response's own; inf: no limit of that kind."""
+
+    speed_xy: float
+    climb: float
+    descent: float
+    tilt_deg: float
+
+
 @dataclass
 class Target:
     """Per-axis target; NaN means the axis is not commanded at that level."""
@@ -108,6 +119,8 @@ class Vehicle:
         self._t = 0.0
         self._pending: collections.deque[tuple[float, Target | None]] = collections.deque()
         self._applied: Target | None = None
+        # --- shaping hook: set each step by the server (None: the response's own limits)
+        self.limits: Limits | None = None
 
     def _delayed(self, dt: float, target: Target | None) -> Target | None:
         """The target as the controller sees it, `delay` seconds late."""
@@ -129,6 +142,11 @@ class Vehicle:
 
     def _command(self, target: Target) -> np.ndarray:
         p, s = self.params, self.state
+        lim = self.limits
+        speed_xy = p.max_speed_xy if lim is None else lim.speed_xy
+        climb = p.max_climb if lim is None else lim.climb
+        descent = p.max_descent if lim is None else lim.descent
+        acc_xy = p.max_acc_xy if lim is None else G * math.tan(math.radians(lim.tilt_deg))
         has_pos = np.isfinite(target.pos)
         has_vel = np.isfinite(target.vel)
         vel_ff = np.where(has_vel, target.vel, 0.0)
@@ -136,17 +154,17 @@ class Vehicle:
         n_xy = float(np.hypot(err[0], err[1]))
         v_p = np.zeros(3)
         if n_xy > 0.0:
-            v_p[:2] = err[:2] * (sqrt_controller(n_xy, p.kp_pos, 0.5 * p.max_acc_xy) / n_xy)
+            v_p[:2] = err[:2] * (sqrt_controller(n_xy, p.kp_pos, 0.5 * acc_xy) / n_xy)
         v_p[2] = sqrt_controller(float(err[2]), p.kp_pos, 0.5 * p.max_acc_up)
         v_cmd = np.where(has_pos, v_p + vel_ff, vel_ff)
-        v_cmd = _clip_norm(v_cmd, p.max_speed_xy)
-        v_cmd[2] = min(max(v_cmd[2], -p.max_climb), p.max_descent)
+        v_cmd = _clip_norm(v_cmd, speed_xy)
+        v_cmd[2] = min(max(v_cmd[2], -climb), descent)
         # An axis with neither position nor velocity is driven by its acceleration only.
         vel_loop = has_pos | has_vel
         acc_ff = np.where(np.isfinite(target.acc), target.acc * p.acc_ff_gain, 0.0)
         damp = np.where(np.isfinite(target.acc), 0.0, -p.kv_vel * s.vel)
         a_cmd = np.where(vel_loop, p.kv_vel * (v_cmd - s.vel) + acc_ff, acc_ff + damp)
-        a_cmd = _clip_norm(a_cmd, p.max_acc_xy)
+        a_cmd = _clip_norm(a_cmd, acc_xy)
         # Thrust cannot pull down: net downward acceleration is at most g.
         a_cmd[2] = min(max(a_cmd[2], -p.max_acc_up), G)
         return a_cmd

@@ -20,6 +20,9 @@ def make_mock(tmp_path: Path) -> Iterator[Callable[..., tuple[MockAutopilot, Cli
         port = free_udp_port()
         kw.setdefault("log_path", str(tmp_path / f"{autopilot}-{port}.jsonl"))
         kw.setdefault("log_rate_hz", 50.0)
+        if autopilot == "ardupilot":
+            # FAST: the EKF origin at once, for tests not about it (stock: 40 s; test_mock_ardupilot_strict).
+            kw.setdefault("ekf_origin_delay_s", 0.0)
         cfg = MockConfig(autopilot=autopilot, endpoints=[f"udpin:127.0.0.1:{port}"], **kw)
         mock = MockAutopilot(cfg).start()
         client = Client(port)

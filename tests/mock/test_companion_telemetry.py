@@ -23,7 +23,8 @@ async def _run(mock: MockAutopilot, check: Any) -> None:
 
 def test_streams_requested_on_a_fresh_ardupilot_link(tmp_path: Path) -> None:
     mock = MockAutopilot(MockConfig(autopilot="ardupilot", endpoints=["udpin:127.0.0.1:0"],
-                                    log_path=str(tmp_path / "f.jsonl"))).start()
+                                    log_path=str(tmp_path / "f.jsonl"),
+                                    ekf_origin_delay_s=0.0)).start()  # FAST: not about the EKF origin
 
     async def check(svc: Any, events: Events) -> None:
         ev = events.of("telemetry")[-1]
@@ -39,7 +40,8 @@ def test_streams_requested_on_a_fresh_ardupilot_link(tmp_path: Path) -> None:
 
 def test_missing_streams_are_reported_with_the_parameter_to_set(tmp_path: Path) -> None:
     mock = MockAutopilot(MockConfig(autopilot="ardupilot", endpoints=["udpin:127.0.0.1:0"],
-                                    log_path=str(tmp_path / "f.jsonl"))).start()
+                                    log_path=str(tmp_path / "f.jsonl"),
+                                    ekf_origin_delay_s=0.0)).start()  # FAST: not about the EKF origin
     # an autopilot that ignores every stream request (say, an old firmware on a busy link)
     mock._set_interval = lambda msg_id, us: (4, "denied")  # type: ignore[method-assign]  # MAV_RESULT_DENIED
     mock._on_request_data_stream = lambda msg: None  # type: ignore[method-assign]

@@ -40,7 +40,8 @@ class Broken:
 
 async def _fly_then_fail(autopilot: str, log_path: Path, process: bool) -> tuple[Service, BaseException | None]:
     mock = MockAutopilot(MockConfig(autopilot=autopilot, endpoints=["udpin:127.0.0.1:0"], log_path=str(log_path),
-                                    log_rate_hz=50)).start()
+                                    log_rate_hz=50,
+                                    ekf_origin_delay_s=0.0)).start()  # FAST: not about the EKF origin
     try:
         port = mock.addresses[0][1]
         cfg = config_from_dict({

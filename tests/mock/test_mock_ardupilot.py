@@ -112,10 +112,12 @@ def test_guid_timeout_zeroes_velocity_keeps_position(make_mock) -> None:  # type
     assert timeout["t"] - last_sp == pytest.approx(3.0, abs=0.05)
     assert mock.snapshot()["position"][0] > 2.0  # it flew at 1 m/s until the timeout
     assert wait_for(lambda: abs(mock.snapshot()["velocity"][0]) < 0.02, 5)
-    # Position + velocity target: after the timeout the position is still held.
+    # Position + velocity target: the target moves on along its velocity until the timeout
+    # (AC_PosControl::input_pos_vel_accel_xy writes the projected target back into GUIDED's),
+    # then its position is held: 5.0 + 0.5 m/s x 3 s.
     c.setpoint(x=5.0, y=1.0, z=-3.0, mask=0b0000_1101_1100_0000, vel=(0.5, 0.0, 0.0))
     assert wait_for(lambda: sum(r["event"] == "guided_timeout" for r in records(mock, "event")) == 2, 6)
-    assert wait_for(lambda: abs(mock.snapshot()["position"][0] - 5.0) < 0.05, 5)
+    assert wait_for(lambda: abs(mock.snapshot()["position"][0] - 6.5) < 0.05, 5)
     assert mock.snapshot()["position"][1] == pytest.approx(1.0, abs=0.05)
 
 
