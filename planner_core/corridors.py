@@ -286,17 +286,48 @@ def _hull_planes(p: FloatArray) -> tuple[FloatArray, FloatArray, IntArray]:
     return A, b, np.asarray(hull.vertices, dtype=np.intp)
 
 
+def axis_box_of(points: FloatArray) -> tuple[FloatArray, FloatArray] | None:
+    """(lo, hi) when the points (k, 3) are exactly the 8 corners of an axis-aligned box with
+    volume (in any order, repeats allowed), else None.
+
+    Exact: every coordinate equals its axis' minimum or maximum, and all 8 combinations occur.
+    Corners off by a rounding error are not a box here; their hull is (`polytope_from_vertices`
+    falls back to it), so the test can only make a box cheaper, never different."""
+    if points.ndim != 2 or points.shape[1] != 3 or points.shape[0] < 8:
+        return None
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    if not np.all(hi > lo):
+        return None
+    at_hi = points == hi
+    if not np.all(at_hi | (points == lo)):
+        return None
+    corners = at_hi @ np.array([1, 2, 4])
+    if np.unique(corners).size != 8:
+        return None
+    return lo, hi
+
+
 def polytope_from_vertices(vertices: ArrayLike) -> Polytope:
     """H-representation of the convex hull of `vertices` (k, 3).
 
-    Rows of A are unit normals, one per facet (no redundant rows). The hull is qhull's
-    (scipy.spatial.ConvexHull): O(k log k), a few ms for thousands of points.
+    Rows of A are unit normals, one per facet (no redundant rows). An axis-aligned box given
+    by its corners (`axis_box_of`, the common obstacle) gets its six planes directly, exact;
+    any other hull is qhull's (scipy.spatial.ConvexHull): O(k log k), a few ms for thousands
+    of points, ~1 ms (and scipy's ~0.3 s import once) for a handful.
     Raises ValueError for fewer than 4 points, non-finite values, or points
     that are collinear or coplanar (the hull would have no volume).
     """
     pts = _as_points(vertices, "vertices")
     if pts.shape[0] < 4:
         raise ValueError(f"vertices: need at least 4 points for a solid hull, got {pts.shape[0]}")
+    box = axis_box_of(pts)
+    if box is not None:
+        lo, hi = box
+        poly = Polytope(A=_FRAME_A.copy(), b=np.concatenate([hi, -lo]))
+        corners = np.ascontiguousarray(_box_corners(lo[None], hi[None])[0])
+        corners.flags.writeable = False
+        _remember_vertices(poly, corners)
+        return poly
     origin = pts.mean(axis=0)
     scale = float(np.max(np.abs(pts - origin)))
     if scale <= 0.0:
