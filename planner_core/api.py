@@ -22,7 +22,7 @@ no files (the JSON codec below turns trajectories into dicts and back, nothing m
 - braking: `braking_trajectory`, `stop_time_scale`
 - trajectory surgery: `split_at`, `splice`, `trim_before`, `hold`, `Sampler`, `sampler`,
   `start_jet`, `end_jet`, `split_segment`
-- JSON: `trajectory_to_dict`, `trajectory_from_dict`
+- JSON: `trajectory_to_dict`, `trajectory_from_dict`, `trajectory_json` (the file's text, fast)
 - user waypoint indices among knots: `WaypointMap`, `to_planned` -> `PlannedChange`
 """
 
@@ -57,7 +57,7 @@ if TYPE_CHECKING:
     from planner_core.errors import FieldError
     from planner_core.feasibility import Binding, ScaleSearch, scale_search
     from planner_core.feasibility import scaled as scaled_durations
-    from planner_core.formats.io import trajectory_from_dict, trajectory_to_dict
+    from planner_core.formats.io import trajectory_from_dict, trajectory_json, trajectory_to_dict
     from planner_core.indices import PlannedChange, WaypointMap, to_planned
     from planner_core.iterative import IterativeOptions, warm_up
     from planner_core.lower_bound import FlightTimeBound, flight_time_lower_bound
@@ -149,6 +149,7 @@ _WHERE: dict[str, tuple[str, str]] = {
     "stop_time_scale": ("planner_core.braking", "stop_time_scale"),
     "Trajectory": ("planner_core.problem", "Trajectory"),
     "trajectory_from_dict": ("planner_core.formats.io", "trajectory_from_dict"),
+    "trajectory_json": ("planner_core.formats.io", "trajectory_json"),
     "trajectory_to_dict": ("planner_core.formats.io", "trajectory_to_dict"),
     "trim_before": ("planner_core.trajectory", "trim_before"),
     "use_compiled_kernel": ("planner_core.window", "use_compiled_kernel"),
@@ -224,6 +225,7 @@ __all__ = [
     "takeoff_duration",
     "to_planned",
     "trajectory_from_dict",
+    "trajectory_json",
     "trajectory_to_dict",
     "trim_before",
     "use_compiled_kernel",
