@@ -286,6 +286,9 @@ def _hull_planes(p: FloatArray) -> tuple[FloatArray, FloatArray, IntArray]:
     return A, b, np.asarray(hull.vertices, dtype=np.intp)
 
 
+_AXIS_BITS = np.array([1, 2, 4])
+
+
 def axis_box_of(points: FloatArray) -> tuple[FloatArray, FloatArray] | None:
     """(lo, hi) when the points (k, 3) are exactly the 8 corners of an axis-aligned box with
     volume (in any order, repeats allowed), else None.
@@ -301,10 +304,9 @@ def axis_box_of(points: FloatArray) -> tuple[FloatArray, FloatArray] | None:
     at_hi = points == hi
     if not np.all(at_hi | (points == lo)):
         return None
-    corners = at_hi @ np.array([1, 2, 4])
-    if np.unique(corners).size != 8:
-        return None
-    return lo, hi
+    seen = np.zeros(8, dtype=bool)
+    seen[at_hi @ _AXIS_BITS] = True
+    return (lo, hi) if bool(seen.all()) else None
 
 
 def polytope_from_vertices(vertices: ArrayLike) -> Polytope:
