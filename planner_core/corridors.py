@@ -309,13 +309,41 @@ def axis_box_of(points: FloatArray) -> tuple[FloatArray, FloatArray] | None:
     return (lo, hi) if bool(seen.all()) else None
 
 
+SMALL_HULL_POINTS = 12  # up to this many points, the hull by point triples (<= 220 candidate planes)
+_HULL_TOL = 1e-9  # on the normalised points (extent 1): a facet plane has every point this far inside
+
+
+def _small_hull(p: FloatArray) -> tuple[FloatArray, FloatArray, IntArray]:
+    """`_hull_planes` for a handful of points (extent ~1, distinct, with volume), without qhull:
+    the plane through every triple of points is a facet when all points lie on one side of it;
+    coplanar triples' planes are merged as there; a hull vertex is a point on >= 3 facets (one
+    on an edge or inside a face is on 2 or 1). The simple obstacle (a prism, a rotated box) skips
+    scipy's import and a qhull call for one vectorised pass."""
+    t = triples(p.shape[0])
+    n = np.cross(p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]])
+    norm = np.linalg.norm(n, axis=1)
+    ok = norm > 1e-9
+    n, t = n[ok] / norm[ok, None], t[ok]
+    d = np.einsum("td,td->t", n, p[t[:, 0]])
+    s = p @ n.T - d[None, :]  # (k, T) signed distances
+    below, above = np.all(s <= _HULL_TOL, axis=0), np.all(s >= -_HULL_TOL, axis=0)
+    sign = np.where(below, 1.0, -1.0)[below | above]
+    A, b = n[below | above] * sign[:, None], d[below | above] * sign
+    key = np.round(np.concatenate([A, b[:, None]], axis=1) / 1e-7)
+    _, first = np.unique(key, axis=0, return_index=True)
+    A, b = _dedup_planes(A[np.sort(first)], b[np.sort(first)], 1e-7)
+    on = np.abs(p @ A.T - b[None, :]) <= _HULL_TOL
+    return A, b, np.flatnonzero(on.sum(axis=1) >= 3).astype(np.intp)
+
+
 def polytope_from_vertices(vertices: ArrayLike) -> Polytope:
     """H-representation of the convex hull of `vertices` (k, 3).
 
     Rows of A are unit normals, one per facet (no redundant rows). An axis-aligned box given
     by its corners (`axis_box_of`, the common obstacle) gets its six planes directly, exact;
-    any other hull is qhull's (scipy.spatial.ConvexHull): O(k log k), a few ms for thousands
-    of points, ~1 ms (and scipy's ~0.3 s import once) for a handful.
+    a handful of points (<= SMALL_HULL_POINTS) by point triples in one vectorised pass
+    (`_small_hull`); more points by qhull (scipy.spatial.ConvexHull): O(k log k), a few ms for
+    thousands of points (and scipy's ~0.3 s import once).
     Raises ValueError for fewer than 4 points, non-finite values, or points
     that are collinear or coplanar (the hull would have no volume).
     """
@@ -340,7 +368,7 @@ def polytope_from_vertices(vertices: ArrayLike) -> Polytope:
         raise ValueError("vertices: all points are collinear (hull has no volume)")
     if sv.shape[0] < 3 or sv[2] <= 1e-9 * sv[0]:
         raise ValueError("vertices: all points are coplanar (hull has no volume)")
-    A, b, hull_vertices = _hull_planes(p)
+    A, b, hull_vertices = _small_hull(p) if p.shape[0] <= SMALL_HULL_POINTS else _hull_planes(p)
     poly = Polytope(A=A, b=b * scale + A @ origin)
     # The hull's vertices are known: `polytope_vertices` need not enumerate plane triples.
     verts = np.ascontiguousarray(p[hull_vertices] * scale + origin, dtype=float)

@@ -116,3 +116,43 @@ def test_a_scenario_of_vertex_boxes_builds_the_corridors_of_its_plane_boxes() ->
     for pa, pc in zip(a, c, strict=True):
         assert pa is not None and pc is not None
         assert np.array_equal(pa.A, pc.A) and np.array_equal(pa.b, pc.b)
+
+
+@pytest.mark.parametrize("seed", range(60))
+def test_small_hulls_without_qhull_are_qhulls(seed: int) -> None:
+    """Up to SMALL_HULL_POINTS points the hull is found by point triples: the same facets and the
+    same hull vertices as qhull's, on random clouds (some points inside) at any scale and offset."""
+    from planner_core.corridors import SMALL_HULL_POINTS
+
+    rng = np.random.default_rng(1000 + seed)
+    k = int(rng.integers(4, SMALL_HULL_POINTS + 1))
+    scale = 10.0 ** rng.uniform(-2, 3)
+    pts = (rng.normal(size=(k, 3)) + rng.normal(size=3) * 20.0) * scale
+    if np.linalg.svd(pts - pts.mean(0), compute_uv=False)[2] < 1e-3 * scale:
+        pytest.skip("nearly flat cloud")
+    poly = polytope_from_vertices(pts)
+    A, b = hull_planes(pts)
+    assert same_planes(poly, A, b, 1e-7 * float(np.max(np.abs(pts))))
+    assert np.max(pts @ poly.A.T - poly.b) <= 1e-9 * float(np.max(np.abs(pts)))  # every point inside
+    hull_v = pts[ConvexHull(pts).vertices]
+    got = polytope_vertices(poly)
+    gap = np.linalg.norm(got[:, None, :] - hull_v[None, :, :], axis=-1)  # up to normalising's rounding
+    tol = 1e-12 * float(np.max(np.abs(pts)))
+    assert got.shape == hull_v.shape and np.all(gap.min(axis=0) <= tol) and np.all(gap.min(axis=1) <= tol)
+
+
+def test_scipy_is_not_imported_for_small_obstacles() -> None:
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    code = ("import sys, numpy as np\nfrom planner_core.corridors import polytope_from_vertices\n"
+            "R = np.linalg.qr(np.random.default_rng(0).normal(size=(3, 3)))[0]\n"
+            "box = np.array([[x, y, z] for x in (0, 1) for y in (0, 2) for z in (0, 3)], float)\n"
+            "polytope_from_vertices(box); polytope_from_vertices(box @ R.T); polytope_from_vertices(box[:6])\n"
+            "print('scipy' in sys.modules)")
+    root = Path(__file__).resolve().parents[2]
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=root, timeout=120,
+                         env={"PYTHONPATH": str(root), "PATH": "/usr/bin:/bin"})
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "False"
