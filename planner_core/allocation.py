@@ -14,7 +14,8 @@ bounds and corridors allow for the planner, every candidate planned and verified
    degree-9 segment certified on its hodographs' pieces (constraints.HULL_PIECES) needs
    2.64 L / v for a rest-to-rest leg (7% over its true peak speed, 3.7x on one plain
    hull), and snap is certified 1.6x conservatively; knots still shorten long legs
-   (measured in benchmarks/speed.py: 5-50 m within 1.12-1.17x ruckig).
+   (measured in benchmarks/speed.py: 5-50 m along x and the diagonals within 1.11-1.22x ruckig
+   on the binding axis, with step 1's profile-shaped start).
 1. start from `timing.durations_from_lengths` with safety 1 on the knotted waypoints
    (the default allocation is that times 1.4); and, searched apart, from the same durations
    with each knotted segment's pieces in the proportions of the time-optimal stop-to-stop
@@ -74,7 +75,7 @@ from planner_core.timing import (
 )
 
 IntArray = NDArray[np.int64]
-KNOT_DENSITY = 3.0  # measured (benchmarks/speed.py): 5-50 m legs within 1.12-1.17x ruckig
+KNOT_DENSITY = 3.0  # measured (benchmarks/speed.py): 5-50 m legs within 1.11-1.22x ruckig (x and diagonals)
 KNOT_MIN_RATIO = 1.0  # no knots on a segment shorter than v^2 / a (measured: shorter ones never paid in missions)
 KNOT_MIN_RATIO_REST = 0.18  # ... or 0.18 v^2 / a when it starts and ends at rest (1 m legs in any direction at v 3, a 3: 1.27-1.33x ruckig, 1.44-1.5x unknotted)
 MAX_PIECES = 12
