@@ -328,10 +328,7 @@ def _small_hull(p: FloatArray) -> tuple[FloatArray, FloatArray, IntArray]:
     s = p @ n.T - d[None, :]  # (k, T) signed distances
     below, above = np.all(s <= _HULL_TOL, axis=0), np.all(s >= -_HULL_TOL, axis=0)
     sign = np.where(below, 1.0, -1.0)[below | above]
-    A, b = n[below | above] * sign[:, None], d[below | above] * sign
-    key = np.round(np.concatenate([A, b[:, None]], axis=1) / 1e-7)
-    _, first = np.unique(key, axis=0, return_index=True)
-    A, b = _dedup_planes(A[np.sort(first)], b[np.sort(first)], 1e-7)
+    A, b = _dedup_planes(n[below | above] * sign[:, None], d[below | above] * sign, 1e-7)
     on = np.abs(p @ A.T - b[None, :]) <= _HULL_TOL
     return A, b, np.flatnonzero(on.sum(axis=1) >= 3).astype(np.intp)
 
