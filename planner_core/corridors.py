@@ -366,6 +366,8 @@ def polytope_from_vertices(vertices: ArrayLike) -> Polytope:
     if sv.shape[0] < 3 or sv[2] <= 1e-9 * sv[0]:
         raise ValueError("vertices: all points are coplanar (hull has no volume)")
     A, b, hull_vertices = _small_hull(p) if p.shape[0] <= SMALL_HULL_POINTS else _hull_planes(p)
+    if A.shape[0] < 4 or hull_vertices.shape[0] < 4 or not _is_bounded(A):
+        A, b, hull_vertices = _hull_planes(p)  # a nearly flat handful: qhull's tolerances decide
     poly = Polytope(A=A, b=b * scale + A @ origin)
     # The hull's vertices are known: `polytope_vertices` need not enumerate plane triples.
     verts = np.ascontiguousarray(p[hull_vertices] * scale + origin, dtype=float)
