@@ -156,3 +156,20 @@ def test_scipy_is_not_imported_for_small_obstacles() -> None:
                          env={"PYTHONPATH": str(root), "PATH": "/usr/bin:/bin"})
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "False"
+
+
+def test_nearly_flat_small_clouds_still_get_a_bounded_hull_holding_every_point() -> None:
+    rng = np.random.default_rng(7)
+    checked = 0
+    for _ in range(400):
+        pts = rng.normal(size=(int(rng.integers(4, 13)), 3))
+        pts[:, 2] *= 10.0 ** rng.uniform(-8.5, -3.0)  # thin slabs, some past the volume check
+        try:
+            poly = polytope_from_vertices(pts)
+        except ValueError as e:
+            assert "coplanar" in str(e)
+            continue
+        assert np.max(pts @ poly.A.T - poly.b) <= 1e-8 * float(np.max(np.abs(pts)))
+        assert polytope_vertices(poly).shape[0] >= 4  # bounded and non-empty, else this raises
+        checked += 1
+    assert checked > 100
