@@ -53,8 +53,10 @@ def _box_distance(points: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndar
     return np.asarray(np.linalg.norm(d, axis=-1))
 
 
-def scene(n_obstacles: int, m: int, seed: int = 0) -> dict[str, Any]:
-    """A scenario dict (the JSON format of examples/) with `n_obstacles` boxes and `m` waypoints."""
+def scene(n_obstacles: int, m: int, seed: int = 0, vertices: bool = False) -> dict[str, Any]:
+    """A scenario dict (the JSON format of examples/) with `n_obstacles` boxes and `m` waypoints;
+    `vertices`: each box as its 8 corners ({"vertices": ...}, as a mapping tool would send it)
+    instead of {A, b}."""
     rng = np.random.default_rng(seed)
     side = float(np.sqrt(AREA_PER_OBSTACLE * max(n_obstacles, 1)))
     side = max(side, 30.0)
@@ -102,8 +104,15 @@ def scene(n_obstacles: int, m: int, seed: int = 0) -> dict[str, Any]:
         "bounds": BOUNDS,
         "map": {"min": [0.0, 0.0, 0.0], "max": size.tolist()},
         "vehicle_radius": RADIUS,
-        "obstacles": [{"A": A, "b": np.concatenate([h, -w]).tolist()} for w, h in zip(lo, hi, strict=True)],
+        "obstacles": [box_vertices(w, h) if vertices else {"A": A, "b": np.concatenate([h, -w]).tolist()}
+                      for w, h in zip(lo, hi, strict=True)],
     }
+
+
+def box_vertices(lo: np.ndarray, hi: np.ndarray) -> dict[str, Any]:
+    """The box [lo, hi] as {"vertices": its 8 corners}."""
+    bits = (np.arange(8)[:, None] >> np.arange(3)[None, :]) & 1
+    return {"vertices": np.where(bits.astype(bool), hi[None, :], lo[None, :]).tolist()}
 
 
 class _CorridorTimer:

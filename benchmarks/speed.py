@@ -4,7 +4,9 @@
 
 Rows:
 - single rest-to-rest legs of 1, 5, 20 and 50 m with the companion's default bounds
-  (companion/config.py [planner.bounds]: v 3, a 3, j 10, s 50 per axis), along x;
+  (companion/config.py [planner.bounds]: v 3, a 3, j 10, s 50 per axis), along x and along the
+  diagonals (1, 1, 0) and (1, 1, 1) ("5 m xy", "5 m xyz"); ruckig's time is its time on the
+  binding axis (the largest per-axis distance: every axis has the same bounds);
 - random cluttered missions (benchmarks/quality.py scenes: 6-13 waypoints, 8-25
   obstacles, corridors built from them) with the bounds replaced by v 5, a 5, j 15,
   s 60 per axis.
@@ -60,6 +62,7 @@ Row = dict[str, Any]
 LEG_BOUNDS = Bounds.symmetric(3.0, 3.0, 10.0, 50.0)
 MISSION_BOUNDS = Bounds.symmetric(5.0, 5.0, 15.0, 60.0)
 LEGS = (1.0, 5.0, 20.0, 50.0)
+DIRECTIONS = {"": (1.0, 0.0, 0.0), " xy": (1.0, 1.0, 0.0), " xyz": (1.0, 1.0, 1.0)}
 SAMPLES = 400
 
 
@@ -141,15 +144,24 @@ def _row(kind: str, name: str, how: str, problem: Problem, res: Any, t_plan: flo
     return row
 
 
+def leg_problem(length: float, direction: tuple[float, float, float] = (1.0, 0.0, 0.0)) -> Problem:
+    """A rest-to-rest leg of `length` metres along `direction`, the companion's bounds, allocate_times."""
+    u = np.asarray(direction, dtype=float)
+    wps = np.stack([np.zeros(3), length * u / np.linalg.norm(u)])
+    return Problem.from_waypoints(wps, np.diff(allocate_times(wps, LEG_BOUNDS)), LEG_BOUNDS)
+
+
 def legs(allocs: tuple[str, ...]) -> list[Row]:
     rows = []
-    for length in LEGS:
-        wps = np.array([[0.0, 0.0, 0.0], [length, 0.0, 0.0]])
-        problem = Problem.from_waypoints(wps, np.diff(allocate_times(wps, LEG_BOUNDS)), LEG_BOUNDS)
-        ruck = ruckig_time(length, LEG_BOUNDS)
-        for how in allocs:
-            res, t, _ = plan_timed(problem, how)
-            rows.append(_row("leg", f"{length:g} m", how, problem, res, t, axis_lower_bound(wps, LEG_BOUNDS), ruck))
+    for suffix, direction in DIRECTIONS.items():
+        for length in LEGS:
+            problem = leg_problem(length, direction)
+            wps = problem.waypoints
+            ruck = ruckig_time(float(np.max(np.abs(wps[1] - wps[0]))), LEG_BOUNDS)  # the binding axis
+            for how in allocs:
+                res, t, _ = plan_timed(problem, how)
+                rows.append(_row("leg", f"{length:g} m{suffix}", how, problem, res, t,
+                                 axis_lower_bound(wps, LEG_BOUNDS), ruck))
     return rows
 
 
@@ -198,7 +210,7 @@ def summary(rows: list[Row]) -> list[str]:
     out = []
     for how in sorted({r["alloc"] for r in rows}):
         lg = [r["vs_ruckig"] for r in rows if r["kind"] == "leg" and r["alloc"] == how and r.get("vs_ruckig")
-              and r["name"] != "1 m"]
+              and not r["name"].startswith("1 m")]
         ms = [r["vs_lb"] for r in rows if r["kind"] == "mission" and r["alloc"] == how and r.get("vs_lb")]
         mt = [r["vs_proven"] for r in rows if r["kind"] == "mission" and r["alloc"] == how and r.get("vs_proven")]
         px = [r["proven_x"] for r in rows if r["kind"] == "mission" and r["alloc"] == how]

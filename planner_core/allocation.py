@@ -5,7 +5,7 @@ bounds and corridors allow for the planner, every candidate planned and verified
 
 0. knots: segment j of length L is split into K_j equal straight pieces,
    K_j = clip(ceil(knot_density sqrt(L a / v^2)), 1, max_pieces) where
-   L a / v^2 >= KNOT_MIN_RATIO (0.3 for a single rest-to-rest leg) and both ends are slow (rest, or a turn capping the speed
+   L a / v^2 >= KNOT_MIN_RATIO (0.18 for a single rest-to-rest leg) and both ends are slow (rest, or a turn capping the speed
    at SLOW_END v), else 1 (measured on 15 cluttered missions: knots elsewhere never
    shortened a plan and tripled the search time), with v, a the bounds
    along it (`timing.directional_bounds`). The knots lie on the straight segment, which
@@ -14,9 +14,17 @@ bounds and corridors allow for the planner, every candidate planned and verified
    degree-9 segment certified on its hodographs' pieces (constraints.HULL_PIECES) needs
    2.64 L / v for a rest-to-rest leg (7% over its true peak speed, 3.7x on one plain
    hull), and snap is certified 1.6x conservatively; knots still shorten long legs
-   (measured in benchmarks/speed.py: 5-50 m within 1.12-1.17x ruckig).
+   (measured in benchmarks/speed.py: 5-50 m along x and the diagonals within 1.11-1.22x ruckig
+   on the binding axis, with step 1's profile-shaped start).
 1. start from `timing.durations_from_lengths` with safety 1 on the knotted waypoints
-   (the default allocation is that times 1.4);
+   (the default allocation is that times 1.4); and, searched apart, from the same durations
+   with each knotted segment's pieces in the proportions of the time-optimal stop-to-stop
+   profile along it (`timing.stop_to_stop_crossings`: the times it passes the knots), for a
+   single leg (on missions it never won: see `fastest_durations`). Equal
+   pieces of a short leg need their end pieces much slower than the middle ones, which the
+   safety-1 durations do not give and the refinement (shrink only) cannot find: a 5 m
+   diagonal leg (v 3, a 3, j 10, s 50) flew 1.33x ruckig's time, 1.21-1.22x with both starts;
+   the plain start stays better on some long legs (20 m diagonal 1.11x against 1.16x);
 2. a uniform scale search on those durations: the smallest scale (to a relative
    `tol`) whose plan holds, bracketed by shrinking or doubling;
 3. per-segment refinement: each segment in turn (longest first) tries its duration
@@ -63,12 +71,13 @@ from planner_core.timing import (
     directional_bounds,
     durations_from_lengths,
     junction_speeds,
+    stop_to_stop_crossings,
 )
 
 IntArray = NDArray[np.int64]
-KNOT_DENSITY = 3.0  # measured (benchmarks/speed.py): 5-50 m legs within 1.12-1.17x ruckig
+KNOT_DENSITY = 3.0  # measured (benchmarks/speed.py): 5-50 m legs within 1.11-1.22x ruckig (x and diagonals)
 KNOT_MIN_RATIO = 1.0  # no knots on a segment shorter than v^2 / a (measured: shorter ones never paid in missions)
-KNOT_MIN_RATIO_REST = 0.3  # ... or 0.3 v^2 / a when it starts and ends at rest (a 1 m leg at v 3, a 3: 2.2x faster)
+KNOT_MIN_RATIO_REST = 0.18  # ... or 0.18 v^2 / a when it starts and ends at rest (1 m legs in any direction at v 3, a 3: 1.27-1.33x ruckig, 1.44-1.5x unknotted)
 MAX_PIECES = 12
 MAX_PLANS = 16  # refinement stops at this many candidate plans in all (per search)
 SEARCH_MAX_WAYPOINTS = 32  # measured (benchmarks/speed.py --scale): the search pays below, not above
@@ -146,6 +155,31 @@ def insert_knots(problem: Problem, pieces: IntArray) -> tuple[Problem, IntArray]
     return out, np.asarray(index, dtype=np.int64)
 
 
+def _profile_shaped(given: Problem, pieces: IntArray, index: IntArray, kbase: FloatArray) -> FloatArray:
+    """The knotted segments' piece durations in the proportions of the time-optimal stop-to-stop
+    profile along the segment (`timing.stop_to_stop_crossings`), each segment's total kept.
+
+    The safety-1 durations of equal-length pieces give the end pieces too little of the time
+    (their certificate minimum is for a whole rest-to-rest segment, the middle ones run at full
+    speed): on a 5 m diagonal leg (v 3, a 3, j 10, s 50) the search then found 1.33x ruckig's
+    time, 1.2x in these proportions (benchmarks/speed.py)."""
+    split = np.flatnonzero(pieces > 1)
+    if split.size == 0:
+        return kbase
+    d = np.diff(given.waypoints, axis=0)[split]
+    lengths = np.linalg.norm(d, axis=1)
+    lim = directional_bounds(given.bounds, d / np.maximum(lengths, 1e-12)[:, None])
+    out = kbase.copy()
+    for row, j in enumerate(split.tolist()):
+        k = int(pieces[j])
+        t = stop_to_stop_crossings(lengths[row : row + 1], lim[row : row + 1], np.linspace(0.0, 1.0, k + 1))[0]
+        shape = np.diff(t)
+        part = slice(int(index[j]), int(index[j]) + k)
+        if np.all(shape > 0.0) and np.all(np.isfinite(shape)):
+            out[part] = shape * (float(np.sum(kbase[part])) / float(np.sum(shape)))
+    return out
+
+
 def fastest_durations(
     problem: Problem,
     method: str = "iterative",
@@ -209,6 +243,13 @@ def fastest_durations(
         found = [(_search(given, base, planned, tol, refine, shrink, rounds, max_plans, plan_count), given, same)]
         if knotted is not given:
             found.append((_search(knotted, kbase, planned, tol, refine, shrink, rounds, plan_count[0] + max_plans,
+                                  plan_count), knotted, index))
+        if knotted is not given and given.m == 2:
+            # a single leg: the same knots with the pieces' durations in the stop-to-stop profile's
+            # proportions, the better start on short legs (step 1; on the 15 missions of
+            # benchmarks/speed.py it never won and cost 16 more plans on 7 of them)
+            shaped = _profile_shaped(given, pieces, index, kbase)
+            found.append((_search(knotted, shaped, planned, tol, refine, shrink, rounds, plan_count[0] + max_plans,
                                   plan_count), knotted, index))
         for f, p, idx in found:
             if f is not None:

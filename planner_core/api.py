@@ -22,8 +22,9 @@ no files (the JSON codec below turns trajectories into dicts and back, nothing m
 - braking: `braking_trajectory`, `stop_time_scale`
 - trajectory surgery: `split_at`, `splice`, `trim_before`, `hold`, `Sampler`, `sampler`,
   `start_jet`, `end_jet`, `split_segment`
-- JSON: `trajectory_to_dict`, `trajectory_from_dict`; bounds: `vehicle_bound` (one order's
-  {"horizontal", "up", "down"} form), `bounds_to_dict` (the scenario's "bounds")
+- JSON: `trajectory_to_dict`, `trajectory_from_dict`, `trajectory_json` (the file's text, fast);
+  bounds: `vehicle_bound` (one order's {"horizontal", "up", "down"} form), `bounds_to_dict`
+  (the scenario's "bounds")
 - user waypoint indices among knots: `WaypointMap`, `to_planned` -> `PlannedChange`
 """
 
@@ -61,6 +62,7 @@ if TYPE_CHECKING:
     from planner_core.formats.io import (
         bounds_to_dict,
         trajectory_from_dict,
+        trajectory_json,
         trajectory_to_dict,
         vehicle_bound,
     )
@@ -155,6 +157,7 @@ _WHERE: dict[str, tuple[str, str]] = {
     "stop_time_scale": ("planner_core.braking", "stop_time_scale"),
     "Trajectory": ("planner_core.problem", "Trajectory"),
     "trajectory_from_dict": ("planner_core.formats.io", "trajectory_from_dict"),
+    "trajectory_json": ("planner_core.formats.io", "trajectory_json"),
     "trajectory_to_dict": ("planner_core.formats.io", "trajectory_to_dict"),
     "vehicle_bound": ("planner_core.formats.io", "vehicle_bound"),
     "bounds_to_dict": ("planner_core.formats.io", "bounds_to_dict"),
@@ -233,6 +236,7 @@ __all__ = [
     "takeoff_duration",
     "to_planned",
     "trajectory_from_dict",
+    "trajectory_json",
     "trajectory_to_dict",
     "trim_before",
     "use_compiled_kernel",

@@ -286,17 +286,75 @@ def _hull_planes(p: FloatArray) -> tuple[FloatArray, FloatArray, IntArray]:
     return A, b, np.asarray(hull.vertices, dtype=np.intp)
 
 
+_AXIS_BITS = np.array([1, 2, 4])
+
+
+def axis_box_of(points: FloatArray) -> tuple[FloatArray, FloatArray] | None:
+    """(lo, hi) when the points (k, 3) are exactly the 8 corners of an axis-aligned box with
+    volume (in any order, repeats allowed), else None.
+
+    Exact: every coordinate equals its axis' minimum or maximum, and all 8 combinations occur.
+    Corners off by a rounding error are not a box here; their hull is (`polytope_from_vertices`
+    falls back to it), so the test can only make a box cheaper, never different."""
+    if points.ndim != 2 or points.shape[1] != 3 or points.shape[0] < 8:
+        return None
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    if not np.all(hi > lo):
+        return None
+    at_hi = points == hi
+    if not np.all(at_hi | (points == lo)):
+        return None
+    seen = np.zeros(8, dtype=bool)
+    seen[at_hi @ _AXIS_BITS] = True
+    return (lo, hi) if bool(seen.all()) else None
+
+
+SMALL_HULL_POINTS = 12  # up to this many points, the hull by point triples (<= 220 candidate planes)
+_HULL_TOL = 1e-9  # on the normalised points (extent 1): a facet plane has every point this far inside
+
+
+def _small_hull(p: FloatArray) -> tuple[FloatArray, FloatArray, IntArray]:
+    """`_hull_planes` for a handful of points (extent ~1, distinct, with volume), without qhull:
+    the plane through every triple of points is a facet when all points lie on one side of it;
+    coplanar triples' planes are merged as there; a hull vertex is a point on >= 3 facets (one
+    on an edge or inside a face is on 2 or 1). The simple obstacle (a prism, a rotated box) skips
+    scipy's import and a qhull call for one vectorised pass."""
+    t = triples(p.shape[0])
+    n = np.cross(p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]])
+    norm = np.linalg.norm(n, axis=1)
+    ok = norm > 1e-9
+    n, t = n[ok] / norm[ok, None], t[ok]
+    d = np.einsum("td,td->t", n, p[t[:, 0]])
+    s = p @ n.T - d[None, :]  # (k, T) signed distances
+    below, above = np.all(s <= _HULL_TOL, axis=0), np.all(s >= -_HULL_TOL, axis=0)
+    sign = np.where(below, 1.0, -1.0)[below | above]
+    A, b = _dedup_planes(n[below | above] * sign[:, None], d[below | above] * sign, 1e-7)
+    on = np.abs(p @ A.T - b[None, :]) <= _HULL_TOL
+    return A, b, np.flatnonzero(on.sum(axis=1) >= 3).astype(np.intp)
+
+
 def polytope_from_vertices(vertices: ArrayLike) -> Polytope:
     """H-representation of the convex hull of `vertices` (k, 3).
 
-    Rows of A are unit normals, one per facet (no redundant rows). The hull is qhull's
-    (scipy.spatial.ConvexHull): O(k log k), a few ms for thousands of points.
+    Rows of A are unit normals, one per facet (no redundant rows). An axis-aligned box given
+    by its corners (`axis_box_of`, the common obstacle) gets its six planes directly, exact;
+    a handful of points (<= SMALL_HULL_POINTS) by point triples in one vectorised pass
+    (`_small_hull`); more points by qhull (scipy.spatial.ConvexHull): O(k log k), a few ms for
+    thousands of points (and scipy's ~0.3 s import once).
     Raises ValueError for fewer than 4 points, non-finite values, or points
     that are collinear or coplanar (the hull would have no volume).
     """
     pts = _as_points(vertices, "vertices")
     if pts.shape[0] < 4:
         raise ValueError(f"vertices: need at least 4 points for a solid hull, got {pts.shape[0]}")
+    box = axis_box_of(pts)
+    if box is not None:
+        lo, hi = box
+        poly = Polytope(A=_FRAME_A.copy(), b=np.concatenate([hi, -lo]))
+        corners = np.ascontiguousarray(_box_corners(lo[None], hi[None])[0])
+        corners.flags.writeable = False
+        _remember_vertices(poly, corners)
+        return poly
     origin = pts.mean(axis=0)
     scale = float(np.max(np.abs(pts - origin)))
     if scale <= 0.0:
@@ -307,7 +365,9 @@ def polytope_from_vertices(vertices: ArrayLike) -> Polytope:
         raise ValueError("vertices: all points are collinear (hull has no volume)")
     if sv.shape[0] < 3 or sv[2] <= 1e-9 * sv[0]:
         raise ValueError("vertices: all points are coplanar (hull has no volume)")
-    A, b, hull_vertices = _hull_planes(p)
+    A, b, hull_vertices = _small_hull(p) if p.shape[0] <= SMALL_HULL_POINTS else _hull_planes(p)
+    if A.shape[0] < 4 or hull_vertices.shape[0] < 4 or not _is_bounded(A):
+        A, b, hull_vertices = _hull_planes(p)  # a nearly flat handful: qhull's tolerances decide
     poly = Polytope(A=A, b=b * scale + A @ origin)
     # The hull's vertices are known: `polytope_vertices` need not enumerate plane triples.
     verts = np.ascontiguousarray(p[hull_vertices] * scale + origin, dtype=float)

@@ -351,3 +351,69 @@ def allocate_times(
         corridors=corridors,
     )
     return np.asarray(float(t0) + np.concatenate([[0.0], np.cumsum(d)]))
+
+
+def stop_to_stop_crossings(lengths: FloatArray, lim: FloatArray, fractions: FloatArray,
+                           samples: int = 96) -> FloatArray:
+    """(s, f) times at which the time-optimal stop-to-stop profile of each segment (length
+    `lengths` (s,), straight, under `lim` (s, 4): the directional v, a, j, s) passes the
+    fractions `fractions` (f,) of its length: the shape of its pieces' durations when the
+    fastest allocation splits it with knots (allocation.fastest_durations).
+
+    The profile is the jerk-limited S-curve (7 phases of constant jerk +-j_eff, 0) with snap
+    folded into the jerk as `effective_acceleration` does: j_eff = a / (time to raise the
+    acceleration to a under j and s), so a snap-limited ramp is as slow as the reference's.
+    The peak speed is v when the segment is long enough for it, else the one whose
+    accelerate-decelerate distance is the length (bisection: the distance grows with it).
+    Times come from the profile sampled `samples` times per phase and interpolated.
+    """
+    v, a, j, s = np.asarray(lim, dtype=float).T
+    ta_ramp = _ramp_time(a, j, s)
+    j = np.where(ta_ramp > 0.0, a / np.maximum(ta_ramp, _EPS), j)
+    j = np.minimum(j, _HUGE)
+    L = np.maximum(np.asarray(lengths, dtype=float), _EPS)
+
+    def phases(vp: FloatArray) -> tuple[FloatArray, FloatArray]:
+        ap = np.minimum(a, np.sqrt(vp * j))
+        tj = ap / j
+        return tj, np.maximum(vp / np.maximum(ap, _EPS) - tj, 0.0)
+
+    def distance(vp: FloatArray) -> FloatArray:
+        tj, ta = phases(vp)
+        return np.asarray(vp * (2.0 * tj + ta))
+
+    vp = np.minimum(v, _HUGE).copy()
+    short = distance(vp) > L
+    lo, hi = np.zeros_like(vp), vp.copy()
+    for _ in range(60):  # bisection on the peak speed of the segments too short to reach v
+        mid = 0.5 * (lo + hi)
+        over = distance(mid) > L
+        hi = np.where(over, mid, hi)
+        lo = np.where(over, lo, mid)
+    vp = np.where(short, lo, vp)
+    tj, ta = phases(vp)
+    cruise = np.maximum(L - distance(vp), 0.0) / np.maximum(vp, _EPS)
+    dur = np.stack([tj, ta, tj, cruise, tj, ta, tj], axis=1)  # (s, 7)
+    jerk = j[:, None] * np.array([1.0, 0.0, -1.0, 0.0, -1.0, 0.0, 1.0])[None, :]
+    u = np.linspace(0.0, 1.0, samples + 1)[1:]  # within a phase
+    n_seg = L.shape[0]
+    times = [np.zeros((n_seg, 1))]
+    pos = [np.zeros((n_seg, 1))]
+    p = np.zeros(n_seg)
+    vel = np.zeros(n_seg)
+    acc = np.zeros(n_seg)
+    t0 = np.zeros(n_seg)
+    for k in range(7):
+        h = dur[:, k : k + 1] * u[None, :]  # (s, samples)
+        jk = jerk[:, k : k + 1]
+        pos.append(p[:, None] + vel[:, None] * h + acc[:, None] * h**2 / 2.0 + jk * h**3 / 6.0)
+        times.append(t0[:, None] + h)
+        d = dur[:, k]
+        p, vel, acc = (p + vel * d + acc * d**2 / 2.0 + jerk[:, k] * d**3 / 6.0,
+                       vel + acc * d + jerk[:, k] * d**2 / 2.0, acc + jerk[:, k] * d)
+        t0 = t0 + d
+    T = np.concatenate(times, axis=1)
+    P = np.maximum.accumulate(np.concatenate(pos, axis=1) / L[:, None], axis=1)  # rounding: keep it monotone
+    P[:, -1] = 1.0
+    f = np.asarray(fractions, dtype=float)
+    return np.stack([np.interp(f, P[i], T[i]) for i in range(n_seg)]) if n_seg else np.zeros((0, f.size))

@@ -689,7 +689,11 @@ def _step(
                 lam[j] -= t * rr[j]
             lam_p += t
             if t2 <= t1:
-                # full step: p joins the active set
+                # full step: p joins the active set. At most nx independent rows fit (the
+                # workspace holds nx + 1): more means rows dependent up to rounding that the
+                # factor let through; writing past it corrupted memory (a 10-piece straight leg)
+                if k >= nx:
+                    return False  # let the general path decide
                 for j in range(k):
                     srow[j] = ps * _row_dot(wab, p, ja, jb, vmat[j])
                 srow[k] = nv_

@@ -80,7 +80,7 @@ def _err(msg: str) -> None:
 def _cmd_plan(args: argparse.Namespace, started: float) -> int:
     from dataclasses import replace
 
-    from planner_core.formats.io import ScenarioError, load_scenario, trajectory_to_dict
+    from planner_core.formats.io import ScenarioError, load_scenario, trajectory_json
     from planner_core.iterative import KERNEL_MIN_WAYPOINTS, compiled_pays_off, warm_up
     from planner_core.window import use_compiled_kernel
 
@@ -154,7 +154,9 @@ def _cmd_plan(args: argparse.Namespace, started: float) -> int:
     timing = {"plan_s": plan_s, "scenario_s": t_loaded - t_imported, "startup": startup}
     written = replace(result.trajectory, stats={**st, **timing})  # the file says how long it all took, too
     # the user's waypoints among the segment boundaries (knots absent): replan counts in them
-    args.output.write_text(json.dumps(trajectory_to_dict(written, scenario.frame, mission.waypoint_index), indent=1))
+    t_write = time.perf_counter()
+    args.output.write_text(trajectory_json(written, scenario.frame, mission.waypoint_index))
+    timing["write_s"] = time.perf_counter() - t_write
     if args.json:
         print(json.dumps({"waypoints": m, "method": args.method, "output": str(args.output),
                           "integrated_snap": st.get("integrated_snap"), "planner_time_s": st.get("time_total"),
@@ -174,7 +176,7 @@ def _cmd_plan(args: argparse.Namespace, started: float) -> int:
     )
     print(f"start-up {1e3 * startup['total_s']:.0f} ms (imports {1e3 * startup['imports_s']:.0f} ms, "
           f"compiled pass {1e3 * startup['kernel_load_s']:.0f} ms); scenario and corridors "
-          f"{1e3 * timing['scenario_s']:.0f} ms")
+          f"{1e3 * timing['scenario_s']:.0f} ms; writing {1e3 * timing['write_s']:.0f} ms")
     if args.plot:
         try:
             from planner_core.formats.plot import plot_all

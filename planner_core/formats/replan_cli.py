@@ -82,7 +82,7 @@ def replan_command(args: argparse.Namespace) -> int:
         ScenarioError,
         load_scenario,
         trajectory_from_dict,
-        trajectory_to_dict,
+        trajectory_json,
         waypoint_index_from_dict,
     )
     from planner_core.indices import WaypointMap, to_planned
@@ -152,7 +152,7 @@ def replan_command(args: argparse.Namespace) -> int:
     message = new_map.relabel_text(result.message)
     stats = {**_user_stats(result.stats, list(result.resolved_jets), new_map, wmap), "message": message}
     out = Trajectory(result.trajectory.times, result.trajectory.control_points, result.trajectory.corridors, stats)
-    args.output.write_text(json.dumps(trajectory_to_dict(out, scenario.frame, new_map.index), indent=1))
+    args.output.write_text(trajectory_json(out, scenario.frame, new_map.index))
     knots = new_map.planned - new_map.n
     print(
         f"replanned: {message}; {new_map.n} waypoints" + (f" ({knots} knot(s) between them)" if knots else "")

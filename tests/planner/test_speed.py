@@ -177,7 +177,7 @@ def test_knots_lie_on_the_segment_inside_its_corridor() -> None:
         assert poly is not None and poly.contains(knotted.waypoints[j : j + 2]).all()
     long = Problem.from_waypoints([[0.0, 0.0, 0.0], [50.0, 0.0, 0.0]], [100.0], DEFAULTS)
     assert knot_pieces(long).tolist() == [12]
-    assert knot_pieces(_leg(1.0, 5.0)).tolist() == [2]  # rest-to-rest: 0.3 v^2 / a is enough
+    assert knot_pieces(_leg(1.0, 5.0)).tolist() == [2]  # rest-to-rest: 0.18 v^2 / a is enough
     assert knot_pieces(_leg(0.5, 5.0)).tolist() == [1]
     assert knot_pieces(_mission()).tolist() == [1, 1, 1]  # short legs between turns: none
 
