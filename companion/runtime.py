@@ -77,6 +77,13 @@ def trim_heap() -> None:
         ctypes.CDLL(None).malloc_trim(0)
 
 
+def return_heap() -> None:
+    """glibc's free heap pages back to the system, without a collection (the service's
+    collections are paced by the setpoints: GcPacer). ctypes releases the GIL for the call."""
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL(None).malloc_trim(0)
+
+
 def run_and_trim(fn: Callable[..., Any], *args: Any) -> Any:
     """fn(*args) in a planner process, then `trim_heap`."""
     try:

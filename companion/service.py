@@ -35,7 +35,7 @@ from companion.flight import Flight
 from companion.mission import warm_up, warm_up_replan
 from companion.navigator import Navigator
 from companion.report import Reporter
-from companion.runtime import GcPacer, Runtime, log_off_loop, restore_logging
+from companion.runtime import GcPacer, Runtime, log_off_loop, restore_logging, return_heap
 from companion.sdnotify import Notifier
 from companion.sendproc import SetpointProcess
 from companion.setpoints import (
@@ -125,6 +125,7 @@ class Service:
         self.setpoints_stalled = False
         self._ticked = asyncio.Event()
         self._log_listener: Any = None
+        self._heap_return: asyncio.TimerHandle | None = None
 
     def _position(self) -> FloatArray:
         return self.link.state.position
@@ -132,6 +133,23 @@ class Service:
     def _publish(self, key: str, body: dict[str, Any]) -> None:
         if self.zio is not None:
             self.zio.publish(key, body)
+        if key == "events" and (body.get("type") == "mission_complete" or (
+                body.get("type") in ("accepted", "rejected") and body.get("key") in ("mission", "change"))):
+            self._return_heap_soon()
+
+    def _return_heap_soon(self) -> None:
+        """After a mission or change was taken, refused or finished, what planning it allocated
+        is garbage; glibc keeps the freed pages for reuse (the main process grew 121 -> 222 MB
+        over a campaign of big missions, issue 21), so hand them back, once things settle."""
+        loop = self.loop
+        if loop is None or self._heap_return is not None:
+            return
+
+        def run() -> None:
+            self._heap_return = None
+            loop.run_in_executor(self.runtime.io_pool, return_heap)
+
+        self._heap_return = loop.call_later(2.0, run)
 
     def _latency_event(self, what: str, seconds: float, immediate: bool, sent_mono: float) -> None:
         # sent_mono: CLOCK_MONOTONIC at the send (shared by every process on this machine), so a
