@@ -34,6 +34,7 @@ from companion.control import Control
 from companion.flight import Flight
 from companion.mission import warm_up, warm_up_replan
 from companion.navigator import Navigator
+from companion.recorder import tap_for
 from companion.report import Reporter
 from companion.runtime import GcPacer, Runtime, log_off_loop, restore_logging
 from companion.sdnotify import Notifier
@@ -85,6 +86,7 @@ class Service:
         self.runtime = Runtime(cfg, on_planner_died=lambda: self.report.event(
             "error", "the planner process died; restarted it (this request failed)"))
         self.link = MavlinkLink(cfg)
+        self.tap = self.runtime.tap = self.link.tap = tap_for(cfg)  # recorder and live view (issue 23)
         self.yaw = YawPolicy(cfg.setpoints.yaw_mode, cfg.setpoints.yaw, cfg.setpoints.yaw_min_speed)
         self.sender = SetpointSender(cfg.setpoints.rate_hz, self.link.send_setpoint, self.yaw,
                                      self._tick_from_thread, self._sender_failed,
@@ -141,6 +143,7 @@ class Service:
             return
         self._traj_seq += 1
         seq = self._traj_seq
+        self.tap.flown(traj, self.control.t_base, time.monotonic())
         fut = self.loop.run_in_executor(self.runtime.io_pool, enc.encode_trajectory, traj)
 
         def done(f: asyncio.Future[bytes]) -> None:
@@ -268,6 +271,7 @@ class Service:
             "setpoint_period_ms": ctl.period_stats(),
             "gc_pause_max_ms": round(self.gc.worst * 1000, 2),
             "setpoints_stalled": self.setpoints_stalled,
+            **self.tap.status_fields(),
         }
 
     # -- inbound messages: one reader per kind ------------------------------------------------------
@@ -282,6 +286,7 @@ class Service:
         self.zio.on_dropped = self._dropped
         while not self.stop.is_set():
             kind, payload, arrived = await self.zio.inbox.get()
+            self.tap.inbound(kind, payload, arrived)
             try:
                 if kind == "obstacles" and len(payload) <= INLINE_DECODE_BYTES:
                     self._dispatch(kind, payload, arrived, read(kind, payload, self.cfg, self.link.state.home))
@@ -473,6 +478,8 @@ class Service:
         # switch interval bounds how long the setpoint thread can wait for it.
         sys.setswitchinterval(0.0005)
         self.zio = ZenohIO(self.cfg, self.loop)
+        self.zio.tap = self.tap
+        self.tap.open()
         self.zio.open({"plan": self.query_plan, "status": self.query_status})
         self.link.open(self.loop)
         await self._warm_up()
@@ -519,6 +526,7 @@ class Service:
                 self.report.event("stopped", "companion stopping", handed_over=handed_over)
             self.link.close()
             self.zio.close()
+            self.tap.close()
             self.runtime.shutdown()
             self.gc.stop()
             restore_logging(self._log_listener)

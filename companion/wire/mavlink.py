@@ -27,6 +27,7 @@ from pymavlink import mavutil
 
 from companion.config import Config
 from companion.setpoints import Setpoint
+from companion.tap import NO_TAP, Tap
 from companion.wire import dialect
 from companion.wire.signing import read_signing_key
 
@@ -205,6 +206,7 @@ class MavlinkLink:
         self._boot = time.monotonic()
         self._send_lock = threading.Lock()
         self.sent_setpoints = 0
+        self.tap: Tap = NO_TAP  # the flight recorder (companion/tap.py)
 
     # -- lifecycle -----------------------------------------------------------
 
@@ -219,6 +221,7 @@ class MavlinkLink:
             autoreconnect=True,
         )
         self.conn.mav.robust_parsing = True
+        self.conn.mav.set_send_callback(self.tap.mavlink_sent)  # after each write: O(1), never waits
         if self.cfg.mavlink.signing_key_file:
             # Sign everything we send; what the autopilot sends may be unsigned.
             self.conn.setup_signing(read_signing_key(self.cfg.mavlink.signing_key_file), sign_outgoing=True,
@@ -252,6 +255,7 @@ class MavlinkLink:
         if kind == "BAD_DATA" or msg.get_srcSystem() != self.cfg.vehicle.sysid:
             return
         now = time.monotonic()
+        self.tap.mavlink_received(msg, now)
         st = self.state
         if kind != "HEARTBEAT":
             st.received[kind] = now
