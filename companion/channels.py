@@ -79,9 +79,11 @@ STATS = _obj("bezier.RecorderStats", "The recorder's own counts", {
     "dropped_total": {"type": "integer"}, "queued": {"type": "integer"},
 }, ("written", "dropped_total"))
 
-BOUNDS = _obj("bezier.Bounds", "The bounds a plan used, per derivative order (SI units)", {
-    "t": T_MONO, "velocity": NUM, "acceleration": NUM, "jerk": NUM, "snap": NUM,
-    "function": {"type": "string"},
+NUM_OR_NULL = {"type": ["number", "null"], "description": "null: unbounded"}
+BOUNDS = _obj("bezier.Bounds", "The bounds a plan used, per derivative order (SI units): the tightest over "
+              "the axes, and the per-axis box (local_ned; rows velocity..snap, columns x, y, z)", {
+    "t": T_MONO, "velocity": NUM_OR_NULL, "acceleration": NUM_OR_NULL, "jerk": NUM_OR_NULL, "snap": NUM_OR_NULL,
+    "lo": {"type": "array"}, "hi": {"type": "array"},
 }, ("velocity", "acceleration", "jerk", "snap"))
 
 OUT_DESCRIPTIONS = {
@@ -175,6 +177,17 @@ def mavlink_record(msg: Any, t: float) -> bytes:
     return dumps(d)
 
 
+ORDERS = ("velocity", "acceleration", "jerk", "snap")
+
+
+def bounds_fields(bounds: Any) -> dict[str, Any]:
+    """Per order, the tightest magnitude over the axes (a number to plot over time), and the
+    per-axis box (NED, lo and hi; null: unbounded)."""
+    lo, hi = np.asarray(bounds.lo, dtype=float), np.asarray(bounds.hi, dtype=float)
+    tight = np.minimum(hi, -lo).min(axis=1)
+    return {**{n: float(tight[i]) for i, n in enumerate(ORDERS)}, "lo": lo.tolist(), "hi": hi.tolist()}
+
+
 # -- Foxglove 3D --------------------------------------------------------------------------------
 
 
@@ -266,11 +279,10 @@ class Viz:
             out.append(("/viz/obstacles", self._scene(self._ts(t), "obstacle", list(known.polytopes)[:256],
                                                   (1.0, 0.3, 0.2, 0.5))))
         route = getattr(result, "route", None)
-        mission = getattr(route, "mission", None)
-        bounds = getattr(mission, "bounds", None)
+        # the bounds the planner was given (the mission's, less [planner] reserve when it applies)
+        bounds = getattr(getattr(route, "problem", None), "bounds", None)
         if bounds is not None:
-            with_names = {n: getattr(bounds, n, None) for n in ("velocity", "acceleration", "jerk", "snap")}
-            out.append(("/viz/bounds", dumps({"t": t, **with_names})))
+            out.append(("/viz/bounds", dumps({"t": t, **bounds_fields(bounds)})))
         return out
 
     @staticmethod

@@ -364,6 +364,13 @@ def config_from_dict(table: dict[str, Any]) -> Config:
     for i in range(3):
         if lo[i] >= hi[i]:
             raise ConfigError(f"geofence.min[{i}]", f"must be below geofence.max[{i}]")
+    if cfg.live.foxglove:
+        from companion.live import parse_address
+
+        try:
+            parse_address(cfg.live.foxglove)
+        except ValueError as exc:
+            raise ConfigError("live.foxglove", str(exc).split(": ", 1)[-1]) from None
     return cfg
 
 

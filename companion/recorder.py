@@ -81,7 +81,8 @@ class McapSink:
         path = self.directory / name
         self._fh = open(path, "wb")  # noqa: SIM115 - closed in _finish
         # zstd chunks: JSON telemetry compresses ~10x
-        self._writer = Writer(self._fh, compression=CompressionType.ZSTD)
+        self._writer = Writer(self._fh, compression=CompressionType.ZSTD,
+                              chunk_size=max(4096, min(1 << 20, self.max_bytes // 8)))
         self._writer.start(profile="", library=f"bezier-companion recorder {FORMAT_VERSION}")
         self._writer.add_metadata("companion", {**self.metadata, "part": str(self.part)})
         self._schemas.clear()
