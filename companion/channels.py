@@ -27,9 +27,9 @@ from companion.wire.frames import swap_points
 
 FRAMES_NOTE = ("JSON records: local_ned (the autopilot's local NED frame); 3D channels: local_enu (same "
                "origin, ENU axes); vehicle: body FLU placed by /viz/tf")
-FLOWN_KEEP = 3000  # points of the flown path kept (at FLOWN_EVERY s apart: 10 min)
-FLOWN_EVERY = 0.2  # s
-FLOWN_PUBLISH = 0.5  # s between /viz/flown_path messages
+FLOWN_KEEP = 1500  # points of the flown path kept (at FLOWN_EVERY s apart: 10 min)
+FLOWN_EVERY = 0.4  # s
+FLOWN_PUBLISH = 1.0  # s between /viz/flown_path messages
 PLANNED_POINTS = 400  # poses sampled along the planned path
 
 
@@ -152,7 +152,10 @@ def _finite(x: Any) -> Any:
 
 def dumps(obj: Any) -> bytes:
     """JSON; NaN and infinities (MAVLink's "unset" NaN parameters) become null."""
-    return json.dumps(_finite(obj), separators=(",", ":"), default=str).encode()
+    try:  # the common case, without a walk over every value
+        return json.dumps(obj, separators=(",", ":"), allow_nan=False).encode()
+    except (ValueError, TypeError):
+        return json.dumps(_finite(obj), separators=(",", ":"), default=str).encode()
 
 
 def inbound_record(key: str, payload: Any, t: float) -> bytes:

@@ -333,7 +333,7 @@ def plan_record(seq: int, fn: Any, args: tuple[Any, ...], result: Any, submitted
     from companion import replay
 
     name = replay.function_name(fn)
-    compiled = cfg.planner.compiled if where == "process" else False
+    compiled = replay.compiled_used(result, cfg.planner.compiled if where == "process" else False)
     body: dict[str, Any] = {
         "seq": seq,
         "function": name,

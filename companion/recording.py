@@ -107,6 +107,34 @@ def render(s: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def extract(path: str, out: str, channels: list[str]) -> int:
+    """Copy the named channels (and the file's metadata) to a new file: e.g. only the planner
+    calls of a field flight, a small regression test for `replay`. Returns messages copied."""
+    from mcap.reader import make_reader
+    from mcap.writer import CompressionType, Writer
+
+    n = 0
+    with open(path, "rb") as fh, open(out, "wb") as dst:
+        reader = make_reader(fh)
+        writer = Writer(dst, compression=CompressionType.ZSTD)
+        writer.start(profile="", library="bezier-companion recording extract")
+        for m in reader.iter_metadata():
+            writer.add_metadata(m.name, dict(m.metadata))
+        schemas: dict[int, int] = {}
+        chans: dict[int, int] = {}
+        for schema, channel, message in reader.iter_messages(topics=channels):
+            if channel.id not in chans:
+                if schema is not None and schema.id not in schemas:
+                    schemas[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
+                chans[channel.id] = writer.register_channel(channel.topic, channel.message_encoding,
+                                                            schemas[schema.id] if schema is not None else 0)
+            writer.add_message(chans[channel.id], log_time=message.log_time, data=message.data,
+                               publish_time=message.publish_time)
+            n += 1
+        writer.finish()
+    return n
+
+
 def main(argv: list[str]) -> int:
     import argparse
 
@@ -115,7 +143,19 @@ def main(argv: list[str]) -> int:
     s = sub.add_parser("summary", help="what a recorded flight holds")
     s.add_argument("file")
     s.add_argument("--json", action="store_true", help="print the summary as JSON")
+    x = sub.add_parser("extract", help="copy some channels to a new file (e.g. --channel /planner/plan)")
+    x.add_argument("file")
+    x.add_argument("out")
+    x.add_argument("--channel", action="append", required=True, metavar="TOPIC")
     args = p.parse_args(argv)
+    if args.what == "extract":
+        try:
+            n = extract(args.file, args.out, args.channel)
+        except (OSError, ValueError) as exc:
+            print(f"recording: {exc}", file=sys.stderr)
+            return 2
+        print(f"{n} messages copied to {args.out}")
+        return 0 if n else 1
     try:
         summary = summarize(args.file)
     except (OSError, ValueError) as exc:

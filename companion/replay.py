@@ -96,6 +96,20 @@ def first_difference(recorded: Any, replayed: Any) -> str:
     return "no difference found leaf by leaf"
 
 
+def _trajectory(result: Any) -> Any:
+    route = getattr(result, "route", None)
+    return getattr(route, "trajectory", None) if route is not None else getattr(result, "trajectory", None)
+
+
+def compiled_used(result: Any, default: bool) -> bool:
+    """Whether the plan ran the compiled pass (its stats say; the two paths agree to rounding,
+    not bit for bit), else `default` (where the call ran: [planner] compiled in a planner
+    process; the service process never loads it)."""
+    stats = getattr(_trajectory(result), "stats", None) or {}
+    steps = stats.get("n_compiled_steps")
+    return bool(steps) if isinstance(steps, int) else default
+
+
 def summary_of(result: Any) -> dict[str, Any]:
     """Readable fields of a planner result for the record (the trajectory as published)."""
     from companion.wire import encode as enc
@@ -108,8 +122,7 @@ def summary_of(result: Any) -> dict[str, Any]:
     out["message"] = getattr(result, "message", None)
     stats = getattr(result, "stats", None)
     out["stats"] = stats if isinstance(stats, dict) else {}
-    route = getattr(result, "route", None)
-    traj = getattr(route, "trajectory", None) if route is not None else getattr(result, "trajectory", None)
+    traj = _trajectory(result)
     if traj is not None:
         import json
 
