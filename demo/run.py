@@ -605,6 +605,12 @@ def main(argv: list[str] | None = None, prog: str = "python -m demo") -> int:
                   f"  python -m companion replay {flight}\n"
                   "  Foxglove (app.foxglove.dev or the desktop app): Open local file, then a 3D panel "
                   "(display frame local_enu) and a Plot panel (docs/recording.md)")
+            if not args.no_plots:
+                from demo.recording_plots import plot
+
+                png = plot(flight, out / "flight_recording.png")
+                if png is not None:
+                    pngs.append(png)
     print()
     print(rep.format_table(results))
     if pngs:
