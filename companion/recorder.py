@@ -161,6 +161,7 @@ class Recorder(Tap):
         self._wake = threading.Event()
         self._thread: threading.Thread | None = None
         self._last_stats = 0.0
+        self.error: str | None = None  # why a sink was given up, for status
 
     # -- opening --------------------------------------------------------------------------
 
@@ -176,18 +177,30 @@ class Recorder(Tap):
 
         from companion import obstacles, replay  # noqa: F401
 
+        # Neither a recording that cannot be written nor a live port in use stops the service: it
+        # says so (log, status `recording.error`) and flies without.
         if rc.path:
             stamp = datetime.datetime.now(datetime.UTC).strftime("%Y%m%dT%H%M%SZ")
             stem = f"{self.cfg.vehicle.id}-{stamp}-{os.getpid()}"
-            self.mcap = McapSink(Path(rc.path), stem, rc.max_bytes, rc.keep_bytes, self.metadata())
-            self.sinks.append(self.mcap)
-            log.info("recording to %s", self.mcap.path)
+            try:
+                self.mcap = McapSink(Path(rc.path), stem, rc.max_bytes, rc.keep_bytes, self.metadata())
+                self.sinks.append(self.mcap)
+                log.info("recording to %s", self.mcap.path)
+            except Exception as exc:
+                self._failed(f"[recording] path {rc.path!r}: {exc}")
         if self.cfg.live.foxglove:
             from companion.live import LiveSink
 
-            self.sinks.append(LiveSink.start(self.cfg.live.foxglove, self.cfg.vehicle.id))
+            try:
+                self.sinks.append(LiveSink.start(self.cfg.live.foxglove, self.cfg.vehicle.id))
+            except Exception as exc:
+                self._failed(f"[live] foxglove {self.cfg.live.foxglove!r}: {exc}")
         self._thread = threading.Thread(target=self._main, name="recorder", daemon=True)
         self._thread.start()
+
+    def _failed(self, why: str) -> None:
+        self.error = why
+        log.error("flight recorder: %s; going on without it", why)
 
     def metadata(self) -> dict[str, str]:
         return {
@@ -235,6 +248,7 @@ class Recorder(Tap):
             "file": str(self.mcap.path) if self.mcap is not None else None,
             "written": self.written,
             "dropped": sum(self.dropped.values()),
+            "error": self.error,
         }}
 
     def stats(self) -> dict[str, Any]:
@@ -246,9 +260,15 @@ class Recorder(Tap):
     # -- the writer thread -----------------------------------------------------------------
 
     def close(self) -> None:
+        """Write out what is queued (bounded: systemd's stop timeout follows the hand-over) and
+        close the sinks; a writer still busy then leaves its file without a summary."""
         self._stop.set()
         if self._thread is not None:
-            self._thread.join(10.0)
+            self._thread.join(3.0)
+            if self._thread.is_alive():
+                log.error("flight recorder: still writing after 3 s at stop; the file is left without "
+                          "its summary (docs/recording.md: reading a file cut short)")
+                return
         stats = self.stats()
         for sink in self.sinks:
             try:
@@ -291,8 +311,9 @@ class Recorder(Tap):
         for sink in self.sinks:
             try:
                 sink.write(topic, data, log_time)
-            except Exception:
-                log.exception("recording: writing %s failed", topic)
+            except Exception as exc:  # a full disk, a server gone: give that sink up, once
+                self.sinks = [s for s in self.sinks if s is not sink]
+                self._failed(f"writing {topic} to {type(sink).__name__} failed ({exc!r})")
         self.written += 1
 
     def _convert(self, item: tuple[Any, ...]) -> None:

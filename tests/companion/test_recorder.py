@@ -189,3 +189,61 @@ def test_off_by_default_and_the_service_pays_one_call() -> None:
     tap = tap_for(config())
     assert type(tap) is Tap and tap.status_fields() == {}
     assert isinstance(tap_for(config("/tmp/x")), Recorder)
+
+
+def test_a_recording_that_cannot_be_written_is_said_and_the_service_goes_on(tmp_path: Path) -> None:
+    blocker = tmp_path / "a-file"
+    blocker.write_text("not a directory")
+    rec = Recorder(config(blocker / "recordings"))
+    rec.open()  # does not raise
+    rec.outbound("status", b"{}", time.monotonic())
+    rec.close()
+    fields = rec.status_fields()["recording"]
+    assert fields["file"] is None and "[recording] path" in fields["error"]
+
+
+def test_a_sink_that_fails_mid_flight_is_given_up_once(tmp_path: Path) -> None:
+    class Full:
+        writes = 0
+
+        def write(self, topic: str, data: bytes, log_time: int) -> None:
+            Full.writes += 1
+            raise OSError(28, "No space left on device")
+
+        def close(self, stats: dict[str, Any]) -> None:
+            pass
+
+    rec = Recorder(config(tmp_path), sinks=[Full()])
+    rec.open()
+    for k in range(100):
+        rec.outbound("status", b"{}", float(k))
+    rec.close()
+    assert Full.writes == 1 and "No space left" in str(rec.status_fields()["recording"]["error"])
+    _meta, messages = read_all(only_file(tmp_path))  # the file sink went on
+    assert sum(1 for _s, c, _m in messages if c.topic == "/out/status") == 100
+
+
+def test_the_systemd_units_recording_directory_is_the_default_unless_the_file_says(tmp_path: Path,
+                                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+    from companion.__main__ import RECORDING_ENV, recording_default
+    from companion.config import load_config
+
+    monkeypatch.setenv(RECORDING_ENV, "/var/lib/bezier-companion/uav1")
+    plain, off, own = tmp_path / "plain.toml", tmp_path / "off.toml", tmp_path / "own.toml"
+    plain.write_text("[vehicle]\nid = 'uav1'\n")
+    off.write_text("[recording]\npath = ''\n")
+    own.write_text("[recording]\npath = '/data/rec'\n")
+    assert recording_default(load_config(plain), str(plain)).recording.path == "/var/lib/bezier-companion/uav1"
+    assert recording_default(load_config(off), str(off)).recording.path == ""
+    assert recording_default(load_config(own), str(own)).recording.path == "/data/rec"
+    monkeypatch.delenv(RECORDING_ENV)
+    assert recording_default(load_config(plain), str(plain)).recording.path == ""
+
+
+def test_the_systemd_unit_records_into_its_state_directory() -> None:
+    from companion.__main__ import RECORDING_ENV
+
+    unit = (Path(__file__).resolve().parents[2] / "systemd" / "bezier-companion@.service").read_text()
+    lines = [ln.strip() for ln in unit.splitlines()]
+    assert "StateDirectory=bezier-companion/%i" in lines
+    assert f"Environment={RECORDING_ENV}=%S/bezier-companion/%i" in lines  # %S/<StateDirectory>
