@@ -118,10 +118,10 @@ def flight(tmp_path_factory: pytest.TempPathFactory) -> Any:
                    "waypoints": [[2.0, 0.0, -1.2], [2.0, 2.0, -1.2], [0.0, 2.0, -1.5], [-1.0, 0.0, -1.2]]}
         since = rig.mark()
         rig.put("mission", mission)
-        rig.wait_event(lambda e: e["type"] == "accepted" and e.get("mission") == "recorded", 10, "mission accepted", since)
+        rig.wait_event(lambda e: e["type"] == "accepted" and e.get("mission") == "recorded", 30, "mission accepted", since)
         time.sleep(0.8)
         rig.put("change", {"move_waypoint": {"index": 3, "position": [-1.0, 0.4, -1.2]}})
-        rig.wait_event(lambda e: e["type"] == "mission_complete" and e.get("mission") == "recorded", 40,
+        rig.wait_event(lambda e: e["type"] == "mission_complete" and e.get("mission") == "recorded", 60,
                        "mission complete", since)
         time.sleep(0.5)
         live.done.set()
@@ -204,7 +204,7 @@ def test_the_live_view_served_the_flight_as_it_flew(flight: Any) -> None:
     assert len(live.received[SETPOINT]) > 100  # seconds of the 50 Hz stream
     assert all(json.loads(b)["mavpackettype"] == "SET_POSITION_TARGET_LOCAL_NED" for b in live.received[SETPOINT])
     assert len(live.received["/viz/vehicle"]) > 50
-    assert {json.loads(b)["state"] for b in live.received["/out/status"]} >= {"MISSION"}
+    assert "STREAMING" in {json.loads(b)["state"] for b in live.received["/out/status"]}
 
 
 def test_nothing_left_listening(flight: Any) -> None:
