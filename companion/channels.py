@@ -93,6 +93,38 @@ OUT_DESCRIPTIONS = {
     "events": "Events as published",
 }
 
+
+def _maybe(kind: str) -> dict[str, Any]:
+    return {"type": [kind, "null"]}
+
+
+VEC = {"type": ["array", "null"], "items": NUM}
+# the fields a viewer plots or filters on (a viewer completes message paths from these);
+# the README's "The Zenoh interface" has them all
+OUT_PROPERTIES: dict[str, dict[str, Any]] = {
+    "status": {
+        "vehicle": {"type": "string"}, "time": NUM, "state": {"type": "string"}, "airborne": {"type": "boolean"},
+        "mode": _maybe("string"), "armed": {"type": "boolean"}, "link": {"type": "boolean"},
+        "streaming": {"type": "boolean"}, "mission": _maybe("string"), "progress": _maybe("number"),
+        "time_to_go": _maybe("number"), "tracking_error": _maybe("number"),
+        "tracking_error_max": _maybe("number"), "lag_estimate_ms": _maybe("number"),
+        "message_to_setpoint_ms": _maybe("number"), "plan_latency_ms": _maybe("number"),
+        "replan_latency_ms": _maybe("number"), "setpoints_sent": {"type": "integer"},
+        "setpoint_gap_max_ms": NUM, "gc_pause_max_ms": NUM, "setpoints_stalled": {"type": "boolean"},
+        "recording": {"type": "object", "properties": {
+            "file": _maybe("string"), "written": {"type": "integer"}, "dropped": {"type": "integer"},
+            "error": _maybe("string")}},
+    },
+    "telemetry": {
+        "time": NUM, "frame": {"type": "string"}, "position": VEC, "velocity": VEC,
+        "attitude": {"type": "object", "properties": {"roll": _maybe("number"), "pitch": _maybe("number"),
+                                                      "yaw": _maybe("number")}},
+        "armed": {"type": "boolean"}, "mode": _maybe("string"),
+    },
+    "events": {"type": {"type": "string"}, "time": NUM, "state": {"type": "string"}, "message": {"type": "string"}},
+    "trajectory": {"frame": {"type": "string"}, "segments": {"type": "array"}},
+}
+
 FOXGLOVE = {
     "/viz/vehicle": "PoseInFrame",
     "/viz/tf": "FrameTransform",
@@ -119,7 +151,7 @@ def spec(topic: str) -> Spec:
         return _json(INBOUND)
     if topic.startswith("/out/"):
         key = topic.removeprefix("/out/")
-        return _json(_obj(f"bezier.{key}", OUT_DESCRIPTIONS.get(key, "as published")))
+        return _json(_obj(f"bezier.{key}", OUT_DESCRIPTIONS.get(key, "as published"), OUT_PROPERTIES.get(key)))
     if topic.startswith("/mavlink/"):
         return _json(MAVLINK)
     if topic == "/planner/plan":

@@ -18,6 +18,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import jsonschema
 import pytest
 import websockets
 from e2e_rig import REPO, Rig, box, free_port
@@ -155,6 +156,10 @@ def test_the_recording_opens_with_the_mcap_reader_with_every_channel_and_its_sch
         schema, channel = channels[topic]
         assert (schema.name, schema.encoding, channel.message_encoding) == (name, "protobuf", "protobuf"), topic
     assert meta["companion"]["vehicle"] == "e2e" and json.loads(meta["recorder"]["dropped_total"]) == 0
+    # every message of the flight validates against its channel's schema
+    for schema, channel, message in msgs:
+        if channel.message_encoding == "json":
+            jsonschema.validate(json.loads(message.data), json.loads(schema.data))
 
 
 def test_the_file_holds_every_setpoint_sent_at_50_hz(flight: Any) -> None:
