@@ -210,6 +210,7 @@ class Recorder(Tap):
             "config": config_to_toml(self.cfg),
             "started": datetime.datetime.now(datetime.UTC).isoformat(),
             "frames": ch.FRAMES_NOTE,
+            "environment": json.dumps(environment()),
         }
 
     # -- the tap: O(1), never waits --------------------------------------------------------
@@ -342,6 +343,19 @@ class Recorder(Tap):
             _, traj, t_base, t = item
             for topic, data in self._viz.on_flown(traj, t_base, t):
                 self._emit(topic, data, t)
+
+
+def environment() -> dict[str, str]:
+    """What a bit-identical replay depends on besides the recorded inputs: the interpreter, the
+    numerical libraries and the machine (their kernels may round differently elsewhere)."""
+    import platform
+    from importlib import metadata
+
+    env = {"python": platform.python_version(), "machine": platform.machine(), "system": platform.system()}
+    for dist in ("numpy", "scipy", "daqp", "osqp", "numba"):
+        with contextlib.suppress(metadata.PackageNotFoundError):
+            env[dist] = metadata.version(dist)
+    return env
 
 
 # -- planner records ----------------------------------------------------------------------------

@@ -183,6 +183,19 @@ class Replayed:
     difference: str = ""
 
 
+def recorded_environment(path: str) -> dict[str, str]:
+    import json
+
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as fh:
+        for m in make_reader(fh).iter_metadata():
+            if m.name == "companion" and "environment" in m.metadata:
+                env: dict[str, str] = json.loads(m.metadata["environment"])
+                return env
+    return {}
+
+
 def plan_records(path: str, since: float | None = None, until: float | None = None) -> Iterator[dict[str, Any]]:
     """The /planner/plan records of a file; `since`/`until`: seconds from the recording's start."""
     import json
@@ -239,6 +252,13 @@ def main(argv: list[str]) -> int:
     args = p.parse_args(argv)
     n = bad = 0
     try:
+        from companion.recorder import environment
+
+        here, there = environment(), recorded_environment(args.file)
+        differ = {k: (there.get(k), v) for k, v in here.items() if k in there and there[k] != v}
+        if differ:
+            print("note: recorded on another environment (" + ", ".join(f"{k} {a} here {b}" for k, (a, b)
+                  in differ.items()) + "): its numerical kernels may round differently", flush=True)
         for rec in plan_records(args.file, args.since, args.until):
             r = replay_one(rec)
             n += 1
