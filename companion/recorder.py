@@ -158,7 +158,6 @@ class Recorder(Tap):
         self._viz.offset = self.offset
         self._plan_seq = itertools.count(1)
         self._stop = threading.Event()
-        self._wake = threading.Event()
         self._thread: threading.Thread | None = None
         self._last_stats = 0.0
         self.error: str | None = None  # why a sink was given up, for status
@@ -245,10 +244,12 @@ class Recorder(Tap):
         self._put(self._rest, ("flown", trajectory, t_base, t))
 
     def status_fields(self) -> dict[str, Any]:
+        with self._drop_lock:  # the dict grows from other threads
+            dropped = sum(self.dropped.values())
         return {"recording": {
             "file": str(self.mcap.path) if self.mcap is not None else None,
             "written": self.written,
-            "dropped": sum(self.dropped.values()),
+            "dropped": dropped,
             "error": self.error,
         }}
 
