@@ -365,7 +365,10 @@ def environment() -> dict[str, str]:
 def plan_record(seq: int, fn: Any, args: tuple[Any, ...], result: Any, submitted: float, done: float,
                 where: str, cfg: Config) -> bytes:
     """One planner call: readable fields, and the call and its result pickled (base64) so that
-    `python -m companion replay` can run it again and compare bit for bit."""
+    `python -m companion replay` can run it again and compare bit for bit. Built so that no
+    single C call holds the interpreter lock for long (the setpoint thread needs it every tick):
+    pickles are written in 64 kB frames through Python, the base64 text is spliced in, not
+    passed through the JSON encoder."""
     from companion import replay
 
     name = replay.function_name(fn)
@@ -380,15 +383,32 @@ def plan_record(seq: int, fn: Any, args: tuple[Any, ...], result: Any, submitted
         "latency_ms": round((done - submitted) * 1000, 3),
         **replay.summary_of(result),
         "fingerprint": replay.fingerprint(result),
-        "call": _pickled((fn, args)),
-        "result": None if isinstance(result, BaseException) else _pickled(result),
     }
-    return ch.dumps(body)
+    call = _pickled((fn, args))
+    res = None if isinstance(result, BaseException) else _pickled(result)
+    return b"".join([ch.dumps(body)[:-1],
+                     b',"call":', b"null" if call is None else b'"' + call + b'"',
+                     b',"result":', b"null" if res is None else b'"' + res + b'"', b"}"])
 
 
-def _pickled(obj: Any) -> str | None:
+class _Frames:
+    """A file for pickle.Pickler: a Python-level write per 64 kB frame is where other threads
+    get the interpreter lock back while a large result is pickled."""
+
+    def __init__(self) -> None:
+        self.parts: list[bytes] = []
+
+    def write(self, data: Any) -> int:  # bytes, or a PickleBuffer (a large array's data)
+        part = bytes(data)
+        self.parts.append(part)
+        return len(part)
+
+
+def _pickled(obj: Any) -> bytes | None:
     try:
-        return base64.b64encode(pickle.dumps(obj, protocol=5)).decode()
+        out = _Frames()
+        pickle.Pickler(out, protocol=5).dump(obj)
+        return base64.b64encode(b"".join(out.parts))
     except Exception:  # not picklable: the plan is recorded, but replay cannot run it
         return None
 

@@ -110,23 +110,28 @@ def compiled_used(result: Any, default: bool) -> bool:
     return bool(steps) if isinstance(steps, int) else default
 
 
-def summary_of(result: Any) -> dict[str, Any]:
-    """Readable fields of a planner result for the record (the trajectory as published)."""
-    from companion.wire import encode as enc
+def _scalars(d: Any) -> dict[str, Any]:
+    """The top-level numbers, strings and flags of a stats dictionary (the rest is in the pickle)."""
+    if not isinstance(d, dict):
+        return {}
+    return {str(k): v for k, v in d.items() if v is None or isinstance(v, bool | int | float | str)}
 
+
+def summary_of(result: Any) -> dict[str, Any]:
+    """Readable fields of a planner result for the record: small on purpose (the writer thread
+    must not hold the interpreter lock for long); the trajectory itself is on /out/trajectory
+    once flown, and everything is in the pickled result."""
     if isinstance(result, BaseException):
         return {"ok": None, "status": "error", "message": f"{type(result).__name__}: {result}"}
     out: dict[str, Any] = {"ok": getattr(result, "ok", None)}
     status = getattr(result, "status", None)
     out["status"] = status.value if isinstance(status, enum.Enum) else (None if status is None else str(status))
     out["message"] = getattr(result, "message", None)
-    stats = getattr(result, "stats", None)
-    out["stats"] = stats if isinstance(stats, dict) else {}
+    out["stats"] = _scalars(getattr(result, "stats", None))
     traj = _trajectory(result)
-    if traj is not None:
-        import json
-
-        out["trajectory"] = json.loads(enc.encode_trajectory(traj))
+    out["trajectory"] = None if traj is None else {
+        "segments": int(traj.n_segments), "t0": float(traj.t0), "t_end": float(traj.t_end),
+        "corridors": traj.corridors is not None, "stats": _scalars(traj.stats)}
     return out
 
 
