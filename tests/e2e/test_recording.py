@@ -117,9 +117,14 @@ def flight(tmp_path_factory: pytest.TempPathFactory) -> Any:
         mission = {"id": "recorded", "frame": "ned", "origin": "home",
                    "obstacles": [box([0.7, 0.7, -3.0], [1.3, 1.3, 0.0])],
                    "waypoints": [[2.0, 0.0, -1.2], [2.0, 2.0, -1.2], [0.0, 2.0, -1.5], [-1.0, 0.0, -1.2]]}
-        since = rig.mark()
-        rig.put("mission", mission)
-        rig.wait_event(lambda e: e["type"] == "accepted" and e.get("mission") == "recorded", 30, "mission accepted", since)
+        for attempt in range(3):  # a loaded test machine may plan too late for the split: sent again
+            since = rig.mark()
+            rig.put("mission", mission)
+            got = rig.wait_event(lambda e: e.get("key") == "mission" and e["type"] in ("accepted", "rejected"), 30,
+                                 "mission accepted or rejected", since)
+            if got["type"] == "accepted":
+                break
+            assert "after the split time" in got["message"] and attempt < 2, got
         time.sleep(0.8)
         rig.put("change", {"move_waypoint": {"index": 3, "position": [-1.0, 0.4, -1.2]}})
         rig.wait_event(lambda e: e["type"] == "mission_complete" and e.get("mission") == "recorded", 60,
@@ -213,6 +218,6 @@ def test_the_live_view_served_the_flight_as_it_flew(flight: Any) -> None:
 
 
 def test_nothing_left_listening(flight: Any) -> None:
-    """The companion stopped: the live server's port is free again."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", flight["live"].port))
+    """The companion stopped: nothing serves the live port any more."""
+    with socket.socket() as s, pytest.raises(ConnectionRefusedError):
+        s.connect(("127.0.0.1", flight["live"].port))
