@@ -39,6 +39,7 @@ log = logging.getLogger("companion")
 
 FORMAT_VERSION = "1"
 STATS_PERIOD = 1.0  # s between /recorder/stats records
+CHUNK_BYTES = 128 * 1024  # uncompressed MCAP chunk
 
 
 class Sink(Protocol):
@@ -80,9 +81,10 @@ class McapSink:
         name = self.stem + (f"-{self.part:03d}" if self.part else "") + ".mcap"
         path = self.directory / name
         self._fh = open(path, "wb")  # noqa: SIM115 - closed in _finish
-        # zstd chunks: JSON telemetry compresses ~10x
+        # zstd chunks (JSON telemetry compresses ~10x) of 128 kB: a crash loses the chunk being
+        # filled, ~5 s of flight, never the file's earlier chunks
         self._writer = Writer(self._fh, compression=CompressionType.ZSTD,
-                              chunk_size=max(4096, min(1 << 20, self.max_bytes // 8)))
+                              chunk_size=max(4096, min(CHUNK_BYTES, self.max_bytes // 8)))
         self._writer.start(profile="", library=f"bezier-companion recorder {FORMAT_VERSION}")
         self._writer.add_metadata("companion", {**self.metadata, "part": str(self.part)})
         self._schemas.clear()

@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import collections
 import json
+import struct
 import sys
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -17,7 +19,44 @@ import numpy as np
 SETPOINT = "/mavlink/out/SET_POSITION_TARGET_LOCAL_NED"
 
 
+def read_messages(path: str, topics: list[str] | None = None) -> Iterator[tuple[Any, Any, Any]]:
+    """(schema, channel, message) of a file in log-time order; a file cut short (a crash, no
+    summary) is read in file order up to its last complete chunk, with a warning."""
+    from mcap.exceptions import EndOfFile, McapError
+    from mcap.reader import make_reader
+    from mcap.records import Channel, Message, Schema
+    from mcap.stream_reader import StreamReader
+
+    with open(path, "rb") as fh:
+        try:
+            summary = make_reader(fh).get_summary()
+        except (McapError, ValueError):
+            summary = None
+        if summary is not None:
+            fh.seek(0)
+            yield from make_reader(fh).iter_messages(topics=topics)
+            return
+        print(f"{path}: no summary (the recording was cut short?): reading its complete chunks in order",
+              file=sys.stderr)
+        fh.seek(0)
+        schemas: dict[int, Any] = {}
+        channels: dict[int, Any] = {}
+        try:
+            for record in StreamReader(fh).records:
+                if isinstance(record, Schema):
+                    schemas[record.id] = record
+                elif isinstance(record, Channel):
+                    channels[record.id] = record
+                elif isinstance(record, Message):
+                    channel = channels.get(record.channel_id)
+                    if channel is not None and (topics is None or channel.topic in topics):
+                        yield schemas.get(channel.schema_id), channel, record
+        except (EndOfFile, McapError, struct.error, ValueError):  # the cut
+            return
+
+
 def summarize(path: str) -> dict[str, Any]:
+    from mcap.exceptions import McapError
     from mcap.reader import make_reader
 
     counts: collections.Counter[str] = collections.Counter()
@@ -28,29 +67,31 @@ def summarize(path: str) -> dict[str, Any]:
     events: list[dict[str, Any]] = []
     stats: dict[str, Any] = {}
     first = last = None
-    with open(path, "rb") as fh:
-        reader = make_reader(fh)
-        meta = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
-        for _schema, channel, message in reader.iter_messages():
-            topic = channel.topic
-            counts[topic] += 1
-            sizes[topic] += len(message.data)
-            first = message.log_time if first is None else min(first, message.log_time)
-            last = message.log_time if last is None else max(last, message.log_time)
-            if topic == SETPOINT:
-                sp_t.append(json.loads(message.data)["t"])
-            elif topic == "/out/status":
-                err = json.loads(message.data).get("tracking_error")
-                if isinstance(err, int | float):
-                    tracking.append(float(err))
-            elif topic == "/planner/plan":
-                rec = json.loads(message.data)
-                plans.append({k: rec.get(k) for k in ("seq", "function", "ok", "status", "latency_ms", "message")})
-            elif topic == "/out/events":
-                e = json.loads(message.data)
-                events.append({k: e.get(k) for k in ("time", "type", "message")})
-            elif topic == "/recorder/stats":
-                stats = json.loads(message.data)
+    try:
+        with open(path, "rb") as fh:
+            meta = {m.name: dict(m.metadata) for m in make_reader(fh).iter_metadata()}
+    except (McapError, ValueError):
+        meta = {}
+    for _schema, channel, message in read_messages(path):
+        topic = channel.topic
+        counts[topic] += 1
+        sizes[topic] += len(message.data)
+        first = message.log_time if first is None else min(first, message.log_time)
+        last = message.log_time if last is None else max(last, message.log_time)
+        if topic == SETPOINT:
+            sp_t.append(json.loads(message.data)["t"])
+        elif topic == "/out/status":
+            err = json.loads(message.data).get("tracking_error")
+            if isinstance(err, int | float):
+                tracking.append(float(err))
+        elif topic == "/planner/plan":
+            rec = json.loads(message.data)
+            plans.append({k: rec.get(k) for k in ("seq", "function", "ok", "status", "latency_ms", "message")})
+        elif topic == "/out/events":
+            e = json.loads(message.data)
+            events.append({k: e.get(k) for k in ("time", "type", "message")})
+        elif topic == "/recorder/stats":
+            stats = json.loads(message.data)
     out: dict[str, Any] = {
         "file": path,
         "duration_s": None if first is None or last is None else round((last - first) / 1e9, 3),

@@ -191,13 +191,17 @@ class Replayed:
 def recorded_environment(path: str) -> dict[str, str]:
     import json
 
+    from mcap.exceptions import McapError
     from mcap.reader import make_reader
 
-    with open(path, "rb") as fh:
-        for m in make_reader(fh).iter_metadata():
-            if m.name == "companion" and "environment" in m.metadata:
-                env: dict[str, str] = json.loads(m.metadata["environment"])
-                return env
+    try:
+        with open(path, "rb") as fh:
+            for m in make_reader(fh).iter_metadata():
+                if m.name == "companion" and "environment" in m.metadata:
+                    env: dict[str, str] = json.loads(m.metadata["environment"])
+                    return env
+    except (McapError, ValueError):  # no summary: no metadata index
+        pass
     return {}
 
 
@@ -205,21 +209,20 @@ def plan_records(path: str, since: float | None = None, until: float | None = No
     """The /planner/plan records of a file; `since`/`until`: seconds from the recording's start."""
     import json
 
-    from mcap.reader import make_reader
+    from companion.recording import read_messages
 
-    with open(path, "rb") as fh:
-        reader = make_reader(fh)
-        summary = reader.get_summary()
-        start = summary.statistics.message_start_time if summary and summary.statistics else None
-        for _schema, _channel, message in reader.iter_messages(topics=["/planner/plan"]):
-            if start is None:
-                start = message.log_time
-            rel = (message.log_time - start) / 1e9
-            if since is not None and rel < since:
-                continue
-            if until is not None and rel > until:
-                break
-            yield json.loads(message.data)
+    start = None
+    for _schema, _channel, message in read_messages(path):  # the first message of any channel: t = 0
+        if start is None:
+            start = message.log_time
+        if _channel.topic != "/planner/plan":
+            continue
+        rel = (message.log_time - start) / 1e9
+        if since is not None and rel < since:
+            continue
+        if until is not None and rel > until:
+            break
+        yield json.loads(message.data)
 
 
 def replay_one(rec: dict[str, Any]) -> Replayed:
@@ -248,6 +251,8 @@ def replay_one(rec: dict[str, Any]) -> Replayed:
 def main(argv: list[str]) -> int:
     import argparse
 
+    from mcap.exceptions import McapError
+
     p = argparse.ArgumentParser(prog="python -m companion replay", description=__doc__.splitlines()[0])
     p.add_argument("file")
     p.add_argument("--from", dest="since", type=float, default=None, metavar="T",
@@ -275,7 +280,7 @@ def main(argv: list[str]) -> int:
                 print(f"  first difference: {r.difference}")
                 if not args.keep_going:
                     break
-    except (OSError, ValueError, KeyError, pickle.UnpicklingError) as exc:
+    except (OSError, ValueError, KeyError, pickle.UnpicklingError, McapError) as exc:
         print(f"replay: {args.file}: {exc}", file=sys.stderr)
         return 2
     if n == 0:

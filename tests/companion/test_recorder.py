@@ -247,3 +247,25 @@ def test_the_systemd_unit_records_into_its_state_directory() -> None:
     lines = [ln.strip() for ln in unit.splitlines()]
     assert "StateDirectory=bezier-companion/%i" in lines
     assert f"Environment={RECORDING_ENV}=%S/bezier-companion/%i" in lines  # %S/<StateDirectory>
+
+
+def test_a_file_cut_short_by_a_crash_keeps_its_complete_chunks(tmp_path: Path) -> None:
+    """SIGKILL mid-flight: no summary; the summary tool still reads the chunks written."""
+    from companion.recording import summarize
+
+    rec = Recorder(config(tmp_path))
+    rec.open()
+    wire = Wire(rec.mavlink_sent)
+    for k in range(3000):  # ~1 MB of records: several 128 kB chunks
+        wire.setpoint(k)
+        rec.outbound("status", json.dumps({"state": "STREAMING", "k": k, "pad": "x" * 200}).encode(), float(k))
+    rec.close()
+    path = only_file(tmp_path)
+    data = path.read_bytes()
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(data[: len(data) // 2])
+    s = summarize(str(cut))
+    n = s["channels"]["/mavlink/out/SET_POSITION_TARGET_LOCAL_NED"]["messages"]
+    assert 0 < n < 3000
+    full = summarize(str(path))
+    assert full["channels"]["/mavlink/out/SET_POSITION_TARGET_LOCAL_NED"]["messages"] == 3000
