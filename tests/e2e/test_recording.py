@@ -44,7 +44,10 @@ class RecordingRig(Rig):
         self.recordings = tmp / "recordings"
 
     def config_text(self) -> str:
-        return super().config_text() + f"""
+        # a loaded test machine plans the takeoff climb and the mission late: a longer split
+        # (the recorder is what is tested here, not the planner's latency)
+        text = super().config_text().replace("[planner]\n", "[planner]\nsplit_ahead = 0.5\n", 1)
+        return text + f"""
 [recording]
 path = "{self.recordings}"
 
