@@ -25,6 +25,8 @@ for its setpoint thread only (companion/rtsched.py); everything else runs normal
         [--nice -5]       # as the shipped systemd unit (Nice=-5)
         [--realtime 10]   # the realtime run's priority, as the unit's CPUSchedulingPriority=10
                           # (0: no realtime run)
+        [--recording]     # also a 50 Hz run with the flight recorder on (its cost: jitter, CPU)
+        [--recording-only]  # only the 50 Hz runs without and with the recorder
 """
 
 from __future__ import annotations
@@ -308,13 +310,13 @@ class Popup:
 
 
 def run_rate(rate: float, flight: float, out: Path, popups: int, load: bool,
-             workers: int | None = None, realtime: int = 0, nice: int = 0) -> dict[str, Any]:
+             workers: int | None = None, realtime: int = 0, nice: int = 0, record: bool = False) -> dict[str, Any]:
     with started_under_fifo(realtime):
-        return _run_rate(rate, flight, out, popups, load, workers, realtime, nice)
+        return _run_rate(rate, flight, out, popups, load, workers, realtime, nice, record)
 
 
 def _run_rate(rate: float, flight: float, out: Path, popups: int, load: bool,
-              workers: int | None, realtime: int, nice: int) -> dict[str, Any]:
+              workers: int | None, realtime: int, nice: int, record: bool = False) -> dict[str, Any]:
     from demo.rig import rig
 
     out.mkdir(parents=True, exist_ok=True)
@@ -324,12 +326,13 @@ def _run_rate(rate: float, flight: float, out: Path, popups: int, load: bool,
                                    str(stamps_path)])
     floor_path = out / "floor_wakes.json"
     floor_proc: subprocess.Popen[bytes] | None = None
-    result: dict[str, Any] = {"rate_hz": rate, "load": load, "workers": workers or 1, "realtime": realtime}
+    result: dict[str, Any] = {"rate_hz": rate, "load": load, "workers": workers or 1, "realtime": realtime,
+                              "recording": record}
     mission = flight_mission()
     results: list[Popup] = []
     try:
         with rig(out, "px4", rate_hz=rate, mav_port=mock_port, companion_mav_port=relay_port,
-                 workers=workers) as r:
+                 workers=workers, recording=out / "recordings" if record else None) as r:
             events = _EventLog(r.peer)
             t_put = r.peer.put("mission", mission)
             events.wait(lambda e: e.get("type") == "accepted" and e.get("key") == "mission", t_put, 20.0)
@@ -711,7 +714,7 @@ def _plan_load(peer: Any, events: _EventLog, stop: threading.Event, times: list[
 
 def column(r: dict[str, Any]) -> str:
     return (f"{r['rate_hz']:.0f} Hz" + ("" if r.get("load", True) else ", no load")
-            + (f", fifo {r['realtime']}" if r.get("realtime") else ""))
+            + (f", fifo {r['realtime']}" if r.get("realtime") else "") + (", recording" if r.get("recording") else ""))
 
 
 def format_table(results: list[dict[str, Any]]) -> str:
@@ -768,6 +771,10 @@ def main(argv: list[str] | None = None) -> int:
                    "PRIO, as the systemd unit starts it (CPUSchedulingPolicy=fifo, CPUSchedulingPriority=10); "
                    "0: skip that run")
     p.add_argument("--realtime-only", action="store_true", help="only the realtime run")
+    p.add_argument("--recording", action="store_true",
+                   help="also fly 50 Hz with planning load with the flight recorder on ([recording] path): its cost")
+    p.add_argument("--recording-only", action="store_true",
+                   help="only the 50 Hz runs with planning load without and with the recorder")
     p.add_argument("--out", type=Path, default=Path("out/bench/service"))
     p.add_argument("--json", type=Path, default=None)
     p.add_argument("--loaded", action="store_true",
@@ -791,19 +798,24 @@ def main(argv: list[str] | None = None) -> int:
             args.json.parent.mkdir(parents=True, exist_ok=True)
             args.json.write_text(json.dumps({"targets": LOADED_TARGETS, "loaded": res}, indent=2))
         return 0
-    runs = [] if args.realtime_only else [(rate, not args.no_load, 0) for rate in args.rates]
+    runs = [] if args.realtime_only else [(rate, not args.no_load, 0, False) for rate in args.rates]
     if not args.no_baseline and not args.no_load and not args.realtime_only:
-        runs.append((50.0, False, 0))
+        runs.append((50.0, False, 0, False))
     if args.realtime > 0:
-        runs.append((50.0, not args.no_load, args.realtime))
+        runs.append((50.0, not args.no_load, args.realtime, False))
+    if args.recording:
+        runs.append((50.0, not args.no_load, 0, True))
+    if args.recording_only:
+        runs = [(50.0, not args.no_load, 0, False), (50.0, not args.no_load, 0, True)]
     results = []
-    for rate, load, prio in runs:
+    for rate, load, prio, record in runs:
         what = "1000-waypoint plans in parallel" if load else "no planning load"
-        how = f", started under SCHED_FIFO {prio} (as the systemd unit)" if prio else ""
+        how = (f", started under SCHED_FIFO {prio} (as the systemd unit)" if prio else "") + (
+            ", flight recorder on" if record else "")
         print(f"flying {args.flight:.0f} s at {rate:.0f} Hz with {what}{how} ...", flush=True)
-        tag = f"{rate:.0f}hz" + ("" if load else "-noload") + (f"-fifo{prio}" if prio else "")
+        tag = f"{rate:.0f}hz" + ("" if load else "-noload") + (f"-fifo{prio}" if prio else "") + ("-rec" if record else "")
         results.append(run_rate(rate, args.flight, args.out / tag, args.popups, load, args.workers,
-                                prio, args.nice))
+                                prio, args.nice, record))
     print(format_table(results))
     for r in results:
         if r["rate_hz"] == 50.0 and r.get("load", True):

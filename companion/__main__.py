@@ -5,6 +5,8 @@
     python -m companion send KEY FILE.json [--vehicle ID] [--connect tcp/127.0.0.1:7447]
     python -m companion watch [--vehicle ID] [--connect ...] [--telemetry]
     python -m companion demo ...
+    python -m companion replay FILE.mcap [--from T] [--until T]
+    python -m companion recording summary FILE.mcap
 """
 
 from __future__ import annotations
@@ -173,6 +175,26 @@ def cmd_watch(args: argparse.Namespace) -> int:
     return 0
 
 
+RECORDING_ENV = "BEZIER_COMPANION_RECORDING"
+
+
+def recording_default(cfg: Config, path: str | None) -> Config:
+    """`[recording] path` from $BEZIER_COMPANION_RECORDING (the systemd unit's state directory)
+    when the configuration file does not set it; `path = ""` in the file keeps recording off."""
+    import dataclasses
+    import os
+    import tomllib
+
+    default = os.environ.get(RECORDING_ENV, "")
+    if not default:
+        return cfg
+    if path:
+        with open(path, "rb") as fh:
+            if "path" in tomllib.load(fh).get("recording", {}):
+                return cfg
+    return dataclasses.replace(cfg, recording=dataclasses.replace(cfg.recording, path=default))
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     from companion import rtsched
 
@@ -185,6 +207,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         return 2
     try:
         cfg = load_config(args.config) if args.config else Config()
+        cfg = recording_default(cfg, args.config)
     except (ConfigError, OSError) as exc:
         print(f"config error: {exc}", file=sys.stderr)
         return 2
@@ -268,11 +291,21 @@ def build_parser() -> argparse.ArgumentParser:
     _add_client_args(w)
     sub.add_parser("demo", help="a scripted demo flight against the mock autopilot (= python -m demo)",
                    add_help=False)
+    sub.add_parser("replay", help="run a recording's plans again and compare them bit for bit", add_help=False)
+    sub.add_parser("recording", help="recording summary FILE.mcap: what a recorded flight holds", add_help=False)
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] == "replay":
+        from companion.replay import main as replay_main
+
+        return replay_main(argv[1:])
+    if argv and argv[0] == "recording":
+        from companion.recording import main as recording_main
+
+        return recording_main(argv[1:])
     if argv and argv[0] == "demo":
         # the demo lives in the top-level `demo` package (a client of the service); this
         # subcommand is kept as an alias of `python -m demo`

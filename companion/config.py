@@ -210,6 +210,29 @@ class SafetyConfig:
 
 
 @dataclass(frozen=True)
+class RecordingConfig:
+    # A directory: one MCAP file per run of the service (docs/recording.md); "" = no recording.
+    # Not set in the file: $BEZIER_COMPANION_RECORDING if set (the systemd unit sets it to the
+    # unit's state directory), else no recording.
+    path: str = ""
+    # A file is closed and a new one started past this size (bytes) ...
+    max_bytes: int = 134217728
+    # ... and the oldest files in `path` are removed while all of them hold more than this.
+    keep_bytes: int = 1073741824
+    # Records waiting for the writer thread; past it, records are dropped and counted
+    # (setpoints have a queue of their own of this size too: a burst of other traffic never
+    # drops one).
+    queue: int = 4096
+
+
+@dataclass(frozen=True)
+class LiveConfig:
+    # "HOST:PORT" of a Foxglove WebSocket server with the recording's channels; "" = off.
+    # Loopback unless you mean it: anyone who reaches it sees the flight (read-only).
+    foxglove: str = ""
+
+
+@dataclass(frozen=True)
 class Config:
     vehicle: VehicleConfig = field(default_factory=VehicleConfig)
     zenoh: ZenohConfig = field(default_factory=ZenohConfig)
@@ -219,6 +242,8 @@ class Config:
     geofence: GeofenceConfig = field(default_factory=GeofenceConfig)
     limits: LimitsConfig = field(default_factory=LimitsConfig)
     safety: SafetyConfig = field(default_factory=SafetyConfig)
+    recording: RecordingConfig = field(default_factory=RecordingConfig)
+    live: LiveConfig = field(default_factory=LiveConfig)
 
     def key(self, topic: str) -> str:
         return f"{self.zenoh.prefix}/{self.vehicle.id}/{topic}"
@@ -269,6 +294,9 @@ _POSITIVE = {
     "safety.max_tracking_error",
     "safety.rest_speed",
     "safety.exit_timeout",
+    "recording.max_bytes",
+    "recording.keep_bytes",
+    "recording.queue",
 }
 
 
@@ -347,6 +375,13 @@ def config_from_dict(table: dict[str, Any]) -> Config:
     for i in range(3):
         if lo[i] >= hi[i]:
             raise ConfigError(f"geofence.min[{i}]", f"must be below geofence.max[{i}]")
+    if cfg.live.foxglove:
+        from companion.live import parse_address
+
+        try:
+            parse_address(cfg.live.foxglove)
+        except ValueError as exc:
+            raise ConfigError("live.foxglove", str(exc).split(": ", 1)[-1]) from None
     return cfg
 
 

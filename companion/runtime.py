@@ -35,6 +35,7 @@ from concurrent.futures import BrokenExecutor, Executor, ProcessPoolExecutor, Th
 from typing import Any
 
 from companion.config import Config
+from companion.tap import NO_TAP, Tap
 
 # Nice increments (relative to the service's own, e.g. systemd's Nice=-5) of the planner
 # processes: mission planning yields the CPU to the service's process on a busy computer;
@@ -123,6 +124,7 @@ class Runtime:
         # what is late: two threads, so a fresh stop need not wait for a prepared one.
         self.brake_pool = ThreadPoolExecutor(2, thread_name_prefix="brake")
         self.loop: asyncio.AbstractEventLoop | None = None
+        self.tap: Tap = NO_TAP  # every planner call, recorded (companion/recorder.py)
 
     def pools(self) -> tuple[Executor, ...]:
         return (self.pool, self.urgent_pool, self.replan_pool, self.io_pool, self.decode_pool, self.brake_pool)
@@ -132,10 +134,10 @@ class Runtime:
         request then fails)."""
         assert self.loop is not None
         pool = self.urgent_pool if urgent else self.pool
-        if isinstance(pool, ProcessPoolExecutor):
-            fn, args = run_and_trim, (fn, *args)
+        where = "process" if isinstance(pool, ProcessPoolExecutor) else "thread"
+        call, call_args = (run_and_trim, (fn, *args)) if where == "process" else (fn, args)
         try:
-            return await self.loop.run_in_executor(pool, fn, *args)
+            return await self._recorded(pool, where, fn, args, call, call_args)
         except BrokenExecutor:
             if urgent:
                 self.urgent_pool = make_urgent_pool(self.cfg)
@@ -146,7 +148,20 @@ class Runtime:
 
     async def run(self, pool: Executor, fn: Any, *args: Any) -> Any:
         assert self.loop is not None
-        return await self.loop.run_in_executor(pool, fn, *args)
+        return await self._recorded(pool, "thread", fn, args, fn, args)
+
+    async def _recorded(self, pool: Executor, where: str, fn: Any, args: tuple[Any, ...], call: Any,
+                        call_args: tuple[Any, ...]) -> Any:
+        """call(*call_args) in pool; the tap is told fn, args and what came back."""
+        assert self.loop is not None
+        submitted = time.monotonic()
+        try:
+            result = await self.loop.run_in_executor(pool, call, *call_args)
+        except Exception as exc:
+            self.tap.plan(fn, args, exc, submitted, time.monotonic(), where)
+            raise
+        self.tap.plan(fn, args, result, submitted, time.monotonic(), where)
+        return result
 
     def shutdown(self) -> None:
         for pool in self.pools():

@@ -34,6 +34,7 @@ from companion.control import Control
 from companion.flight import Flight
 from companion.mission import warm_up, warm_up_replan
 from companion.navigator import Navigator
+from companion.recorder import tap_for
 from companion.report import Reporter
 from companion.runtime import GcPacer, Runtime, log_off_loop, restore_logging, return_heap
 from companion.sdnotify import Notifier
@@ -86,6 +87,7 @@ class Service:
         self.runtime = Runtime(cfg, on_planner_died=lambda: self.report.event(
             "error", "the planner process died; restarted it (this request failed)"))
         self.link = MavlinkLink(cfg)
+        self.tap = self.runtime.tap = self.link.tap = tap_for(cfg)  # recorder and live view (issue 23)
         self.yaw = YawPolicy(cfg.setpoints.yaw_mode, cfg.setpoints.yaw, cfg.setpoints.yaw_min_speed)
         self.sender: SetpointSender | SetpointProcess
         if cfg.setpoints.process:
@@ -166,6 +168,7 @@ class Service:
             return
         self._traj_seq += 1
         seq = self._traj_seq
+        self.tap.flown(traj, self.control.t_base, time.monotonic())
         fut = self.loop.run_in_executor(self.runtime.io_pool, enc.encode_trajectory, traj)
 
         def done(f: asyncio.Future[bytes]) -> None:
@@ -188,6 +191,10 @@ class Service:
 
     def _tick_from_thread(self, tick: Tick) -> None:
         """Called by the setpoint thread after each tick: the rest happens on the loop."""
+        if tick.setpoint is not None and tick.error is None and isinstance(self.sender, SetpointProcess):
+            # the process wrote it: the recorder gets it from its record (the thread's own sends
+            # reach the recorder through pymavlink's send callback)
+            self.tap.mavlink_sent(self.link.setpoint_message(tick.setpoint, tick.now), tick.now)
         loop = self.loop
         if loop is not None:
             with contextlib.suppress(RuntimeError):  # the loop is closing
@@ -294,6 +301,7 @@ class Service:
             "setpoint_period_ms": ctl.period_stats(),
             "gc_pause_max_ms": round(self.gc.worst * 1000, 2),
             "setpoints_stalled": self.setpoints_stalled,
+            **self.tap.status_fields(),
         }
 
     # -- inbound messages: one reader per kind ------------------------------------------------------
@@ -308,6 +316,7 @@ class Service:
         self.zio.on_dropped = self._dropped
         while not self.stop.is_set():
             kind, payload, arrived = await self.zio.inbox.get()
+            self.tap.inbound(kind, payload, arrived)
             try:
                 if kind == "obstacles" and len(payload) <= INLINE_DECODE_BYTES:
                     self._dispatch(kind, payload, arrived, read(kind, payload, self.cfg, self.link.state.home))
@@ -513,6 +522,8 @@ class Service:
         sys.setswitchinterval(0.0005)
         self.zio = ZenohIO(self.cfg, self.loop)
         self.zio.on_refused = self._refused
+        self.zio.tap = self.tap
+        self.tap.open()
         self.zio.open({"plan": self.query_plan, "status": self.query_status})
         self.link.open(self.loop)
         await self._warm_up()
@@ -562,6 +573,7 @@ class Service:
                 self.report.event("stopped", "companion stopping", handed_over=handed_over)
             self.link.close()
             self.zio.close()
+            self.tap.close()
             self.runtime.shutdown()
             self.gc.stop()
             restore_logging(self._log_listener)

@@ -192,8 +192,8 @@ class Rig:
 
 
 def demo_config(zenoh_port: int, mav_port: int, rate_hz: float = 50.0, workers: int | None = None,
-                lead: float = 0.0) -> Config:
-    from companion.config import PlannerConfig, SetpointConfig
+                lead: float = 0.0, recording: Path | None = None) -> Config:
+    from companion.config import PlannerConfig, RecordingConfig, SetpointConfig
 
     planner = PlannerConfig() if workers is None else PlannerConfig(workers=workers)
     return Config(
@@ -204,19 +204,21 @@ def demo_config(zenoh_port: int, mav_port: int, rate_hz: float = 50.0, workers: 
         setpoints=SetpointConfig(rate_hz=rate_hz, lead=lead),
         geofence=GeofenceConfig(min=(-60.0, -60.0, -20.0), max=(60.0, 60.0, 0.5)),
         safety=SafetyConfig(auto_arm=True, takeoff_altitude=TAKEOFF_ALTITUDE),
+        recording=RecordingConfig(path=str(recording) if recording is not None else ""),
     )
 
 
 @contextlib.contextmanager
 def rig(out: Path, autopilot: str, rate_hz: float = 50.0, mock_args: tuple[str, ...] = (),
         mav_port: int | None = None, companion_mav_port: int | None = None,
-        workers: int | None = None, lead: float = 0.0) -> Iterator[Rig]:
-    """Mock + companion + our peer. `companion_mav_port` lets a relay sit between the two."""
+        workers: int | None = None, lead: float = 0.0, recording: Path | None = None) -> Iterator[Rig]:
+    """Mock + companion + our peer. `companion_mav_port` lets a relay sit between the two;
+    `recording`: the companion's [recording] path (its MCAP file is complete once the rig closes)."""
     out.mkdir(parents=True, exist_ok=True)
     mav_port = mav_port or free_port(socket.SOCK_DGRAM)
     control_port, zenoh_port = free_port(), free_port()
     flight_log = out / "flight.jsonl"
-    cfg = demo_config(zenoh_port, companion_mav_port or mav_port, rate_hz, workers, lead)
+    cfg = demo_config(zenoh_port, companion_mav_port or mav_port, rate_hz, workers, lead, recording)
     cfg_path = out / "companion.toml"
     cfg_path.write_text(config_to_toml(cfg))
     py = sys.executable

@@ -525,6 +525,15 @@ def _quick_mission() -> dict[str, Any]:
     }
 
 
+def keep_recording(recordings: Path, flight: Path) -> Path | None:
+    """The companion's recording of this run (the newest file it wrote) as `flight`."""
+    files = sorted(recordings.glob("*.mcap"), key=lambda p: p.stat().st_mtime)
+    if not files:
+        return None
+    files[-1].replace(flight)
+    return flight
+
+
 def build_parser(prog: str = "python -m demo") -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog=prog, description=__doc__.splitlines()[0].split(": ", 1)[-1])
     p.add_argument("--autopilot", choices=["px4", "ardupilot"], default="px4")
@@ -532,6 +541,8 @@ def build_parser(prog: str = "python -m demo") -> argparse.ArgumentParser:
     p.add_argument("--quick", action="store_true", help="one short mission only (smoke test)")
     p.add_argument("--timeout", type=float, default=120.0, help="per mission, seconds")
     p.add_argument("--no-plots", action="store_true")
+    p.add_argument("--no-recording", action="store_true",
+                   help="do not have the companion record the flight (out/demo/flight.mcap)")
     p.add_argument("--lead", type=float, default=0.0, metavar="SECONDS",
                    help="sample setpoints this far ahead of the plan (companion [setpoints] lead; 0: off)")
     return p
@@ -545,7 +556,8 @@ def main(argv: list[str] | None = None, prog: str = "python -m demo") -> int:
     pngs: list[Path] = []
     print(f"bezier-companion demo: mock {args.autopilot} autopilot + companion service + Zenoh peer")
     try:
-        with rig(out, args.autopilot, lead=args.lead) as r:
+        recordings = out / "recordings"
+        with rig(out, args.autopilot, lead=args.lead, recording=None if args.no_recording else recordings) as r:
             print(f"  companion pid {r.companion.pid}, mock pid {r.mock.pid}, logs in {out}/")
             home = r.wait_home()
             print(f"  home (the ground where the vehicle stands) at local NED {home.round(2).tolist()}: "
@@ -585,6 +597,20 @@ def main(argv: list[str] | None = None, prog: str = "python -m demo") -> int:
     except (RuntimeError, OSError) as exc:
         print(f"demo failed: {exc}", file=sys.stderr)
         return 1
+    if not args.no_recording:
+        flight = keep_recording(recordings, out / "flight.mcap")
+        if flight is not None:
+            print(f"\nflight recording: {flight} ({flight.stat().st_size / 1e6:.1f} MB)\n"
+                  f"  python -m companion recording summary {flight}\n"
+                  f"  python -m companion replay {flight}\n"
+                  "  Foxglove (app.foxglove.dev or the desktop app): Open local file, then a 3D panel "
+                  "(display frame local_enu) and a Plot panel (docs/recording.md)")
+            if not args.no_plots:
+                from demo.recording_plots import plot
+
+                png = plot(flight, out / "flight_recording.png")
+                if png is not None:
+                    pngs.append(png)
     print()
     print(rep.format_table(results))
     if pngs:

@@ -28,6 +28,7 @@ from pymavlink import mavutil
 from companion.config import Config
 from companion.sendproc import Encoding
 from companion.setpoints import Setpoint
+from companion.tap import NO_TAP, Tap
 from companion.wire import dialect
 from companion.wire.signing import read_signing_key
 
@@ -207,6 +208,7 @@ class MavlinkLink:
         self._send_lock = threading.Lock()
         self._sent = 0
         self._writer: Any = None  # companion.sendproc.SetpointProcess once it writes for us
+        self.tap: Tap = NO_TAP  # the flight recorder (companion/tap.py)
 
     # -- lifecycle -----------------------------------------------------------
 
@@ -221,6 +223,7 @@ class MavlinkLink:
             autoreconnect=True,
         )
         self.conn.mav.robust_parsing = True
+        self.conn.mav.set_send_callback(self.tap.mavlink_sent)  # after each write: O(1), never waits
         if self.cfg.mavlink.signing_key_file:
             # Sign everything we send; what the autopilot sends may be unsigned.
             self.conn.setup_signing(read_signing_key(self.cfg.mavlink.signing_key_file), sign_outgoing=True,
@@ -251,7 +254,9 @@ class MavlinkLink:
         direct = self.conn.mav.send
 
         def send(msg: Any, force_mavlink1: bool = False) -> None:
-            if not writer.post_message(msg):
+            if writer.post_message(msg):
+                self.tap.mavlink_sent(msg)  # as pymavlink's send callback would, once written
+            else:
                 direct(msg, force_mavlink1=force_mavlink1)
 
         self.conn.mav.send = send
@@ -292,6 +297,7 @@ class MavlinkLink:
         if kind == "BAD_DATA" or msg.get_srcSystem() != self.cfg.vehicle.sysid:
             return
         now = time.monotonic()
+        self.tap.mavlink_received(msg, now)
         st = self.state
         if kind != "HEARTBEAT":
             st.received[kind] = now
@@ -353,11 +359,12 @@ class MavlinkLink:
                 mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE
             )
 
-    def send_setpoint(self, sp: Setpoint) -> None:
-        """Thread-safe (called from the setpoint thread and, for a swap, from the loop)."""
+    def setpoint_message(self, sp: Setpoint, at: float | None = None) -> Any:
+        """SET_POSITION_TARGET_LOCAL_NED for `sp`, stamped at monotonic `at` (now)."""
         p, v, a = sp.position, sp.velocity, sp.acceleration
-        msg = self.conn.mav.set_position_target_local_ned_encode(
-            int((time.monotonic() - self._boot) * 1000) & 0xFFFFFFFF,
+        at = time.monotonic() if at is None else at
+        return self.conn.mav.set_position_target_local_ned_encode(
+            int((at - self._boot) * 1000) & 0xFFFFFFFF,
             self.cfg.vehicle.sysid,
             self.cfg.vehicle.autopilot_component,
             mavlink.MAV_FRAME_LOCAL_NED,
@@ -368,6 +375,10 @@ class MavlinkLink:
             float(sp.yaw),
             0.0,
         )
+
+    def send_setpoint(self, sp: Setpoint) -> None:
+        """Thread-safe (called from the setpoint thread and, for a swap, from the loop)."""
+        msg = self.setpoint_message(sp)
         with self._send_lock:
             self.conn.mav.send(msg)
             self._sent += 1

@@ -22,6 +22,7 @@ import zenoh
 
 from companion.admission import Admission
 from companion.config import Config, ZenohConfig
+from companion.tap import NO_TAP, Tap
 from companion.wire.encode import encode
 from companion.wire.messages import Oversized
 
@@ -122,6 +123,7 @@ class ZenohIO:
         self._refusal_due = False
         self._refusal_said = -math.inf
         self.session: Any = None
+        self.tap: Tap = NO_TAP  # the flight recorder (companion/tap.py)
         self.exposure: list[str] = []
         self._decls: list[Any] = []
         self._pubs: dict[str, Any] = {}
@@ -201,12 +203,15 @@ class ZenohIO:
     def publish(self, kind: str, obj: Any) -> None:
         pub = self._pubs.get(kind)
         if pub is not None:
-            pub.put(encode(obj))
+            data = encode(obj)
+            pub.put(data)
+            self.tap.outbound(kind, data, time.monotonic())
 
     def publish_bytes(self, kind: str, payload: bytes) -> None:
         pub = self._pubs.get(kind)
         if pub is not None:
             pub.put(payload)
+            self.tap.outbound(kind, payload, time.monotonic())
 
     def close(self) -> None:
         for d in self._decls:

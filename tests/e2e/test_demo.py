@@ -45,6 +45,16 @@ def test_quick_demo_flies_and_reports(tmp_path: Path) -> None:
         assert (out / png).stat().st_size > 10_000
     log = [json.loads(line) for line in (out / "flight.jsonl").read_text().splitlines() if line.strip()]
     assert any(r["type"] == "setpoint" and r.get("applied") for r in log)
+    # the companion's recording of the flight (issue 23), read with the mcap reader
+    from mcap.reader import make_reader
+
+    assert "python -m companion recording summary" in proc.stdout
+    with open(out / "flight.mcap", "rb") as fh:
+        stats = make_reader(fh).get_summary().statistics
+        topics = {c.topic: stats.channel_message_counts.get(i, 0) for i, c in make_reader(fh).get_summary().channels.items()}
+    applied = sum(1 for r in log if r["type"] == "setpoint")
+    assert topics["/mavlink/out/SET_POSITION_TARGET_LOCAL_NED"] >= applied > 0
+    assert topics["/planner/plan"] >= 2 and topics["/viz/planned_path"] >= 1
 
 
 def test_demo_scenarios_are_flyable_after_lifting_and_moving() -> None:

@@ -1,0 +1,126 @@
+"""Flight recorder cost, without a flight: what a setpoint send pays for being recorded, and the
+writer thread's CPU for a minute of flight traffic.
+
+1. A SET_POSITION_TARGET_LOCAL_NED encoded and written by pymavlink (to memory), as the
+   setpoint thread does, without and with the recorder's send callback (a `put_nowait`; its
+   writer thread recording to a file meanwhile).
+2. The writer thread's conversions (JSON, MAVLink to dict, Foxglove 3D messages, MCAP chunks)
+   for the records of one minute of flight at the mock PX4's rates: 50 Hz setpoints, 30 Hz
+   LOCAL_POSITION_NED, 10 Hz ATTITUDE, 20 Hz telemetry, 2 Hz status, and one plan.
+
+benchmarks/service.py --recording-only measures the same recorder in a real flight (setpoint
+jitter at the relay, CPU, memory), which a loaded machine makes noisy.
+
+    python benchmarks/recorder.py [--sends 5000] [--json out/bench/recorder.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests" / "companion"))
+
+
+def send_cost(sends: int, record: bool, every: float = 0.002) -> dict[str, float]:
+    """Sends `every` s apart (the writer thread, recording to a file, runs in between, as in the
+    service), automatic garbage collection off (the service paces it: companion.runtime.GcPacer)."""
+    import gc
+
+    from recorder_support import Wire, config
+
+    from companion.recorder import Recorder
+
+    with tempfile.TemporaryDirectory() as d:
+        rec = Recorder(config(d)) if record else None
+        if rec is not None:
+            rec.open()
+        wire = Wire(rec.mavlink_sent if rec is not None else None)
+        times = np.empty(sends)
+        gc.collect()
+        gc.disable()
+        try:
+            for k in range(sends):
+                t0 = time.perf_counter()
+                wire.setpoint(k)
+                times[k] = time.perf_counter() - t0
+                wire.buf.clear()
+                time.sleep(every)
+        finally:
+            gc.enable()
+            if rec is not None:
+                rec.close()
+    us = times * 1e6
+    return {"median_us": float(np.median(us)), "p99_us": float(np.percentile(us, 99)), "max_us": float(us.max())}
+
+
+def writer_cost(seconds: float = 60.0) -> dict[str, float]:
+    from recorder_support import Wire, config, plan_call
+
+    from companion.recorder import Recorder
+
+    with tempfile.TemporaryDirectory() as d:
+        rec = Recorder(config(d))
+        rec.open()
+        rec._stop.set()  # the thread ends at once: conversions are driven and timed here
+        assert rec._thread is not None
+        rec._thread.join()
+        w = Wire()
+        items: list[tuple[Any, ...]] = []
+        for k in range(int(seconds * 50)):
+            t = k / 50
+            items.append(("mavlink_sent", w.tx.set_position_target_local_ned_encode(
+                k, 1, 1, 1, 2048, 0.1, 0, -1, 0, 0, 0, 0, 0, 0, 0, 0), t))
+            if k % 5 < 3:
+                items.append(("mavlink_received", w.received(w.tx.local_position_ned_encode(k, 0.01 * k, 0, -1, 0, 0, 0)), t))
+            if k % 5 == 0:
+                items.append(("mavlink_received", w.received(w.tx.attitude_encode(k, 0, 0, 0.5, 0, 0, 0)), t))
+            if k % 5 < 2:
+                items.append(("outbound", "telemetry", json.dumps({
+                    "time": t, "frame": "ned", "position": [1, 2, 3], "velocity": [0, 0, 0],
+                    "attitude": {"roll": 0, "pitch": 0, "yaw": 0}, "armed": True, "mode": "OFFBOARD"}).encode(), t))
+            if k % 25 == 0:
+                items.append(("outbound", "status", json.dumps({"state": "STREAMING", "n": k}).encode(), t))
+        fn, args, out = plan_call(rec.cfg)
+        items.append(("plan", fn, args, out, 1.0, 1.2, "process"))
+        assert out.route is not None
+        items.append(("flown", out.route.trajectory, 0.0, 1.2))
+        t0 = time.process_time()
+        for it in items:
+            rec._convert(it)
+        took = time.process_time() - t0
+        rec.close()
+        size = sum(p.stat().st_size for p in Path(d).glob("*.mcap"))
+    return {"records": float(len(items)), "cpu_s": took, "core_percent": 100.0 * took / seconds,
+            "file_kb": size / 1024}
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--sends", type=int, default=5000)
+    p.add_argument("--json", type=Path, default=None)
+    args = p.parse_args(argv)
+    off, on = send_cost(args.sends, False), send_cost(args.sends, True)
+    w = writer_cost()
+    print(f"setpoint send (pymavlink encode + write), {args.sends} sends:")
+    print(f"  {'':22s} {'median us':>10s} {'p99 us':>10s} {'max us':>10s}")
+    for name, r in (("without the recorder", off), ("with the recorder", on)):
+        print(f"  {name:22s} {r['median_us']:10.2f} {r['p99_us']:10.2f} {r['max_us']:10.1f}")
+    print(f"writer thread, one minute of flight traffic: {w['records']:.0f} records, {w['cpu_s']:.2f} s CPU "
+          f"({w['core_percent']:.1f} % of a core), {w['file_kb']:.0f} kB written")
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps({"send_without": off, "send_with": on, "writer": w}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,353 @@
+"""The recording's channels: names, schemas, frames, and the records written on them.
+
+Every channel has a schema a viewer understands. JSON channels carry a JSON Schema
+(`jsonschema` encoding); the 3D channels carry Foxglove's own message types as the Foxglove
+SDK encodes them (protobuf, with the SDK's schema), which Foxglove shows in its 3D panel.
+
+Frames (docs/recording.md):
+- `local_ned`: the autopilot's local frame, as everything inside the service (x north, y east,
+  z down; the origin is the autopilot's local origin). Every JSON record is in it.
+- `local_enu`: the same origin with ENU axes (x east, y north, z up; `companion.wire.frames`'s
+  swap), what viewers expect: every 3D channel is in it.
+- `vehicle`: the body, FLU (x forward, y left, z up), placed by `/viz/tf`.
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+import math
+from dataclasses import dataclass
+from functools import cache
+from typing import Any
+
+import numpy as np
+
+from companion.wire.frames import swap_points
+
+FRAMES_NOTE = ("JSON records: local_ned (the autopilot's local NED frame); 3D channels: local_enu (same "
+               "origin, ENU axes); vehicle: body FLU placed by /viz/tf")
+FLOWN_KEEP = 1500  # points of the flown path kept (at FLOWN_EVERY s apart: 10 min)
+FLOWN_EVERY = 0.4  # s
+FLOWN_PUBLISH = 1.0  # s between /viz/flown_path messages
+PLANNED_POINTS = 400  # poses sampled along the planned path
+
+
+@dataclass(frozen=True)
+class Spec:
+    schema_name: str
+    schema_encoding: str  # "jsonschema" | "protobuf"
+    schema_data: bytes
+    message_encoding: str  # "json" | "protobuf"
+
+
+def _obj(title: str, description: str, properties: dict[str, Any] | None = None,
+         required: tuple[str, ...] = ()) -> dict[str, Any]:
+    return {"$schema": "https://json-schema.org/draft/2020-12/schema", "title": title,
+            "description": description, "type": "object", "properties": properties or {},
+            "required": list(required)}
+
+
+NUM = {"type": "number"}
+T_MONO = {"type": "number", "description": "monotonic clock of the companion (s) when it happened"}
+
+INBOUND = _obj("bezier.InboundMessage", "A Zenoh message as the companion received it (frame: the sender's)", {
+    "key": {"type": "string"}, "t": T_MONO, "bytes": {"type": "integer"},
+    "text": {"type": "string", "description": "the payload, when it is UTF-8"},
+    "base64": {"type": "string", "description": "the payload, when it is not UTF-8"},
+    "oversized": {"type": "boolean", "description": "over [limits] max_message_bytes: not kept"},
+}, ("key", "t", "bytes"))
+
+MAVLINK = _obj("bezier.MavlinkMessage", "A MAVLink message, decoded by pymavlink (local_ned for *_NED messages)", {
+    "mavpackettype": {"type": "string", "description": "the message name"}, "t": T_MONO,
+    "sysid": {"type": "integer"}, "compid": {"type": "integer"},
+}, ("mavpackettype", "t"))
+
+PLAN = _obj("bezier.PlannerCall", "One planner call: inputs, outputs (local_ned), timings", {
+    "seq": {"type": "integer"}, "function": {"type": "string"},
+    "where": {"type": "string", "enum": ["process", "thread"]}, "compiled": {"type": "boolean"},
+    "submitted": T_MONO, "done": T_MONO, "latency_ms": NUM, "ok": {"type": ["boolean", "null"]},
+    "status": {"type": ["string", "null"]}, "message": {"type": ["string", "null"]},
+    "stats": {"type": "object"}, "trajectory": {"type": ["object", "null"]},
+    "fingerprint": {"type": "string", "description": "sha256 of the result without timing stats"},
+    "call": {"type": ["string", "null"], "description": "pickle (base64) of (function, arguments)"},
+    "result": {"type": ["string", "null"], "description": "pickle (base64) of the result"},
+}, ("seq", "function", "submitted", "done", "fingerprint"))
+
+STATS = _obj("bezier.RecorderStats", "The recorder's own counts", {
+    "t": T_MONO, "written": {"type": "integer"}, "dropped": {"type": "object"},
+    "dropped_total": {"type": "integer"}, "queued": {"type": "integer"},
+}, ("written", "dropped_total"))
+
+NUM_OR_NULL = {"type": ["number", "null"], "description": "null: unbounded"}
+BOUNDS = _obj("bezier.Bounds", "The bounds a plan used, per derivative order (SI units): the tightest over "
+              "the axes, and the per-axis box (local_ned; rows velocity..snap, columns x, y, z)", {
+    "t": T_MONO, "velocity": NUM_OR_NULL, "acceleration": NUM_OR_NULL, "jerk": NUM_OR_NULL, "snap": NUM_OR_NULL,
+    "lo": {"type": "array"}, "hi": {"type": "array"},
+}, ("velocity", "acceleration", "jerk", "snap"))
+
+OUT_DESCRIPTIONS = {
+    "status": "Status as published on <prefix>/<vehicle>/status (README: Zenoh interface)",
+    "telemetry": "Telemetry as published (local_ned)",
+    "trajectory": "The plan flown, as published (local_ned; segments with corridors)",
+    "events": "Events as published",
+}
+
+
+def _maybe(kind: str) -> dict[str, Any]:
+    return {"type": [kind, "null"]}
+
+
+VEC = {"type": ["array", "null"], "items": NUM}
+# the fields a viewer plots or filters on (a viewer completes message paths from these);
+# the README's "The Zenoh interface" has them all
+OUT_PROPERTIES: dict[str, dict[str, Any]] = {
+    "status": {
+        "vehicle": {"type": "string"}, "time": NUM, "state": {"type": "string"}, "airborne": {"type": "boolean"},
+        "mode": _maybe("string"), "armed": {"type": "boolean"}, "link": {"type": "boolean"},
+        "streaming": {"type": "boolean"}, "mission": _maybe("string"), "progress": _maybe("number"),
+        "time_to_go": _maybe("number"), "tracking_error": _maybe("number"),
+        "tracking_error_max": _maybe("number"), "lag_estimate_ms": _maybe("number"),
+        "message_to_setpoint_ms": _maybe("number"), "plan_latency_ms": _maybe("number"),
+        "replan_latency_ms": _maybe("number"), "setpoints_sent": {"type": "integer"},
+        "setpoint_gap_max_ms": NUM, "gc_pause_max_ms": NUM, "setpoints_stalled": {"type": "boolean"},
+        "recording": {"type": "object", "properties": {
+            "file": _maybe("string"), "written": {"type": "integer"}, "dropped": {"type": "integer"},
+            "error": _maybe("string")}},
+    },
+    "telemetry": {
+        "time": NUM, "frame": {"type": "string"}, "position": VEC, "velocity": VEC,
+        "attitude": {"type": "object", "properties": {"roll": _maybe("number"), "pitch": _maybe("number"),
+                                                      "yaw": _maybe("number")}},
+        "armed": {"type": "boolean"}, "mode": _maybe("string"),
+    },
+    "events": {"type": {"type": "string"}, "time": NUM, "state": {"type": "string"}, "message": {"type": "string"}},
+    "trajectory": {"frame": {"type": "string"}, "segments": {"type": "array"}},
+}
+
+FOXGLOVE = {
+    "/viz/vehicle": "PoseInFrame",
+    "/viz/tf": "FrameTransform",
+    "/viz/planned_path": "PosesInFrame",
+    "/viz/flown_path": "PosesInFrame",
+    "/viz/obstacles": "SceneUpdate",
+    "/viz/corridors": "SceneUpdate",
+}
+
+
+def _json(schema: dict[str, Any]) -> Spec:
+    return Spec(schema["title"], "jsonschema", json.dumps(schema).encode(), "json")
+
+
+@cache
+def spec(topic: str) -> Spec:
+    """The schema of a channel, from its name."""
+    if topic in FOXGLOVE:
+        from foxglove import messages
+
+        s = getattr(messages, FOXGLOVE[topic]).get_schema()
+        return Spec(s.name, s.encoding, bytes(s.data), "protobuf")
+    if topic.startswith("/in/"):
+        return _json(INBOUND)
+    if topic.startswith("/out/"):
+        key = topic.removeprefix("/out/")
+        return _json(_obj(f"bezier.{key}", OUT_DESCRIPTIONS.get(key, "as published"), OUT_PROPERTIES.get(key)))
+    if topic.startswith("/mavlink/"):
+        return _json(MAVLINK)
+    if topic == "/planner/plan":
+        return _json(PLAN)
+    if topic == "/recorder/stats":
+        return _json(STATS)
+    if topic == "/viz/bounds":
+        return _json(BOUNDS)
+    raise KeyError(f"no schema for channel {topic}")
+
+
+# -- JSON records -------------------------------------------------------------------------------
+
+
+def _finite(x: Any) -> Any:
+    if isinstance(x, float):
+        return x if math.isfinite(x) else None
+    if isinstance(x, dict):
+        return {str(k): _finite(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_finite(v) for v in x]
+    if isinstance(x, bytes | bytearray):
+        return x.decode("utf-8", "replace")
+    if isinstance(x, np.ndarray):
+        return _finite(x.tolist())
+    if isinstance(x, np.generic):
+        return _finite(x.item())
+    return x
+
+
+def dumps(obj: Any) -> bytes:
+    """JSON; NaN and infinities (MAVLink's "unset" NaN parameters) become null."""
+    try:  # the common case, without a walk over every value
+        return json.dumps(obj, separators=(",", ":"), allow_nan=False).encode()
+    except (ValueError, TypeError):
+        return json.dumps(_finite(obj), separators=(",", ":"), default=str).encode()
+
+
+def inbound_record(key: str, payload: Any, t: float) -> bytes:
+    body: dict[str, Any] = {"key": key, "t": t, "bytes": len(payload)}
+    if isinstance(payload, bytes | bytearray | memoryview):
+        raw = bytes(payload)
+        try:
+            body["text"] = raw.decode("utf-8")
+        except UnicodeDecodeError:
+            import base64
+
+            body["base64"] = base64.b64encode(raw).decode()
+    else:
+        body["oversized"] = True
+    return dumps(body)
+
+
+def mavlink_record(msg: Any, t: float) -> bytes:
+    d = msg.to_dict()
+    d["t"] = t
+    d["sysid"], d["compid"] = msg.get_srcSystem(), msg.get_srcComponent()
+    return dumps(d)
+
+
+ORDERS = ("velocity", "acceleration", "jerk", "snap")
+
+
+def bounds_fields(bounds: Any) -> dict[str, Any]:
+    """Per order, the tightest magnitude over the axes (a number to plot over time), and the
+    per-axis box (NED, lo and hi; null: unbounded)."""
+    lo, hi = np.asarray(bounds.lo, dtype=float), np.asarray(bounds.hi, dtype=float)
+    tight = np.minimum(hi, -lo).min(axis=1)
+    return {**{n: float(tight[i]) for i, n in enumerate(ORDERS)}, "lo": lo.tolist(), "hi": hi.tolist()}
+
+
+# -- Foxglove 3D --------------------------------------------------------------------------------
+
+
+def _quat_enu(roll: float, pitch: float, yaw: float) -> tuple[float, float, float, float]:
+    """A FRD body's attitude in NED (roll, pitch, yaw) as the FLU body's quaternion in ENU."""
+    r, p, y = roll, -pitch, math.pi / 2 - yaw
+    cr, sr = math.cos(r / 2), math.sin(r / 2)
+    cp, sp = math.cos(p / 2), math.sin(p / 2)
+    cy, sy = math.cos(y / 2), math.sin(y / 2)
+    return (sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy,
+            cr * cp * sy - sr * sp * cy, cr * cp * cy + sr * sp * sy)
+
+
+class Viz:
+    """Foxglove 3D messages from what the recorder sees (in the writer thread only)."""
+
+    def __init__(self) -> None:
+        self.attitude = (0.0, 0.0, 0.0)
+        self.flown: collections.deque[tuple[float, float, float]] = collections.deque(maxlen=FLOWN_KEEP)
+        self._last_flown = -math.inf
+        self._last_flown_pub = -math.inf
+        self.offset = 0.0  # monotonic to unix (set by the recorder)
+
+    def _ts(self, t: float) -> Any:
+        from foxglove.messages import Timestamp
+
+        t += self.offset
+        sec = math.floor(t)
+        return Timestamp(int(sec), int((t - sec) * 1e9))
+
+    def on_mavlink(self, msg: Any, t: float) -> list[tuple[str, bytes]]:
+        kind = msg.get_type()
+        if kind == "ATTITUDE":
+            self.attitude = (msg.roll, msg.pitch, msg.yaw)
+            return []
+        if kind != "LOCAL_POSITION_NED":
+            return []
+        from foxglove.messages import (
+            FrameTransform,
+            Pose,
+            PoseInFrame,
+            PosesInFrame,
+            Quaternion,
+            Vector3,
+        )
+
+        e = swap_points(np.array([msg.x, msg.y, msg.z], dtype=float))
+        q = Quaternion(**dict(zip("xyzw", _quat_enu(*self.attitude), strict=True)))
+        pos = Vector3(x=float(e[0]), y=float(e[1]), z=float(e[2]))
+        ts = self._ts(t)
+        out = [
+            ("/viz/vehicle", PoseInFrame(timestamp=ts, frame_id="local_enu", pose=Pose(position=pos, orientation=q)).encode()),
+            ("/viz/tf", FrameTransform(timestamp=ts, parent_frame_id="local_enu", child_frame_id="vehicle",
+                                       translation=pos, rotation=q).encode()),
+        ]
+        if t - self._last_flown >= FLOWN_EVERY:
+            self._last_flown = t
+            self.flown.append((float(e[0]), float(e[1]), float(e[2])))
+        if t - self._last_flown_pub >= FLOWN_PUBLISH and self.flown:
+            self._last_flown_pub = t
+            ident = Quaternion(x=0.0, y=0.0, z=0.0, w=1.0)
+            poses = [Pose(position=Vector3(x=x, y=y, z=z), orientation=ident) for x, y, z in self.flown]
+            out.append(("/viz/flown_path", PosesInFrame(timestamp=ts, frame_id="local_enu", poses=poses).encode()))
+        return out
+
+    def on_flown(self, traj: Any, t_base: float | None, t: float) -> list[tuple[str, bytes]]:
+        """The plan flown from now on: its path, and the corridors of the segments ahead."""
+        from foxglove.messages import Pose, PosesInFrame, Quaternion, Vector3
+
+        ts = self._ts(t)
+        now = -math.inf if t_base is None else t - t_base
+        times = np.linspace(max(traj.t0, min(now, traj.t_end)), traj.t_end, PLANNED_POINTS)
+        pts = swap_points(np.asarray(traj.evaluate(times), dtype=float))
+        ident = Quaternion(x=0.0, y=0.0, z=0.0, w=1.0)
+        poses = [Pose(position=Vector3(x=float(p[0]), y=float(p[1]), z=float(p[2])), orientation=ident) for p in pts]
+        out = [("/viz/planned_path", PosesInFrame(timestamp=ts, frame_id="local_enu", poses=poses).encode())]
+        corridors = traj.corridors or ()
+        ahead = [c for s, c in enumerate(corridors) if c is not None and traj.times[s + 1] >= now]
+        out.append(("/viz/corridors", self._scene(ts, "corridor", ahead[:64], (0.2, 0.6, 1.0, 0.15))))
+        return out
+
+    def on_plan(self, args: tuple[Any, ...], result: Any, t: float) -> list[tuple[str, bytes]]:
+        """The obstacles a plan was made against, and the bounds it used."""
+        from companion.obstacles import Known
+
+        out: list[tuple[str, bytes]] = []
+        known = next((a for a in args if isinstance(a, Known)), None)
+        if known is not None:
+            out.append(("/viz/obstacles", self._scene(self._ts(t), "obstacle", list(known.polytopes)[:256],
+                                                  (1.0, 0.3, 0.2, 0.5))))
+        route = getattr(result, "route", None)
+        # the bounds the planner was given (the mission's, less [planner] reserve when it applies)
+        bounds = getattr(getattr(route, "problem", None), "bounds", None)
+        if bounds is not None:
+            out.append(("/viz/bounds", dumps({"t": t, **bounds_fields(bounds)})))
+        return out
+
+    @staticmethod
+    def _scene(ts: Any, kind: str, polytopes: list[Any], rgba: tuple[float, float, float, float]) -> bytes:
+        """One SceneUpdate replacing every entity of `kind`: a triangle mesh per polytope."""
+        from foxglove.messages import (
+            Color,
+            Point3,
+            SceneEntity,
+            SceneEntityDeletion,
+            SceneEntityDeletionType,
+            SceneUpdate,
+            TriangleListPrimitive,
+        )
+        from scipy.spatial import ConvexHull
+
+        from planner_core import polytope_vertices
+
+        color = Color(r=rgba[0], g=rgba[1], b=rgba[2], a=rgba[3])
+        entities = []
+        for i, poly in enumerate(polytopes):
+            try:
+                v = swap_points(polytope_vertices(poly))
+                tri = v[ConvexHull(v).simplices].reshape(-1, 3)
+            except Exception:  # unbounded or flat: nothing to draw
+                continue
+            entities.append(SceneEntity(
+                timestamp=ts, frame_id="local_enu", id=f"{kind}/{i}", frame_locked=True,
+                triangles=[TriangleListPrimitive(points=[Point3(x=float(p[0]), y=float(p[1]), z=float(p[2]))
+                                                         for p in tri], color=color)]))
+        # each message replaces the whole scene of its channel (/viz/obstacles, /viz/corridors)
+        deletions = [SceneEntityDeletion(timestamp=ts, type=SceneEntityDeletionType.All)]
+        return bytes(SceneUpdate(deletions=deletions, entities=entities).encode())

@@ -1,0 +1,422 @@
+"""The flight recorder: everything in and out of the service, as MCAP, and the same channels live.
+
+`Recorder` is the service's `Tap` (companion/tap.py). A call only stamps and enqueues (O(1),
+`put_nowait` on a bounded queue; never a wait, never a conversion), so neither the loop nor
+the setpoint thread ever waits on a disk or a viewer. A writer thread of its own converts
+each record (JSON, MAVLink to dict, planner arguments pickled, Foxglove 3D messages) and hands
+it to the sinks: `McapSink` (one MCAP file per run, rotated at `[recording] max_bytes`, the
+oldest removed past `keep_bytes`) and `companion.live.LiveSink` (the Foxglove WebSocket
+server). A record that finds its queue full is dropped and counted: in status
+(`recording.dropped`), in the `/recorder/stats` channel every second and in the file's
+`recorder` metadata record. Setpoints (every MAVLink message sent) have a queue of their own,
+so a burst of other traffic never drops one.
+
+Channels, schemas and frames: companion/channels.py and docs/recording.md.
+"""
+
+from __future__ import annotations
+
+import base64
+import contextlib
+import datetime
+import itertools
+import json
+import logging
+import os
+import pickle
+import queue
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, Protocol
+
+from companion import channels as ch
+from companion.config import Config, config_to_toml
+from companion.tap import Tap
+
+log = logging.getLogger("companion")
+
+FORMAT_VERSION = "1"
+STATS_PERIOD = 1.0  # s between /recorder/stats records
+CHUNK_BYTES = 128 * 1024  # uncompressed MCAP chunk
+
+
+class Sink(Protocol):
+    def write(self, topic: str, data: bytes, log_time: int) -> None: ...
+
+    def close(self, stats: dict[str, Any]) -> None: ...
+
+
+# -- MCAP files ---------------------------------------------------------------------------------
+
+
+class McapSink:
+    """One MCAP file per run in `directory`, a new one past `max_bytes` (`-001`, `-002`, ...);
+    the oldest `.mcap` files there are removed while they hold more than `keep_bytes` in all."""
+
+    def __init__(self, directory: Path, stem: str, max_bytes: int, keep_bytes: int,
+                 metadata: dict[str, str]) -> None:
+        self.directory = directory
+        self.stem = stem
+        self.max_bytes = max_bytes
+        self.keep_bytes = keep_bytes
+        self.metadata = metadata
+        self.part = 0
+        self.files: list[Path] = []
+        self._writer: Any = None
+        self._fh: Any = None
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, int] = {}
+        directory.mkdir(parents=True, exist_ok=True)
+        self._open()
+
+    @property
+    def path(self) -> Path:
+        return self.files[-1]
+
+    def _open(self) -> None:
+        from mcap.writer import CompressionType, Writer
+
+        name = self.stem + (f"-{self.part:03d}" if self.part else "") + ".mcap"
+        path = self.directory / name
+        self._fh = open(path, "wb")  # noqa: SIM115 - closed in _finish
+        # zstd chunks (JSON telemetry compresses ~10x) of 128 kB: a crash loses the chunk being
+        # filled, ~5 s of flight, never the file's earlier chunks
+        self._writer = Writer(self._fh, compression=CompressionType.ZSTD,
+                              chunk_size=max(4096, min(CHUNK_BYTES, self.max_bytes // 8)))
+        self._writer.start(profile="", library=f"bezier-companion recorder {FORMAT_VERSION}")
+        self._writer.add_metadata("companion", {**self.metadata, "part": str(self.part)})
+        self._schemas.clear()
+        self._channels.clear()
+        self.files.append(path)
+        self._prune()
+
+    def _channel(self, topic: str) -> int:
+        cid = self._channels.get(topic)
+        if cid is None:
+            spec = ch.spec(topic)
+            sid = self._schemas.get(spec.schema_name)
+            if sid is None:
+                sid = self._writer.register_schema(spec.schema_name, spec.schema_encoding, spec.schema_data)
+                self._schemas[spec.schema_name] = sid
+            cid = self._writer.register_channel(topic, spec.message_encoding, sid)
+            self._channels[topic] = cid
+        return cid
+
+    def write(self, topic: str, data: bytes, log_time: int) -> None:
+        self._writer.add_message(self._channel(topic), log_time=log_time, data=data, publish_time=log_time)
+        if self._fh.tell() >= self.max_bytes:
+            self._finish({"rotated": "true"})
+            self.part += 1
+            self._open()
+
+    def _finish(self, meta: dict[str, str]) -> None:
+        with contextlib.suppress(Exception):
+            self._writer.add_metadata("recorder", meta)
+        self._writer.finish()
+        self._fh.close()
+
+    def close(self, stats: dict[str, Any]) -> None:
+        self._finish({k: json.dumps(v) for k, v in stats.items()})
+
+    def _prune(self) -> None:
+        """Remove the oldest recordings (never the one being written) past keep_bytes."""
+        files = sorted((p for p in self.directory.glob("*.mcap") if p != self.path),
+                       key=lambda p: p.stat().st_mtime)
+        total = sum(p.stat().st_size for p in files)
+        for p in files:
+            if total <= self.keep_bytes:
+                break
+            with contextlib.suppress(OSError):
+                size = p.stat().st_size
+                p.unlink()
+                total -= size
+                log.info("recording: removed %s ([recording] keep_bytes = %d)", p.name, self.keep_bytes)
+
+
+# -- the recorder -------------------------------------------------------------------------------
+
+
+class Recorder(Tap):
+    """The service's tap when `[recording] path` or `[live] foxglove` is set."""
+
+    def __init__(self, cfg: Config, sinks: list[Sink] | None = None,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.cfg = cfg
+        self.clock = clock
+        # log times are wall-clock ns (what viewers show); records keep the monotonic time
+        # they were taken at, and the offset between the two is in the file's metadata
+        self.offset = time.time() - clock()
+        size = cfg.recording.queue
+        self._sent: queue.Queue[tuple[Any, ...]] = queue.Queue(size)  # MAVLink sent: setpoints
+        self._rest: queue.Queue[tuple[Any, ...]] = queue.Queue(size)
+        self._drop_lock = threading.Lock()
+        self.dropped: dict[str, int] = {}
+        self.written = 0
+        self.sinks: list[Sink] = list(sinks or [])
+        self.mcap: McapSink | None = None
+        self._viz = ch.Viz()
+        self._viz.offset = self.offset
+        self._plan_seq = itertools.count(1)
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._last_stats = 0.0
+        self.error: str | None = None  # why a sink was given up, for status
+
+    # -- opening --------------------------------------------------------------------------
+
+    def open(self) -> None:
+        """Open the file (if `[recording] path`) and the live server (if `[live] foxglove`);
+        start the writer thread."""
+        rc = self.cfg.recording
+        # every import the writer thread needs, now: an import mid-flight holds the import lock
+        # and the GIL in long stretches
+        import foxglove.messages  # noqa: F401
+        import mcap.writer  # noqa: F401
+        import scipy.spatial  # noqa: F401
+
+        from companion import obstacles, replay  # noqa: F401
+
+        # Neither a recording that cannot be written nor a live port in use stops the service: it
+        # says so (log, status `recording.error`) and flies without.
+        if rc.path:
+            stamp = datetime.datetime.now(datetime.UTC).strftime("%Y%m%dT%H%M%SZ")
+            stem = f"{self.cfg.vehicle.id}-{stamp}-{os.getpid()}"
+            try:
+                self.mcap = McapSink(Path(rc.path), stem, rc.max_bytes, rc.keep_bytes, self.metadata())
+                self.sinks.append(self.mcap)
+                log.info("recording to %s", self.mcap.path)
+            except Exception as exc:
+                self._failed(f"[recording] path {rc.path!r}: {exc}")
+        if self.cfg.live.foxglove:
+            from companion.live import LiveSink
+
+            try:
+                self.sinks.append(LiveSink.start(self.cfg.live.foxglove, self.cfg.vehicle.id))
+            except Exception as exc:
+                self._failed(f"[live] foxglove {self.cfg.live.foxglove!r}: {exc}")
+        self._thread = threading.Thread(target=self._main, name="recorder", daemon=True)
+        self._thread.start()
+
+    def _failed(self, why: str) -> None:
+        self.error = why
+        log.error("flight recorder: %s; going on without it", why)
+
+    def metadata(self) -> dict[str, str]:
+        return {
+            "format": FORMAT_VERSION,
+            "vehicle": self.cfg.vehicle.id,
+            "monotonic_to_unix": repr(self.offset),
+            "config": config_to_toml(self.cfg),
+            "started": datetime.datetime.now(datetime.UTC).isoformat(),
+            "frames": ch.FRAMES_NOTE,
+            "environment": json.dumps(environment()),
+        }
+
+    # -- the tap: O(1), never waits --------------------------------------------------------
+
+    def _put(self, q: queue.Queue[tuple[Any, ...]], item: tuple[Any, ...]) -> None:
+        try:
+            q.put_nowait(item)
+        except queue.Full:
+            with self._drop_lock:
+                self.dropped[item[0]] = self.dropped.get(item[0], 0) + 1
+
+    def inbound(self, key: str, payload: Any, t: float) -> None:
+        self._put(self._rest, ("inbound", key, payload, t))
+
+    def outbound(self, key: str, payload: bytes, t: float) -> None:
+        self._put(self._rest, ("outbound", key, payload, t))
+
+    def mavlink_sent(self, msg: Any, t: float | None = None) -> None:
+        # called by pymavlink's send callback, in whichever thread sent (the setpoint thread)
+        self._put(self._sent, ("mavlink_sent", msg, self.clock() if t is None else t))
+
+    def mavlink_received(self, msg: Any, t: float) -> None:
+        self._put(self._rest, ("mavlink_received", msg, t))
+
+    def plan(self, fn: Any, args: tuple[Any, ...], result: Any, submitted: float, done: float,
+             where: str) -> None:
+        if getattr(fn, "__name__", "").startswith("warm_up"):
+            return
+        self._put(self._rest, ("plan", fn, args, result, submitted, done, where))
+
+    def flown(self, trajectory: Any, t_base: float | None, t: float) -> None:
+        self._put(self._rest, ("flown", trajectory, t_base, t))
+
+    def status_fields(self) -> dict[str, Any]:
+        with self._drop_lock:  # the dict grows from other threads
+            dropped = sum(self.dropped.values())
+        return {"recording": {
+            "file": str(self.mcap.path) if self.mcap is not None else None,
+            "written": self.written,
+            "dropped": dropped,
+            "error": self.error,
+        }}
+
+    def stats(self) -> dict[str, Any]:
+        with self._drop_lock:
+            dropped = dict(self.dropped)
+        return {"written": self.written, "dropped": dropped, "dropped_total": sum(dropped.values()),
+                "queued": self._sent.qsize() + self._rest.qsize()}
+
+    # -- the writer thread -----------------------------------------------------------------
+
+    def close(self) -> None:
+        """Write out what is queued (bounded: systemd's stop timeout follows the hand-over) and
+        close the sinks; a writer still busy then leaves its file without a summary."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(3.0)
+            if self._thread.is_alive():
+                log.error("flight recorder: still writing after 3 s at stop; the file is left without "
+                          "its summary (docs/recording.md: reading a file cut short)")
+                return
+        stats = self.stats()
+        for sink in self.sinks:
+            try:
+                sink.close(stats)
+            except Exception:
+                log.exception("recording: closing %r failed", sink)
+
+    def _main(self) -> None:
+        from companion.setpoints import name_thread
+
+        name_thread("recorder")
+        while True:
+            stopping = self._stop.is_set()
+            n = self._drain(self._sent) + self._drain(self._rest)
+            now = self.clock()
+            if now - self._last_stats >= STATS_PERIOD:
+                self._last_stats = now
+                self._emit("/recorder/stats", ch.dumps({"t": now, **self.stats()}), now)
+            if stopping and n == 0:
+                return
+            if n == 0:
+                self._stop.wait(0.02)
+
+    def _drain(self, q: queue.Queue[tuple[Any, ...]], most: int = 2000) -> int:
+        n = 0
+        while n < most:
+            try:
+                item = q.get_nowait()
+            except queue.Empty:
+                break
+            n += 1
+            try:
+                self._convert(item)
+            except Exception:  # a record we cannot convert must not end the recording
+                log.exception("recording: could not record a %s", item[0])
+        return n
+
+    def _emit(self, topic: str, data: bytes, t: float) -> None:
+        log_time = int((t + self.offset) * 1e9)
+        for sink in self.sinks:
+            try:
+                sink.write(topic, data, log_time)
+            except Exception as exc:  # a full disk, a server gone: give that sink up, once
+                self.sinks = [s for s in self.sinks if s is not sink]
+                self._failed(f"writing {topic} to {type(sink).__name__} failed ({exc!r})")
+        self.written += 1
+
+    def _convert(self, item: tuple[Any, ...]) -> None:
+        kind = item[0]
+        if kind == "inbound":
+            _, key, payload, t = item
+            self._emit(f"/in/{key}", ch.inbound_record(key, payload, t), t)
+        elif kind == "outbound":
+            _, key, payload, t = item
+            self._emit(f"/out/{key}", bytes(payload), t)
+        elif kind in ("mavlink_sent", "mavlink_received"):
+            _, msg, t = item
+            name = msg.get_type()
+            way = "out" if kind == "mavlink_sent" else "in"
+            self._emit(f"/mavlink/{way}/{name}", ch.mavlink_record(msg, t), t)
+            if way == "in":
+                for topic, data in self._viz.on_mavlink(msg, t):
+                    self._emit(topic, data, t)
+        elif kind == "plan":
+            _, fn, args, result, submitted, done, where = item
+            seq = next(self._plan_seq)
+            self._emit("/planner/plan", plan_record(seq, fn, args, result, submitted, done, where, self.cfg), done)
+            for topic, data in self._viz.on_plan(args, result, done):
+                self._emit(topic, data, done)
+        elif kind == "flown":
+            _, traj, t_base, t = item
+            for topic, data in self._viz.on_flown(traj, t_base, t):
+                self._emit(topic, data, t)
+
+
+def environment() -> dict[str, str]:
+    """What a bit-identical replay depends on besides the recorded inputs: the interpreter, the
+    numerical libraries and the machine (their kernels may round differently elsewhere)."""
+    import platform
+    from importlib import metadata
+
+    env = {"python": platform.python_version(), "machine": platform.machine(), "system": platform.system()}
+    for dist in ("numpy", "scipy", "daqp", "osqp", "numba"):
+        with contextlib.suppress(metadata.PackageNotFoundError):
+            env[dist] = metadata.version(dist)
+    return env
+
+
+# -- planner records ----------------------------------------------------------------------------
+
+
+def plan_record(seq: int, fn: Any, args: tuple[Any, ...], result: Any, submitted: float, done: float,
+                where: str, cfg: Config) -> bytes:
+    """One planner call: readable fields, and the call and its result pickled (base64) so that
+    `python -m companion replay` can run it again and compare bit for bit. Built so that no
+    single C call holds the interpreter lock for long (the setpoint thread needs it every tick):
+    pickles are written in 64 kB frames through Python, the base64 text is spliced in, not
+    passed through the JSON encoder."""
+    from companion import replay
+
+    name = replay.function_name(fn)
+    compiled = replay.compiled_used(result, cfg.planner.compiled if where == "process" else False)
+    body: dict[str, Any] = {
+        "seq": seq,
+        "function": name,
+        "where": where,
+        "compiled": compiled,
+        "submitted": submitted,
+        "done": done,
+        "latency_ms": round((done - submitted) * 1000, 3),
+        **replay.summary_of(result),
+        "fingerprint": replay.fingerprint(result),
+    }
+    call = _pickled((fn, args))
+    res = None if isinstance(result, BaseException) else _pickled(result)
+    return b"".join([ch.dumps(body)[:-1],
+                     b',"call":', b"null" if call is None else b'"' + call + b'"',
+                     b',"result":', b"null" if res is None else b'"' + res + b'"', b"}"])
+
+
+class _Frames:
+    """A file for pickle.Pickler: a Python-level write per 64 kB frame is where other threads
+    get the interpreter lock back while a large result is pickled."""
+
+    def __init__(self) -> None:
+        self.parts: list[bytes] = []
+
+    def write(self, data: Any) -> int:  # bytes, or a PickleBuffer (a large array's data)
+        part = bytes(data)
+        self.parts.append(part)
+        return len(part)
+
+
+def _pickled(obj: Any) -> bytes | None:
+    try:
+        out = _Frames()
+        pickle.Pickler(out, protocol=5).dump(obj)
+        return base64.b64encode(b"".join(out.parts))
+    except Exception:  # not picklable: the plan is recorded, but replay cannot run it
+        return None
+
+
+def tap_for(cfg: Config) -> Tap:
+    """The service's tap: a Recorder when recording or the live view is on, else the no-op."""
+    if cfg.recording.path or cfg.live.foxglove:
+        return Recorder(cfg)
+    return Tap()

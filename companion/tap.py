@@ -1,0 +1,52 @@
+"""The service's one listening point for the flight recorder and the live view.
+
+Each place where something enters or leaves the service calls one method of a `Tap` with what
+it has at hand (bytes already encoded, the pymavlink message, the planner's arguments and
+result) and the monotonic time. `Tap` itself does nothing, so a service without a recorder
+pays one method call; `companion.recorder.Recorder` queues each call (O(1), never blocking)
+for its writer thread, which does every conversion. Some calls come from the setpoint thread
+(a setpoint sent) and from Zenoh's and the executors' threads: a Tap must be thread-safe and
+must never wait.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+
+class Tap:
+    """A no-op: what the service calls when nothing records."""
+
+    def inbound(self, key: str, payload: Any, t: float) -> None:
+        """A Zenoh message taken in: its key's last part, bytes (or `Oversized`), arrival time."""
+
+    def outbound(self, key: str, payload: bytes, t: float) -> None:
+        """A Zenoh publication: its key's last part and the bytes published."""
+
+    def mavlink_sent(self, msg: Any, t: float | None = None) -> None:
+        """A MAVLink message just written to the link (setpoints included); pymavlink's send
+        callback, so no time: the tap takes it."""
+
+    def mavlink_received(self, msg: Any, t: float) -> None:
+        """A MAVLink message from the vehicle, as the link accepted it."""
+
+    def plan(self, fn: Any, args: tuple[Any, ...], result: Any, submitted: float, done: float,
+             where: str) -> None:
+        """A planner call: the function, its arguments, its result (or the exception raised),
+        when it was submitted and when its result was back on the loop, and where it ran."""
+
+    def flown(self, trajectory: Any, t_base: float | None, t: float) -> None:
+        """What the setpoint thread flies from now on (a new plan, a swap, a hold)."""
+
+    def status_fields(self) -> dict[str, Any]:
+        """Fields for the service's status (nothing when nothing records)."""
+        return {}
+
+    def open(self) -> None:
+        """Start recording (files, live server, writer thread)."""
+
+    def close(self) -> None:
+        """Write out what is queued and close files and servers."""
+
+
+NO_TAP = Tap()

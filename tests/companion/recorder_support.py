@@ -1,0 +1,65 @@
+"""What the recorder tests share: a configuration, real MAVLink messages, a real plan."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pymavlink.dialects.v20 import common as mavlink2
+
+from companion.config import Config, LimitsConfig, LiveConfig, RecordingConfig
+from companion.mission import start_mission
+from companion.obstacles import Known
+from companion.route import Outcome
+from companion.wire.messages import MissionSpec, read
+from planner_core import rest_jet
+
+
+def config(path: Path | str = "", queue: int = 4096, live: str = "", **rec: Any) -> Config:
+    # a cold process checks its first obstacle slowly (imports): no decode deadline here
+    return Config(recording=RecordingConfig(path=str(path), queue=queue, **rec), live=LiveConfig(foxglove=live),
+                  limits=LimitsConfig(decode_deadline=60.0))
+
+
+class Wire:
+    """A real pymavlink encoder whose every send goes to `on_sent` (as MavlinkLink's does), and
+    a decoder for what it wrote: messages as the link receives them."""
+
+    def __init__(self, on_sent: Any = None) -> None:
+        self.buf = bytearray()
+        self.tx = mavlink2.MAVLink(self, srcSystem=1, srcComponent=191)
+        if on_sent is not None:
+            self.tx.set_send_callback(on_sent)
+        self.rx = mavlink2.MAVLink(None)
+
+    def write(self, data: bytes) -> None:  # the "file" pymavlink writes to
+        self.buf += data
+
+    def setpoint(self, k: int) -> None:
+        self.tx.set_position_target_local_ned_send(k, 1, 1, 1, 2048, 0.01 * k, 0.0, -1.0, 0.5, 0.0, 0.0,
+                                                   0.0, 0.0, 0.0, 0.0, 0.0)
+
+    def received(self, msg: Any) -> Any:
+        """`msg` as the other end decodes it (header, source ids)."""
+        return self.rx.parse_buffer(msg.pack(self.tx))[0]
+
+
+MISSION = {"id": "rec", "frame": "ned", "waypoints": [[0.0, 0.0, -1.0], [4.0, 0.0, -1.0], [4.0, 4.0, -1.5]],
+           "obstacles": [{"id": "box", "vertices": [[x, y, z] for x in (1.5, 2.5) for y in (-0.5, 0.5) for z in (-3.0, 0.0)]}]}
+
+
+def mission(cfg: Config, **changes: Any) -> MissionSpec:
+    spec = read("mission", json.dumps({**MISSION, **changes}).encode(), cfg, None)
+    assert isinstance(spec, MissionSpec), spec
+    return replace(spec, raw={})
+
+
+def plan_call(cfg: Config, **changes: Any) -> tuple[Any, tuple[Any, ...], Outcome]:
+    """A real planner call as the service makes it: (function, arguments, result)."""
+    args = (mission(cfg, **changes), rest_jet(np.array([-0.5, 0.0, -1.0])), 0.0, Known(), cfg)
+    out = start_mission(*args)
+    assert out.ok, out.message
+    return start_mission, args, out
