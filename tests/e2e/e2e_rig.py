@@ -124,7 +124,9 @@ takeoff_altitude = 1.0
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         mock_cmd = [sys.executable, "-m", "sitl_mock", "--autopilot", self.autopilot,
                     "--endpoint", f"udpin:127.0.0.1:{self.mav_port}", "--log", str(self.log_path),
-                    "--log-rate-hz", "50", "--control", f"127.0.0.1:{self.ctl_port}"]
+                    "--log-rate-hz", "50", "--control", f"127.0.0.1:{self.ctl_port}",
+                    # ready to arm at boot: PX4's ~36 s estimator settling has tests of its own
+                    "--px4-ready-after", "0"]
         self.procs.append(subprocess.Popen(mock_cmd, cwd=REPO, env=env, stdout=subprocess.DEVNULL,
                                            preexec_fn=_raise_priority,
                                            stderr=open(self.tmp / f"{self.autopilot}-mock.err", "wb")))  # noqa: SIM115
