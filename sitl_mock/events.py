@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import struct
 from dataclasses import dataclass
+from typing import Any
 
 # The events protocol's log levels (MAVLink EVENT log_levels nibbles; 0-7 as MAV_SEVERITY).
 LEVELS = ("EMERGENCY", "ALERT", "CRITICAL", "ERROR", "WARNING", "NOTICE", "INFO", "DEBUG", "PROTOCOL", "DISABLED")
@@ -150,15 +151,15 @@ def arming_check_args(modes: int, component: str) -> bytes:
     return struct.pack("<IB", modes, HEALTH_INDEX[component])
 
 
-def _enum(type_: str, description: str, entries: dict[int, tuple[str, str]], bitfield: bool = False) -> dict:
-    out: dict = {"type": type_, "description": description,
+def _enum(type_: str, description: str, entries: dict[int, tuple[str, str]], bitfield: bool = False) -> dict[str, Any]:
+    out: dict[str, Any] = {"type": type_, "description": description,
                  "entries": {str(k): {"name": n, "description": d} for k, (n, d) in entries.items()}}
     if bitfield:
         out["is_bitfield"] = True
     return out
 
 
-def all_events() -> dict:
+def all_events() -> dict[str, Any]:
     """The events metadata, in the layout of PX4's all_events.json (version 2)."""
     enums = {
         "arm_disarm_reason_t": _enum("uint8_t", "Reason for arming/disarming",
@@ -176,9 +177,9 @@ def all_events() -> dict:
         "failsafe_action_t": _enum("uint8_t", "failsafe action",
                                    {i: (d.replace(" ", "_") or "none", d) for i, d in enumerate(_FAILSAFE_ACTIONS)}),
     }
-    groups: dict[str, dict] = {}
+    groups: dict[str, dict[str, Any]] = {}
     for e in EVENTS:
-        entry: dict = {"name": e.name, "message": e.message}
+        entry: dict[str, Any] = {"name": e.name, "message": e.message}
         if e.description:
             entry["description"] = e.description
         if e.arguments:

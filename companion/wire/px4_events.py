@@ -272,7 +272,7 @@ class Px4Events:
                  time.monotonic() - started)
         try:
             self.cache_dir.mkdir(parents=True, exist_ok=True)
-            tmp = cached.with_suffix(".tmp")
+            tmp = cached.with_suffix(f".{os.getpid()}.tmp")  # concurrent companions: one tmp each
             tmp.write_text(json.dumps(data))
             os.replace(tmp, cached)
         except OSError as exc:
