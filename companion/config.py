@@ -61,7 +61,8 @@ class MavlinkConfig:
     # hex digits); everything we send is then signed. "" = unsigned.
     signing_key_file: str = ""
     # Where PX4's events metadata (fetched over MAVLink FTP, per firmware) is cached; "" =
-    # $XDG_CACHE_HOME/bezier-companion (~/.cache/bezier-companion).
+    # systemd's CacheDirectory ($CACHE_DIRECTORY), else $XDG_CACHE_HOME/bezier-companion
+    # (~/.cache/bezier-companion).
     events_cache_dir: str = ""
     heartbeat_hz: float = 1.0
     # No heartbeat from the autopilot for this long means the link is lost.

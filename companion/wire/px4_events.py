@@ -163,6 +163,11 @@ def _maybe_xz(name: str, data: bytes) -> bytes:
 
 
 def default_cache_dir() -> Path:
+    """systemd's CacheDirectory= ($CACHE_DIRECTORY: the unit's sandbox has no home), else
+    $XDG_CACHE_HOME/bezier-companion, else ~/.cache/bezier-companion."""
+    systemd = os.environ.get("CACHE_DIRECTORY")
+    if systemd:
+        return Path(systemd.split(":")[0])
     base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
     return Path(base) / "bezier-companion"
 

@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import struct
 import time
+from pathlib import Path
 
 import pytest
 
 from companion.config import config_from_dict
 from companion.wire.mavlink import MavlinkLink, Note
-from companion.wire.px4_events import EventsMetadata, MetadataError, ftp_path
+from companion.wire.px4_events import EventsMetadata, MetadataError, default_cache_dir, ftp_path
 
 META = {
     "version": 2,
@@ -76,3 +77,11 @@ def test_refusal_reasons_are_px4_events_and_ardupilot_prearm_texts() -> None:
     notes.append(Note(now, "statustext", "EKF3 IMU0 is using GPS", "INFO", words=True))  # not a reason
     assert link.reasons_around(now - 1, now + 1) == (
         "PreArm: Need Position Estimate", "Arm: Throttle too high", "Navigation error: No valid position estimate")
+
+
+def test_cache_dir_follows_systemd_then_xdg(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    monkeypatch.setenv("CACHE_DIRECTORY", f"{tmp_path}/unit:{tmp_path}/other")
+    assert default_cache_dir() == tmp_path / "unit"  # the unit's sandbox has no home
+    monkeypatch.delenv("CACHE_DIRECTORY")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    assert default_cache_dir() == tmp_path / "bezier-companion"
