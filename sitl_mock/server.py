@@ -325,6 +325,8 @@ class MockAutopilot:
                 "failsafe": self.failsafe_mode is not None,
                 "ground_z": self.ground_z,
                 "home": self.home_ned.tolist(),
+                # PX4: the estimator has settled and arming is allowed (sitl_mock.px4)
+                "ready": self.px4.ready if self.px4 is not None else True,
             }
 
     # ------------------------------------------------------------------ loop

@@ -43,7 +43,7 @@ def test_arming_refused_until_ready_with_px4s_events_then_allowed(make_mock) -> 
     assert (chunk, error, warning) == (0, local, 0) and not can_arm & offboard and can_arm & manual
     modes, component = struct.unpack_from("<IB", event_args(seen, "check_modes_local_pos"))
     assert modes & offboard and component == px4_events.HEALTH_INDEX["local_position_estimate"]
-    assert not mock.snapshot()["armed"]
+    assert not mock.snapshot()["armed"] and not mock.snapshot()["ready"]
 
     # before ready: home at the local origin; the ground estimate wanders between +0.4 and +2.3
     home = c.wait("HOME_POSITION", 5)
@@ -56,6 +56,7 @@ def test_arming_refused_until_ready_with_px4s_events_then_allowed(make_mock) -> 
     end = time.monotonic() + 10
     while time.monotonic() < end and mock.snapshot()["t"] < 12.2:
         time.sleep(0.1)
+    assert mock.snapshot()["ready"]
     home = c.wait("HOME_POSITION", 5, lambda m: m.z != 0.0)
     assert home is not None and abs(home.z - mock.ground_z) < 1e-6
     lpos = c.wait("LOCAL_POSITION_NED", 2)
