@@ -205,13 +205,13 @@ class MavlinkLink:
         self.cfg = cfg
         self.state = VehicleState()
         self.on_message = on_message
+        self.events = Px4Events(self, cfg.mavlink.events_cache_dir)  # PX4's events metadata
         self.conn: Any = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._acks: dict[int, asyncio.Future[int]] = {}
         self._boot = time.monotonic()
         self._send_lock = threading.Lock()
         self.sent_setpoints = 0
-        self.events = Px4Events(self, cfg.mavlink.events_cache_dir)  # PX4's events metadata
 
     # -- lifecycle -----------------------------------------------------------
 
