@@ -60,6 +60,7 @@ class AutopilotWatch:
         self.on_position_sample = on_position  # each LOCAL_POSITION_NED, with its arrival time
         self._on_ground_since = math.inf
         self._telemetry_task: asyncio.Task[None] | None = None
+        self._events_task: asyncio.Task[bool] | None = None
         self._waiting_said = -math.inf
         self.missing_telemetry: list[str] | None = None  # None: not checked yet
 
@@ -81,6 +82,9 @@ class AutopilotWatch:
             log.warning("telemetry request not sent: %s", exc)
             answers = {}
         await self._ask_home()
+        if self.link.state.autopilot == "px4" and self.link.events.metadata is None:
+            # PX4's events in words: its metadata over MAVLink FTP (or the cache), meanwhile
+            self._events_task = asyncio.get_running_loop().create_task(self.link.events.load())
         await asyncio.sleep(max(0.0, since + TELEMETRY_CHECK - time.monotonic()))
         if self.link.state.home is None:
             await self._ask_home()
@@ -132,9 +136,11 @@ class AutopilotWatch:
         if seq == self._event_seq:  # a resent event
             return
         self._event_seq = seq
-        what = note.name or f"event {note.event_id} (not known to the companion)"
-        self.report.event("autopilot", f"autopilot event: {what} ({note.level})", source="event",
-                          event_id=note.event_id, level=note.level, name=note.name, sequence=seq)
+        # In words from the autopilot's events metadata (companion.wire.px4_events); without it,
+        # the number and why there are no words.
+        self.report.event("autopilot", f"autopilot event: {note.text} ({note.level})", source="event",
+                          event_id=note.event_id, level=note.level, name=note.name, sequence=seq,
+                          text=note.text if note.words else None)
 
     def on_landed_state(self, landed: int) -> None:
         fl = self.flight

@@ -60,6 +60,10 @@ class MavlinkConfig:
     # MAVLink 2 signing: a file holding the 32-byte key shared with the autopilot (raw, or 64
     # hex digits); everything we send is then signed. "" = unsigned.
     signing_key_file: str = ""
+    # Where PX4's events metadata (fetched over MAVLink FTP, per firmware) is cached; "" =
+    # systemd's CacheDirectory ($CACHE_DIRECTORY), else $XDG_CACHE_HOME/bezier-companion
+    # (~/.cache/bezier-companion).
+    events_cache_dir: str = ""
     heartbeat_hz: float = 1.0
     # No heartbeat from the autopilot for this long means the link is lost.
     link_timeout: float = 1.5

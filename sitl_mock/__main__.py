@@ -7,10 +7,9 @@ import signal
 import sys
 from types import FrameType
 
-from companion.wire.signing import read_signing_key
-
 from .faults import _seconds, parse_faults
 from .server import MockAutopilot, MockConfig
+from .signing import read_signing_key
 from .transport import PX4_SITL_ENDPOINT
 from .vehicle import RESPONSES
 
@@ -74,9 +73,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--offboard-warmup", type=float, default=1.0, metavar="SECONDS",
                    help="how long a >= 2 Hz setpoint stream must run before OFFBOARD is allowed "
                    "(PX4 docs: 1 s; 0: PX4 code's rule, one setpoint within COM_OF_LOSS_T)")
-    p.add_argument("--response", choices=sorted(RESPONSES), default="calibrated",
-                   help="vehicle response: calibrated (default; fitted to ArduCopter SITL, ~60 ms effective lag) "
-                   "or ideal (follows a full feed-forward at once: fast unit tests)")
+    p.add_argument("--response", choices=sorted(RESPONSES), default=None,
+                   help="vehicle response: px4_sih (PX4's default; ~0.34 s lag as PX4 1.15 SIH), calibrated "
+                   "(ArduPilot's default; fitted to ArduCopter SITL, ~60 ms lag) or ideal (follows a full "
+                   "feed-forward at once: fast unit tests)")
     p.add_argument("--signing-key", metavar="FILE",
                    help="MAVLink 2 signing: a file holding the 32-byte key (raw, or 64 hex digits); unsigned or "
                    "wrongly signed commands and setpoints are then ignored")
@@ -84,6 +84,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ground-z", type=float, default=None, metavar="METRES",
                    help="z (NED) of the ground in the local frame (default: px4 +1.6, i.e. 1.6 m below the "
                    "local origin as on PX4 SITL; ardupilot 0)")
+    p.add_argument("--px4-ready-after", type=float, default=None, metavar="SECONDS", dest="px4_ready_s",
+                   help="PX4: seconds from boot until arming is allowed, as PX4's estimator settles (default "
+                   "36.5, as PX4 1.15 SIH; 0: ready at boot)")
     p.add_argument("--px4-statustext", action="store_true",
                    help="PX4: report with STATUSTEXT as PX4 < 1.14 did, instead of EVENT messages")
     p.add_argument("--rc-throttle", type=_rc, default=1000, metavar="PWM|none",
@@ -111,9 +114,9 @@ def main(argv: list[str] | None = None) -> int:
             log_rate_hz=args.log_rate_hz, home_lat=args.home_lat, home_lon=args.home_lon,
             home_alt=args.home_alt, seed=args.seed, wind=args.wind, noise=args.noise,
             takeovers=args.takeover_at, params=dict(args.param),
-            offboard_warmup_s=args.offboard_warmup, vehicle=RESPONSES[args.response],
+            offboard_warmup_s=args.offboard_warmup, vehicle=RESPONSES[args.response] if args.response else None,
             signing_key=read_signing_key(args.signing_key) if args.signing_key else None,
-            ground_z=args.ground_z, px4_statustext=args.px4_statustext,
+            ground_z=args.ground_z, px4_statustext=args.px4_statustext, px4_ready_s=args.px4_ready_s,
             rc_throttle=args.rc_throttle, ekf_origin_delay_s=args.ekf_origin_delay, spool_up_s=args.spool_up,
             shaping=args.shaping,
         )

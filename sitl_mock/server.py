@@ -13,8 +13,8 @@ from typing import Any
 import numpy as np
 from pymavlink.dialects.v20 import common as mav
 
-from companion.wire import dialect
-
+from . import events as px4_events
+from . import px4
 from . import telemetry as tm
 from .ardupilot import ArduPilotRules
 from .control import ControlServer, parse_hostport
@@ -33,10 +33,9 @@ from .protocol import (
 )
 from .shaping import PX4_LIMIT_PARAMS, px4_vehicle_limits
 from .transport import Encoder, Link, parse_endpoint
-from .vehicle import RESPONSES, Target, Vehicle, VehicleParams
+from .vehicle import DEFAULT_RESPONSE, RESPONSES, Target, Vehicle, VehicleParams
 
 R = mav  # result and enum constants live on the dialect module
-dialect.install()  # EVENT (410), which PX4 >= 1.14 reports with, is not in pymavlink's common
 
 # Default stream rates (Hz) of the PX4 flavour, about what PX4 streams on a MAVLink instance in
 # Onboard mode (the mode of PX4 SITL's offboard link, udp 14580 -> 14540); SET_MESSAGE_INTERVAL
@@ -97,8 +96,9 @@ class MockConfig:
     takeovers: list[tuple[float, str]] = field(default_factory=list)
     params: dict[str, float] = field(default_factory=dict)
     offboard_warmup_s: float = 1.0
-    # the vehicle's response: sitl_mock.vehicle.RESPONSES["calibrated"] (default) or ["ideal"]
-    vehicle: VehicleParams = field(default_factory=lambda: RESPONSES["calibrated"])
+    # the vehicle's response, one of sitl_mock.vehicle.RESPONSES; None: the flavour's
+    # (DEFAULT_RESPONSE: px4 "px4_sih", ardupilot "calibrated")
+    vehicle: VehicleParams | None = None
     # MAVLink 2 signing: with a 32-byte key, unsigned or wrongly signed commands and setpoints
     # are ignored (logged as event "signature_rejected").
     signing_key: bytes | None = None
@@ -116,6 +116,9 @@ class MockConfig:
     spool_up_s: float = 3.0
     # Shape targets with the autopilot's own limits (ArduCopter GUIDED: WPNAV_*; PX4: MPC_*).
     shaping: bool = True
+    # PX4: seconds from boot until the estimator has settled and arming is allowed (sitl_mock.px4);
+    # None: sitl_mock.px4.DEFAULT_READY_S (36.5 s, as PX4 1.15 SIH); 0: ready at boot.
+    px4_ready_s: float | None = None
 
     def validate(self) -> None:
         if self.autopilot not in ("px4", "ardupilot"):
@@ -130,6 +133,8 @@ class MockConfig:
             raise ValueError(f"rate_hz: must be >= 200, got {self.rate_hz}")
         if not self.endpoints:
             raise ValueError("endpoints: at least one endpoint is needed")
+        if self.px4_ready_s is not None and not (math.isfinite(self.px4_ready_s) and self.px4_ready_s >= 0):
+            raise ValueError(f"px4_ready_s: must be a finite number of seconds >= 0, got {self.px4_ready_s}")
         if self.ground_z is not None and not (math.isfinite(self.ground_z) and abs(self.ground_z) <= 1000.0):
             raise ValueError(f"ground_z: must be a finite z in [-1000, 1000] m, got {self.ground_z}")
         if self.rc_throttle is not None and not 800 <= self.rc_throttle <= 2200:
@@ -173,7 +178,8 @@ class MockAutopilot:
                 self.modes.canonical(mode)
             except ValueError as exc:
                 raise ValueError(f"takeovers[{i}]: {exc}") from None
-        self.vehicle = Vehicle(config.vehicle, ground_z=self.ground_z)
+        response = config.vehicle if config.vehicle is not None else RESPONSES[DEFAULT_RESPONSE[config.autopilot]]
+        self.vehicle = Vehicle(response, ground_z=self.ground_z)
         self.enc = Encoder(config.sysid, config.compid)
         self.log = FlightLog(config.log_path)
         self.link_faults = LinkFaults(config.faults, config.seed)
@@ -198,6 +204,9 @@ class MockAutopilot:
         self._last_reject_text: dict[str, float] = {}
         self._reboot_pending = False
         self.ap = ArduPilotRules(config.rc_throttle, config.ekf_origin_delay_s, config.spool_up_s, config.shaping)
+        # PX4 readiness, component metadata and FTP (sitl_mock.px4); None for ArduPilot.
+        ready_s = px4.DEFAULT_READY_S if config.px4_ready_s is None else config.px4_ready_s
+        self.px4 = px4.Px4Rules(self, ready_s) if self.flavour is Flavour.PX4 else None
         self._reset_state()
 
     # ------------------------------------------------------------------ lifecycle
@@ -283,6 +292,8 @@ class MockAutopilot:
         self.rebooting_until = -math.inf
         self.ap.reset()
         self.next_due = {mid: self.t for mid in DEFAULT_RATES}
+        if self.px4 is not None:
+            self.px4.reset()
         self.intervals = {mid: 1.0 / hz for mid, hz in DEFAULT_RATES.items()}
         if self.flavour is Flavour.ARDUPILOT:
             # Stock ArduPilot on a fresh link: HEARTBEAT only (and STATUSTEXT as it happens),
@@ -336,6 +347,8 @@ class MockAutopilot:
                 "home": self.home_ned.tolist(),
                 "ekf_origin": self.flavour is Flavour.PX4 or self.ap.origin_set,
                 "rc_failsafe": self.ap.radio_failsafe,
+                # PX4: the estimator has settled and arming is allowed (sitl_mock.px4)
+                "ready": self.px4.ready if self.px4 is not None else True,
             }
 
     # ------------------------------------------------------------------ loop
@@ -432,8 +445,8 @@ class MockAutopilot:
             return
         seq = self.event_seq
         self.event_seq = (self.event_seq + 1) & 0xFFFF
-        self.log.write("event", self.t, event="px4_event", name=event, id=dialect.PX4_EVENT_IDS[event],
-                       level=dialect.LEVELS[severity], sequence=seq, text=text)
+        self.log.write("event", self.t, event="px4_event", name=event, id=px4_events.IDS[event],
+                       level=px4_events.LEVELS[severity], sequence=seq, text=text)
         self._send(tm.event(self.enc.mav, event, severity, seq, self.time_boot_ms, args, internal))
 
     # ------------------------------------------------------------------ simulation step
@@ -449,6 +462,8 @@ class MockAutopilot:
             self._update_snapshot()
             return
         self._rules()
+        if self.px4 is not None:
+            self.px4.step()
         target = self._target()
         self.vehicle.step(self.dt, target, self.armed, self.wind)
         self._after_physics()
@@ -631,7 +646,7 @@ class MockAutopilot:
         """A mode change asked for over MAVLink or by the pilot; returns (MAV_RESULT, why)."""
         if self.flavour is Flavour.PX4 and name == "OFFBOARD" and not self.stream_ok():
             why = "Switching to Offboard denied: no offboard signal"
-            args = struct.pack("<IB", self.modes.custom_mode(name), 14)  # 14: nav state OFFBOARD
+            args = struct.pack("<IB", self.modes.custom_mode(name), px4_events.NAV_MODE[name])  # navigation_mode_t
             self._report(mav.MAV_SEVERITY_CRITICAL, why, "commander_modeswitch_not_avail", args,
                          internal=mav.MAV_SEVERITY_INFO)
             self._report(mav.MAV_SEVERITY_ERROR, "No offboard signal", "check_modes_offboard_no_signal")
@@ -656,6 +671,11 @@ class MockAutopilot:
         if self.armed:
             return int(mav.MAV_RESULT_ACCEPTED), ""
         why, event = "", ""
+        if self.px4 is not None and not force:
+            refusal = self.px4.arm_refusal()  # PX4 has said why in its own events
+            if refusal:
+                self.log.write("event", self.t, event="arming_refused", reason=refusal)
+                return self._refuse_arming(), refusal
         if self.reject_arming:
             why, event = "Arming denied: preflight checks failed", "check_rc_dl_no_dllink"
         elif self.flavour is Flavour.PX4 and self.mode == "OFFBOARD" and not self.stream_ok():
@@ -778,6 +798,7 @@ class MockAutopilot:
             "MISSION_REQUEST_LIST": self._on_mission_list,
             "TIMESYNC": self._on_timesync,
             "REQUEST_DATA_STREAM": self._on_request_data_stream,
+            "FILE_TRANSFER_PROTOCOL": self.px4.on_ftp if self.px4 is not None else None,
         }.get(kind)
         if handler is None:
             return
@@ -901,6 +922,8 @@ class MockAutopilot:
     def _request_message(self, msg_id: int) -> tuple[int, str]:
         if msg_id == mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
             self._send(tm.autopilot_version(self.enc.mav, self.flavour, self.config.sysid))
+        elif msg_id == px4.MSG_ID_COMPONENT_METADATA and self.px4 is not None:
+            self._send(self.px4.component_metadata())
         elif msg_id in DEFAULT_RATES:
             self._send_stream(msg_id, self._target())
         else:
@@ -1062,6 +1085,8 @@ class MockAutopilot:
             self._send(tm.sys_status(m, armable=not self.reject_arming))
         elif mid == mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED:
             pos, vel = self._noisy()
+            if self.px4 is not None:
+                pos = self.px4.estimate(pos)
             self._send(m.local_position_ned_encode(ms, *pos.tolist(), *vel.tolist()))
         elif mid == mav.MAVLINK_MSG_ID_ATTITUDE:
             roll, pitch, yaw = self.vehicle.attitude()

@@ -11,8 +11,7 @@ from typing import Any
 import numpy as np
 from pymavlink.dialects.v20 import common as mav
 
-from companion.wire import dialect
-
+from . import events, mavwire
 from .protocol import Flavour, Param
 
 EARTH_RADIUS = 6378137.0
@@ -165,6 +164,5 @@ def statustext(m: mav.MAVLink, severity: int, text: str) -> Any:
 
 def event(m: mav.MAVLink, name: str, level: int, sequence: int, ms: int, args: bytes = b"",
           internal: int | None = None) -> Any:
-    """EVENT (410) with PX4's id for `name` (see companion.wire.dialect.PX4_EVENTS)."""
-    return dialect.event_encode(m, dialect.PX4_EVENT_IDS[name], level, sequence=sequence, time_boot_ms=ms,
-                                arguments=args, internal_level=internal)
+    """EVENT (410) with PX4's id for `name` (sitl_mock.events)."""
+    return mavwire.event(events.IDS[name], events.log_levels(level, internal), sequence, ms, args)

@@ -8,6 +8,8 @@ from typing import Any
 
 from pymavlink.dialects.v20 import common as mav
 
+from .signing import setup_receive
+
 
 @dataclass(frozen=True)
 class Endpoint:
@@ -71,21 +73,11 @@ class Encoder:
         return self._sink.data
 
 
-# With a signing key, these are ignored unless signed with it (as ArduPilot and PX4 do with
-# signing enabled: commands and setpoints); the rest may come unsigned.
-SIGNED_ONLY = frozenset({
-    mav.MAVLINK_MSG_ID_COMMAND_LONG, mav.MAVLINK_MSG_ID_COMMAND_INT, mav.MAVLINK_MSG_ID_SET_MODE,
-    mav.MAVLINK_MSG_ID_SET_POSITION_TARGET_LOCAL_NED, mav.MAVLINK_MSG_ID_SET_POSITION_TARGET_GLOBAL_INT,
-    mav.MAVLINK_MSG_ID_PARAM_SET, mav.MAVLINK_MSG_ID_REQUEST_DATA_STREAM,
-})
-
-
 def new_parser(signing_key: bytes | None = None) -> Any:
     parser = mav.MAVLink(None)
     parser.robust_parsing = True
     if signing_key is not None:
-        parser.signing.secret_key = signing_key
-        parser.signing.allow_unsigned_callback = lambda _mav, msg_id: msg_id not in SIGNED_ONLY
+        setup_receive(parser, signing_key)
     return parser
 
 

@@ -104,10 +104,18 @@ def _clip_norm(v: np.ndarray, limit: float) -> np.ndarray:
 # (issue 11: tracking RMS / max 0.136 / 0.235 m, effective lag 57 ms, 0.092 m with the lag
 # removed); simulating the demo's scenario-1 trajectory through this model gives 0.138 /
 # 0.253 m, lag 60 ms, 0.089 m with it removed (peak speed 3.2 m/s).
+# `px4_sih` (the PX4 flavour's default): PX4 1.15 SIH followed pos+vel+acc setpoints with a
+# best-fit lag of 0.31-0.38 s (/work/shared/autopilot-facts.md). PX4's default position and
+# velocity gains (MPC_XY_P 0.95, MPC_XY_VEL_P_ACC 1.8), targets 0.3 s late, 70 % of the
+# acceleration feed-forward used: level circles at 1.0 / 3.0 / 3.4 m/s simulated through it have
+# a best-fit lag of 0.31 / 0.34 / 0.35 s and 0.03 / 0.24 / 0.30 m RMS with the lag removed.
 RESPONSES: dict[str, VehicleParams] = {
     "ideal": VehicleParams(),
     "calibrated": VehicleParams(kp_pos=1.0, kv_vel=4.0, tau_acc=0.08, acc_ff_gain=0.5, delay=0.03),
+    "px4_sih": VehicleParams(kp_pos=0.95, kv_vel=1.8, tau_acc=0.08, acc_ff_gain=0.7, delay=0.3),
 }
+# Each flavour's response when none is chosen.
+DEFAULT_RESPONSE = {"px4": "px4_sih", "ardupilot": "calibrated"}
 
 
 class Vehicle:

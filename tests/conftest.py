@@ -5,6 +5,16 @@ from __future__ import annotations
 import pytest
 
 
+@pytest.fixture(autouse=True)
+def _px4_mock_ready_at_boot(monkeypatch: pytest.MonkeyPatch) -> None:
+    """In-process PX4 mocks are ready to arm at boot unless a test sets `px4_ready_s`: PX4's
+    ~36 s estimator settling (sitl_mock.px4) is the subject of its own tests, not of every
+    test that arms."""
+    from sitl_mock import px4
+
+    monkeypatch.setattr(px4, "DEFAULT_READY_S", 0.0)
+
+
 @pytest.fixture(scope="session", autouse=True)
 def _compiled_planner_kernel() -> None:
     """Compile the planner's numba kernel once, here, into its on-disk cache: the companion's

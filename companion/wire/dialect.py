@@ -1,4 +1,4 @@
-"""MAVLink's EVENT message (id 410) for pymavlink dialects that lack it, and PX4's event ids.
+"""MAVLink's EVENT (410) and COMPONENT_METADATA (397) for pymavlink dialects that lack them, and PX4's event ids.
 
 PX4 >= 1.14 reports arming, takeoff, failsafes, landing, disarming and refusals as EVENT
 messages, not STATUSTEXT. The pymavlink in use does not define EVENT, so `install()` adds a
@@ -36,6 +36,15 @@ EVENT_XML = """
   <field type="uint16_t" name="sequence">Sequence number.</field>
   <field type="uint8_t" name="log_levels">4 bits MSB: internal, 4 bits LSB: external.</field>
   <field type="uint8_t[40]" name="arguments">Arguments (depend on event ID).</field>
+</message>
+"""
+
+MSG_ID_COMPONENT_METADATA = 397
+COMPONENT_METADATA_XML = """
+<message id="397" name="COMPONENT_METADATA">
+  <field type="uint32_t" name="time_boot_ms" units="ms">Timestamp (time since system boot).</field>
+  <field type="uint32_t" name="file_crc">CRC32 of the general metadata file.</field>
+  <field type="char[100]" name="uri">MAVLink FTP URI for the general metadata file (may be xz compressed).</field>
 </message>
 """
 
@@ -104,9 +113,9 @@ class _Layout(NamedTuple):
     crc_extra: int
 
 
-def _layout() -> _Layout:
-    """Wire layout and CRC_EXTRA of EVENT_XML, computed as pymavlink's generator does."""
-    root = ET.fromstring(EVENT_XML)
+def _layout(xml: str = EVENT_XML) -> _Layout:
+    """Wire layout and CRC_EXTRA of a message definition, computed as pymavlink's generator does."""
+    root = ET.fromstring(xml)
     msg = mavparse.MAVType(root.attrib["name"], root.attrib["id"], 0)
     for f in root.iter("field"):
         msg.fields.append(mavparse.MAVField(f.attrib["name"], f.attrib["type"], None, None))
@@ -136,6 +145,37 @@ def _layout() -> _Layout:
 
 _LAYOUT = _layout()
 CRC_EXTRA = _LAYOUT.crc_extra
+_METADATA_LAYOUT = _layout(COMPONENT_METADATA_XML)
+
+
+def _metadata_class(mod: ModuleType) -> type:
+    """COMPONENT_METADATA, decoded by pymavlink's own MAVLink.decode (fields in XML order)."""
+    base: Any = mod.MAVLink_message
+    lay = _METADATA_LAYOUT
+
+    def __init__(self: Any, time_boot_ms: int, file_crc: int, uri: bytes | str) -> None:
+        base.__init__(self, MSG_ID_COMPONENT_METADATA, "COMPONENT_METADATA")
+        self._fieldnames = lay.fieldnames
+        self._instance_field = None
+        self._instance_offset = -1
+        self.time_boot_ms = time_boot_ms
+        self.file_crc = file_crc
+        self.uri = uri.decode(errors="replace") if isinstance(uri, bytes) else uri
+
+    def pack(self: Any, mav: Any, force_mavlink1: bool = False) -> bytes:
+        payload = struct.pack(lay.fmtstr, self.time_boot_ms, self.file_crc, self.uri.encode())
+        return bytes(base._pack(self, mav, lay.crc_extra, payload, force_mavlink1=force_mavlink1))
+
+    attrs: dict[str, Any] = {
+        "__doc__": "COMPONENT_METADATA (397): where the component's general metadata file is.",
+        "__init__": __init__, "pack": pack, "id": MSG_ID_COMPONENT_METADATA, "msgname": "COMPONENT_METADATA",
+        "fieldnames": lay.fieldnames, "ordered_fieldnames": lay.ordered_fieldnames, "fieldtypes": lay.fieldtypes,
+        "fielddisplays_by_name": {}, "fieldenums_by_name": {}, "fieldunits_by_name": {"time_boot_ms": "ms"},
+        "native_format": bytearray(lay.native_fmtstr, "ascii"), "orders": lay.orders, "lengths": lay.lengths,
+        "array_lengths": lay.array_lengths, "crc_extra": lay.crc_extra, "unpacker": struct.Struct(lay.fmtstr),
+        "instance_field": None, "instance_offset": -1, "_project_dialect": True,
+    }
+    return type("MAVLink_component_metadata_message", (base,), attrs)
 
 
 def _message_class(mod: ModuleType) -> type:
@@ -201,6 +241,10 @@ def _message_class(mod: ModuleType) -> type:
 
 
 def _install_into(mod: ModuleType) -> None:
+    if mod.mavlink_map.get(MSG_ID_COMPONENT_METADATA) is None:
+        meta = _metadata_class(mod)
+        mod.mavlink_map[MSG_ID_COMPONENT_METADATA] = meta
+        setattr(mod, "MAVLINK_MSG_ID_COMPONENT_METADATA", MSG_ID_COMPONENT_METADATA)  # noqa: B010
     existing = mod.mavlink_map.get(MSG_ID_EVENT)
     if existing is not None:
         return  # ours already, or the dialect defines EVENT itself

@@ -30,6 +30,7 @@ from companion.sendproc import Encoding
 from companion.setpoints import Setpoint
 from companion.tap import NO_TAP, Tap
 from companion.wire import dialect
+from companion.wire.px4_events import Px4Events
 from companion.wire.signing import read_signing_key
 
 dialect.install()  # PX4 >= 1.14 says what happens in EVENT (410), which pymavlink lacks
@@ -80,10 +81,11 @@ class Note:
 
     at: float  # monotonic arrival
     source: str  # "event" | "statustext"
-    text: str  # the known event name, "event <id>", or the STATUSTEXT text
+    text: str  # the event in words (PX4's events metadata), else "event <id> (why not)"; or the STATUSTEXT
     level: str  # EVENT log level or MAV_SEVERITY name, without its prefix
     event_id: int | None = None
-    name: str | None = None  # the known PX4 event name
+    name: str | None = None  # the PX4 event name, when known
+    words: bool = False  # the text is the autopilot's own wording (decoded event, or STATUSTEXT)
 
     def fields(self) -> dict[str, Any]:
         if self.source == "event":
@@ -95,10 +97,12 @@ class CommandFailed(RuntimeError):
     """A command sequence failed; `result` (MAV_RESULT name) and `note` (what the autopilot
     said around the refusal) when the autopilot refused a COMMAND_LONG."""
 
-    def __init__(self, message: str, result: str | None = None, note: Note | None = None) -> None:
+    def __init__(self, message: str, result: str | None = None, note: Note | None = None,
+                 reasons: tuple[str, ...] = ()) -> None:
         super().__init__(message)
         self.result = result
         self.note = note
+        self.reasons = reasons  # what the autopilot said around the refusal, in words
 
     def fields(self) -> dict[str, Any]:
         """For the `refused` event: the result code and the EVENT/STATUSTEXT, when known."""
@@ -107,11 +111,13 @@ class CommandFailed(RuntimeError):
             out["result"] = self.result
         if self.note is not None:
             out.update(self.note.fields())
+        if self.reasons:
+            out["reasons"] = list(self.reasons)
         return out
 
     def chained(self, message: str) -> CommandFailed:
         """The same refusal with a longer message."""
-        return CommandFailed(message, self.result, self.note)
+        return CommandFailed(message, self.result, self.note, self.reasons)
 
 
 @dataclass
@@ -201,6 +207,7 @@ class MavlinkLink:
         self.cfg = cfg
         self.state = VehicleState()
         self.on_message = on_message
+        self.events = Px4Events(self, cfg.mavlink.events_cache_dir)  # PX4's events metadata
         self.conn: Any = None
         self._loop: asyncio.AbstractEventLoop | None = None
         self._acks: dict[int, asyncio.Future[int]] = {}
@@ -330,10 +337,16 @@ class MavlinkLink:
         elif kind == "STATUSTEXT":
             sev = mavlink.enums["MAV_SEVERITY"].get(int(msg.severity))
             level = sev.name.removeprefix("MAV_SEVERITY_") if sev is not None else str(msg.severity)
-            st.notes.append(Note(now, "statustext", str(msg.text), level))
+            st.notes.append(Note(now, "statustext", str(msg.text), level, words=True))
         elif kind == "EVENT":
             info = dialect.decode_event(msg)
-            st.notes.append(Note(now, "event", info.name or f"event {info.id}", info.level, info.id, info.name))
+            said = self.events.describe(info.id, dialect.event_arguments(msg))
+            if said is not None:
+                st.notes.append(Note(now, "event", said.text, info.level, info.id, said.name, words=True))
+            else:
+                st.notes.append(Note(now, "event", self.events.unknown(info.id), info.level, info.id, info.name))
+        elif kind in ("FILE_TRANSFER_PROTOCOL", "COMPONENT_METADATA", "AUTOPILOT_VERSION"):
+            self.events.on_message(kind, msg)
         elif kind == "COMMAND_ACK":
             fut = self._acks.pop(msg.command, None)
             if fut is not None and not fut.done():
@@ -358,6 +371,11 @@ class MavlinkLink:
             self.conn.mav.heartbeat_send(
                 mavlink.MAV_TYPE_ONBOARD_CONTROLLER, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, mavlink.MAV_STATE_ACTIVE
             )
+
+    def send_message(self, msg: Any) -> None:
+        """Any encoded message (thread-safe)."""
+        with self._send_lock:
+            self.conn.mav.send(msg)
 
     def setpoint_message(self, sp: Setpoint, at: float | None = None) -> Any:
         """SET_POSITION_TARGET_LOCAL_NED for `sp`, stamped at monotonic `at` (now)."""
@@ -409,9 +427,14 @@ class MavlinkLink:
         result = await self.command(command, *params)
         if result != mavlink.MAV_RESULT_ACCEPTED:
             name = result_name(result)
-            note = await self.note_around(time.monotonic(), since=sent - NOTE_BEFORE)
-            text = "" if note is None else f" ({note.source} {note.text!r}, {note.level})"
-            raise CommandFailed(f"{what} refused by the autopilot: {name}{text}", name, note)
+            acked = time.monotonic()
+            note = await self.note_around(acked, since=sent - NOTE_BEFORE)
+            reasons = self.reasons_around(sent - NOTE_BEFORE, acked + NOTE_AFTER)
+            if reasons:
+                text = f" ({'; '.join(reasons)})"
+            else:
+                text = "" if note is None else f" ({note.source} {note.text!r}, {note.level})"
+            raise CommandFailed(f"{what} refused by the autopilot: {name}{text}", name, note, reasons)
 
     async def note_around(self, acked: float, since: float) -> Note | None:
         """The last EVENT/STATUSTEXT from `since` to the ACK, else the first within NOTE_AFTER
@@ -426,6 +449,20 @@ class MavlinkLink:
             if after:
                 return after[0]
         return None
+
+    def reasons_around(self, since: float, until: float) -> tuple[str, ...]:
+        """What the autopilot said in words from `since` to `until`, as reasons for a refusal:
+        PX4's events of level WARNING or worse (not its protocol summaries), ArduPilot's
+        `PreArm:` / `Arm:` texts and other STATUSTEXT of level WARNING or worse; each once."""
+        out: list[str] = []
+        for n in self.state.notes:
+            if not since <= n.at <= until:
+                continue
+            serious = n.level in ("EMERGENCY", "ALERT", "CRITICAL", "ERROR", "WARNING")
+            prearm = n.source == "statustext" and n.text.startswith(("PreArm:", "Arm:"))
+            if (serious or prearm) and n.text not in out:
+                out.append(n.text)
+        return tuple(out)
 
     async def request_home(self) -> None:
         """Ask for HOME_POSITION once (MAV_CMD_REQUEST_MESSAGE); the answer is the message."""

@@ -9,11 +9,11 @@ from e2e_rig import Rig
 
 
 @pytest.fixture(scope="module")
-def rig_factory(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Callable[[str], Rig]]:
+def rig_factory(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Callable[..., Rig]]:
     rigs: list[Rig] = []
 
-    def make(autopilot: str) -> Rig:
-        rig = Rig(autopilot, tmp_path_factory.mktemp(f"e2e-{autopilot}"))
+    def make(autopilot: str, *mock_args: str) -> Rig:
+        rig = Rig(autopilot, tmp_path_factory.mktemp(f"e2e-{autopilot}"), mock_args)
         rigs.append(rig)
         try:
             rig.start()

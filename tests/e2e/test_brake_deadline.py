@@ -33,7 +33,9 @@ class SlowFallbackRig(Rig):
 
 @pytest.fixture(scope="module")
 def rig(tmp_path_factory: pytest.TempPathFactory) -> Any:
-    r = SlowFallbackRig("px4", Path(tmp_path_factory.mktemp("e2e-deadline")))
+    # until the companion's lead estimate settles on PX4's lag (issue 26.5): the response before px4_sih,
+    # which TRACKING_ALLOWANCE (e2e_rig.py) was measured on
+    r = SlowFallbackRig("px4", Path(tmp_path_factory.mktemp("e2e-deadline")), ("--response", "calibrated"))
     try:
         r.start()
         r.ensure_airborne()

@@ -30,7 +30,9 @@ pytestmark = pytest.mark.slow
 
 @pytest.fixture(scope="module")
 def rig(rig_factory: Any) -> Rig:
-    r: Rig = rig_factory("px4")
+    # until the companion's lead estimate settles on PX4's lag (issue 26.5): the response before px4_sih,
+    # which TRACKING_ALLOWANCE (e2e_rig.py) was measured on
+    r: Rig = rig_factory("px4", "--response", "calibrated")
     r.ensure_airborne()
     return r
 

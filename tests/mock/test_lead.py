@@ -16,6 +16,7 @@ from companionkit import Events, service_for, serving, until
 from companion.config import ConfigError, config_from_dict
 from companion.wire.messages import read
 from sitl_mock import MockAutopilot, MockConfig
+from sitl_mock.vehicle import RESPONSES
 
 MISSION = (b'{"id": "curve", "waypoints": [[4, 0, -1.5], [4, 4, -1.5], [0, 4, -1.5], [0, 0, -1.5]],'
            b' "durations": [2.5, 2.5, 2.5]}')
@@ -57,7 +58,8 @@ async def _fly(mock: MockAutopilot, lead: Any) -> tuple[float, Any, float]:
 def test_auto_lead_lowers_tracking_error_on_the_calibrated_mock(tmp_path: Path) -> None:
     figures = {}
     for lead in (0.0, "auto"):
-        mock = MockAutopilot(MockConfig(autopilot="px4", endpoints=["udpin:127.0.0.1:0"],
+        # until the companion's lead estimate settles on PX4's lag (issue 26.5): the response before px4_sih
+        mock = MockAutopilot(MockConfig(autopilot="px4", endpoints=["udpin:127.0.0.1:0"], vehicle=RESPONSES["calibrated"],
                                         log_path=str(tmp_path / f"{lead}.jsonl"))).start()
         try:
             figures[lead] = asyncio.run(_fly(mock, lead))

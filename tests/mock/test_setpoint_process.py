@@ -55,7 +55,8 @@ class _MockProcess:
 def _processes(tmp_path: Path) -> Iterator[tuple[_MockProcess, Path]]:
     port, log = free_udp_port(), tmp_path / "flight.jsonl"
     mock = subprocess.Popen([sys.executable, "-m", "sitl_mock", "--autopilot", "px4", "--response", "ideal",
-                             "--endpoint", f"udpin:127.0.0.1:{port}", "--log", str(log), "--log-rate-hz", "5"],
+                             "--endpoint", f"udpin:127.0.0.1:{port}", "--log", str(log), "--log-rate-hz", "5",
+                             "--px4-ready-after", "0"],
                             stderr=subprocess.PIPE, text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
     hog = subprocess.Popen([sys.executable, "-c", "while True: pass"])
     try:

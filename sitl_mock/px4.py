@@ -1,0 +1,234 @@
+"""The PX4 flavour's rules that need state of their own: readiness, component metadata, MAVLink FTP.
+
+- Not ready to arm until the estimator settles: PX4 1.15 SIH was ready ("Ready for takeoff!")
+  36-37 s after boot (measured, /work/shared/autopilot-facts.md). Until then: arming is refused
+  (TEMPORARILY_REJECTED) after PX4's arming-check report (Common.cpp Report::report: the
+  arming-check summary, each failing check, the health summary) and
+  commander_arm_denied_resolve_failures (Commander.cpp arm()); HOME_POSITION reads the local
+  origin (0, 0, 0); LOCAL_POSITION_NED on the ground reads a drifting z (+0.4 to +2.3 m on a
+  ground at +1.6, as measured). When ready, home is set where the vehicle stands and a clean
+  report follows.
+- Component metadata as PX4 serves it: COMPONENT_METADATA on MAV_CMD_REQUEST_MESSAGE
+  (src/modules/mavlink/streams/COMPONENT_METADATA.hpp: uri mftp://etc/extras/component_general.json.xz),
+  the general metadata naming the events file (src/lib/component_information/generate_component_general.py
+  layout; type 4 = COMP_METADATA_TYPE_EVENTS), both xz-compressed, over MAVLink FTP
+  (src/modules/mavlink/mavlink_ftp.cpp: one session, OpenFileRO, ReadFile, BurstReadFile,
+  TerminateSession, ResetSessions; NAKs with PX4's error codes).
+"""
+
+from __future__ import annotations
+
+import json
+import lzma
+import math
+import struct
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from pymavlink.dialects.v20 import common as mav
+
+from . import events as ev
+from . import mavwire
+
+if TYPE_CHECKING:
+    from .server import MockAutopilot
+
+# Seconds from boot until PX4 SIH is ready to arm (measured 36-37 s). MockConfig.px4_ready_s
+# (None) and --px4-ready-after default to it.
+DEFAULT_READY_S = 36.5
+# The estimate's z on the ground before ready: ground_z - 0.25 +- 0.95 m (with PX4's ground at
+# +1.6: +0.4 to +2.3, as measured), a slow wander.
+DRIFT_CENTRE = -0.25
+DRIFT_AMPLITUDE = 0.95
+DRIFT_PERIOD_S = 23.0
+
+GENERAL_URI = "mftp://etc/extras/component_general.json.xz"
+EVENTS_URI = "mftp://etc/extras/all_events.json.xz"
+COMP_METADATA_TYPE_EVENTS = 4
+MSG_ID_COMPONENT_METADATA = 397
+
+# MAVLink FTP (https://mavlink.io/en/services/ftp.html; PX4 mavlink_ftp.h)
+OP_NONE, OP_TERMINATE, OP_RESET, OP_LIST, OP_OPEN_RO, OP_READ = 0, 1, 2, 3, 4, 5
+OP_BURST_READ = 15
+OP_ACK, OP_NAK = 128, 129
+ERR_FAIL, ERR_INVALID_SESSION, ERR_NO_SESSIONS, ERR_EOF, ERR_UNKNOWN, ERR_NOT_FOUND = 1, 4, 5, 6, 7, 10
+DATA_MAX = 239  # 251-byte payload minus its 12-byte header
+_HEADER = struct.Struct("<HBBBBBBI")
+BURST_CHUNKS = 16  # packets per BurstReadFile answer before burst_complete (PX4 sends bursts per cycle)
+
+# Modes that need a local position (modeCheck.cpp: their arming and run bits cleared while it
+# is invalid), and those that can arm without one.
+POSITION_MODES = ev.nav_groups("posctl", "mission", "loiter", "rtl", "offboard", "takeoff", "land")
+ALL_MODES = ev.nav_groups(*ev.NAV_STATE)
+PRESENT = ev.health_bits("absolute_pressure", "gps", "accel", "gyro", "magnetometer", "attitude_estimate",
+                         "local_position_estimate", "global_position_estimate", "communication_links")
+
+
+def mavlink_crc32(data: bytes, crc: int = 0) -> int:
+    """The CRC32 PX4's generate_component_general.py puts in fileCrc (reflected 0xEDB88320, no
+    final xor, starting at 0)."""
+    for byte in data:
+        crc ^= byte
+        for _ in range(8):
+            crc = (crc >> 1) ^ (0xEDB88320 if crc & 1 else 0)
+    return crc & 0xFFFFFFFF
+
+
+def metadata_files() -> tuple[dict[str, bytes], int]:
+    """(FTP path -> file bytes, CRC of the general metadata JSON) as PX4 serves them."""
+    events_json = json.dumps(ev.all_events()).encode()
+    general = json.dumps({"version": 1, "metadataTypes": [
+        {"type": COMP_METADATA_TYPE_EVENTS, "uri": EVENTS_URI, "fileCrc": mavlink_crc32(events_json),
+         "uriFallback": ""},
+    ]}).encode()
+    files = {
+        ftp_path(GENERAL_URI): lzma.compress(general, format=lzma.FORMAT_XZ),
+        ftp_path(EVENTS_URI): lzma.compress(events_json, format=lzma.FORMAT_XZ),
+    }
+    return files, mavlink_crc32(general)
+
+
+def ftp_path(uri_or_path: str) -> str:
+    """`mftp://etc/x` or `/etc/x` -> `etc/x` (PX4 roots FTP paths at its file-system root)."""
+    path = uri_or_path.removeprefix("mftp://")
+    if path.startswith("[") and "]" in path:  # mftp://[;comp=1]path
+        path = path.split("]", 1)[1]
+    return path.lstrip("/")
+
+
+class FtpServer:
+    """PX4's MAVLink FTP for read-only files: one session, as mavlink_ftp.cpp allows."""
+
+    def __init__(self, files: dict[str, bytes]) -> None:
+        self.files = files
+        self.session: tuple[int, bytes] | None = None  # (session id, file bytes)
+        self.opened = 0
+
+    def handle(self, payload: bytes) -> list[bytes]:
+        """Answers (251-byte payloads) to one request payload."""
+        raw = bytes(payload).ljust(251, b"\0")
+        seq, session, opcode, size, _, _, _, offset = _HEADER.unpack_from(raw)
+        data = raw[12:12 + min(size, DATA_MAX)]
+        if opcode == OP_NONE:
+            return []
+        if opcode == OP_OPEN_RO:
+            if self.session is not None:
+                return [self._nak(seq, session, opcode, ERR_NO_SESSIONS)]
+            content = self.files.get(ftp_path(data.split(b"\0", 1)[0].decode(errors="replace")))
+            if content is None:
+                return [self._nak(seq, session, opcode, ERR_NOT_FOUND)]
+            self.opened += 1
+            self.session = (0, content)
+            return [self._ack(seq, 0, opcode, 0, struct.pack("<I", len(content)))]
+        if opcode in (OP_TERMINATE, OP_RESET):
+            self.session = None
+            return [self._ack(seq, session, opcode, 0, b"")]
+        if opcode in (OP_READ, OP_BURST_READ):
+            if self.session is None or session != self.session[0]:
+                return [self._nak(seq, session, opcode, ERR_INVALID_SESSION)]
+            content = self.session[1]
+            if offset >= len(content):
+                return [self._nak(seq, session, opcode, ERR_EOF)]
+            if opcode == OP_READ:
+                return [self._ack(seq, session, opcode, offset, content[offset:offset + DATA_MAX])]
+            out = []
+            for i in range(BURST_CHUNKS):
+                at = offset + i * DATA_MAX
+                chunk = content[at:at + DATA_MAX]
+                last = i == BURST_CHUNKS - 1 or at + DATA_MAX >= len(content)
+                out.append(self._ack(seq + i, session, opcode, at, chunk, burst_complete=last))
+                if last:
+                    break
+            return out
+        return [self._nak(seq, session, opcode, ERR_UNKNOWN)]
+
+    @staticmethod
+    def _ack(seq: int, session: int, req: int, offset: int, data: bytes, burst_complete: bool = False) -> bytes:
+        return (_HEADER.pack((seq + 1) & 0xFFFF, session, OP_ACK, len(data), req, int(burst_complete), 0, offset)
+                + data).ljust(251, b"\0")
+
+    @staticmethod
+    def _nak(seq: int, session: int, req: int, error: int) -> bytes:
+        return _HEADER.pack((seq + 1) & 0xFFFF, session, OP_NAK, 1, req, 0, 0, 0) + bytes([error]) + bytes(238)
+
+
+class Px4Rules:
+    """The PX4 flavour's readiness and metadata rules, driven by `MockAutopilot` hooks."""
+
+    def __init__(self, mock: MockAutopilot, ready_s: float) -> None:
+        self.mock = mock
+        self.ready_s = ready_s
+        files, self.general_crc = metadata_files()
+        self.ftp = FtpServer(files)
+        self.ready = True
+
+    # -- hooks -----------------------------------------------------------------------------
+
+    def reset(self) -> None:
+        """At boot (and reboot): not ready; home at the local origin until ready."""
+        self.ready = self.ready_s <= 0
+        self.ftp.session = None
+        if not self.ready:
+            self.mock.home_ned = np.zeros(3)
+
+    def step(self) -> None:
+        m = self.mock
+        if not self.ready and m.t - m.boot_t >= self.ready_s:
+            self.ready = True
+            m.home_ned = m.vehicle.state.pos.copy()  # PX4 sets home where the vehicle stands
+            m.log.write("event", m.t, event="px4_ready", home=m.home_ned.tolist())
+            if not m.events:
+                m._text(mav.MAV_SEVERITY_INFO, "Ready for takeoff!")
+            self.report()
+
+    def arm_refusal(self) -> str | None:
+        """Why PX4 refuses to arm now (None: it may), after saying so as PX4 does."""
+        if self.ready:
+            return None
+        self.report()
+        why = "Arming denied: Resolve system health failures first"
+        self.mock._report(mav.MAV_SEVERITY_CRITICAL, why, "commander_arm_denied_resolve_failures",
+                          internal=mav.MAV_SEVERITY_INFO)
+        return why
+
+    def estimate(self, pos: np.ndarray) -> np.ndarray:
+        """LOCAL_POSITION_NED's position: before ready, z on the ground wanders."""
+        m = self.mock
+        if self.ready or not m.landed:
+            return pos
+        phase = 2.0 * math.pi * (m.t - m.boot_t) / DRIFT_PERIOD_S
+        out = pos.copy()
+        out[2] = m.ground_z + DRIFT_CENTRE + DRIFT_AMPLITUDE * math.sin(phase)
+        return out
+
+    def component_metadata(self) -> Any:
+        return mavwire.component_metadata(self.mock.time_boot_ms, self.general_crc, GENERAL_URI)
+
+    def on_ftp(self, msg: Any) -> None:
+        m = self.mock
+        if msg.target_system not in (0, m.config.sysid) or msg.target_component not in (0, m.config.compid):
+            return
+        for payload in self.ftp.handle(bytes(msg.payload)):
+            m._send(m.enc.mav.file_transfer_protocol_encode(0, msg.get_srcSystem(), msg.get_srcComponent(),
+                                                             list(payload)))
+
+    # -- PX4's arming-check report -----------------------------------------------------------
+
+    def report(self) -> None:
+        """Report::report: the summary, each failing check, the health summary (events only;
+        PX4 < 1.14 said "Preflight Fail: ..." in STATUSTEXT instead)."""
+        m = self.mock
+        error = 0 if self.ready else ev.HEALTH_BIT["local_position_estimate"]
+        can_arm = ALL_MODES if self.ready else ALL_MODES & ~POSITION_MODES
+        if m.events:
+            m._report(ev.LEVEL["PROTOCOL"], "Arming check summary event", "commander_arming_check_summary",
+                      struct.pack("<BIII", 0, error, 0, can_arm))
+        if not self.ready:
+            args = ev.arming_check_args(POSITION_MODES, "local_position_estimate")
+            m._report(mav.MAV_SEVERITY_ERROR, "Preflight Fail: horizontal velocity unstable",
+                      "check_estimator_hor_vel_not_stable", args)
+            m._report(mav.MAV_SEVERITY_ERROR, "Navigation error: No valid position estimate",
+                      "check_modes_local_pos", args)
+        if m.events:
+            m._report(ev.LEVEL["PROTOCOL"], "Health report summary event", "commander_health_summary",
+                      struct.pack("<BIII", 0, PRESENT, error, 0))
