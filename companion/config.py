@@ -44,6 +44,11 @@ class ZenohConfig:
     listen: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
     connect: tuple[str, ...] = ()
     multicast_scouting: bool = True
+    # Zenoh's shared-memory transport: a peer on the same computer that publishes a message over
+    # 3 kB has its 16 MB pool mapped into the companion (main RSS 82 -> 102 MB after big missions
+    # sent by a local tool, issue 21), and any local peer could make it map more. Off: local
+    # peers' messages are copied over the socket like everyone else's.
+    shared_memory: bool = False
     # A full Zenoh JSON5 configuration (TLS, user/password, access control).
     # When set, it is the base and the options above are applied over it only
     # where they differ from their defaults.

@@ -52,6 +52,8 @@ def zenoh_config(zc: ZenohConfig, *, listen: bool = True) -> zenoh.Config:
         cfg.insert_json5("connect/endpoints", json.dumps(list(zc.connect)))
     if want("multicast_scouting"):
         cfg.insert_json5("scouting/multicast/enabled", json.dumps(zc.multicast_scouting))
+    if want("shared_memory"):
+        cfg.insert_json5("transport/shared_memory/enabled", json.dumps(zc.shared_memory))
     if not zc.config_file and listen:
         # Without a configuration file the service reaches out to nobody: peers it hears of
         # by scouting may connect to it (where it listens: loopback by default), it does not
