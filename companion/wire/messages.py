@@ -605,7 +605,8 @@ def mission_from_message(obj: dict[str, Any], cfg: Config, frame: str = "ned") -
         for row, name in enumerate(("velocity", "acceleration", "jerk", "snap"), start=1):
             if name in obj.get("initial", {}):
                 initial[row] = obj["initial"][name]
-    radius = max(cfg.planner.vehicle_radius, float(obj.get("vehicle_radius", 0.0)))
+    # obstacles are inflated by the vehicle's radius and by how far it may stray from the plan
+    radius = max(cfg.planner.vehicle_radius, float(obj.get("vehicle_radius", 0.0))) + cfg.planner.tracking_allowance
     return MissionSpec(
         id=str(obj["id"]), waypoints=wps, durations=durations, bounds=bounds_from(obj.get("bounds"), cfg),
         obstacles=obstacles, map_lo=map_lo, map_hi=map_hi, radius=radius, start=start,
