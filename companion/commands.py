@@ -30,6 +30,7 @@ from planner_core import Problem, allocate_times, plan, splice, takeoff_duration
 log = logging.getLogger("companion")
 S = State
 MAV_LANDED_IN_AIR = 2
+LEAD_SLEW = 0.1  # s per s: how fast the auto lead follows the lag estimate (the setpoints run 10 % fast or slow)
 TRACKING_SAMPLES = 3  # position samples in a row above the limit (0.1 s at 30 Hz) before acting
 # The tracking measured in flight against [planner] tracking_allowance: an event when the RMS
 # over the last TRACKING_WINDOW samples (or the largest error) passes this share of it.
@@ -62,6 +63,8 @@ class Commands:
         self._nearing_said = False  # the tracking measured nears the allowance: said once per flight phase
         # lag compensation: the vehicle's lag behind the setpoints it is sent, from telemetry
         self.lag = LagEstimator(cap=cfg.setpoints.lead_max)
+        self._leads: collections.deque[tuple[float, float]] = collections.deque()  # (t, lead) sampled
+        self._lead_set_at: float | None = None
         self.lead_target: Any = None  # the setpoint thread (its `lead` is set here)
         self._stall_task: asyncio.Task[None] | None = None  # what a stall of the companion set off
 
@@ -371,21 +374,34 @@ class Commands:
         active, t_base = ctl.active, ctl.t_base
         if not self.flight.flying_ours or not ctl.streaming or active is None or t_base is None:
             self.lag.hold()
+            self._lead_set_at = None
             return
         lead_now = float(getattr(self.lead_target, "lead", 0.0))
         jet = ctl.reference_jet(measured_at + lead_now)
         if jet is None:
             return
         speed = float(np.linalg.norm(jet[1]))
+        leads = self._leads
+        leads.append((measured_at, lead_now))
+        while len(leads) > 2 and leads[1][0] < measured_at - self.cfg.setpoints.lead_max - 0.5:
+            leads.popleft()
+        lt, lv = np.array([x[0] for x in leads]), np.array([x[1] for x in leads])
 
         def stream_at(times: np.ndarray) -> np.ndarray:
-            ts = np.clip(times - t_base + lead_now, active.t0, active.t_end)
+            # the setpoint sent at time t was the plan at t + the lead of then
+            ts = np.clip(times - t_base + np.interp(times, lt, lv), active.t0, active.t_end)
             return np.asarray(active.evaluate(ts, 0), dtype=float)
 
         self.lag.add(measured_at, self.link.state.position, speed, stream_at)
         est = self.lag.estimate
         if est is not None and self.cfg.setpoints.lead == "auto" and self.lead_target is not None:
-            self.lead_target.lead = min(est, self.cfg.setpoints.lead_max)
+            # towards the estimate at most LEAD_SLEW s per s: a jump of the lead would make the
+            # setpoints jump along the plan
+            last = self._lead_set_at if self._lead_set_at is not None else measured_at
+            step = LEAD_SLEW * max(0.0, measured_at - last)
+            want = min(est, self.cfg.setpoints.lead_max)
+            self.lead_target.lead = lead_now + max(-step, min(step, want - lead_now))
+        self._lead_set_at = measured_at
 
     # -- the hand-over on exit -------------------------------------------------------------
 

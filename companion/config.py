@@ -138,7 +138,7 @@ class PlannerConfig:
     # inflated by vehicle_radius + tracking_allowance, and a tracking error above it for
     # 3 samples in a row brakes to a stop (it replaces [safety] max_tracking_error). Compared
     # in flight with the tracking measured (event `tracking` when the RMS or max nears it).
-    tracking_allowance: float = 0.3
+    tracking_allowance: float = 0.4
     # Fault injection for tests and drills: hold back the result of the full-replan fallback
     # (after a failed local replan) this many seconds, as on an overloaded computer. The
     # braking deadline must then stop the vehicle. 0 in flight.
