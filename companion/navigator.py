@@ -105,6 +105,17 @@ class Navigator:
         """The configured bounds, within the autopilot's limits when they are known."""
         return bounds_from(None, self.cfg) if self.limits is None else self.limits.default_bounds()
 
+    def _clipped_text(self, spec: MissionSpec) -> str:
+        """What the autopilot's limits clipped of the mission's bounds as given (its own, or
+        the configured ones), for a refusal's reason ("" when nothing)."""
+        if self.limits is None:
+            return ""
+        try:
+            given = bounds_from(spec.raw.get("bounds"), self.cfg)
+        except Exception:  # checked when the message was read; never fail a refusal on it
+            return ""
+        return clips_text(self.limits.clip(given)[1])
+
     def within_limits(self, spec: MissionSpec, tell: bool) -> tuple[MissionSpec, str]:
         """`spec` with its bounds clipped to the autopilot's limits x headroom; `tell`: say so
         when a mission's own bounds were clipped (the configured ones are said at link-up).
@@ -225,7 +236,7 @@ class Navigator:
     # -- missions ---------------------------------------------------------------------------------
 
     async def on_mission(self, spec: MissionSpec, arrived: float) -> None:
-        spec, clipped = self.within_limits(spec, tell=True)
+        spec, _ = self.within_limits(spec, tell=True)
         if self.flight.flying_ours and spec.autostart:
             await self.fly(spec, arrived)
             return
@@ -239,16 +250,17 @@ class Navigator:
                                               self.known(), self.cfg)
             plan_ms = round((time.perf_counter() - t0) * 1000, 2)
             if not outcome.ok:
-                self._reject_outcome(spec, outcome, clipped)
+                self._reject_outcome(spec, outcome)
                 return
         self.pending = spec
         where = "on the ground" if not self.flight.airborne else f"in {self.flight.state.value}"
         self.report.event("accepted", f"mission {spec.id} loaded ({len(spec.waypoints)} waypoints, vehicle {where}); "
                           "send 'start' to fly it", key="mission", mission=spec.id, plan_ms=plan_ms, pending=True)
 
-    def _reject_outcome(self, spec: MissionSpec, outcome: Outcome, clipped: str = "") -> None:
+    def _reject_outcome(self, spec: MissionSpec, outcome: Outcome) -> None:
         field = "" if outcome.blocked_waypoint is None else f"waypoints[{outcome.blocked_waypoint - spec.first_index}]"
         why = outcome.message
+        clipped = self._clipped_text(spec)
         if clipped and outcome.status is OutcomeStatus.INFEASIBLE:
             why += (f" (planned within the autopilot's limits x headroom {self.limits.headroom:g}, which clipped "
                     f"the bounds: {clipped})")
@@ -257,7 +269,7 @@ class Navigator:
     async def fly(self, spec: MissionSpec, arrived: float | None) -> bool:
         """Plan `spec` from the flown state a little ahead of now and fly it."""
         given = spec
-        spec, clipped = self.within_limits(spec, tell=False)  # limits read since it was loaded
+        spec, _ = self.within_limits(spec, tell=False)  # limits read since it was loaded
         async with self.lock:
             async def plan_at(base: Trajectory, t_split: float) -> Outcome:
                 jet = self.control.jet(t_split)
@@ -270,7 +282,7 @@ class Navigator:
             done = await self._swap_at_split(f"mission {spec.id}", arrived, plan_at)
             if not done.ok:
                 if done.outcome is not None:
-                    self._reject_outcome(spec, done.outcome, clipped)
+                    self._reject_outcome(spec, done.outcome)
                 else:
                     self.report.reject("mission", "", f"mission {spec.id}: {done.reason}", mission=spec.id)
                 return False
