@@ -360,11 +360,11 @@ class Commands:
         if rms < TRACKING_RMS_SHARE * limit and worst < TRACKING_MAX_SHARE * limit:
             return
         self._nearing_said = True
-        self.report.event("tracking", f"tracking measured near the allowance: RMS {rms:.2f} m, max {worst:.2f} m over "
+        self.report.event("tracking_margin", f"tracking measured near the allowance: RMS {rms:.2f} m, max {worst:.2f} m over "
                           f"the last {len(e)} samples, [planner] tracking_allowance {limit:.2f} m (warned at "
                           f"{TRACKING_RMS_SHARE:.0%} RMS / {TRACKING_MAX_SHARE:.0%} max): raise the allowance or "
                           "lower the bounds", rms=round(rms, 3), max=round(worst, 3), limit=limit,
-                          samples=len(e), nearing=True)
+                          samples=len(e))
 
     def _estimate_lag(self, measured_at: float) -> None:
         """The vehicle's lag behind its setpoints (companion.lag: a least-squares fit over a

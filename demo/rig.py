@@ -192,7 +192,7 @@ class Rig:
 
 
 def demo_config(zenoh_port: int, mav_port: int, rate_hz: float = 50.0, workers: int | None = None,
-                lead: float = 0.0) -> Config:
+                lead: float | str = "auto") -> Config:
     from companion.config import PlannerConfig, SetpointConfig
 
     planner = PlannerConfig() if workers is None else PlannerConfig(workers=workers)
@@ -210,7 +210,7 @@ def demo_config(zenoh_port: int, mav_port: int, rate_hz: float = 50.0, workers: 
 @contextlib.contextmanager
 def rig(out: Path, autopilot: str, rate_hz: float = 50.0, mock_args: tuple[str, ...] = (),
         mav_port: int | None = None, companion_mav_port: int | None = None,
-        workers: int | None = None, lead: float = 0.0) -> Iterator[Rig]:
+        workers: int | None = None, lead: float | str = "auto") -> Iterator[Rig]:
     """Mock + companion + our peer. `companion_mav_port` lets a relay sit between the two."""
     out.mkdir(parents=True, exist_ok=True)
     mav_port = mav_port or free_port(socket.SOCK_DGRAM)
