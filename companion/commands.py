@@ -327,6 +327,8 @@ class Commands:
         self.tracking_error_max = max(self.tracking_error_max, err)
         self._estimate_lag(measured_at)
         limit = self.cfg.planner.tracking_allowance
+        if limit <= 0.0:  # no allowance: no inflation and no brake (planning tests, benches)
+            return
         self._check_nearing(err, limit)
         self._over = self._over + 1 if err > limit else 0
         if self._over == 0:

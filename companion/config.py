@@ -137,7 +137,8 @@ class PlannerConfig:
     # How far the flown track may stray from the plan (m): obstacles (and the map box) are
     # inflated by vehicle_radius + tracking_allowance, and a tracking error above it for
     # 3 samples in a row brakes to a stop (it replaces [safety] max_tracking_error). Compared
-    # in flight with the tracking measured (event `tracking` when the RMS or max nears it).
+    # in flight with the tracking measured (event `tracking_margin` when the RMS or max nears
+    # it). 0: neither the inflation nor the brake (planning tests and benches only, not flight).
     tracking_allowance: float = 0.4
     # Fault injection for tests and drills: hold back the result of the full-replan fallback
     # (after a failed local replan) this many seconds, as on an overloaded computer. The
@@ -277,7 +278,6 @@ _POSITIVE = {
     "limits.decode_deadline",
     "safety.takeoff_altitude",
     "safety.arrival_tolerance",
-    "planner.tracking_allowance",
     "setpoints.lead_max",
     "autopilot_limits.headroom",
     "autopilot_limits.timeout",
@@ -286,7 +286,7 @@ _POSITIVE = {
 }
 
 
-_NON_NEGATIVE = {"planner.fallback_delay", "planner.reserve", "autopilot_limits.retries"}
+_NON_NEGATIVE = {"planner.fallback_delay", "planner.reserve", "autopilot_limits.retries", "planner.tracking_allowance"}
 
 # Keys that were replaced: what to set instead (a safety option must not be dropped silently).
 _REPLACED = {
