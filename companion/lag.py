@@ -13,7 +13,8 @@ at 30 Hz) so that a change of vehicle or load is followed; the estimate is the c
 minimum (refined between grid points) once MIN_SPAN s of motion are in. A sliding window's
 fit swings with what the window holds (a corner, a straight, a stop: the response is not a
 pure delay); the running cost does not. Between moving phases (hover, holds, takeoff) the
-estimate is held: nothing at rest changes it. Bounded to [0, cap].
+estimate is held: nothing at rest changes it. Bounded to [0, cap]. Residuals are truncated
+at OUTLIER, so that a stall or a gust does not drag the estimate for the next 20 s.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ MIN_SPEED = 0.5  # m/s of the plan: slower samples say little about a time lag
 MIN_SPAN = 2.0  # s of moving samples before the first estimate
 FORGET = 600  # samples: the running cost's memory (~20 s of motion at 30 Hz)
 STEP = 0.005  # s between candidate shifts
+OUTLIER = 0.5  # m: a residual counts at most this much (a truncated least squares)
 
 
 @dataclass
@@ -63,7 +65,9 @@ class LagEstimator:
             self._last = -math.inf
             return
         r = np.asarray(measured, dtype=float)[None, :] - stream_at(t - self.shifts)
-        r2 = np.einsum("kc,kc->k", r, r)
+        # truncated: a moment the vehicle strays for another reason (a stall of the companion, a
+        # gust) adds a flat cost, not a pull towards a wrong lag
+        r2 = np.minimum(np.einsum("kc,kc->k", r, r), OUTLIER * OUTLIER)
         if not np.all(np.isfinite(r2)):
             return
         self._cost = r2 if self._cost is None else self._cost * (1.0 - 1.0 / FORGET) + r2

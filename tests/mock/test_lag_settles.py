@@ -98,6 +98,7 @@ def test_lag_estimate_converges_and_settles(tmp_path: Path, autopilot: str, resp
     assert samples, f"no lag estimate while streaming: {out['events']}"
     t_first = out["samples"][0][0]
     t_last = out["samples"][-1][0]
+    assert t_last - t_first >= 12.0, f"the flight ended early: {out['events'][-6:]}"  # enough motion to judge
     est = np.array([s[1] for s in samples])
     leads = np.array([s[2] for s in samples])
     late = np.array([t_last - s[0] <= 3.0 for s in samples])  # the last 3 s of the last leg
@@ -105,14 +106,13 @@ def test_lag_estimate_converges_and_settles(tmp_path: Path, autopilot: str, resp
     print(f"{autopilot}: mock best-fit lag {truth * 1000:.1f} ms; estimate settled "
           f"{est[settled].min() * 1000:.1f}-{est[settled].max() * 1000:.1f} ms, last 3 s spread "
           f"{np.ptp(est[late]) * 1000:.1f} ms, final {est[-1] * 1000:.1f} ms, flight {t_last - t_first:.1f} s")
-    assert t_last - t_first >= 12.0  # enough motion to judge
     # bounded
     assert np.all((est >= 0.0) & (est <= out["cap"]))
-    # converged within ~20 ms of the mock's true lag after a few seconds of motion (measured at
-    # 10 s: 5-10 ms on the calibrated response, 20-23 ms on the 0.3 s one, which starts high
-    # while the vehicle accelerates from the hover), held there, and closer still by the end
-    assert np.all(np.abs(est[settled] - truth) <= 0.025)
-    assert abs(est[-1] - truth) <= 0.012
+    # converged within ~20 ms of the mock's true lag after a few seconds of motion (measured
+    # from 10 s on: within 5 ms on the calibrated response, 16 ms on the 0.3 s one, which starts
+    # high while the vehicle accelerates from the hover), held there, and closer still by the end
+    assert np.all(np.abs(est[settled] - truth) <= 0.020)
+    assert abs(est[-1] - truth) <= 0.010
     # does not swing: its spread over the last seconds of the last leg
     assert np.ptp(est[late]) <= 0.015  # (issue 26: the old estimate ranged 0-160 ms within every leg)
     # the setpoints lead by it (auto; the lead follows at a bounded rate), and status shows both
