@@ -71,7 +71,10 @@ def _outcome(key: str, events: list[dict[str, Any]]) -> int | None:
         if kind == "rejected":
             return EXIT_REJECTED
         if kind == "refused":
-            return EXIT_DENIED if e.get("by") == "autopilot" or "failed:" in str(e.get("reason", "")) else EXIT_REFUSED
+            # `by` says who refused (a companion before `by` existed: its "failed:" prefix)
+            by = e.get("by")
+            denied = by == "autopilot" if by is not None else "failed:" in str(e.get("reason", ""))
+            return EXIT_DENIED if denied else EXIT_REFUSED
         if kind == "accepted" and key != "command":
             return EXIT_OK
         if kind == "completed":

@@ -63,6 +63,7 @@ class AutopilotWatch:
         self._events_task: asyncio.Task[bool] | None = None
         self._waiting_said = -math.inf
         self.missing_telemetry: list[str] | None = None  # None: not checked yet
+        self.on_link_up: Callable[[str], None] | None = None  # link-up and reconnect (why)
 
     # -- telemetry, asked for --------------------------------------------------------------
 
@@ -187,9 +188,13 @@ class AutopilotWatch:
             self.report.event("link", f"autopilot found: {st.autopilot} in {st.mode}", autopilot=st.autopilot,
                               mode=st.mode)
             self.ask_telemetry("link up")
+            if self.on_link_up is not None:
+                self.on_link_up("link up")
         if fl.link_lost:
             fl.link_lost = False
             self.ask_telemetry("link restored (the autopilot may have rebooted)")
+            if self.on_link_up is not None:
+                self.on_link_up("link restored")
             lost_s = time.monotonic() - self._lost_at + self.cfg.mavlink.link_timeout
             self.report.event("link_restored", f"MAVLink link restored after about {lost_s:.1f} s without the "
                               f"autopilot (cause: the link): autopilot in {st.mode}, "

@@ -339,7 +339,7 @@ class Brakes:
             wake = guard.start_time() - spare
             if guard.future is None:
                 wake = min(wake, guard.deadline - BRAKE_PREPARE)
-            delay = wake - self.control.now()
+            delay = wake - self.control.committed()  # a stop starts after the setpoints already sent
             if delay <= 0:
                 if guard.future is None:
                     guard.start()

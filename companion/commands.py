@@ -9,6 +9,7 @@ with the autopilot's answer) and leaves the vehicle in a state it can be command
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
 import logging
 import math
@@ -17,22 +18,26 @@ from typing import Any
 
 import numpy as np
 
-from companion.config import LEAD_MAX, Config
+from companion.config import Config
 from companion.control import Control
 from companion.flight import HOLDING_CONTROL, Flight, State
+from companion.lag import LagEstimator
 from companion.navigator import Navigator
 from companion.report import Reporter
 from companion.wire.mavlink import CommandFailed, MavlinkLink
-from companion.wire.messages import Command, bounds_from
+from companion.wire.messages import Command
 from planner_core import Problem, allocate_times, plan, splice, takeoff_duration
 
 log = logging.getLogger("companion")
 S = State
 MAV_LANDED_IN_AIR = 2
-LAG_MIN_SPEED = 0.5  # m/s of the plan: slower samples say little about a time lag
-LAG_ALPHA = 0.03  # smoothing per position sample (~1 s at 30 Hz)
-LAG_GRID = np.arange(0.0, 0.2401, 0.002)  # s: shifts of the setpoint stream tried
+LEAD_SLEW = 0.1  # s per s: how fast the auto lead follows the lag estimate (the setpoints run 10 % fast or slow)
 TRACKING_SAMPLES = 3  # position samples in a row above the limit (0.1 s at 30 Hz) before acting
+# The tracking measured in flight against [planner] tracking_allowance: an event when the RMS
+# over the last TRACKING_WINDOW samples (or the largest error) passes this share of it.
+TRACKING_WINDOW = 150  # position samples (~5 s at 30 Hz)
+TRACKING_RMS_SHARE = 0.5
+TRACKING_MAX_SHARE = 0.8
 
 
 def at_rest(velocity: np.ndarray, threshold: float) -> bool:
@@ -52,12 +57,15 @@ class Commands:
         # tracking: measured position against the setpoint of the measurement's time
         self.tracking_error: float | None = None
         self.tracking_error_max = 0.0  # since the service started
-        self._over = 0  # consecutive samples above [safety] max_tracking_error
+        self._over = 0  # consecutive samples above [planner] tracking_allowance
         self._tracking_said = False
         self._tracking_stop: asyncio.Task[None] | None = None
+        self._recent_errors: collections.deque[float] = collections.deque(maxlen=TRACKING_WINDOW)
+        self._nearing_said = False  # the tracking measured nears the allowance: said once per flight phase
         # lag compensation: the vehicle's lag behind the setpoints it is sent, from telemetry
-        self.lag_estimate: float | None = None
-        self._lag_sums = np.zeros(5)  # e.v, v.v, e.a, v.a, a.a (see _estimate_lag)
+        self.lag = LagEstimator(cap=cfg.setpoints.lead_max)
+        self._leads: collections.deque[tuple[float, float]] = collections.deque()  # (t, lead) sampled
+        self._lead_set_at: float | None = None
         self.lead_target: Any = None  # the setpoint thread (its `lead` is set here)
         self._stall_task: asyncio.Task[None] | None = None  # what a stall of the companion set off
 
@@ -127,7 +135,9 @@ class Commands:
         try:
             await coro
         except CommandFailed as exc:
-            self.report.refuse(name, f"failed: {exc}", by="autopilot", **exc.fields())
+            # the companion's own checks say why; the autopilot's refusals say what failed
+            reason = str(exc) if exc.by == "companion" else f"failed: {exc}"
+            self.report.refuse(name, reason, by=exc.by, **exc.fields())
             if self.flight.state in (S.ARMING, S.TAKEOFF):
                 self.nav.release()
                 self.control.release()
@@ -222,16 +232,16 @@ class Commands:
 
     async def _px4_climb(self, target: np.ndarray) -> None:
         """A verified vertical climb streamed in OFFBOARD (PX4 has no GUIDED-style takeoff for us)."""
-        base = self.control.active
-        assert base is not None
-        bounds = bounds_from(None, self.cfg)
+        bounds = self.nav.default_bounds()  # within the autopilot's limits
         ahead = self.cfg.planner.split_ahead
         # The climb starts from a hold at rest, so a plan that comes back after its split time
         # (a busy computer: the planner process waits for a core) is planned again further
         # ahead, once, by what it took: the vehicle only holds a little longer.
         for attempt in (1, 2):
             started = time.monotonic()
-            t_split = self.control.now() + ahead
+            base = self.control.active
+            assert base is not None
+            t_split = self.control.committed() + ahead
             jet = base.jet(t_split)
             points = np.vstack([jet[0], target])
             climb = target - jet[0]
@@ -245,14 +255,16 @@ class Commands:
             problem = Problem.from_waypoints(points, durations, bounds, initial=jet, t0=t_split)
             result = await self.nav.runtime.plan(plan, problem)
             if not result.ok or result.trajectory is None:
-                raise CommandFailed(f"no verified climb: {result.message}")
+                raise CommandFailed(f"no verified climb: {result.message}", by="companion")
             if self.control.swap(splice(base, result.trajectory), t_split, None, "takeoff"):
                 break
+            if not self.control.flying:
+                raise CommandFailed("control was released during the climb's planning", by="companion")
             took = time.monotonic() - started
             if attempt == 2 or not at_rest(jet[1], self.cfg.safety.rest_speed):
                 raise CommandFailed(f"climb planning was too slow: {took * 1000:.0f} ms, past its split "
-                                    f"{ahead * 1000:.0f} ms ahead")
-            ahead = max(ahead, 2.0 * took + 0.05)
+                                    f"{ahead * 1000:.0f} ms ahead", by="companion")
+            ahead = max(2.0 * ahead, 2.0 * took + 0.05)
             log.info("climb planned %.0f ms after the request, past its split: planning again %.0f ms ahead",
                      took * 1000, ahead * 1000)
         tol, rest = self.cfg.safety.arrival_tolerance, self.cfg.safety.rest_speed
@@ -274,7 +286,7 @@ class Commands:
             await self.takeoff(self.cfg.safety.takeoff_altitude)
         elif self.flight.state in (S.PILOT, S.FAILSAFE, S.IDLE):
             if not self.flight.airborne and st.landed_state != MAV_LANDED_IN_AIR and st.autopilot != "px4":
-                raise CommandFailed("vehicle is on the ground: send 'takeoff' first")
+                raise CommandFailed("vehicle is on the ground: send 'takeoff' first", by="companion")
             await self._take_follow_mode("start command: taking control")
             self.report.go(S.READY, f"in control ({self.link.state.mode}): holding")
         if self.flight.state is S.READY and not self.flight.airborne:
@@ -315,19 +327,31 @@ class Commands:
 
     # -- tracking -------------------------------------------------------------------------
 
+    @property
+    def lag_estimate(self) -> float | None:
+        return self.lag.estimate
+
     def check_tracking(self, measured_at: float) -> None:
-        """Each position sample: the time-aligned tracking error; above `[safety]
-        max_tracking_error` for TRACKING_SAMPLES samples in a row while a plan is flown: brake
-        to a verified stop and hold (holding already: say so once), with the figures."""
+        """Each position sample: the time-aligned tracking error; above `[planner]
+        tracking_allowance` (the margin the obstacles are inflated by) for TRACKING_SAMPLES
+        samples in a row while a plan is flown: brake to a verified stop and hold (holding
+        already: say so once), with the figures. The measured RMS or max nearing the allowance
+        is said too (once per flight phase): the certificate assumes the allowance holds."""
         st, ctl, fl = self.link.state, self.control, self.flight
         err = ctl.tracking_error(st.position, measured_at) if fl.controlling else None
         self.tracking_error = err
         if err is None:
             self._over = 0
+            self._recent_errors.clear()
+            self._nearing_said = False
+            self.lag.hold()
             return
         self.tracking_error_max = max(self.tracking_error_max, err)
         self._estimate_lag(measured_at)
-        limit = self.cfg.safety.max_tracking_error
+        limit = self.cfg.planner.tracking_allowance
+        if limit <= 0.0:  # no allowance: no inflation and no brake (planning tests, benches)
+            return
+        self._check_nearing(err, limit)
         self._over = self._over + 1 if err > limit else 0
         if self._over == 0:
             self._tracking_said = False
@@ -340,42 +364,68 @@ class Commands:
         ref = ctl.reference(measured_at)
         flying = fl.state is S.STREAMING and fl.airborne
         what = "braking to a stop and holding" if flying else "holding already"
-        self.report.event("tracking", f"tracking error {err:.2f} m over [safety] max_tracking_error {limit:.2f} m "
-                          f"for {self._over} samples: {what}", error=round(err, 3), limit=limit,
-                          samples=self._over, position=[round(float(x), 3) for x in st.position],
+        self.report.event("tracking", f"tracking error {err:.2f} m over [planner] tracking_allowance {limit:.2f} m "
+                          f"(the margin obstacles are inflated by) for {self._over} samples: {what}",
+                          error=round(err, 3), limit=limit, samples=self._over,
+                          position=[round(float(x), 3) for x in st.position],
                           setpoint=None if ref is None else [round(float(x), 3) for x in ref])
         if flying:
             self._tracking_stop = asyncio.get_running_loop().create_task(
-                self.nav.hold(f"tracking error {err:.2f} m > {limit:.2f} m", None))
+                self.nav.hold(f"tracking error {err:.2f} m > tracking allowance {limit:.2f} m", None))
+
+    def _check_nearing(self, err: float, limit: float) -> None:
+        if not self.flight.flying_ours:
+            return
+        self._recent_errors.append(err)
+        if self._nearing_said or len(self._recent_errors) < TRACKING_WINDOW // 3:
+            return
+        e = np.asarray(self._recent_errors)
+        rms, worst = float(np.sqrt(np.mean(e * e))), float(e.max())
+        if rms < TRACKING_RMS_SHARE * limit and worst < TRACKING_MAX_SHARE * limit:
+            return
+        self._nearing_said = True
+        self.report.event("tracking_margin", f"tracking measured near the allowance: RMS {rms:.2f} m, max {worst:.2f} m over "
+                          f"the last {len(e)} samples, [planner] tracking_allowance {limit:.2f} m (warned at "
+                          f"{TRACKING_RMS_SHARE:.0%} RMS / {TRACKING_MAX_SHARE:.0%} max): raise the allowance or "
+                          "lower the bounds", rms=round(rms, 3), max=round(worst, 3), limit=limit,
+                          samples=len(e))
 
     def _estimate_lag(self, measured_at: float) -> None:
-        """The vehicle's effective response lag behind its setpoints, from telemetry.
-
-        The time shift d that best explains the measured positions as the setpoint stream
-        delayed by d, as the lag is measured (minimum RMS of p(t) - s(t - d)); the setpoint of
-        time t is the plan at t + lead. To second order s(t - d) ~ s(t) - d v + d^2 a / 2, so
-        with e = measured - s(t) the squared error is a quartic in d whose coefficients are
-        sums of e.v, v.v, e.a, v.a, a.a over the samples (exponentially weighted, ~1 s, plan
-        speeds above LAG_MIN_SPEED); its minimum on [0, 2 LEAD_MAX] is the estimate. With
-        `setpoints.lead = "auto"` the setpoints lead by it (at most LEAD_MAX)."""
+        """The vehicle's lag behind its setpoints (companion.lag: a least-squares fit over a
+        sliding window of motion, smoothed, held at rest, at most [setpoints] lead_max). With
+        `setpoints.lead = "auto"` the setpoints lead by it."""
+        ctl = self.control
+        active, t_base = ctl.active, ctl.t_base
+        if not self.flight.flying_ours or not ctl.streaming or active is None or t_base is None:
+            self.lag.hold()
+            self._lead_set_at = None
+            return
         lead_now = float(getattr(self.lead_target, "lead", 0.0))
-        jet = self.control.reference_jet(measured_at + lead_now)
-        if jet is None or not self.flight.flying_ours:
+        jet = ctl.reference_jet(measured_at + lead_now)
+        if jet is None:
             return
-        s_pos, v, a = jet
-        speed2 = float(v @ v)
-        if speed2 < LAG_MIN_SPEED ** 2:
-            return
-        e = self.link.state.position - s_pos
-        sample = np.array([float(e @ v), speed2, float(e @ a), float(v @ a), float(a @ a)])
-        self._lag_sums += LAG_ALPHA * (sample - self._lag_sums)
-        ev, vv, ea, va, aa = self._lag_sums
-        d = LAG_GRID
-        cost = 2 * d * ev + d * d * (vv - ea) - d ** 3 * va + 0.25 * d ** 4 * aa
-        est = float(d[int(np.argmin(cost))])
-        self.lag_estimate = est
-        if self.cfg.setpoints.lead == "auto" and self.lead_target is not None:
-            self.lead_target.lead = min(est, LEAD_MAX)
+        speed = float(np.linalg.norm(jet[1]))
+        leads = self._leads
+        leads.append((measured_at, lead_now))
+        while len(leads) > 2 and leads[1][0] < measured_at - self.cfg.setpoints.lead_max - 0.5:
+            leads.popleft()
+        lt, lv = np.array([x[0] for x in leads]), np.array([x[1] for x in leads])
+
+        def stream_at(times: np.ndarray) -> np.ndarray:
+            # the setpoint sent at time t was the plan at t + the lead of then
+            ts = np.clip(times - t_base + np.interp(times, lt, lv), active.t0, active.t_end)
+            return np.asarray(active.evaluate(ts, 0), dtype=float)
+
+        self.lag.add(measured_at, self.link.state.position, speed, stream_at)
+        est = self.lag.estimate
+        if est is not None and self.cfg.setpoints.lead == "auto" and self.lead_target is not None:
+            # towards the estimate at most LEAD_SLEW s per s: a jump of the lead would make the
+            # setpoints jump along the plan
+            last = self._lead_set_at if self._lead_set_at is not None else measured_at
+            step = LEAD_SLEW * max(0.0, measured_at - last)
+            want = min(est, self.cfg.setpoints.lead_max)
+            self.lead_target.lead = lead_now + max(-step, min(step, want - lead_now))
+        self._lead_set_at = measured_at
 
     # -- the hand-over on exit -------------------------------------------------------------
 

@@ -95,8 +95,12 @@ class SetpointConfig:
     process: bool = True
     # Lag compensation: sample each setpoint this far ahead on the verified trajectory (s),
     # so that the vehicle, which lags its setpoints, flies the plan on time. "auto": the lag
-    # estimated in flight from telemetry (status `lag_estimate_ms`); 0: none. At most 0.12 s.
-    lead: float | str = 0.0
+    # estimated in flight from telemetry (status `lag_estimate_ms`; companion/lag.py), for
+    # both autopilots; a number: that fixed lead; 0: none. Plan changes split after the
+    # setpoints already sent (now + lead + [planner] split_ahead).
+    lead: float | str = "auto"
+    # The most the lead (and the lag estimate) may be (s): PX4 SIH lags ~0.3 s, ArduCopter ~0.06 s.
+    lead_max: float = 0.5
     # The event loop not running for this long (s) is a stall of the companion: the setpoint
     # thread withholds setpoints from then on (it does so too when it itself wakes 0.5 s late).
     # Awake again, the companion holds (setpoints silent under 0.5 s: the autopilot still flies
@@ -143,6 +147,12 @@ class PlannerConfig:
     # has left. At 0 a plan flies at the bounds, and a pop-up obstacle near the path more often
     # ends in a verified stop and a hold than in a swerve (docs: README, "Timing").
     reserve: float = 0.2
+    # How far the flown track may stray from the plan (m): obstacles (and the map box) are
+    # inflated by vehicle_radius + tracking_allowance, and a tracking error above it for
+    # 3 samples in a row brakes to a stop (it replaces [safety] max_tracking_error). Compared
+    # in flight with the tracking measured (event `tracking_margin` when the RMS or max nears
+    # it). 0: neither the inflation nor the brake (planning tests and benches only, not flight).
+    tracking_allowance: float = 0.4
     # Fault injection for tests and drills: hold back the result of the full-replan fallback
     # (after a failed local replan) this many seconds, as on an overloaded computer. The
     # braking deadline must then stop the vehicle. 0 in flight.
@@ -201,13 +211,25 @@ class LimitsConfig:
 
 
 @dataclass(frozen=True)
+class AutopilotLimitsConfig:
+    # Read the autopilot's own limits on the setpoints it is streamed (ArduPilot WPNAV_* and
+    # PSC_JERK_*, PX4 MPC_*: docs/autopilot-limits.md) at link-up and after a reconnect, and
+    # plan within them: the bounds flown are the configured ones (or a mission's own) clipped
+    # to limit x headroom. false: plan with the configured bounds only.
+    read: bool = True
+    # Share of each limit plans may use (the rest is the autopilot's own margin).
+    headroom: float = 0.9
+    # Seconds to wait for the parameters each try, and how many times to ask again.
+    timeout: float = 1.0
+    retries: int = 2
+
+
+@dataclass(frozen=True)
 class SafetyConfig:
     auto_arm: bool = False
     takeoff_altitude: float = 2.0
     # A mission's first waypoint or takeoff within this distance counts as reached.
     arrival_tolerance: float = 0.2
-    # Hold position instead of flying when tracking error exceeds this (m).
-    max_tracking_error: float = 3.0
     # Takeoff is complete within `arrival_tolerance` of its altitude AND below this speed (m/s).
     rest_speed: float = 0.2
     # On SIGINT/SIGTERM in flight (or an internal failure the service cannot recover from):
@@ -250,6 +272,7 @@ class Config:
     planner: PlannerConfig = field(default_factory=PlannerConfig)
     geofence: GeofenceConfig = field(default_factory=GeofenceConfig)
     limits: LimitsConfig = field(default_factory=LimitsConfig)
+    autopilot_limits: AutopilotLimitsConfig = field(default_factory=AutopilotLimitsConfig)
     safety: SafetyConfig = field(default_factory=SafetyConfig)
     recording: RecordingConfig = field(default_factory=RecordingConfig)
     live: LiveConfig = field(default_factory=LiveConfig)
@@ -300,7 +323,9 @@ _POSITIVE = {
     "limits.decode_deadline",
     "safety.takeoff_altitude",
     "safety.arrival_tolerance",
-    "safety.max_tracking_error",
+    "setpoints.lead_max",
+    "autopilot_limits.headroom",
+    "autopilot_limits.timeout",
     "safety.rest_speed",
     "safety.exit_timeout",
     "recording.max_bytes",
@@ -309,18 +334,25 @@ _POSITIVE = {
 }
 
 
-_NON_NEGATIVE = {"planner.fallback_delay", "planner.reserve"}
+_NON_NEGATIVE = {"planner.fallback_delay", "planner.reserve", "autopilot_limits.retries", "planner.tracking_allowance"}
 
+# Keys that were replaced: what to set instead (a safety option must not be dropped silently).
+_REPLACED = {
+    "safety.max_tracking_error": "replaced by [planner] tracking_allowance (m): the tracking error at which the "
+                                 "companion brakes, which now also inflates obstacles (with vehicle_radius), so "
+                                 "that the plan's certificate covers the track flown; set that instead "
+                                 "(docs/autopilot-limits.md)",
+}
 
-LEAD_MAX = 0.12  # s: below [planner] split_ahead's default, so a swap is never sampled before its split
+LEAD_MAX = 0.5  # s: [setpoints] lead_max's default (PX4 SIH lags ~0.3 s)
 
 
 def _convert(key: str, hint: Any, value: Any, default: Any) -> Any:
     if key == "setpoints.lead":
         if value == "auto":
             return value
-        if isinstance(value, bool) or not isinstance(value, int | float) or not 0.0 <= value <= LEAD_MAX:
-            raise ConfigError(key, f"expected \"auto\" or seconds in [0, {LEAD_MAX}], got {value!r}")
+        if isinstance(value, bool) or not isinstance(value, int | float) or not 0.0 <= value <= 2.0:
+            raise ConfigError(key, f"expected \"auto\" or seconds in [0, [setpoints] lead_max], got {value!r}")
         return float(value)
     if dataclasses.is_dataclass(default):
         if not isinstance(value, dict):
@@ -358,6 +390,8 @@ def _build(cls: type, table: dict[str, Any], prefix: str = "") -> Any:
     defaults = cls()
     names = {f.name for f in fields(cls)}
     for k in table:
+        if prefix + k in _REPLACED:
+            raise ConfigError(prefix + k, _REPLACED[prefix + k])
         if k not in names:
             raise ConfigError(prefix + k, f"unknown key (allowed: {', '.join(sorted(names))})")
     kwargs: dict[str, Any] = {}
@@ -372,6 +406,8 @@ def _build(cls: type, table: dict[str, Any], prefix: str = "") -> Any:
             raise ConfigError(key, f"must be > 0, got {value!r}")
         if key in _NON_NEGATIVE and value < 0:
             raise ConfigError(key, f"must be >= 0, got {value!r}")
+        if key == "autopilot_limits.headroom" and value > 1.0:
+            raise ConfigError(key, f"must be <= 1 (the share of each autopilot limit plans may use), got {value!r}")
         if key == "planner.reserve" and value >= 0.9:
             raise ConfigError(key, f"must be < 0.9 (the share of each bound left unused), got {value!r}")
         kwargs[f.name] = value
@@ -380,6 +416,10 @@ def _build(cls: type, table: dict[str, Any], prefix: str = "") -> Any:
 
 def config_from_dict(table: dict[str, Any]) -> Config:
     cfg: Config = _build(Config, table)
+    sp = cfg.setpoints
+    if sp.lead != "auto" and float(sp.lead) > sp.lead_max:
+        raise ConfigError("setpoints.lead", f"expected \"auto\" or seconds in [0, {sp.lead_max}] ([setpoints] "
+                          f"lead_max), got {sp.lead!r}")
     lo, hi = cfg.geofence.min, cfg.geofence.max
     for i in range(3):
         if lo[i] >= hi[i]:

@@ -77,11 +77,21 @@ class Control:
         assert self._t_base is not None
         return time.monotonic() - self._t_base
 
+    def lead(self) -> float:
+        """How far ahead of now the setpoint thread samples the plan (lag compensation)."""
+        return float(getattr(self.target, "lead", 0.0))
+
+    def committed(self) -> float:
+        """Trajectory time up to which setpoints have been sent: now plus the lead. A change
+        of plan splits after it, so no setpoint already sent is ever contradicted."""
+        return self.now() + self.lead()
+
     def clock(self) -> Callable[[], float]:
-        """A clock of trajectory time for a worker thread (fixed to this time base)."""
+        """A clock of committed trajectory time (`committed`) for a worker thread (fixed to
+        this time base; the lead read at each call)."""
         t_base = self._t_base
         assert t_base is not None
-        return lambda: time.monotonic() - t_base
+        return lambda: time.monotonic() - t_base + self.lead()
 
     def jet(self, t: float) -> FloatArray:
         """The flown plan's jet at trajectory time t (at rest past its end)."""
@@ -134,7 +144,7 @@ class Control:
         if old is None or self._t_base is None:
             return False
         now = self.now()
-        if t_split <= now + 0.5 / self.rate_hz:
+        if t_split <= now + self.lead() + 0.5 / self.rate_hz:  # setpoints up to now + lead are sent
             return False
         # single-time samplers: Trajectory.evaluate/jet cost ~0.5 ms a call, on the pop-up's
         # critical path

@@ -169,7 +169,7 @@ def detour(
         notes.append(f"internal: segment {segment} / obstacle {obstacle} out of range")
         return None
     a, b = points[segment], points[segment + 1]
-    lo, hi = mission.map_lo + mission.radius, mission.map_hi - mission.radius
+    lo, hi = mission.corridor_map[0] + mission.radius, mission.corridor_map[1] - mission.radius
     best: tuple[Outcome, FloatArray, FloatArray, FloatArray] | None = None
     for name, cs in _detour_options(a, b, polys[obstacle], mission.radius):
         clipped = np.clip(cs, lo + 1e-6, hi - 1e-6)

@@ -160,7 +160,7 @@ def local_replan(route: Route, t_split: float, edit: LocalEdit, known: Known | S
     new = [p for e in edit.edits if isinstance(e, AddObstacles) for p in e.obstacles]
     before = every.without(new)
     named_new = every.only(new)
-    env = Environment(before.polytopes, (r.mission.map_lo, r.mission.map_hi), r.mission.radius)
+    env = Environment(before.polytopes, r.mission.corridor_map, r.mission.radius)
     try:
         result = replan(r.problem, r.trajectory, ChangeSet(edit.edits, from_time=t_split),
                         options=ReplanOptions(environment=env))

@@ -24,6 +24,7 @@ from companion.config import Config
 from companion.control import Control
 from companion.edits import LocalEdit, Refused, resolve_planned
 from companion.flight import Flight, State
+from companion.limits import clips_text
 from companion.mission import (
     check_mission,
     local_replan,
@@ -34,11 +35,20 @@ from companion.mission import (
 )
 from companion.obstacles import Known, ObstacleStore
 from companion.report import Reporter
-from companion.route import Outcome, Route
+from companion.route import Outcome, OutcomeStatus, Route
 from companion.runtime import Runtime
 from companion.wire.encode import num
 from companion.wire.messages import Change, MissionSpec, ObstacleUpdate, bounds_from
-from planner_core import AddObstacles, FloatArray, Polytope, Trajectory, first_hit, rest_jet, splice
+from planner_core import (
+    AddObstacles,
+    Bounds,
+    FloatArray,
+    Polytope,
+    Trajectory,
+    first_hit,
+    rest_jet,
+    splice,
+)
 
 log = logging.getLogger("companion")
 S = State
@@ -77,6 +87,7 @@ class Navigator:
         self.plan_latency: float | None = None
         self.replan_latency: float | None = None
         self.brakes = Brakes(cfg, control, runtime, report, self.stop_context, position, self._stopped)
+        self.limits: Any = None  # companion.limits_watch.LimitsWatch (set by the service): bounds flown
 
     # -- what is known --------------------------------------------------------------------
 
@@ -87,8 +98,39 @@ class Navigator:
     def stop_context(self) -> StopContext:
         mission = self.route.mission if self.route is not None else None
         every = self.known() + (Known.of(mission.obstacles) if mission is not None else Known())
-        bounds = mission.bounds if mission is not None else bounds_from(None, self.cfg)
+        bounds = mission.bounds if mission is not None else self.default_bounds()
         return StopContext(mission, every.polytopes, bounds)
+
+    def default_bounds(self) -> Bounds:
+        """The configured bounds, within the autopilot's limits when they are known."""
+        return bounds_from(None, self.cfg) if self.limits is None else self.limits.default_bounds()
+
+    def _clipped_text(self, spec: MissionSpec) -> str:
+        """What the autopilot's limits clipped of the mission's bounds as given (its own, or
+        the configured ones), for a refusal's reason ("" when nothing)."""
+        if self.limits is None:
+            return ""
+        try:
+            given = bounds_from(spec.raw.get("bounds"), self.cfg)
+        except Exception:  # checked when the message was read; never fail a refusal on it
+            return ""
+        return clips_text(self.limits.clip(given)[1])
+
+    def within_limits(self, spec: MissionSpec, tell: bool) -> tuple[MissionSpec, str]:
+        """`spec` with its bounds clipped to the autopilot's limits x headroom; `tell`: say so
+        when a mission's own bounds were clipped (the configured ones are said at link-up).
+        Also returns what was clipped, for a refusal's reason."""
+        if self.limits is None:
+            return spec, ""
+        clipped, clips = self.limits.mission(spec)
+        if not clips:
+            return spec, ""
+        text = clips_text(clips)
+        if tell and "bounds" in spec.raw:
+            self.report.event("limits", f"mission {spec.id}: its bounds clipped to the autopilot's limits x headroom "
+                              f"{self.limits.headroom:g}: {text}", key="mission", mission=spec.id,
+                              clipped=[c.as_dict() for c in clips])
+        return clipped, text
 
     def has_mission(self) -> bool:
         """A mission `start`/`resume` can fly: loaded, interrupted, or still being flown."""
@@ -173,7 +215,7 @@ class Navigator:
                 return Swapped(None, reason=f"no longer in control ({self.flight.state.value})")
             base, route = self.control.active, self.route
             assert base is not None
-            t_split = self.control.now() + self.cfg.planner.split_ahead * (2**attempt)
+            t_split = self.control.committed() + self.cfg.planner.split_ahead * (2**attempt)
             if hit is not None and t_split >= hit:
                 messages.append("too close to the obstacle to replan")
                 break
@@ -194,6 +236,7 @@ class Navigator:
     # -- missions ---------------------------------------------------------------------------------
 
     async def on_mission(self, spec: MissionSpec, arrived: float) -> None:
+        spec, _ = self.within_limits(spec, tell=True)
         if self.flight.flying_ours and spec.autostart:
             await self.fly(spec, arrived)
             return
@@ -216,10 +259,17 @@ class Navigator:
 
     def _reject_outcome(self, spec: MissionSpec, outcome: Outcome) -> None:
         field = "" if outcome.blocked_waypoint is None else f"waypoints[{outcome.blocked_waypoint - spec.first_index}]"
-        self.report.reject("mission", field, f"mission {spec.id}: {outcome.message}", mission=spec.id)
+        why = outcome.message
+        clipped = self._clipped_text(spec)
+        if clipped and outcome.status is OutcomeStatus.INFEASIBLE:
+            why += (f" (planned within the autopilot's limits x headroom {self.limits.headroom:g}, which clipped "
+                    f"the bounds: {clipped})")
+        self.report.reject("mission", field, f"mission {spec.id}: {why}", mission=spec.id)
 
     async def fly(self, spec: MissionSpec, arrived: float | None) -> bool:
         """Plan `spec` from the flown state a little ahead of now and fly it."""
+        given = spec
+        spec, _ = self.within_limits(spec, tell=False)  # limits read since it was loaded
         async with self.lock:
             async def plan_at(base: Trajectory, t_split: float) -> Outcome:
                 jet = self.control.jet(t_split)
@@ -238,7 +288,7 @@ class Navigator:
                 return False
             assert done.outcome is not None and done.outcome.route is not None
             self.user_timed = False
-            if self.pending is spec:
+            if self.pending is given:
                 self.pending = None
             self.report.go(S.STREAMING, f"flying mission {spec.id}")
             lat = self.plan_latency or 0.0
@@ -251,9 +301,10 @@ class Navigator:
         spec = self.interrupted
         if spec is None:
             if self.route is not None and self.flight.state is S.STREAMING:
-                self.report.refuse("resume", f"mission {self.route.mission.id} is being flown")
+                self.report.refuse("resume", f"mission {self.route.mission.id} is being flown", by="companion")
             else:
-                self.report.refuse("resume", "no interrupted mission to resume (it is complete, or was aborted)")
+                self.report.refuse("resume", "no interrupted mission to resume (it is complete, or was aborted)",
+                                    by="companion")
             return
         if await self.fly(spec, arrived):
             self.report.event("resumed", f"mission {spec.id} resumed at mission waypoint {spec.first_index}",
@@ -406,7 +457,7 @@ class Navigator:
                 self.report.event("obstacles_clear", f"obstacles {names}: the current trajectory stays clear; no replan",
                                   obstacles=ids)
                 return
-            if hit < now + split_ahead:
+            if hit < self.control.committed() + split_ahead:  # setpoints up to now + lead are sent
                 announce()
                 await self.brakes.brake(f"obstacle {names} is {hit - now:.2f} s ahead: too close to replan", arrived)
                 return

@@ -40,7 +40,7 @@ def allocate_durations(waypoints: FloatArray, bounds: Bounds, initial_velocity: 
 
 
 def build_corridors(waypoints: FloatArray, obstacles: Sequence[Polytope], mission: MissionSpec) -> tuple[Polytope, ...]:
-    return tuple(_build_corridors(waypoints, list(obstacles), (mission.map_lo, mission.map_hi), mission.radius))
+    return tuple(_build_corridors(waypoints, list(obstacles), mission.corridor_map, mission.radius))
 
 
 

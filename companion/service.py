@@ -32,6 +32,7 @@ from companion.commands import Commands
 from companion.config import Config
 from companion.control import Control
 from companion.flight import Flight
+from companion.limits_watch import LimitsWatch
 from companion.mission import warm_up, warm_up_replan
 from companion.navigator import Navigator
 from companion.recorder import tap_for
@@ -107,6 +108,10 @@ class Service:
         self.watch = AutopilotWatch(cfg, self.flight, self.link, self.report, self.commands.release_control,
                                     on_position=self.commands.check_tracking, stalled=self._stalled)
         self.link.on_message = self.watch.on_message
+        # the autopilot's own limits: read at link-up and after a reconnect, planned within
+        self.limits = LimitsWatch(cfg, self.link, self.report)
+        self.watch.on_link_up = self.limits.read
+        self.navigator.limits = self.limits
         # lag compensation: a fixed lead, or "auto" (set by Commands from its estimate)
         self.commands.lead_target = self.sender
         self.sender.lead = 0.0 if cfg.setpoints.lead == "auto" else float(cfg.setpoints.lead)
@@ -295,6 +300,8 @@ class Service:
             "tracking_error_max": enc.num(self.commands.tracking_error_max),
             "lead_ms": round(self.sender.lead * 1000, 1),
             "lag_estimate_ms": enc.ms(self.commands.lag_estimate),
+            "tracking_allowance": self.cfg.planner.tracking_allowance,
+            **self._limits_status(),
             "message_to_setpoint_ms": enc.ms(ctl.setpoint_latency),
             "setpoints_sent": self.link.sent_setpoints,
             "setpoint_gap_max_ms": round(ctl.setpoint_gap_max * 1000, 2),
@@ -302,6 +309,19 @@ class Service:
             "gc_pause_max_ms": round(self.gc.worst * 1000, 2),
             "setpoints_stalled": self.setpoints_stalled,
             **self.tap.status_fields(),
+        }
+
+    def _limits_status(self) -> dict[str, Any]:
+        """The autopilot's limits (each with its source) and the bounds flown because of them."""
+        lim = self.limits.assumed()
+        b = self.limits.default_bounds()
+        return {
+            "autopilot_limits": None if lim is None else {
+                **lim.as_status(), "read": self.limits.limits is not None, "headroom": self.limits.headroom},
+            "bounds_flown": {name: {"lo": [round(float(x), 4) for x in b.lo[i]],
+                                    "hi": [round(float(x), 4) for x in b.hi[i]],
+                                    "horizontal": enc.num(float(b.horizontal[i]))}
+                             for i, name in enumerate(("velocity", "acceleration", "jerk", "snap"))},
         }
 
     # -- inbound messages: one reader per kind ------------------------------------------------------

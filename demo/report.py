@@ -58,6 +58,8 @@ class MissionResult:
     stats: dict[str, Any] = field(default_factory=dict)
     flight_time: float | None = None
     tracking: Tracking | None = None
+    # s, per applied setpoint: how far ahead of its own time it was sampled (the lead)
+    leads: FloatArray | None = None
     peaks_planned: FloatArray | None = None  # (4, 3) max |derivative| per axis
     peaks_flown: FloatArray | None = None  # (2, 3) velocity, acceleration
     bounds: FloatArray | None = None  # (4, 3) symmetric magnitude per axis (NED)
@@ -187,6 +189,17 @@ def local_offsets(trajs: Sequence[Trajectory], starts: Sequence[float], t: Float
     return raw, np.asarray(np.median(windows, axis=1), dtype=float)
 
 
+def running_median(values: FloatArray, window: int = 51) -> FloatArray:
+    """`values` smoothed by a running median (edges padded): a send stamp's millisecond
+    resolution must not read as a change of the lead."""
+    v = np.asarray(values, dtype=float)
+    if len(v) == 0:
+        return v
+    half = window // 2
+    windows = np.lib.stride_tricks.sliding_window_view(np.pad(v, half, mode="edge"), window)
+    return np.asarray(np.median(windows, axis=1), dtype=float)
+
+
 def tracking_error(trajs: Sequence[Trajectory], starts: Sequence[float], flown: Flown,
                    sp_t: FloatArray, sp_offsets: FloatArray, tau_start: float, tau_end: float) -> Tracking:
     """Flown position against the planned one, from the first mission trajectory to tau_end (m)."""
@@ -288,6 +301,9 @@ def summary_rows(result: MissionResult) -> list[tuple[str, str]]:
     rows.append(("flight time", "-" if result.flight_time is None else f"{result.flight_time:.1f} s"))
     if result.tracking is not None:
         rows.append(("tracking error RMS / max", f"{result.tracking.rms:.3f} / {result.tracking.max:.3f} m"))
+    if result.leads is not None and len(result.leads):
+        # the flight is compared with the plan at its own time: each setpoint's lead taken off
+        rows.append(("setpoint lead, first / last", f"{result.leads[0] * 1000:.0f} / {result.leads[-1] * 1000:.0f} ms"))
     if result.setpoint_deviation is not None:
         rows.append(("setpoints vs trajectory, max", f"{result.setpoint_deviation:.1e} m"))
     b = result.bounds

@@ -4,6 +4,7 @@ subprocesses on free loopback ports, and a Zenoh peer of ours that talks to the 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import os
 import queue
@@ -192,10 +193,15 @@ class Rig:
 
 
 def demo_config(zenoh_port: int, mav_port: int, rate_hz: float = 50.0, workers: int | None = None,
-                lead: float = 0.0, recording: Path | None = None) -> Config:
+                lead: float | str = "auto", recording: Path | None = None) -> Config:
     from companion.config import PlannerConfig, RecordingConfig, SetpointConfig
 
-    planner = PlannerConfig() if workers is None else PlannerConfig(workers=workers)
+    # the paper's scenario 2 passes a 1 m gap: with the scenario's 0.3 m vehicle radius that
+    # leaves 0.2 m of tracking allowance each side (the default 0.4 m closes it); the tracking
+    # brake fires at it too (docs/autopilot-limits.md)
+    planner = PlannerConfig(tracking_allowance=0.2)
+    if workers is not None:
+        planner = dataclasses.replace(planner, workers=workers)
     return Config(
         planner=planner,
         vehicle=VehicleConfig(id=VEHICLE),
@@ -211,7 +217,7 @@ def demo_config(zenoh_port: int, mav_port: int, rate_hz: float = 50.0, workers: 
 @contextlib.contextmanager
 def rig(out: Path, autopilot: str, rate_hz: float = 50.0, mock_args: tuple[str, ...] = (),
         mav_port: int | None = None, companion_mav_port: int | None = None,
-        workers: int | None = None, lead: float = 0.0, recording: Path | None = None) -> Iterator[Rig]:
+        workers: int | None = None, lead: float | str = "auto", recording: Path | None = None) -> Iterator[Rig]:
     """Mock + companion + our peer. `companion_mav_port` lets a relay sit between the two;
     `recording`: the companion's [recording] path (its MCAP file is complete once the rig closes)."""
     out.mkdir(parents=True, exist_ok=True)

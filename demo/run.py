@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import json
+import math
 import queue
 import sys
 import time
@@ -173,6 +175,8 @@ class FlightOutcome:
     t_done: float | None
     actions: list[Action]
     events: list[Sample]
+    # (monotonic time, lead s) from the companion's status: what the setpoints were sampled ahead by
+    leads: list[tuple[float, float]] = dataclasses.field(default_factory=list)
 
 
 class Progress:
@@ -217,6 +221,7 @@ def fly(r: Rig, mission: dict[str, Any], actions: list[Action], timeout: float, 
     need_start = status.get("state") not in AIRBORNE
     trajectories: list[Sample] = []
     events: list[Sample] = []
+    leads: list[tuple[float, float]] = []
     t_stream: float | None = None
     t_done: float | None = None
     reason = ""
@@ -262,11 +267,14 @@ def fly(r: Rig, mission: dict[str, Any], actions: list[Action], timeout: float, 
                     progress.show(f"[{name}] published {a.label}", force=True)
                     progress.done()
         st = r.peer.latest.get("status")
+        if st is not None and isinstance(st.data, dict) and isinstance(st.data.get("lead_ms"), int | float) and (
+                not leads or leads[-1][0] != st.mono):
+            leads.append((st.mono, float(st.data["lead_ms"]) / 1000.0))
         progress.show(_status_line(name, st.data if st else None, pos, now - t_put))
     progress.done()
     if not reason and t_done is None:
         reason = f"timeout after {timeout:.0f} s"
-    return FlightOutcome(not reason, reason, t_put, trajectories, t_stream, t_done, actions, events)
+    return FlightOutcome(not reason, reason, t_put, trajectories, t_stream, t_done, actions, events, leads)
 
 
 def _enu_position(telemetry: Any) -> np.ndarray | None:
@@ -287,7 +295,14 @@ def _drain(peer: Peer) -> None:
 
 def read_flown(log: Path) -> tuple[rep.Flown, np.ndarray, np.ndarray]:
     """States (t, pos, vel) and applied setpoints (t, pos) from the mock's flight log (NED)."""
-    st_t, st_p, st_v, sp_t, sp_p = [], [], [], [], []
+    flown, sp_t, sp_p, _ = read_flown_sent(log)
+    return flown, sp_t, sp_p
+
+
+def read_flown_sent(log: Path) -> tuple[rep.Flown, np.ndarray, np.ndarray, np.ndarray]:
+    """read_flown, and each applied setpoint's send time in the companion's clock (its
+    time_boot_ms, s; NaN where the mock did not log it)."""
+    st_t, st_p, st_v, sp_t, sp_p, sp_c = [], [], [], [], [], []
     with open(log, encoding="utf-8") as fh:
         for line in fh:
             if not line.strip():
@@ -300,9 +315,35 @@ def read_flown(log: Path) -> tuple[rep.Flown, np.ndarray, np.ndarray]:
             elif rec.get("type") == "setpoint" and rec.get("applied") and _full(rec.get("pos")):
                 sp_t.append(rec["t"])
                 sp_p.append(rec["pos"])
+                ms = rec.get("time_boot_ms")
+                sp_c.append(float(ms) / 1000.0 if isinstance(ms, int | float) else math.nan)
     flown = rep.Flown(np.asarray(st_t, float), np.asarray(st_p, float).reshape(-1, 3),
                       np.asarray(st_v, float).reshape(-1, 3))
-    return flown, np.asarray(sp_t, float), np.asarray(sp_p, float).reshape(-1, 3)
+    return flown, np.asarray(sp_t, float), np.asarray(sp_p, float).reshape(-1, 3), np.asarray(sp_c, float)
+
+
+def setpoint_leads(sp_t: np.ndarray, tau_sp: np.ndarray, sent: np.ndarray, leads: list[tuple[float, float]],
+                   mono_to_sim: Callable[[float], float], fallback: float,
+                   moving: np.ndarray | None = None) -> np.ndarray:
+    """How far ahead of its own time each setpoint was sampled (s), whatever the lead did
+    (fixed, or "auto" changing in flight). Setpoint i was the plan at tau_i = c_i - c0 +
+    lead_i, with c_i its send time in the companion's clock (time_boot_ms) and c0 the
+    companion's time base in that clock: so tau_i - c_i = lead_i - c0 follows the lead
+    setpoint by setpoint, and the status samples of the lead fix the constant c0 (a median
+    over all of them). tau_i is known where the plan moves (`moving`: at rest a setpoint
+    matches any time of the hover); elsewhere the lead is interpolated. Without those:
+    `fallback` for every setpoint."""
+    u = tau_sp - sent
+    ok = np.isfinite(u) if moving is None else np.isfinite(u) & moving
+    if not leads or ok.sum() < 10:
+        return np.full(len(sp_t), fallback)
+    s = np.array([mono_to_sim(m) for m, _ in leads])
+    lv = np.array([v for _, v in leads])
+    inside = (s >= sp_t[ok][0]) & (s <= sp_t[ok][-1])
+    if not inside.any():
+        return np.full(len(sp_t), fallback)
+    c0 = float(np.median(lv[inside] - np.interp(s[inside], sp_t[ok], u[ok])))
+    return np.where(ok, u + c0, np.interp(sp_t, sp_t[ok], u[ok] + c0))
 
 
 def _full(vec: Any) -> bool:
@@ -362,7 +403,7 @@ def analyse(name: str, mission: dict[str, Any], outcome: FlightOutcome, r: Rig,
     first, final = result.trajectories[0], result.trajectories[-1]
     result.peaks_planned = np.max([rep.planned_peaks(t) for t in result.trajectories], axis=0)
     time.sleep(0.7)  # the mock flushes its log every 0.5 s
-    flown, sp_t, sp_p = read_flown(r.flight_log)
+    flown, sp_t, sp_p, sp_c = read_flown_sent(r.flight_log)
     if len(sp_t) < 10 or len(flown.t) < 10:
         result.ok, result.reason = False, "the mock logged no applied setpoints"
         return result
@@ -379,11 +420,16 @@ def analyse(name: str, mission: dict[str, Any], outcome: FlightOutcome, r: Rig,
     if flying.sum() < 10:
         result.ok, result.reason = False, "no setpoints of this mission in the mock's log"
         return result
-    sp_t, sp_p = sp_t[flying], sp_p[flying]
-    sp_raw, sp_off = rep.local_offsets(result.trajectories, starts, sp_t, sp_p, offset)
+    sp_t, sp_p, sp_c = sp_t[flying], sp_p[flying], sp_c[flying]
+    # (an auto lead moves the setpoints up to [setpoints] lead_max along the plan in flight)
+    sp_raw, sp_off = rep.local_offsets(result.trajectories, starts, sp_t, sp_p, offset, search=0.6)
     # A setpoint sampled `lead` ahead matches the plan `lead` later than its own time: the
-    # flown position is compared with the plan at that time, not with the setpoint.
-    sp_off = sp_off + lead
+    # flown position is compared with the plan at its own time, not with the setpoint, with
+    # each setpoint's own lead (the auto lead changes in flight).
+    tau_sp = sp_t - sp_raw
+    moving = np.linalg.norm(rep.stitched(result.trajectories, starts, tau_sp, 1), axis=1) >= 0.3
+    result.leads = setpoint_leads(sp_t, tau_sp, sp_c, outcome.leads, mono_to_sim, lead, moving)
+    sp_off = sp_off + rep.running_median(result.leads)
     result.starts = starts
     result.tau_stream = s_stream - offset
     result.tracking = rep.tracking_error(result.trajectories, starts, flown, sp_t, sp_off,
@@ -543,9 +589,14 @@ def build_parser(prog: str = "python -m demo") -> argparse.ArgumentParser:
     p.add_argument("--no-plots", action="store_true")
     p.add_argument("--no-recording", action="store_true",
                    help="do not have the companion record the flight (out/demo/flight.mcap)")
-    p.add_argument("--lead", type=float, default=0.0, metavar="SECONDS",
-                   help="sample setpoints this far ahead of the plan (companion [setpoints] lead; 0: off)")
+    p.add_argument("--lead", type=_lead, default="auto", metavar="SECONDS|auto",
+                   help="sample setpoints this far ahead of the plan (companion [setpoints] lead; 0: off; "
+                        "auto, the default: the lag estimated in flight)")
     return p
+
+
+def _lead(text: str) -> float | str:
+    return "auto" if text == "auto" else float(text)
 
 
 def main(argv: list[str] | None = None, prog: str = "python -m demo") -> int:
@@ -587,7 +638,8 @@ def main(argv: list[str] | None = None, prog: str = "python -m demo") -> int:
                 print(f"- {title}: {len(mission['waypoints'])} waypoints")
                 outcome = fly(r, mission, actions, args.timeout, progress)
                 here = np.asarray(mission["waypoints"][-1], dtype=float)
-                result = analyse(name, mission, outcome, r, to_sim, lead=args.lead)
+                result = analyse(name, mission, outcome, r, to_sim,
+                                 lead=0.0 if args.lead == "auto" else float(args.lead))
                 results.append(result)
                 if not args.no_plots:
                     pngs += figures(name, title, mission, result, r, popup_msg, change_msg)

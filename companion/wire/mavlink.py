@@ -13,6 +13,7 @@ import asyncio
 import collections
 import math
 import os
+import struct
 import threading
 import time
 from collections.abc import Callable
@@ -95,14 +96,17 @@ class Note:
 
 class CommandFailed(RuntimeError):
     """A command sequence failed; `result` (MAV_RESULT name) and `note` (what the autopilot
-    said around the refusal) when the autopilot refused a COMMAND_LONG."""
+    said around the refusal) when the autopilot refused a COMMAND_LONG. `by`: who refused,
+    "autopilot" (it said no, did not answer, or did not do it in time) or "companion" (one of
+    the companion's own checks: the operator's `send` exits 4, not 5, on it)."""
 
     def __init__(self, message: str, result: str | None = None, note: Note | None = None,
-                 reasons: tuple[str, ...] = ()) -> None:
+                 reasons: tuple[str, ...] = (), by: str = "autopilot") -> None:
         super().__init__(message)
         self.result = result
         self.note = note
         self.reasons = reasons  # what the autopilot said around the refusal, in words
+        self.by = by  # who refused: "autopilot", or "companion" when its own check did
 
     def fields(self) -> dict[str, Any]:
         """For the `refused` event: the result code and the EVENT/STATUSTEXT, when known."""
@@ -117,7 +121,7 @@ class CommandFailed(RuntimeError):
 
     def chained(self, message: str) -> CommandFailed:
         """The same refusal with a longer message."""
-        return CommandFailed(message, self.result, self.note, self.reasons)
+        return CommandFailed(message, self.result, self.note, self.reasons, self.by)
 
 
 @dataclass
@@ -187,6 +191,23 @@ def decode_mode(autopilot: str | None, mav_type: int, base_mode: int, custom_mod
     return str(mapping.get(custom_mode, f"Mode({custom_mode})"))
 
 
+def param_name(raw: Any) -> str:
+    """A PARAM_VALUE's param_id (char[16], NUL-padded unless 16 long) as text."""
+    text = raw.decode("ascii", errors="replace") if isinstance(raw, bytes) else str(raw)
+    return text.split("\x00", 1)[0]
+
+
+def param_value(autopilot: str | None, ptype: int, value: float) -> float:
+    """A PARAM_VALUE's value: PX4 sends integer types bytewise in the float field (its
+    MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE), ArduPilot casts them to float."""
+    ints = (mavlink.MAV_PARAM_TYPE_UINT8, mavlink.MAV_PARAM_TYPE_INT8, mavlink.MAV_PARAM_TYPE_UINT16,
+            mavlink.MAV_PARAM_TYPE_INT16, mavlink.MAV_PARAM_TYPE_UINT32, mavlink.MAV_PARAM_TYPE_INT32)
+    if autopilot == "px4" and ptype in ints:
+        raw = struct.pack("<f", value)
+        return float(struct.unpack("<I" if ptype == mavlink.MAV_PARAM_TYPE_UINT32 else "<i", raw)[0])
+    return float(value)
+
+
 _NETWORK = ("udpin:", "udpout:", "udp:", "udpbcast:", "tcp:", "tcpin:")
 
 
@@ -216,6 +237,9 @@ class MavlinkLink:
         self._sent = 0
         self._writer: Any = None  # companion.sendproc.SetpointProcess once it writes for us
         self.tap: Tap = NO_TAP  # the flight recorder (companion/tap.py)
+        # PARAM_VALUEs heard (name -> value in the parameter's own unit) and who waits for them
+        self.params: dict[str, float] = {}
+        self._param_heard = asyncio.Event()
 
     # -- lifecycle -----------------------------------------------------------
 
@@ -347,6 +371,12 @@ class MavlinkLink:
                 st.notes.append(Note(now, "event", self.events.unknown(info.id), info.level, info.id, info.name))
         elif kind in ("FILE_TRANSFER_PROTOCOL", "COMPONENT_METADATA", "AUTOPILOT_VERSION"):
             self.events.on_message(kind, msg)
+        elif kind == "PARAM_VALUE" and msg.get_srcComponent() == self.cfg.vehicle.autopilot_component:
+            name = param_name(msg.param_id)
+            value = param_value(st.autopilot, int(msg.param_type), float(msg.param_value))
+            if name and math.isfinite(value):
+                self.params[name] = value
+                self._param_heard.set()
         elif kind == "COMMAND_ACK":
             fut = self._acks.pop(msg.command, None)
             if fut is not None and not fut.done():
@@ -463,6 +493,30 @@ class MavlinkLink:
             if (serious or prearm) and n.text not in out:
                 out.append(n.text)
         return tuple(out)
+
+    async def read_params(self, names: list[str], timeout: float, retries: int) -> dict[str, float]:
+        """PARAM_REQUEST_READ by name for each of `names`, asked again (up to `retries` more
+        times, `timeout` s apart) for those not answered; returns those answered (values in
+        the parameter's own unit). Neither autopilot answers for a name it does not have."""
+        wanted = list(dict.fromkeys(names))
+        for n in wanted:  # answers from now on only (after a reconnect, values may have changed)
+            self.params.pop(n, None)
+        for _ in range(retries + 1):
+            missing = [n for n in wanted if n not in self.params]
+            if not missing:
+                break
+            with self._send_lock:
+                for n in missing:
+                    self.conn.mav.param_request_read_send(self.cfg.vehicle.sysid, self.cfg.vehicle.autopilot_component,
+                                                          n.encode()[:16], -1)
+            deadline = time.monotonic() + timeout
+            while any(n not in self.params for n in missing) and (left := deadline - time.monotonic()) > 0:
+                self._param_heard.clear()
+                try:
+                    await asyncio.wait_for(self._param_heard.wait(), left)
+                except TimeoutError:
+                    break
+        return {n: self.params[n] for n in wanted if n in self.params}
 
     async def request_home(self) -> None:
         """Ask for HOME_POSITION once (MAV_CMD_REQUEST_MESSAGE); the answer is the message."""

@@ -438,13 +438,21 @@ class MissionSpec:
     obstacles: tuple[tuple[str, Polytope], ...]
     map_lo: FloatArray
     map_hi: FloatArray
-    radius: float
+    radius: float  # obstacles are inflated by this: the vehicle's radius + [planner] tracking_allowance
     start: str  # "current" | "first_waypoint"
     autostart: bool
     initial: FloatArray | None  # (5, 3) for start == "first_waypoint"
     frame: str = "ned"  # the operator's frame, for what we say back
     first_index: int = 0  # mission index of waypoints[0] (a resumed mission keeps its numbering)
     raw: dict[str, Any] = dc_field(default_factory=dict, compare=False)
+    allowance: float = 0.0  # the tracking allowance within `radius`
+
+    @property
+    def corridor_map(self) -> tuple[FloatArray, FloatArray]:
+        """The map box as the corridors take it (they shrink it by `radius`): widened by the
+        tracking allowance, so that the fence keeps the margin it had (the vehicle's radius)
+        and the allowance, meant for obstacles, does not push the plan off the floor."""
+        return self.map_lo - self.allowance, self.map_hi + self.allowance
 
 
 @dataclass(frozen=True)
@@ -622,11 +630,13 @@ def mission_from_message(obj: dict[str, Any], cfg: Config, frame: str = "ned") -
         for row, name in enumerate(("velocity", "acceleration", "jerk", "snap"), start=1):
             if name in obj.get("initial", {}):
                 initial[row] = obj["initial"][name]
-    radius = max(cfg.planner.vehicle_radius, float(obj.get("vehicle_radius", 0.0)))
+    # obstacles are inflated by the vehicle's radius and by how far it may stray from the plan
+    radius = max(cfg.planner.vehicle_radius, float(obj.get("vehicle_radius", 0.0))) + cfg.planner.tracking_allowance
     return MissionSpec(
         id=str(obj["id"]), waypoints=wps, durations=durations, bounds=bounds_from(obj.get("bounds"), cfg),
         obstacles=obstacles, map_lo=map_lo, map_hi=map_hi, radius=radius, start=start,
         autostart=bool(obj.get("autostart", True)), initial=initial, frame=frame, raw=obj,
+        allowance=cfg.planner.tracking_allowance,
     )
 
 

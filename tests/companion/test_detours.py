@@ -23,7 +23,9 @@ from planner_core.changes import AddObstacles
 from planner_core.problem import Polytope, rest_jet
 from planner_core.verify import verify
 
-CFG = config_from_dict({"geofence": {"min": [-50, -50, -20], "max": [50, 50, 0.5]}})
+# (tracking_allowance 0: the walls below were laid out for the vehicle_radius margin alone)
+CFG = config_from_dict({"geofence": {"min": [-50, -50, -20], "max": [50, 50, 0.5]},
+                        "planner": {"tracking_allowance": 0.0}})
 STEP = 4.5
 WAYPOINTS = [[STEP * (i + 1), 0.0, -3.0] for i in range(6)]
 X45 = 0.5 * (WAYPOINTS[4][0] + WAYPOINTS[5][0])  # mid-leg between mission waypoints 4 and 5

@@ -22,7 +22,8 @@ from planner_core.changes import AddObstacles
 from planner_core.problem import Polytope, rest_jet
 from planner_core.verify import verify
 
-CFG = config_from_dict({"planner": {"vehicle_radius": 0.25,
+# (tracking_allowance 0: the geometry below was laid out for the vehicle_radius margin alone)
+CFG = config_from_dict({"planner": {"vehicle_radius": 0.25, "tracking_allowance": 0.0,
                                     "bounds": {"velocity": 3, "acceleration": 4, "jerk": 20, "snap": 120}}})
 
 
@@ -32,7 +33,7 @@ def box(lo: list[float], hi: list[float]) -> Polytope:
 
 
 # [planner] timing = "default": slower plans, with slack everywhere (the default is "fastest")
-SLOW = config_from_dict({"planner": {"vehicle_radius": 0.25, "timing": "default",
+SLOW = config_from_dict({"planner": {"vehicle_radius": 0.25, "tracking_allowance": 0.0, "timing": "default",
                                      "bounds": {"velocity": 3, "acceleration": 4, "jerk": 20, "snap": 120}}})
 
 
@@ -218,7 +219,7 @@ def test_reserve_leaves_a_share_of_every_bound_unused_for_replans(reserve: float
     """[planner] reserve: an allocated mission flies within (1 - reserve) x the bounds by dense
     sampling, while its problem (what replans are checked against) keeps the full bounds; a
     larger reserve flies slower."""
-    cfg = config_from_dict({"planner": {"vehicle_radius": 0.25, "reserve": reserve,
+    cfg = config_from_dict({"planner": {"vehicle_radius": 0.25, "tracking_allowance": 0.0, "reserve": reserve,
                                         "bounds": {"velocity": 3, "acceleration": 4, "jerk": 20, "snap": 120}}})
     r = fly([[6, 0, -1.5], [6, 3, -1.5], [2, 4, -2.0]], [0, 0, -1.5], cfg=cfg)
     assert np.array_equal(r.problem.bounds.hi, r.mission.bounds.hi)

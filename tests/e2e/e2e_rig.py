@@ -105,7 +105,9 @@ url = "udpout:127.0.0.1:{self.mav_port}"
 realtime_priority = 10
 
 [planner]
-vehicle_radius = {RADIUS}
+# obstacles inflated by RADIUS in all, TRACKING_ALLOWANCE of it for the track flown (the brake's threshold)
+vehicle_radius = {round(RADIUS - TRACKING_ALLOWANCE, 6)}
+tracking_allowance = {TRACKING_ALLOWANCE}
 
 [planner.bounds]
 velocity = 3.0

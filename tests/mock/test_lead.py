@@ -25,7 +25,7 @@ MISSION = (b'{"id": "curve", "waypoints": [[4, 0, -1.5], [4, 4, -1.5], [0, 4, -1
 def test_lead_option() -> None:
     assert config_from_dict({"setpoints": {"lead": "auto"}}).setpoints.lead == "auto"
     assert config_from_dict({"setpoints": {"lead": 0.06}}).setpoints.lead == 0.06
-    for bad in (0.5, -0.01, "fast", True):
+    for bad in (0.6, -0.01, "fast", True):  # lead_max is 0.5 s by default (issue 26.5: PX4 lags ~0.3 s)
         with pytest.raises(ConfigError, match=r"setpoints\.lead"):
             config_from_dict({"setpoints": {"lead": bad}})
 

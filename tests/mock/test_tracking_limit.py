@@ -1,4 +1,4 @@
-"""`[safety] max_tracking_error` is acted on: a vehicle that falls behind its setpoints by
+"""`[planner] tracking_allowance` (which replaced `[safety] max_tracking_error`) is acted on: a vehicle that falls behind its setpoints by
 more than the limit is braked to a verified stop and held, with an event carrying the figures."""
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ def test_tracking_error_over_the_limit_brakes_and_holds(tmp_path: Path) -> None:
                                     log_path=str(tmp_path / "f.jsonl"))).start()
 
     async def go() -> None:
-        svc = service_for(mock, safety={"max_tracking_error": 0.2, "takeoff_altitude": 1.0})
+        svc = service_for(mock, planner={"tracking_allowance": 0.2}, safety={"takeoff_altitude": 1.0})
         events = Events(svc)
         async with serving(svc, before_stop=mock.link_faults.heal):
             await until(lambda: svc.link.state.position_problem() is None, 10, "position")
