@@ -98,6 +98,7 @@ class Service:
         self.watch = AutopilotWatch(cfg, self.flight, self.link, self.report, self.commands.release_control,
                                     on_position=self.commands.check_tracking, stalled=self._stalled)
         self.link.on_message = self.watch.on_message
+        self.link.on_ignored = self._mavlink_ignored
         # lag compensation: a fixed lead, or "auto" (set by Commands from its estimate)
         self.commands.lead_target = self.sender
         self.sender.lead = 0.0 if cfg.setpoints.lead == "auto" else float(cfg.setpoints.lead)
@@ -115,6 +116,7 @@ class Service:
         self._missions: list[asyncio.Task[Any]] = []  # mission handlers not yet done
         self._drops = 0
         self._drop_said = -math.inf
+        self._wrong_said: dict[str, float] = {}  # key expression -> when its refusal was said
         self.setpoints_stalled = False
         self._ticked = asyncio.Event()
         self._log_listener: Any = None
@@ -124,7 +126,9 @@ class Service:
 
     def _publish(self, key: str, body: dict[str, Any]) -> None:
         if self.zio is not None:
-            self.zio.publish(key, body)
+            # which companion said it: clients check it against the session that answers
+            # their status query (companion.__main__, `send`/`watch`)
+            self.zio.publish(key, {**body, "session": self.zio.zid})
 
     def _latency_event(self, what: str, seconds: float, immediate: bool, sent_mono: float) -> None:
         # sent_mono: CLOCK_MONOTONIC at the send (shared by every process on this machine), so a
@@ -243,6 +247,7 @@ class Service:
         self.tracking_error = self.commands.tracking_error if ctl.streaming else None
         return {
             "vehicle": self.cfg.vehicle.id,
+            "session": self.zio.zid if self.zio is not None else None,
             "time": round(time.time(), 3),
             "state": self.flight.state.value,
             "airborne": self.flight.airborne,
@@ -268,6 +273,7 @@ class Service:
             "setpoint_period_ms": ctl.period_stats(),
             "gc_pause_max_ms": round(self.gc.worst * 1000, 2),
             "setpoints_stalled": self.setpoints_stalled,
+            "mavlink_ignored": dict(self.link.gate.ignored) if self.link.gate is not None else {},
         }
 
     # -- inbound messages: one reader per kind ------------------------------------------------------
@@ -280,6 +286,7 @@ class Service:
         does ends this loop: the last-resort guard turns it into a rejection and an error."""
         assert self.zio is not None
         self.zio.on_dropped = self._dropped
+        self.zio.on_wrong_key = self._wrong_key
         while not self.stop.is_set():
             kind, payload, arrived = await self.zio.inbox.get()
             try:
@@ -325,6 +332,38 @@ class Service:
             lim = self.cfg.limits.max_queued_messages
             self.report.reject(kind, "", f"{n} message(s) dropped: {lim} messages are already queued "
                                f"([limits] max_queued_messages = {lim})", bytes=size, dropped=n)
+
+    def _mavlink_ignored(self, counts: dict[str, int], rebound: str | None) -> None:
+        """MAVLink messages not from the bound autopilot (never acted on), or a re-bind."""
+        gate = self.link.gate
+        if rebound is not None:
+            self.report.event("mavlink_peer", f"the autopilot's address changed ({rebound}) after its old address "
+                              f"was silent for over {self.cfg.mavlink.link_timeout:g} s ([mavlink] link_timeout): "
+                              "re-bound to it", rebound=rebound)
+            return
+        words = {"other_address": "from another address than the autopilot's",
+                 "other_id": "from another system or component id",
+                 "unsigned": "unsigned or not signed with our key ([mavlink] require_signed_inbound)",
+                 "before_binding": "before the autopilot's first heartbeat"}
+        where = f" (bound to {gate.address[0]}:{gate.address[1]})" if gate is not None and gate.address else ""
+        text = "; ".join(f"{n} {words.get(why, why)}" for why, n in counts.items())
+        self.report.event("mavlink_ignored", f"MAVLink messages ignored, not from the autopilot "
+                          f"{self.cfg.vehicle.sysid}/{self.cfg.vehicle.autopilot_component}{where}: {text}",
+                          ignored=counts, total=dict(gate.ignored) if gate is not None else None)
+
+    def _wrong_key(self, kind: str, key: str, size: int) -> None:
+        """A put on a key expression other than this vehicle's exact key: never acted on. One
+        event per key expression a second (a put on `bezier/drone1/*` reaches all four kinds)."""
+        now = time.monotonic()
+        if now - self._wrong_said.get(key, -math.inf) < 1.0:
+            return
+        if len(self._wrong_said) > 64:  # bounded: a peer may try many expressions
+            self._wrong_said = {k: t for k, t in self._wrong_said.items() if now - t < 1.0}
+        self._wrong_said[key] = now
+        self.report.reject(kind, "key_expr", f"a put on key expression {quote(key, 80)} is refused: only this "
+                           f"vehicle's exact keys ({self.cfg.key('<kind>')}) are acted on, never a wildcard or a "
+                           "key matching several vehicles or kinds (send one put per vehicle)",
+                           key_expr=key[:100], bytes=size)
 
     def _dispatch(self, kind: str, payload: bytes | Oversized, arrived: float, msg: Message | MessageError) -> None:
         if isinstance(msg, MessageError):

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import contextlib
 import math
 import os
 import threading
@@ -28,6 +29,7 @@ from pymavlink import mavutil
 from companion.config import Config
 from companion.setpoints import Setpoint
 from companion.wire import dialect
+from companion.wire.peer import OTHER_ID, PeerGate, SignatureCheck
 from companion.wire.signing import read_signing_key
 
 dialect.install()  # PX4 >= 1.14 says what happens in EVENT (410), which pymavlink lacks
@@ -53,6 +55,8 @@ APM_STREAMS: dict[str, tuple[int, str]] = {
     "EXTENDED_SYS_STATE": (mavlink.MAV_DATA_STREAM_EXTENDED_STATUS, "MAV1_EXT_STAT (SR1_EXT_STAT before 4.7)"),
 }
 POSITION_STALE = 1.0  # s without LOCAL_POSITION_NED: no position estimate
+IGNORED_EVERY = 5.0  # s between two reports of messages ignored as not the autopilot's
+IGNORED_OTHER_ID_EVERY = 60.0  # the same for other ids (a GCS or camera on a shared link)
 # What the autopilot says (EVENT, STATUSTEXT) this long before a refusing COMMAND_ACK, or up
 # to NOTE_AFTER after it, is taken as the refusal's reason.
 NOTE_BEFORE = 1.0
@@ -205,6 +209,15 @@ class MavlinkLink:
         self._boot = time.monotonic()
         self._send_lock = threading.Lock()
         self.sent_setpoints = 0
+        self.gate: PeerGate | None = None
+        self.signature: SignatureCheck | None = None
+        # `on_ignored(counts, rebound)`: messages not from the bound autopilot were ignored since
+        # the last call (counts by reason), or the link re-bound to a new address; called on the
+        # loop at most every IGNORED_EVERY seconds per reason (OTHER_ID: IGNORED_OTHER_ID_EVERY)
+        self.on_ignored: Callable[[dict[str, int], str | None], None] | None = None
+        self._ignored_said: dict[str, tuple[float, int]] = {}
+        self._sock: Any = None  # UDP: the socket read here, datagram by datagram
+        self._udp_server = False
 
     # -- lifecycle -----------------------------------------------------------
 
@@ -219,10 +232,24 @@ class MavlinkLink:
             autoreconnect=True,
         )
         self.conn.mav.robust_parsing = True
-        if self.cfg.mavlink.signing_key_file:
-            # Sign everything we send; what the autopilot sends may be unsigned.
-            self.conn.setup_signing(read_signing_key(self.cfg.mavlink.signing_key_file), sign_outgoing=True,
+        mc = self.cfg.mavlink
+        keyed = bool(mc.signing_key_file)
+        if keyed:
+            # Sign everything we send. pymavlink passes every message up (allow_unsigned); whether
+            # it was signed with our key (get_signed) is judged by the gate.
+            self.conn.setup_signing(read_signing_key(mc.signing_key_file), sign_outgoing=True,
                                     allow_unsigned_callback=lambda _mav, _msg_id: True)
+            self.signature = SignatureCheck(self.conn.mav)
+            self.conn.mav.check_signature = self.signature
+        require = keyed and mc.require_signed_inbound
+        self._sock = getattr(self.conn, "port", None) if isinstance(self.conn, mavutil.mavudp) else None
+        self._udp_server = bool(self._sock is not None and self.conn.udp_server)
+        self.gate = PeerGate(v.sysid, v.autopilot_component, udp=self._sock is not None, require_signed=require,
+                             link_timeout=mc.link_timeout)
+        if self._udp_server:
+            # pymavlink's udpin answers every address that ever sent a datagram: a spoofer would
+            # receive our setpoints. Only the bound autopilot's address is written to.
+            self.conn.write = self._write_bound
         self._loop = loop
         loop.add_reader(self.conn.fd, self._readable)
         self.send_heartbeat()
@@ -237,20 +264,82 @@ class MavlinkLink:
 
     # -- receive -------------------------------------------------------------
 
+    def _write_bound(self, buf: bytes) -> None:
+        gate = self.gate
+        if gate is None or gate.address is None:
+            return  # nobody to talk to before the autopilot is heard
+        with contextlib.suppress(OSError):
+            self._sock.sendto(buf, gate.address)
+
     def _readable(self) -> None:
+        if self._sock is not None:
+            self._read_datagrams()
+            self._say_ignored()
+            return
         for _ in range(200):  # bounded so a flood cannot starve the loop
             try:
                 msg = self.conn.recv_msg()
             except (OSError, ValueError):
                 return
             if msg is None:
+                break
+            self._admit(msg, None)
+        self._say_ignored()
+
+    def _read_datagrams(self) -> None:
+        """UDP: each datagram parsed on its own, so every message is known with its sender."""
+        mav = self.conn.mav
+        assert self.gate is not None
+        for _ in range(200):  # bounded so a flood cannot starve the loop
+            try:
+                data, addr = self._sock.recvfrom(65535)
+            except (BlockingIOError, InterruptedError):
                 return
-            self._handle(msg)
+            except OSError:  # ICMP port unreachable from a peer not up yet
+                return
+            if not self.gate.address_ok(addr, time.monotonic()):
+                continue
+            # nothing left over from another sender's datagram prefixes this one
+            mav.buf, mav.buf_index, mav.expected_length = bytearray(), 0, mavlink.HEADER_LEN_V1 + 2
+            mav.have_prefix_error = False
+            try:
+                msgs = mav.parse_buffer(data) or []
+            except mavlink.MAVError:
+                continue
+            for msg in msgs:
+                self._admit(msg, addr)
+
+    def _admit(self, msg: Any, addr: tuple[str, int] | None) -> None:
+        if msg.get_type() == "BAD_DATA":
+            return
+        assert self.gate is not None
+        rebinds = len(self.gate.rebinds)
+        if self.gate.admit(msg, addr, time.monotonic()) is not None:
+            return
+        if len(self.gate.rebinds) > rebinds and self.on_ignored is not None:
+            old, new = self.gate.rebinds[-1]
+            self.on_ignored({}, f"{old[0]}:{old[1]} -> {new[0]}:{new[1]}" if old else f"{new[0]}:{new[1]}")
+        self._handle(msg)
+
+    def _say_ignored(self) -> None:
+        """Counts of ignored messages, rate-limited per reason (another id: a GCS or a camera
+        on a shared link is common and harmless, so said rarely)."""
+        gate, cb = self.gate, self.on_ignored
+        if gate is None or cb is None or not gate.ignored:
+            return
+        now = time.monotonic()
+        fresh: dict[str, int] = {}
+        for why, total in gate.ignored.items():
+            said_at, said_total = self._ignored_said.get(why, (-math.inf, 0))
+            every = IGNORED_OTHER_ID_EVERY if why == OTHER_ID else IGNORED_EVERY
+            if total > said_total and now - said_at >= every:
+                fresh[why] = total - said_total
+                self._ignored_said[why] = (now, total)
+        if fresh:
+            cb(fresh, None)
 
     def _handle(self, msg: Any) -> None:
         kind = msg.get_type()
-        if kind == "BAD_DATA" or msg.get_srcSystem() != self.cfg.vehicle.sysid:
-            return
         now = time.monotonic()
         st = self.state
         if kind != "HEARTBEAT":

@@ -143,6 +143,51 @@ def _converters(max_chars: int) -> tuple[Any, Any]:
     return to_int, to_float
 
 
+class _DuplicateKey(Exception):
+    pass
+
+
+def _unique_pairs(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """object_pairs_hook: a dict, or _DuplicateKey when a key is given twice (json.loads would
+    keep the last silently: `{"add": [obstacle], "add": []}` would drop the obstacle)."""
+    out = dict(pairs)
+    if len(out) != len(pairs):
+        raise _DuplicateKey
+    return out
+
+
+class _Marked(dict[str, Any]):
+    """A parsed object that repeats `dup` (only built to find where a duplicate is)."""
+
+    dup: str = ""
+
+
+def _marking_pairs(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    seen: set[str] = set()
+    for k, _ in pairs:
+        if k in seen:
+            out = _Marked(pairs)
+            out.dup = k
+            return out
+        seen.add(k)
+    return dict(pairs)
+
+
+def _duplicate_path(text: str, to_int: Any, to_float: Any) -> tuple[str, str]:
+    """The JSON path and name of the first repeated key (parsed again: only for a message that has one)."""
+    doc = json.loads(text, parse_int=to_int, parse_float=to_float, object_pairs_hook=_marking_pairs)
+    stack: list[tuple[Any, tuple[Any, ...]]] = [(doc, ())]
+    while stack:
+        node, path = stack.pop()
+        if isinstance(node, _Marked):
+            return json_path((*path, node.dup)), node.dup
+        if isinstance(node, dict):
+            stack.extend((v, (*path, k)) for k, v in reversed(list(node.items())))
+        elif isinstance(node, list):
+            stack.extend((v, (*path, i)) for i, v in reversed(list(enumerate(node))))
+    return "", ""  # pragma: no cover - called only when a duplicate was seen
+
+
 def parse_json(payload: bytes | Oversized, max_bytes: int, max_number_chars: int = 32) -> Any:
     if len(payload) > max_bytes or isinstance(payload, Oversized):
         raise MessageError("", f"payload of {len(payload)} bytes exceeds the limit of {max_bytes} "
@@ -153,7 +198,11 @@ def parse_json(payload: bytes | Oversized, max_bytes: int, max_number_chars: int
         raise MessageError("", f"not UTF-8: {exc.reason} at byte {exc.start}") from None
     to_int, to_float = _converters(max_number_chars)
     try:
-        return json.loads(text, parse_int=to_int, parse_float=to_float)
+        return json.loads(text, parse_int=to_int, parse_float=to_float, object_pairs_hook=_unique_pairs)
+    except _DuplicateKey:
+        where, key = _duplicate_path(text, to_int, to_float)
+        raise MessageError(where, f"key {quote(key, 40)} appears more than once in the same object: which one "
+                                  "was meant is ambiguous (duplicate keys are refused)") from None
     except json.JSONDecodeError as exc:
         raise MessageError("", f"malformed JSON: {exc.msg} at line {exc.lineno} column {exc.colno}") from None
     except _LongNumber as exc:
