@@ -29,7 +29,7 @@ from pymavlink import mavutil
 from companion.config import Config
 from companion.setpoints import Setpoint
 from companion.wire import dialect
-from companion.wire.peer import OTHER_ID, PeerGate, SignatureCheck
+from companion.wire.peer import OTHER_ID, UNBOUND, PeerGate, SignatureCheck
 from companion.wire.signing import read_signing_key
 
 dialect.install()  # PX4 >= 1.14 says what happens in EVENT (410), which pymavlink lacks
@@ -330,6 +330,8 @@ class MavlinkLink:
         now = time.monotonic()
         fresh: dict[str, int] = {}
         for why, total in gate.ignored.items():
+            if why == UNBOUND:  # telemetry that came before the first heartbeat: normal at link-up
+                continue
             said_at, said_total = self._ignored_said.get(why, (-math.inf, 0))
             every = IGNORED_OTHER_ID_EVERY if why == OTHER_ID else IGNORED_EVERY
             if total > said_total and now - said_at >= every:
