@@ -187,6 +187,12 @@ class LimitsConfig:
     # Seconds one message's obstacles may take to check (hulls, vertices; in the decode
     # thread for messages over 4 kB): past it the message is refused, naming this limit.
     decode_deadline: float = 0.5
+    # Seconds one segment of a mission may last (`durations`, `times`, a `duration` change):
+    # shorter than min_segment_duration (the planner's own floor: planner_core.timing's
+    # DEFAULT_MIN_DURATION) leaves its QP ill-conditioned; longer than max_segment_duration is
+    # longer than any flight (and a leg that starts moving would overshoot the map by km).
+    min_segment_duration: float = 0.05
+    max_segment_duration: float = 3600.0
 
 
 @dataclass(frozen=True)
@@ -260,6 +266,8 @@ _POSITIVE = {
     "limits.max_pending_missions",
     "limits.max_queued_messages",
     "limits.decode_deadline",
+    "limits.min_segment_duration",
+    "limits.max_segment_duration",
     "safety.takeoff_altitude",
     "safety.arrival_tolerance",
     "safety.max_tracking_error",

@@ -203,8 +203,8 @@ class Navigator:
             t0 = time.perf_counter()
             # The check only needs the verdict: a 1000-waypoint route coming back would be
             # unpickled here in one GIL-holding call of many milliseconds.
-            outcome = await self.runtime.plan(check_mission, replace(spec, raw={}), rest_jet(pos), 0.0,
-                                              self.known(), self.cfg)
+            outcome = self.logged(await self.runtime.plan(check_mission, replace(spec, raw={}), rest_jet(pos), 0.0,
+                                                          self.known(), self.cfg))
             plan_ms = round((time.perf_counter() - t0) * 1000, 2)
             if not outcome.ok:
                 self._reject_outcome(spec, outcome)
@@ -216,7 +216,17 @@ class Navigator:
 
     def _reject_outcome(self, spec: MissionSpec, outcome: Outcome) -> None:
         field = "" if outcome.blocked_waypoint is None else f"waypoints[{outcome.blocked_waypoint - spec.first_index}]"
+        field = outcome.field or field
         self.report.reject("mission", field, f"mission {spec.id}: {outcome.message}", mission=spec.id)
+
+    @staticmethod
+    def logged(outcome: Outcome) -> Outcome:
+        """An outcome, its planner bug (an exception turned into a refusal: companion.mission.answered)
+        logged with its traceback: never swallowed silently."""
+        bug = outcome.stats.get("internal_error")
+        if bug:
+            log.error("planner failed (answered as a refusal): %s\n%s", outcome.message, bug)
+        return outcome
 
     async def fly(self, spec: MissionSpec, arrived: float | None) -> bool:
         """Plan `spec` from the flown state a little ahead of now and fly it."""
@@ -224,8 +234,8 @@ class Navigator:
             async def plan_at(base: Trajectory, t_split: float) -> Outcome:
                 jet = self.control.jet(t_split)
                 t0 = time.perf_counter()
-                out: Outcome = await self.runtime.plan(start_mission, replace(spec, raw={}), jet, t_split,
-                                                       self.known(), self.cfg)
+                out: Outcome = self.logged(await self.runtime.plan(start_mission, replace(spec, raw={}), jet, t_split,
+                                                                   self.known(), self.cfg))
                 self.plan_latency = time.perf_counter() - t0
                 return out
 
@@ -316,8 +326,8 @@ class Navigator:
         durations were the planner's)."""
         messages = notes if notes is not None else []
         if local is not None:
-            out: Outcome = await self.runtime.run(self.runtime.replan_pool, local_replan, r, t_split, local,
-                                                  self.known(), self.cfg)
+            out: Outcome = self.logged(await self.runtime.run(self.runtime.replan_pool, local_replan, r, t_split,
+                                                              local, self.known(), self.cfg))
             if out.ok:
                 out.stats.setdefault("method", "local")
                 return out
@@ -327,8 +337,8 @@ class Navigator:
         extra = () if remainder is None else remainder
         if allocate is None:
             allocate = self.allocates(r)
-        out = await self.runtime.plan(partial(replan_remainder, allocate=allocate), r, base, t_split, self.known(),
-                                      self.cfg, *extra, urgent=True)
+        out = self.logged(await self.runtime.plan(partial(replan_remainder, allocate=allocate), r, base, t_split,
+                                                  self.known(), self.cfg, *extra, urgent=True))
         if self.cfg.planner.fallback_delay > 0:
             await asyncio.sleep(self.cfg.planner.fallback_delay)
         out.stats["method"] = "detour" if out.stats.get("detour") else "remainder"

@@ -286,7 +286,6 @@ class Service:
         does ends this loop: the last-resort guard turns it into a rejection and an error."""
         assert self.zio is not None
         self.zio.on_dropped = self._dropped
-        self.zio.on_wrong_key = self._wrong_key
         while not self.stop.is_set():
             kind, payload, arrived = await self.zio.inbox.get()
             try:
@@ -512,6 +511,7 @@ class Service:
         # switch interval bounds how long the setpoint thread can wait for it.
         sys.setswitchinterval(0.0005)
         self.zio = ZenohIO(self.cfg, self.loop)
+        self.zio.on_wrong_key = self._wrong_key
         self.zio.open({"plan": self.query_plan, "status": self.query_status})
         self.link.open(self.loop)
         await self._warm_up()

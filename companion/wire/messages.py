@@ -413,6 +413,33 @@ def _check_counts(kind: str, obj: dict[str, Any], lim: LimitsConfig) -> None:
                                                    f"{lim.max_waypoints} ([limits] max_waypoints)")
 
 
+def check_durations(durations: Any, field: str, lim: LimitsConfig, waypoints: Any = None,
+                    speed: FloatArray | None = None, first: int = 0, what: str = "duration") -> None:
+    """Each segment duration (s) within [limits] min/max_segment_duration and, with the
+    waypoints it joins (`waypoints[i]` -> `waypoints[i + 1]`) and the velocity bound per axis
+    (`speed`), not shorter than any curve within that bound can fly: |dx| / v on every axis
+    (the mean value theorem: a proven floor). `field` names the array; `first` is the index
+    of its entry for the segment from waypoint 0 (1 for `times`)."""
+    d = np.asarray(durations, dtype=float).reshape(-1)
+    lo, hi = lim.min_segment_duration, lim.max_segment_duration
+    for i in np.flatnonzero((d < lo) | (d > hi))[:1]:
+        word = "shorter" if d[i] < lo else "longer"
+        name = "min_segment_duration" if d[i] < lo else "max_segment_duration"
+        raise MessageError(f"{field}[{int(i) + first}]" if field.endswith("s") else field,
+                           f"a {what} of {d[i]:.6g} s is {word} than {lo if d[i] < lo else hi:g} s ([limits] {name})")
+    if waypoints is None or speed is None:
+        return
+    wps = np.asarray(waypoints, dtype=float)
+    need = np.max(np.abs(np.diff(wps, axis=0)) / np.asarray(speed, dtype=float), axis=1)
+    short = np.flatnonzero(d < need * (1.0 - 1e-9))
+    if short.size:
+        i = int(short[0])
+        length = float(np.linalg.norm(wps[i + 1] - wps[i]))
+        raise MessageError(f"{field}[{i + first}]" if field.endswith("s") else field,
+                           f"{d[i]:.6g} s is too short for the {length:.3g} m from waypoint {i} to "
+                           f"{i + 1}: within the velocity bound no curve flies it in less than {need[i]:.3g} s")
+
+
 def _check_lengths(obj: dict[str, Any]) -> None:
     m = len(obj["waypoints"])
     for key in ("times", "durations"):
@@ -655,8 +682,13 @@ def mission_from_message(obj: dict[str, Any], cfg: Config, frame: str = "ned") -
             if name in obj.get("initial", {}):
                 initial[row] = obj["initial"][name]
     radius = max(cfg.planner.vehicle_radius, float(obj.get("vehicle_radius", 0.0)))
+    bounds = bounds_from(obj.get("bounds"), cfg)
+    if durations is not None:
+        speed = np.minimum(-bounds.lo[0], bounds.hi[0])
+        check_durations(durations, "durations" if "durations" in obj else "times", cfg.limits, wps, speed,
+                        first=0 if "durations" in obj else 1)
     return MissionSpec(
-        id=str(obj["id"]), waypoints=wps, durations=durations, bounds=bounds_from(obj.get("bounds"), cfg),
+        id=str(obj["id"]), waypoints=wps, durations=durations, bounds=bounds,
         obstacles=obstacles, map_lo=map_lo, map_hi=map_hi, radius=radius, start=start,
         autostart=bool(obj.get("autostart", True)), initial=initial, frame=frame, raw=obj,
     )
@@ -685,11 +717,14 @@ def change_from_message(obj: dict[str, Any], cfg: Config, frame: str = "ned") ->
         body = RemoveChange(int(obj["remove_waypoint"]["index"]))
     elif "duration" in obj:
         b = obj["duration"]
+        check_durations([b["value"]], "duration.value", cfg.limits)
         body = DurationChange(int(b["index"]), float(b["value"]))
     elif "append" in obj:
         b = obj["append"]
         wps = np.asarray(b["waypoints"], dtype=float)
         check_geofence(wps, lo, hi, "append.waypoints", frame)
+        if "durations" in b:
+            check_durations(b["durations"], "append.durations", cfg.limits)
         body = AppendChange(wps, None if "durations" not in b else np.asarray(b["durations"], dtype=float))
     else:  # pragma: no cover - the schema requires one
         raise MessageError("", "no change given")
