@@ -12,14 +12,15 @@ import asyncio
 import contextlib
 import logging
 import math
+import time
 from typing import Any
 
 import numpy as np
 
 from companion.config import LEAD_MAX, Config
-from companion.control import Control
+from companion.control import SWAP_LATE, Control
 from companion.flight import HOLDING_CONTROL, Flight, State
-from companion.navigator import Navigator
+from companion.navigator import MAX_AHEAD, RETRY_MARGIN, Navigator
 from companion.report import Reporter
 from companion.wire.mavlink import CommandFailed, MavlinkLink
 from companion.wire.messages import Command, bounds_from
@@ -215,26 +216,36 @@ class Commands:
 
     async def _px4_climb(self, target: np.ndarray) -> None:
         """A verified vertical climb streamed in OFFBOARD (PX4 has no GUIDED-style takeoff for us)."""
-        base = self.control.active
-        assert base is not None
-        t_split = self.control.now() + self.cfg.planner.split_ahead
-        jet = base.jet(t_split)
-        bounds = bounds_from(None, self.cfg)
-        points = np.vstack([jet[0], target])
-        climb = target - jet[0]
-        height = float(np.linalg.norm(climb))
-        if height > 1e-3 and at_rest(jet[1], self.cfg.safety.rest_speed):
-            # the fastest rest-to-rest climb the planner certifies (issue 12); from a moving start
-            # the planner's recovery stretches it if it must
-            durations = np.array([takeoff_duration(height, bounds, up=tuple(climb / height))])
-        else:
-            durations = np.diff(allocate_times(points, bounds, t0=t_split))
-        problem = Problem.from_waypoints(points, durations, bounds, initial=jet, t0=t_split)
-        result = await self.nav.runtime.plan(plan, problem)
-        if not result.ok or result.trajectory is None:
-            raise CommandFailed(f"no verified climb: {result.message}")
-        if not self.control.swap(splice(base, result.trajectory), t_split, None, "takeoff"):
-            raise CommandFailed("climb planning was too slow")
+        # split as far ahead as planning takes in this service; a plan that comes late is planned
+        # again once, further ahead (as Navigator._swap_at_split does for missions)
+        ahead = self.nav.split_ahead_for(2)
+        for attempt in range(2):
+            base = self.control.active
+            assert base is not None
+            t_split = self.control.now() + ahead
+            jet = base.jet(t_split)
+            bounds = bounds_from(None, self.cfg)
+            points = np.vstack([jet[0], target])
+            climb = target - jet[0]
+            height = float(np.linalg.norm(climb))
+            if height > 1e-3 and at_rest(jet[1], self.cfg.safety.rest_speed):
+                # the fastest rest-to-rest climb the planner certifies (issue 12); from a moving start
+                # the planner's recovery stretches it if it must
+                durations = np.array([takeoff_duration(height, bounds, up=tuple(climb / height))])
+            else:
+                durations = np.diff(allocate_times(points, bounds, t0=t_split))
+            problem = Problem.from_waypoints(points, durations, bounds, initial=jet, t0=t_split)
+            t0 = time.monotonic()
+            result = await self.nav.runtime.plan(plan, problem)
+            took = time.monotonic() - t0
+            if not result.ok or result.trajectory is None:
+                raise CommandFailed(f"no verified climb: {result.message}")
+            if self.control.swap(splice(base, result.trajectory), t_split, None, "takeoff"):
+                break
+            if self.control.refusal != SWAP_LATE or attempt == 1:
+                raise CommandFailed(f"climb not swapped in: {self.control.refusal}"
+                                    + (f" (planning took {took:.2f} s, twice)" if attempt == 1 else ""))
+            ahead = min(max(2.0 * ahead, RETRY_MARGIN * took + 0.1), MAX_AHEAD)
         tol, rest = self.cfg.safety.arrival_tolerance, self.cfg.safety.rest_speed
         end = result.trajectory.t_end
         await self.link.wait_for(

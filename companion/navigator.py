@@ -45,7 +45,8 @@ S = State
 
 PLAN_OVERHEAD = 0.05  # s: a plan's fixed cost in the service (process hop, corridors, verify)
 LATE_MARGIN = 1.5  # the split is this many expected planning times ahead
-MAX_AHEAD = 3.0  # s: never further ahead (the old plan flies on meanwhile)
+RETRY_MARGIN = 2.0  # after a late plan: this many times the time it took (a loaded computer varies)
+MAX_AHEAD = 30.0  # s: never further ahead (the old, verified plan flies on meanwhile)
 
 
 @dataclass(frozen=True)
@@ -219,7 +220,7 @@ class Navigator:
                       + (" twice: the computer is too busy to plan this in flight now" if late == 2 else ""))
             if late < 2:
                 say(reason + "; planned again once, further ahead")
-                ahead = min(max(2.0 * ahead, LATE_MARGIN * took + 0.1), MAX_AHEAD)
+                ahead = min(max(2.0 * ahead, RETRY_MARGIN * took + 0.1), MAX_AHEAD)
             else:
                 say(reason)
         return Swapped(None, reason=reason or "too close")
