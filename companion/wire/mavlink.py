@@ -14,6 +14,7 @@ import collections
 import contextlib
 import math
 import os
+import socket
 import threading
 import time
 from collections.abc import Callable
@@ -246,6 +247,10 @@ class MavlinkLink:
         self._udp_server = bool(self._sock is not None and self.conn.udp_server)
         self.gate = PeerGate(v.sysid, v.autopilot_component, udp=self._sock is not None, require_signed=require,
                              link_timeout=mc.link_timeout)
+        if self._sock is not None and not self._udp_server:
+            # udpout: we talk to the configured address; only it is heard
+            host, port = self.conn.destination_addr
+            self.gate.address, self.gate.pinned = (socket.gethostbyname(host), int(port)), True
         if self._udp_server:
             # pymavlink's udpin answers every address that ever sent a datagram: a spoofer would
             # receive our setpoints. Only the bound autopilot's address is written to.

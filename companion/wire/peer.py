@@ -6,7 +6,8 @@ The link is bound to the autopilot's system and component id (`[vehicle] sysid`,
 is ignored and counted, never acted on: another address, another id, and, with a signing key
 and `[mavlink] require_signed_inbound`, an unsigned or wrongly signed message.
 
-Re-binding: the autopilot's address may change legitimately (mavlink-router restarted, a new
+With `udpout:HOST:PORT` the address is the configured destination from the start (pinned).
+Re-binding (udpin): the autopilot's address may change legitimately (mavlink-router restarted, a new
 UDP source port). The link re-binds to a new address only when the bound one has been silent
 for `[mavlink] link_timeout` AND the new address sends an autopilot HEARTBEAT with the bound
 ids (signed, when signing is required). A reboot of the autopilot keeps its ids and address:
@@ -101,6 +102,7 @@ class PeerGate:
     require_signed: bool
     link_timeout: float
     address: tuple[str, int] | None = None
+    pinned: bool = False  # udpout: the address is the configured destination, never re-bound
     bound: bool = False
     last_heard: float = -math.inf  # the bound autopilot's last accepted message (monotonic)
     ignored: dict[str, int] = field(default_factory=dict)
@@ -113,9 +115,9 @@ class PeerGate:
     def address_ok(self, addr: tuple[str, int] | None, now: float) -> bool:
         """Whether a datagram from `addr` is worth parsing: the bound address, or any while
         unbound or while the bound autopilot has been silent for link_timeout (a re-bind)."""
-        if not self.udp or not self.bound or addr == self.address:
+        if not self.udp or addr == self.address or not (self.bound or self.pinned):
             return True
-        if now - self.last_heard > self.link_timeout:
+        if not self.pinned and now - self.last_heard > self.link_timeout:
             return True
         self._ignore(OTHER_ADDRESS)
         return False
@@ -130,10 +132,12 @@ class PeerGate:
                         and msg.autopilot != mavlink.MAV_AUTOPILOT_INVALID)
         if self.udp and (not self.bound or addr != self.address):
             silent = now - self.last_heard > self.link_timeout
+            if self.pinned and addr != self.address:
+                return self._ignore(OTHER_ADDRESS)
             if not is_autopilot or (self.bound and not silent):
                 return self._ignore(OTHER_ADDRESS if self.bound else UNBOUND)
             if self.bound and addr is not None:
-                self.rebinds.append((self.address, addr))
+                self.rebinds = [*self.rebinds[-7:], (self.address, addr)]
             self.address = addr
         elif not self.bound and not is_autopilot:
             return self._ignore(UNBOUND)
