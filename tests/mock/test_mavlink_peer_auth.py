@@ -249,3 +249,34 @@ def test_udpout_hears_only_its_configured_destination() -> None:
     assert not gate.address_ok(("127.0.0.1", 9999), 0.0)
     assert gate.admit(_Msg(), ("127.0.0.1", 9999), 100.0) == OTHER_ADDRESS  # never re-bound, even after silence
     assert gate.admit(_Msg(), ("127.0.0.1", 14550), 0.0) is None and gate.address == ("127.0.0.1", 14550)
+
+
+def test_the_binding_survives_a_reboot_of_the_autopilot(tmp_path: Path) -> None:
+    """Same ids, same address, signed before and after: the link comes back to the same
+    autopilot without a re-bind (and its signed stream is still accepted)."""
+    from sitl_mock.faults import FaultSpec
+
+    key_file = tmp_path / "mavlink.key"
+    key_file.write_text(KEY.hex())
+    port = free_udp_port()
+    mock = _mock(tmp_path, port, signing_key=KEY, faults=FaultSpec(reboots=[6.0]))
+
+    async def go() -> None:
+        svc = service_for(mock, mavlink={"url": f"udpin:127.0.0.1:{port}", "signing_key_file": str(key_file)})
+        events = Events(svc)
+        async with serving(svc):
+            await until(lambda: svc.link.state.position_problem() is None, 15, "position")
+            gate = svc.link.gate
+            assert gate is not None
+            bound = gate.address
+            await until(lambda: events.of("link_lost"), 20, "the reboot's silence")
+            await until(lambda: events.of("link_restored"), 20, "the autopilot back")
+            await until(lambda: svc.link.state.position_problem() is None, 15, "position again")
+            assert gate.address == bound and gate.rebinds == [] and not events.of("mavlink_peer")
+            assert gate.ignored.get(UNSIGNED, 0) == 0 and gate.ignored.get(OTHER_ADDRESS, 0) == 0
+
+    try:
+        asyncio.run(go())
+        assert any(r["type"] == "event" and r.get("event") == "reboot" for r in _log(tmp_path))
+    finally:
+        mock.stop()
