@@ -50,6 +50,62 @@ def _add_client_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--zenoh-config", metavar="FILE.json5", help="full Zenoh configuration (TLS, auth)")
 
 
+class Origin:
+    """Which companion a client addressed, and whether a sample comes from it.
+
+    The companion answers the `<prefix>/<vehicle>/status` query and puts its Zenoh session id
+    (`session`) in every status and event. A client asks once: exactly one session answering,
+    with its own id in the body, is the companion; samples from then on must carry that id.
+    Samples put on any other key expression than the exact one (`bezier/*/events`) are never
+    taken. This catches stray and careless fakes; an id can be claimed by anyone who reaches
+    the network, so only Zenoh authentication and access control stop a determined peer
+    (docs/security.md)."""
+
+    def __init__(self, session: Any, base: str, timeout: float = 1.0) -> None:
+        import zenoh
+
+        self.base = base
+        self.ignored: dict[str, int] = {}
+        found: dict[str, Any] = {}
+        with contextlib.suppress(Exception):
+            for reply in session.get(f"{base}/status", target=zenoh.QueryTarget.ALL,
+                                     consolidation=zenoh.ConsolidationMode.NONE, timeout=timeout):
+                if reply.ok is None:
+                    continue
+                replier = getattr(reply.replier_id, "zid", reply.replier_id)
+                body: Any = None
+                with contextlib.suppress(ValueError):
+                    body = json.loads(reply.ok.payload.to_bytes())
+                found[str(replier)] = body.get("session") if isinstance(body, dict) else None
+        honest = [z for z, said in found.items() if said == z]
+        self.companion: str | None = honest[0] if len(honest) == 1 and len(found) == 1 else None
+        if self.companion is not None:
+            self.note = f"companion session {self.companion}"
+        elif not found:
+            self.note = ("no companion answered the status query: cannot check where status and events come "
+                         "from (shown as received)")
+        else:
+            self.note = (f"{len(found)} sessions answer as {base} ({', '.join(sorted(found))}): cannot tell which "
+                         "is the companion; status and events are shown unchecked")
+
+    def accepts(self, topic: str, sample: Any, body: Any) -> bool:
+        """The sample was put on the exact key and (when known) by the addressed companion."""
+        key = str(sample.key_expr)
+        if key != f"{self.base}/{topic}":
+            why = f"put on {key!r}"
+        elif self.companion is not None and (not isinstance(body, dict) or body.get("session") != self.companion):
+            why = "not from the addressed companion"
+        else:
+            return True
+        self.ignored[why] = self.ignored.get(why, 0) + 1
+        return False
+
+    def summary(self) -> str | None:
+        if not self.ignored:
+            return None
+        return "ignored " + "; ".join(f"{n} sample(s) {why}" for why, n in self.ignored.items())
+
+
 # `send` exit codes: it never says success for nothing.
 EXIT_OK = 0  # accepted (a command: and completed; with --wait-for: and the state reached)
 EXIT_REJECTED = 1  # the message was rejected (invalid, or cannot be done now: `rejected`)
@@ -91,20 +147,25 @@ def cmd_send(args: argparse.Namespace) -> int:
         statuses: list[dict[str, Any]] = []
         heard = [False]
         base = f"{args.prefix}/{args.vehicle}"
+        origin: list[Origin] = []  # set before the message goes out; nothing is taken before
 
-        def on_event(sample: Any) -> None:
-            heard[0] = True
-            with contextlib.suppress(ValueError):
-                events.append(json.loads(sample.payload.to_bytes()))
+        def taker(into: list[dict[str, Any]], topic: str) -> Any:
+            def take(sample: Any) -> None:
+                body: Any = None
+                with contextlib.suppress(ValueError):
+                    body = json.loads(sample.payload.to_bytes())
+                if not origin or not origin[0].accepts(topic, sample, body) or not isinstance(body, dict):
+                    return
+                heard[0] = True
+                into.append(body)
+            return take
 
-        def on_status(sample: Any) -> None:
-            heard[0] = True
-            with contextlib.suppress(ValueError):
-                statuses.append(json.loads(sample.payload.to_bytes()))
-
-        subs = [session.declare_subscriber(f"{base}/events", on_event),
-                session.declare_subscriber(f"{base}/status", on_status)]
-        time.sleep(0.3)  # let the subscription reach the companion before the message
+        subs = [session.declare_subscriber(f"{base}/events", taker(events, "events")),
+                session.declare_subscriber(f"{base}/status", taker(statuses, "status"))]
+        # Which companion answers (this also lets the subscriptions reach it before the message).
+        origin.append(Origin(session, base))
+        if origin[0].companion is None:
+            print(f"send: {origin[0].note}", file=sys.stderr)
         session.put(f"{base}/{args.key}", payload)
         deadline = time.monotonic() + wait
         code: int | None = None
@@ -123,6 +184,9 @@ def cmd_send(args: argparse.Namespace) -> int:
             print(json.dumps(e), flush=True)
         for s in subs:
             s.undeclare()
+        ignored = origin[0].summary()
+        if ignored:
+            print(f"send: {ignored}", file=sys.stderr)
         if code is None:
             if not heard[0]:
                 print(f"send: no companion answered for vehicle {args.vehicle!r} within {wait:g} s "
@@ -148,6 +212,14 @@ def cmd_watch(args: argparse.Namespace) -> int:
     def show(sample: Any) -> None:
         key = str(sample.key_expr).rsplit("/", 1)[-1]
         text = sample.payload.to_bytes().decode("utf-8", "replace")
+        body: Any = None
+        if key != "telemetry":  # telemetry is small and frequent: it carries no session id
+            with contextlib.suppress(ValueError):
+                body = json.loads(text)
+            if not origin.accepts(key, sample, body):
+                return
+        elif str(sample.key_expr) != f"{base}/telemetry":
+            return
         last_heard[0] = time.monotonic()
         print(f"{key} {text}", flush=True)
         if args.wait_for and key == "status":
@@ -155,7 +227,10 @@ def cmd_watch(args: argparse.Namespace) -> int:
                 if json.loads(text).get("state") == args.wait_for:
                     reached[0] = True
 
-    subs = [session.declare_subscriber(f"{args.prefix}/{args.vehicle}/{t}", show) for t in topics]
+    base = f"{args.prefix}/{args.vehicle}"
+    origin = Origin(session, base)
+    print(f"watch: {origin.note}", file=sys.stderr, flush=True)
+    subs = [session.declare_subscriber(f"{base}/{t}", show) for t in topics]
     deadline = time.monotonic() + args.duration if args.duration else None
     said = 0.0
     try:
@@ -173,6 +248,8 @@ def cmd_watch(args: argparse.Namespace) -> int:
         for s in subs:
             s.undeclare()
         session.close()
+    if origin.summary():
+        print(f"watch: {origin.summary()}", file=sys.stderr)
     if args.wait_for and not reached[0]:
         return EXIT_UNFINISHED
     return 0

@@ -19,10 +19,10 @@ from typing import Any
 import numpy as np
 
 from companion.config import Config
-from companion.control import Control
+from companion.control import SWAP_LATE, Control
 from companion.flight import HOLDING_CONTROL, Flight, State
 from companion.lag import LagEstimator
-from companion.navigator import Navigator
+from companion.navigator import MAX_AHEAD, RETRY_MARGIN, Navigator
 from companion.report import Reporter
 from companion.wire.mavlink import CommandFailed, MavlinkLink
 from companion.wire.messages import Command
@@ -233,12 +233,10 @@ class Commands:
     async def _px4_climb(self, target: np.ndarray) -> None:
         """A verified vertical climb streamed in OFFBOARD (PX4 has no GUIDED-style takeoff for us)."""
         bounds = self.nav.default_bounds()  # within the autopilot's limits
-        ahead = self.cfg.planner.split_ahead
-        # The climb starts from a hold at rest, so a plan that comes back after its split time
-        # (a busy computer: the planner process waits for a core) is planned again further
-        # ahead, once, by what it took: the vehicle only holds a little longer.
-        for attempt in (1, 2):
-            started = time.monotonic()
+        # split as far ahead as planning takes in this service; a plan that comes late is planned
+        # again once, further ahead (as Navigator._swap_at_split does for missions)
+        ahead = self.nav.split_ahead_for(2)
+        for attempt in range(2):
             base = self.control.active
             assert base is not None
             t_split = self.control.committed() + ahead
@@ -253,20 +251,19 @@ class Commands:
             else:
                 durations = np.diff(allocate_times(points, bounds, t0=t_split))
             problem = Problem.from_waypoints(points, durations, bounds, initial=jet, t0=t_split)
+            t0 = time.monotonic()
             result = await self.nav.runtime.plan(plan, problem)
+            took = time.monotonic() - t0
             if not result.ok or result.trajectory is None:
                 raise CommandFailed(f"no verified climb: {result.message}", by="companion")
             if self.control.swap(splice(base, result.trajectory), t_split, None, "takeoff"):
                 break
             if not self.control.flying:
                 raise CommandFailed("control was released during the climb's planning", by="companion")
-            took = time.monotonic() - started
-            if attempt == 2 or not at_rest(jet[1], self.cfg.safety.rest_speed):
-                raise CommandFailed(f"climb planning was too slow: {took * 1000:.0f} ms, past its split "
-                                    f"{ahead * 1000:.0f} ms ahead", by="companion")
-            ahead = max(2.0 * ahead, 2.0 * took + 0.05)
-            log.info("climb planned %.0f ms after the request, past its split: planning again %.0f ms ahead",
-                     took * 1000, ahead * 1000)
+            if self.control.refusal != SWAP_LATE or attempt == 1:
+                raise CommandFailed(f"climb not swapped in: {self.control.refusal}"
+                                    + (f" (planning took {took:.2f} s, twice)" if attempt == 1 else ""), by="companion")
+            ahead = min(max(2.0 * ahead, RETRY_MARGIN * took + 0.1), MAX_AHEAD)
         tol, rest = self.cfg.safety.arrival_tolerance, self.cfg.safety.rest_speed
         end = result.trajectory.t_end
         await self.link.wait_for(

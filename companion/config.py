@@ -60,8 +60,11 @@ class MavlinkConfig:
     # udpin:HOST:PORT (we listen; the autopilot sends first: PX4 SITL and PX4's Onboard-mode
     # links send to 14540), udpout:HOST:PORT (we send first), tcp:HOST:PORT (ArduPilot SITL:
     # tcp:127.0.0.1:5760), serial:/dev/ttyAMA0:921600 (or /dev/ttyAMA0:921600); behind
-    # mavlink-router: udpin:0.0.0.0:14550 or the UDP endpoint it was given.
-    url: str = "udpin:0.0.0.0:14540"
+    # mavlink-router: the UDP endpoint it was given. Loopback by default: on a network
+    # interface, anyone on that network could talk to the companion (docs/security.md). The
+    # link is bound to the autopilot ([vehicle] sysid/autopilot_component and, on UDP, the
+    # address of its first heartbeat); other senders are ignored.
+    url: str = "udpin:127.0.0.1:14540"
     # MAVLink 2 signing: a file holding the 32-byte key shared with the autopilot (raw, or 64
     # hex digits); everything we send is then signed. "" = unsigned.
     signing_key_file: str = ""
@@ -69,6 +72,10 @@ class MavlinkConfig:
     # systemd's CacheDirectory ($CACHE_DIRECTORY), else $XDG_CACHE_HOME/bezier-companion
     # (~/.cache/bezier-companion).
     events_cache_dir: str = ""
+    # With a signing key: messages from the autopilot must be signed with it too (timestamps
+    # per link id as the MAVLink spec says); unsigned ones are ignored and counted. false only
+    # for an autopilot that signs nothing it sends.
+    require_signed_inbound: bool = True
     heartbeat_hz: float = 1.0
     # No heartbeat from the autopilot for this long means the link is lost.
     link_timeout: float = 1.5
@@ -208,6 +215,12 @@ class LimitsConfig:
     # Seconds one message's obstacles may take to check (hulls, vertices; in the decode
     # thread for messages over 4 kB): past it the message is refused, naming this limit.
     decode_deadline: float = 0.5
+    # Seconds one segment of a mission may last (`durations`, `times`, a `duration` change):
+    # shorter than min_segment_duration (the planner's own floor: planner_core.timing's
+    # DEFAULT_MIN_DURATION) leaves its QP ill-conditioned; longer than max_segment_duration is
+    # longer than any flight (and a leg that starts moving would overshoot the map by km).
+    min_segment_duration: float = 0.05
+    max_segment_duration: float = 3600.0
 
 
 @dataclass(frozen=True)
@@ -321,6 +334,8 @@ _POSITIVE = {
     "limits.inbound_rate",
     "limits.inbound_burst",
     "limits.decode_deadline",
+    "limits.min_segment_duration",
+    "limits.max_segment_duration",
     "safety.takeoff_altitude",
     "safety.arrival_tolerance",
     "setpoints.lead_max",

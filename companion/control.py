@@ -25,6 +25,13 @@ from planner_core import FloatArray, Trajectory, hold, sampler, trim_before
 
 log = logging.getLogger("companion")
 
+# Why Control.swap refused a plan (Control.refusal): each cause its own text.
+SWAP_NOTHING = "nothing is flown to swap into"
+SWAP_LATE = "the split time had passed when the plan was ready"
+SWAP_DIFFERS = ("internal check failed: the new trajectory differs from the flown one before the split "
+                "(the swap is refused; the flown plan continues)")
+SWAP_JETS = "internal check failed: the new plan's start does not match the flown plan's state at the split"
+
 
 class FeedTarget(Protocol):
     feed: Feed | None  # and, optionally, `lead` (s): setpoints are sampled that far ahead
@@ -46,6 +53,7 @@ class Control:
         self._t_base: float | None = None
         self._active: Trajectory | None = None
         self._latency_mark: tuple[float, Trajectory, str] | None = None
+        self.refusal = ""  # why the last swap was refused ("" after one that was not)
         # the stream, as sent
         self.last_sp: Setpoint | None = None
         self.last_sp_time = 0.0
@@ -139,12 +147,15 @@ class Control:
         log.info("taking control: %s", reason)
 
     def swap(self, new: Trajectory, t_split: float, arrived: float | None, what: str) -> bool:
-        """Replace the flown plan by `new`, which must equal it before t_split (checked)."""
+        """Replace the flown plan by `new`, which must equal it before t_split (checked). When
+        not, `refusal` says why (one of the SWAP_* texts: each cause its own)."""
         old = self._active
         if old is None or self._t_base is None:
+            self.refusal = SWAP_NOTHING
             return False
         now = self.now()
         if t_split <= now + self.lead() + 0.5 / self.rate_hz:  # setpoints up to now + lead are sent
+            self.refusal = SWAP_LATE
             return False
         # single-time samplers: Trajectory.evaluate/jet cost ~0.5 ms a call, on the pop-up's
         # critical path
@@ -152,10 +163,13 @@ class Control:
         ts = np.linspace(now, t_split, 8)
         if not np.allclose([so.jet(t)[0] for t in ts], [sn.jet(t)[0] for t in ts], atol=1e-6):
             log.error("swap refused: new trajectory differs from the flown one before the split")
+            self.refusal = SWAP_DIFFERS
             return False
         if not np.allclose(so.jet(t_split), sn.jet(t_split), rtol=1e-6, atol=1e-6):
             log.error("swap refused: jets differ at the split")
+            self.refusal = SWAP_JETS
             return False
+        self.refusal = ""
         self._set(trim_before(new, now - 1.0), self._t_base, self._streaming)
         if arrived is not None:
             self._latency_mark = (arrived, self._active, what)  # type: ignore[assignment]

@@ -160,6 +160,12 @@ def resolve(route: Route, change: Change, t_split: float) -> Resolved | Refused:
         start = tms[i - 1]
         if start + body.value <= t_split + 0.05:
             return Refused(f"{key}.value", f"a duration of {body.value:g} s ends before the replanning point")
+        speed = np.minimum(-bounds.lo[0], bounds.hi[0])
+        need = float(np.max(np.abs(wps[i] - wps[i - 1]) / speed))
+        if body.value < need * (1.0 - 1e-9):
+            return Refused(f"{key}.value", f"{body.value:g} s is too short for the "
+                           f"{float(np.linalg.norm(wps[i] - wps[i - 1])):.3g} m left of segment {body.index}: within "
+                           f"the velocity bound no curve flies it in less than {need:.3g} s")
         tms[i:] += start + body.value - tms[i]
         what = f"segment {body.index} duration set to {body.value:g} s"
         local = LocalEdit((SetDuration(i - 1, body.value),), what) if lab[i - 1] == body.index else None

@@ -10,9 +10,12 @@ plans and verifies.
 
 from __future__ import annotations
 
+import functools
 import time
-from collections.abc import Sequence
+import traceback
+from collections.abc import Callable, Sequence
 from dataclasses import replace
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -38,7 +41,26 @@ from planner_core import (
     verify_changed,
 )
 
+F = TypeVar("F", bound=Callable[..., Outcome])
 
+
+def answered(fn: F) -> F:
+    """Every planning entry point answers with an Outcome: an exception from planner_core (a
+    bug, or an input no check foresaw) becomes a refusal that says so, with the traceback in
+    stats["internal_error"] for the service to log (these run in workers: the service logs)."""
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Outcome:
+        try:
+            return fn(*args, **kwargs)
+        except Exception as exc:
+            return Outcome(False, message=f"the planner failed on this input ({type(exc).__name__}: {str(exc)[:120]}); "
+                           "this is a bug, logged by the companion", stats={"internal_error": traceback.format_exc()})
+
+    return wrapper  # type: ignore[return-value]
+
+
+@answered
 def start_mission(mission: MissionSpec, initial: FloatArray, t_start: float, known: Known | Sequence[Polytope],
                   cfg: Config) -> Outcome:
     """Plan a fresh mission from the jet `initial` at `t_start`."""
@@ -49,7 +71,8 @@ def start_mission(mission: MissionSpec, initial: FloatArray, t_start: float, kno
         gap = float(np.linalg.norm(jet[0] - wps[0]))
         if gap > cfg.safety.arrival_tolerance:
             return Outcome(False, message=f"start 'first_waypoint': vehicle is {gap:.2f} m from waypoint 0 "
-                           f"(tolerance {cfg.safety.arrival_tolerance} m)")
+                           f"(tolerance {cfg.safety.arrival_tolerance} m: [safety] arrival_tolerance); fly there "
+                           "first, or send start 'current'", field="start")
         assert mission.initial is not None
         jet = mission.initial.copy()
         jet[0] = wps[0]
@@ -81,12 +104,14 @@ def start_mission(mission: MissionSpec, initial: FloatArray, t_start: float, kno
                              allocate=fastest)
 
 
+@answered
 def check_mission(mission: MissionSpec, initial: FloatArray, t_start: float, known: Known | Sequence[Polytope],
                   cfg: Config) -> Outcome:
     """start_mission's verdict without the route (which is large to send between processes)."""
     return replace(start_mission(mission, initial, t_start, known, cfg), route=None)
 
 
+@answered
 def replan_remainder(route: Route, active: Trajectory, t_split: float, known: Known | Sequence[Polytope], cfg: Config,
                      waypoints: FloatArray | None = None, times: FloatArray | None = None,
                      labels: FloatArray | None = None, *, allocate: bool = False) -> Outcome:
@@ -167,7 +192,8 @@ def local_replan(route: Route, t_split: float, edit: LocalEdit, known: Known | S
     except ChangeError as exc:
         return Outcome(False, message=str(exc), stats={"plan_seconds": time.perf_counter() - t0})
     except Exception as exc:  # a planner bug must degrade to the next fallback, not crash the service
-        return Outcome(False, message=f"local replan error: {exc!r}", stats={"plan_seconds": time.perf_counter() - t0})
+        return Outcome(False, message=f"local replan error: {exc!r}", stats={"plan_seconds": time.perf_counter() - t0,
+                                                                              "internal_error": traceback.format_exc()})
     stats = {"plan_seconds": time.perf_counter() - t0, "method": "local", "resolved_jets": list(result.resolved_jets)}
     if not result.ok or result.trajectory is None:
         split = result.stats.get("split_index")

@@ -21,7 +21,7 @@ import numpy as np
 
 from companion.braking import Brakes, Replanned, StopContext, brake_deadline
 from companion.config import Config
-from companion.control import Control
+from companion.control import SWAP_LATE, Control
 from companion.edits import LocalEdit, Refused, resolve_planned
 from companion.flight import Flight, State
 from companion.limits import clips_text
@@ -52,6 +52,11 @@ from planner_core import (
 
 log = logging.getLogger("companion")
 S = State
+
+PLAN_OVERHEAD = 0.05  # s: a plan's fixed cost in the service (process hop, corridors, verify)
+LATE_MARGIN = 1.5  # the split is this many expected planning times ahead
+RETRY_MARGIN = 2.0  # after a late plan: this many times the time it took (a loaded computer varies)
+MAX_AHEAD = 30.0  # s: never further ahead (the old, verified plan flies on meanwhile)
 
 
 @dataclass(frozen=True)
@@ -86,6 +91,9 @@ class Navigator:
         self.lock = asyncio.Lock()  # one plan change at a time
         self.plan_latency: float | None = None
         self.replan_latency: float | None = None
+        # seconds of planning per mission waypoint measured in this service (running estimate;
+        # from the first plans, and after warm-up: a guess on the slow side of an idle computer)
+        self.plan_per_waypoint = 0.004
         self.brakes = Brakes(cfg, control, runtime, report, self.stop_context, position, self._stopped)
         self.limits: Any = None  # companion.limits_watch.LimitsWatch (set by the service): bounds flown
 
@@ -206,32 +214,71 @@ class Navigator:
 
     async def _swap_at_split(self, what: str, arrived: float | None,
                              plan_at: Callable[[Trajectory, float], Awaitable[Outcome]],
-                             hit: float | None = None, notes: list[str] | None = None) -> Swapped:
-        """Plan from a split a little ahead of now and swap the plan in; further ahead when the
-        plan came too late or the flown plan changed meanwhile. `plan_at(base, t_split)`."""
+                             hit: float | None = None, notes: list[str] | None = None,
+                             ahead: float | None = None) -> Swapped:
+        """Plan from a split `ahead` of now (default [planner] split_ahead) and swap the plan in.
+        A plan that came after its split is planned again once, further ahead (from the time it
+        took); a flown plan that changed while planning, once more. Each cause is said once, in
+        its own words; the reason of a failure is the last cause. `plan_at(base, t_split)`."""
         messages = notes if notes is not None else []
-        for attempt in range(3):
+
+        def say(text: str) -> None:
+            if text not in messages:
+                messages.append(text)
+
+        ahead = self.cfg.planner.split_ahead if ahead is None else ahead
+        late = changed = 0
+        reason = ""
+        while late < 2 and changed < 2:
             if not self.control.flying or not self.flight.flying_ours:
                 return Swapped(None, reason=f"no longer in control ({self.flight.state.value})")
             base, route = self.control.active, self.route
             assert base is not None
-            t_split = self.control.committed() + self.cfg.planner.split_ahead * (2**attempt)
+            t_split = self.control.committed() + ahead  # setpoints up to now + lead are sent
             if hit is not None and t_split >= hit:
-                messages.append("too close to the obstacle to replan")
+                reason = "too close to the obstacle to replan"
+                say(reason)
                 break
+            t0 = time.monotonic()
             outcome = await plan_at(base, t_split)
+            took = time.monotonic() - t0
             if not outcome.ok or outcome.route is None:
                 return Swapped(outcome, t_split, outcome.message)
             if self.control.active is not base or self.route is not route:
-                messages.append("the flown plan changed while planning; planning again")
+                changed += 1
+                reason = "the flown plan changed while planning (a stop or another change came first)"
+                say(reason + "; planning again")
                 continue
-            if not self.control.swap(splice(base, outcome.route.trajectory), t_split, arrived, what):
-                messages.append("planning finished after the split time; retrying further ahead")
-                continue
-            self.route = outcome.route
-            self.interrupted = None
-            return Swapped(outcome, t_split)
-        return Swapped(None, reason="; ".join(messages) or "too close")
+            if self.control.swap(splice(base, outcome.route.trajectory), t_split, arrived, what):
+                self.route = outcome.route
+                self.interrupted = None
+                return Swapped(outcome, t_split)
+            if self.control.refusal != SWAP_LATE:
+                reason = self.control.refusal  # an internal check: planning again would not help
+                say(reason)
+                break
+            late += 1
+            reason = (f"planning took {took:.2f} s, more than the {ahead:.2f} s to its split time"
+                      + (" twice: the computer is too busy to plan this in flight now" if late == 2 else ""))
+            if late < 2:
+                say(reason + "; planned again once, further ahead")
+                ahead = min(max(2.0 * ahead, RETRY_MARGIN * took + 0.1), MAX_AHEAD)
+            else:
+                say(reason)
+        return Swapped(None, reason=reason or "too close")
+
+    def split_ahead_for(self, n_waypoints: int) -> float:
+        """How far ahead of now a mission of n waypoints is split: the planning time expected from
+        the ones measured in this service (a running estimate per waypoint, with a margin), never
+        less than [planner] split_ahead nor more than MAX_AHEAD."""
+        expect = PLAN_OVERHEAD + self.plan_per_waypoint * max(n_waypoints, 1)
+        return float(min(max(self.cfg.planner.split_ahead, LATE_MARGIN * expect + 0.05), MAX_AHEAD))
+
+    def _measured(self, seconds: float, n_waypoints: int) -> None:
+        """A mission plan's wall time (queueing included) into the running estimate."""
+        per = max(seconds - PLAN_OVERHEAD, 0.0) / max(n_waypoints, 1)
+        a = 0.5 if per > self.plan_per_waypoint else 0.2  # up fast, down slowly
+        self.plan_per_waypoint = (1 - a) * self.plan_per_waypoint + a * per
 
     # -- missions ---------------------------------------------------------------------------------
 
@@ -246,8 +293,8 @@ class Navigator:
             t0 = time.perf_counter()
             # The check only needs the verdict: a 1000-waypoint route coming back would be
             # unpickled here in one GIL-holding call of many milliseconds.
-            outcome = await self.runtime.plan(check_mission, replace(spec, raw={}), rest_jet(pos), 0.0,
-                                              self.known(), self.cfg)
+            outcome = self.logged(await self.runtime.plan(check_mission, replace(spec, raw={}), rest_jet(pos), 0.0,
+                                                          self.known(), self.cfg))
             plan_ms = round((time.perf_counter() - t0) * 1000, 2)
             if not outcome.ok:
                 self._reject_outcome(spec, outcome)
@@ -259,6 +306,7 @@ class Navigator:
 
     def _reject_outcome(self, spec: MissionSpec, outcome: Outcome) -> None:
         field = "" if outcome.blocked_waypoint is None else f"waypoints[{outcome.blocked_waypoint - spec.first_index}]"
+        field = outcome.field or field
         why = outcome.message
         clipped = self._clipped_text(spec)
         if clipped and outcome.status is OutcomeStatus.INFEASIBLE:
@@ -266,20 +314,32 @@ class Navigator:
                     f"the bounds: {clipped})")
         self.report.reject("mission", field, f"mission {spec.id}: {why}", mission=spec.id)
 
+    @staticmethod
+    def logged(outcome: Outcome) -> Outcome:
+        """An outcome, its planner bug (an exception turned into a refusal: companion.mission.answered)
+        logged with its traceback: never swallowed silently."""
+        bug = outcome.stats.get("internal_error")
+        if bug:
+            log.error("planner failed (answered as a refusal): %s\n%s", outcome.message, bug)
+        return outcome
+
     async def fly(self, spec: MissionSpec, arrived: float | None) -> bool:
         """Plan `spec` from the flown state a little ahead of now and fly it."""
         given = spec
         spec, _ = self.within_limits(spec, tell=False)  # limits read since it was loaded
         async with self.lock:
+            n = len(spec.waypoints)
+
             async def plan_at(base: Trajectory, t_split: float) -> Outcome:
                 jet = self.control.jet(t_split)
                 t0 = time.perf_counter()
-                out: Outcome = await self.runtime.plan(start_mission, replace(spec, raw={}), jet, t_split,
-                                                       self.known(), self.cfg)
+                out: Outcome = self.logged(await self.runtime.plan(start_mission, replace(spec, raw={}), jet, t_split,
+                                                                   self.known(), self.cfg))
                 self.plan_latency = time.perf_counter() - t0
+                self._measured(self.plan_latency, n)
                 return out
 
-            done = await self._swap_at_split(f"mission {spec.id}", arrived, plan_at)
+            done = await self._swap_at_split(f"mission {spec.id}", arrived, plan_at, ahead=self.split_ahead_for(n))
             if not done.ok:
                 if done.outcome is not None:
                     self._reject_outcome(spec, done.outcome)
@@ -367,8 +427,8 @@ class Navigator:
         durations were the planner's)."""
         messages = notes if notes is not None else []
         if local is not None:
-            out: Outcome = await self.runtime.run(self.runtime.replan_pool, local_replan, r, t_split, local,
-                                                  self.known(), self.cfg)
+            out: Outcome = self.logged(await self.runtime.run(self.runtime.replan_pool, local_replan, r, t_split,
+                                                              local, self.known(), self.cfg))
             if out.ok:
                 out.stats.setdefault("method", "local")
                 return out
@@ -378,8 +438,8 @@ class Navigator:
         extra = () if remainder is None else remainder
         if allocate is None:
             allocate = self.allocates(r)
-        out = await self.runtime.plan(partial(replan_remainder, allocate=allocate), r, base, t_split, self.known(),
-                                      self.cfg, *extra, urgent=True)
+        out = self.logged(await self.runtime.plan(partial(replan_remainder, allocate=allocate), r, base, t_split,
+                                                  self.known(), self.cfg, *extra, urgent=True))
         if self.cfg.planner.fallback_delay > 0:
             await asyncio.sleep(self.cfg.planner.fallback_delay)
         out.stats["method"] = "detour" if out.stats.get("detour") else "remainder"

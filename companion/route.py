@@ -10,6 +10,7 @@ placed on a long leg (a replan that allocates again drops them: the planner plac
 from __future__ import annotations
 
 import enum
+import re
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
@@ -80,6 +81,7 @@ class Outcome:
     stats: dict[str, Any] = field(default_factory=dict)
     blocked_segment: int | None = None  # route segment whose straight path crosses an obstacle
     obstacle: int | None = None  # index of that obstacle in the list given to the planner
+    field: str | None = None  # the sender's field at fault (`durations[2]`, `start`), when one is
 
     @property
     def status(self) -> OutcomeStatus:
@@ -139,10 +141,49 @@ def plan_route(
             break
     stats: dict[str, Any] = {"plan_seconds": time.perf_counter() - t0, "timing": mp.timing}
     if not mp.ok or mp.trajectory is None:
+        diag = mp.result.diagnosis
+        seg = diag.segment if diag is not None else None
+        if seg is not None and 0 <= seg < len(mp.segment_source):
+            seg = int(mp.segment_source[seg])  # knots the planner placed: the given leg they lie on
+        if seg is not None and 0 <= seg < len(labels) - 1:
+            field, text = failed_leg(mission, labels, seg, given is not None, mp.message)
+            return Outcome(False, message=text, stats=stats, field=field)
         return Outcome(False, message=mp.message, stats=stats)
     p = mp.problem
     return Outcome(True, Route(mission, p.waypoints, p.times, mp.relabel(labels, KNOT), p, mp.trajectory),
                    mp.message, stats=stats)
+
+
+_PLANNER_WHERE = re.compile(r"^infeasible at waypoint \d+(, segment \d+)?: ")
+_OF_SEGMENT = re.compile(r" of segment \d+")
+
+
+def failed_leg(mission: MissionSpec, labels: FloatArray, segment: int, timed: bool, message: str) -> tuple[str, str]:
+    """The planner's failure on route segment `segment` in the sender's terms: the field (the
+    duration the sender gave for that leg, else the waypoint it leads to) and the reason, with
+    the leg named by its mission waypoints rather than the planner's segment numbers."""
+    lab = np.asarray(labels, dtype=float)
+    a, b = float(lab[segment]), float(lab[segment + 1])
+
+    def name(x: float, start: bool) -> str:
+        if x >= 0:
+            return f"waypoint {int(x)}"
+        return "where the vehicle is (the plan's start)" if start else "a point the companion placed (detour or knot)"
+
+    leg = f"the leg from {name(a, segment == 0)} to {name(b, False)}"
+    nxt = lab[segment + 1 :]
+    ahead = nxt[nxt >= 0]
+    first = mission.first_index
+    field = f"waypoints[{int(ahead[0]) - first}]" if ahead.size else "waypoints"
+    if timed and mission.durations is not None and b >= 1 and (a == b - 1 or (segment == 0 and a < 0 and b == first + 1)):
+        k = int(b) - 1 - first
+        if 0 <= k < len(mission.durations):
+            field = f"durations[{k}]"
+            leg += f" ({field} = {mission.durations[k]:.6g} s)"
+    why = _OF_SEGMENT.sub("", _PLANNER_WHERE.sub("", message))
+    why = why.replace(" fixed by the initial state", " (the leg's start is fixed by the vehicle's current velocity and "
+                      "acceleration)")
+    return field, f"{leg} cannot be planned: the {why}"
 
 
 def clip_velocity(v: FloatArray, bounds: Bounds) -> FloatArray:

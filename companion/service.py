@@ -112,6 +112,7 @@ class Service:
         self.limits = LimitsWatch(cfg, self.link, self.report)
         self.watch.on_link_up = self.limits.read
         self.navigator.limits = self.limits
+        self.link.on_ignored = self._mavlink_ignored
         # lag compensation: a fixed lead, or "auto" (set by Commands from its estimate)
         self.commands.lead_target = self.sender
         self.sender.lead = 0.0 if cfg.setpoints.lead == "auto" else float(cfg.setpoints.lead)
@@ -129,6 +130,7 @@ class Service:
         self._missions: list[asyncio.Task[Any]] = []  # mission handlers not yet done
         self._drops = 0
         self._drop_said = -math.inf
+        self._wrong_said: dict[str, float] = {}  # key expression -> when its refusal was said
         self.setpoints_stalled = False
         self._ticked = asyncio.Event()
         self._log_listener: Any = None
@@ -139,7 +141,9 @@ class Service:
 
     def _publish(self, key: str, body: dict[str, Any]) -> None:
         if self.zio is not None:
-            self.zio.publish(key, body)
+            # which companion said it: clients check it against the session that answers
+            # their status query (companion.__main__, `send`/`watch`)
+            self.zio.publish(key, {**body, "session": self.zio.zid})
         if key == "events" and (body.get("type") == "mission_complete" or (
                 body.get("type") in ("accepted", "rejected") and body.get("key") in ("mission", "change"))):
             self._return_heap_soon()
@@ -281,6 +285,7 @@ class Service:
         self.tracking_error = self.commands.tracking_error if ctl.streaming else None
         return {
             "vehicle": self.cfg.vehicle.id,
+            "session": self.zio.zid if self.zio is not None else None,
             "time": round(time.time(), 3),
             "state": self.flight.state.value,
             "airborne": self.flight.airborne,
@@ -309,6 +314,7 @@ class Service:
             "gc_pause_max_ms": round(self.gc.worst * 1000, 2),
             "setpoints_stalled": self.setpoints_stalled,
             **self.tap.status_fields(),
+            "mavlink_ignored": dict(self.link.gate.ignored) if self.link.gate is not None else {},
         }
 
     def _limits_status(self) -> dict[str, Any]:
@@ -393,6 +399,38 @@ class Service:
                            f"{total} message(s) refused on arrival ({each}): more than {lim.inbound_burst:g} at once "
                            f"or {lim.inbound_rate:g} a second per key ([limits] inbound_rate, inbound_burst)",
                            refused=counts)
+
+    def _mavlink_ignored(self, counts: dict[str, int], rebound: str | None) -> None:
+        """MAVLink messages not from the bound autopilot (never acted on), or a re-bind."""
+        gate = self.link.gate
+        if rebound is not None:
+            self.report.event("mavlink_peer", f"the autopilot's address changed ({rebound}) after its old address "
+                              f"was silent for over {self.cfg.mavlink.link_timeout:g} s ([mavlink] link_timeout): "
+                              "re-bound to it", rebound=rebound)
+            return
+        words = {"other_address": "from another address than the autopilot's",
+                 "other_id": "from another system or component id",
+                 "unsigned": "unsigned or not signed with our key ([mavlink] require_signed_inbound)",
+                 "before_binding": "before the autopilot's first heartbeat"}
+        where = f" (bound to {gate.address[0]}:{gate.address[1]})" if gate is not None and gate.address else ""
+        text = "; ".join(f"{n} {words.get(why, why)}" for why, n in counts.items())
+        self.report.event("mavlink_ignored", f"MAVLink messages ignored, not from the autopilot "
+                          f"{self.cfg.vehicle.sysid}/{self.cfg.vehicle.autopilot_component}{where}: {text}",
+                          ignored=counts, total=dict(gate.ignored) if gate is not None else None)
+
+    def _wrong_key(self, kind: str, key: str, size: int) -> None:
+        """A put on a key expression other than this vehicle's exact key: never acted on. One
+        event per key expression a second (a put on `bezier/drone1/*` reaches all four kinds)."""
+        now = time.monotonic()
+        if now - self._wrong_said.get(key, -math.inf) < 1.0:
+            return
+        if len(self._wrong_said) > 64:  # bounded: a peer may try many expressions
+            self._wrong_said = {k: t for k, t in self._wrong_said.items() if now - t < 1.0}
+        self._wrong_said[key] = now
+        self.report.reject(kind, "key_expr", f"a put on key expression {quote(key, 80)} is refused: only this "
+                           f"vehicle's exact keys ({self.cfg.key('<kind>')}) are acted on, never a wildcard or a "
+                           "key matching several vehicles or kinds (send one put per vehicle)",
+                           key_expr=key[:100], bytes=size)
 
     def _dispatch(self, kind: str, payload: bytes | Oversized, arrived: float, msg: Message | MessageError) -> None:
         if isinstance(msg, MessageError):
@@ -525,6 +563,10 @@ class Service:
         rt, loop = self.runtime, self.loop
         assert loop is not None
         await asyncio.gather(rt.plan(warm_up, self.cfg), rt.plan(warm_up, self.cfg, urgent=True))
+        # a second, warm plan: the first estimate of planning time in this service (in-flight splits)
+        t0 = time.monotonic()
+        await rt.plan(warm_up, self.cfg)
+        self.navigator._measured(time.monotonic() - t0, 2)
         await loop.run_in_executor(rt.io_pool, enc.encode_trajectory, hold(np.zeros(3), 0.0))
         await loop.run_in_executor(rt.replan_pool, warm_up_replan, self.cfg)
         await loop.run_in_executor(rt.decode_pool, warm_validators)
@@ -544,6 +586,7 @@ class Service:
         self.zio.on_refused = self._refused
         self.zio.tap = self.tap
         self.tap.open()
+        self.zio.on_wrong_key = self._wrong_key
         self.zio.open({"plan": self.query_plan, "status": self.query_status})
         self.link.open(self.loop)
         await self._warm_up()

@@ -51,7 +51,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="udpin:H:P (default udpin:127.0.0.1:14540), udpout:H:P or tcpin:H:P; repeatable")
     p.add_argument("--px4-sitl-ports", action="store_true",
                    help=f"act as PX4 SITL's offboard link: {PX4_SITL_ENDPOINT} (listen on 14580, send to 14540, "
-                   "where MAVSDK, MAVROS and the companion's default udpin:0.0.0.0:14540 listen)")
+                   "where MAVSDK, MAVROS and the companion's default udpin:127.0.0.1:14540 listen)")
     p.add_argument("--sysid", type=int, default=1)
     p.add_argument("--compid", type=int, default=1)
     p.add_argument("--log", dest="log_path", metavar="FILE.jsonl")

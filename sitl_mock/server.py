@@ -100,8 +100,11 @@ class MockConfig:
     # (DEFAULT_RESPONSE: px4 "px4_sih", ardupilot "calibrated")
     vehicle: VehicleParams | None = None
     # MAVLink 2 signing: with a 32-byte key, unsigned or wrongly signed commands and setpoints
-    # are ignored (logged as event "signature_rejected").
+    # are ignored (logged as event "signature_rejected"), and everything the mock sends is
+    # signed with it (as ArduPilot and PX4 do on a link with signing enabled) unless
+    # sign_outgoing is False (an autopilot that checks but signs nothing).
     signing_key: bytes | None = None
+    sign_outgoing: bool = True
     # z (NED, m) of the ground in the local frame; None: the flavour's (PX4 +1.6, ArduPilot 0).
     ground_z: float | None = None
     # PX4: report with STATUSTEXT as PX4 < 1.14 did, instead of EVENT messages.
@@ -181,6 +184,11 @@ class MockAutopilot:
         response = config.vehicle if config.vehicle is not None else RESPONSES[DEFAULT_RESPONSE[config.autopilot]]
         self.vehicle = Vehicle(response, ground_z=self.ground_z)
         self.enc = Encoder(config.sysid, config.compid)
+        if config.signing_key is not None and config.sign_outgoing:
+            signing = self.enc.mav.signing
+            signing.secret_key, signing.sign_outgoing, signing.link_id = config.signing_key, True, 0
+            # 10 µs units since 2015-01-01 (the MAVLink signing epoch), from the wall clock
+            signing.timestamp = int(max(time.time() - 1420070400, 0.0) * 100_000)
         self.log = FlightLog(config.log_path)
         self.link_faults = LinkFaults(config.faults, config.seed)
         self.reject_arming = config.faults.reject_arming

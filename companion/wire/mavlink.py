@@ -11,8 +11,10 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import contextlib
 import math
 import os
+import socket
 import struct
 import threading
 import time
@@ -31,6 +33,7 @@ from companion.sendproc import Encoding
 from companion.setpoints import Setpoint
 from companion.tap import NO_TAP, Tap
 from companion.wire import dialect
+from companion.wire.peer import OTHER_ID, UNBOUND, PeerGate, SignatureCheck
 from companion.wire.px4_events import Px4Events
 from companion.wire.signing import read_signing_key
 
@@ -57,6 +60,8 @@ APM_STREAMS: dict[str, tuple[int, str]] = {
     "EXTENDED_SYS_STATE": (mavlink.MAV_DATA_STREAM_EXTENDED_STATUS, "MAV1_EXT_STAT (SR1_EXT_STAT before 4.7)"),
 }
 POSITION_STALE = 1.0  # s without LOCAL_POSITION_NED: no position estimate
+IGNORED_EVERY = 5.0  # s between two reports of messages ignored as not the autopilot's
+IGNORED_OTHER_ID_EVERY = 60.0  # the same for other ids (a GCS or camera on a shared link)
 # What the autopilot says (EVENT, STATUSTEXT) this long before a refusing COMMAND_ACK, or up
 # to NOTE_AFTER after it, is taken as the refusal's reason.
 NOTE_BEFORE = 1.0
@@ -240,6 +245,15 @@ class MavlinkLink:
         # PARAM_VALUEs heard (name -> value in the parameter's own unit) and who waits for them
         self.params: dict[str, float] = {}
         self._param_heard = asyncio.Event()
+        self.gate: PeerGate | None = None
+        self.signature: SignatureCheck | None = None
+        # `on_ignored(counts, rebound)`: messages not from the bound autopilot were ignored since
+        # the last call (counts by reason), or the link re-bound to a new address; called on the
+        # loop at most every IGNORED_EVERY seconds per reason (OTHER_ID: IGNORED_OTHER_ID_EVERY)
+        self.on_ignored: Callable[[dict[str, int], str | None], None] | None = None
+        self._ignored_said: dict[str, tuple[float, int]] = {}
+        self._sock: Any = None  # UDP: the socket read here, datagram by datagram
+        self._udp_server = False
 
     # -- lifecycle -----------------------------------------------------------
 
@@ -255,10 +269,28 @@ class MavlinkLink:
         )
         self.conn.mav.robust_parsing = True
         self.conn.mav.set_send_callback(self.tap.mavlink_sent)  # after each write: O(1), never waits
-        if self.cfg.mavlink.signing_key_file:
-            # Sign everything we send; what the autopilot sends may be unsigned.
-            self.conn.setup_signing(read_signing_key(self.cfg.mavlink.signing_key_file), sign_outgoing=True,
+        mc = self.cfg.mavlink
+        keyed = bool(mc.signing_key_file)
+        if keyed:
+            # Sign everything we send. pymavlink passes every message up (allow_unsigned); whether
+            # it was signed with our key (get_signed) is judged by the gate.
+            self.conn.setup_signing(read_signing_key(mc.signing_key_file), sign_outgoing=True,
                                     allow_unsigned_callback=lambda _mav, _msg_id: True)
+            self.signature = SignatureCheck(self.conn.mav)
+            self.conn.mav.check_signature = self.signature
+        require = keyed and mc.require_signed_inbound
+        self._sock = getattr(self.conn, "port", None) if isinstance(self.conn, mavutil.mavudp) else None
+        self._udp_server = bool(self._sock is not None and self.conn.udp_server)
+        self.gate = PeerGate(v.sysid, v.autopilot_component, udp=self._sock is not None, require_signed=require,
+                             link_timeout=mc.link_timeout)
+        if self._sock is not None and not self._udp_server:
+            # udpout: we talk to the configured address; only it is heard
+            host, port = self.conn.destination_addr
+            self.gate.address, self.gate.pinned = (socket.gethostbyname(host), int(port)), True
+        if self._udp_server:
+            # pymavlink's udpin answers every address that ever sent a datagram: a spoofer would
+            # receive our setpoints. Only the bound autopilot's address is written to.
+            self.conn.write = self._write_bound
         self._loop = loop
         loop.add_reader(self.conn.fd, self._readable)
         self.send_heartbeat()
@@ -295,12 +327,11 @@ class MavlinkLink:
         self._update_route()
 
     def _update_route(self) -> None:
-        conn = self.conn
-        if self._writer is None or not isinstance(conn, mavutil.mavudp):
+        if self._writer is None or not isinstance(self.conn, mavutil.mavudp):
             return
-        # pymavlink's udpin answers every address it has heard from; so does the process
-        route = tuple(sorted(conn.clients)) if conn.udp_server else (conn.destination_addr,)
-        self._writer.route(route)
+        # the bound autopilot's address only: a spoofer never receives a setpoint (PeerGate)
+        gate = self.gate
+        self._writer.route((gate.address,) if gate is not None and gate.address is not None else ())
 
     def close(self) -> None:
         if self.conn is None:
@@ -312,7 +343,19 @@ class MavlinkLink:
 
     # -- receive -------------------------------------------------------------
 
+    def _write_bound(self, buf: bytes) -> None:
+        gate = self.gate
+        if gate is None or gate.address is None:
+            return  # nobody to talk to before the autopilot is heard
+        with contextlib.suppress(OSError):
+            self._sock.sendto(buf, gate.address)
+
     def _readable(self) -> None:
+        if self._sock is not None:
+            self._read_datagrams()
+            self._say_ignored()
+            self._update_route()
+            return
         for _ in range(200):  # bounded so a flood cannot starve the loop
             try:
                 msg = self.conn.recv_msg()
@@ -320,13 +363,66 @@ class MavlinkLink:
                 return
             if msg is None:
                 break
-            self._handle(msg)
+            self._admit(msg, None)
+        self._say_ignored()
         self._update_route()
+
+    def _read_datagrams(self) -> None:
+        """UDP: each datagram parsed on its own, so every message is known with its sender."""
+        mav = self.conn.mav
+        assert self.gate is not None
+        for _ in range(200):  # bounded so a flood cannot starve the loop
+            try:
+                data, addr = self._sock.recvfrom(65535)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError:  # ICMP port unreachable from a peer not up yet
+                return
+            if not self.gate.address_ok(addr, time.monotonic()):
+                continue
+            # nothing left over from another sender's datagram prefixes this one
+            mav.buf, mav.buf_index, mav.expected_length = bytearray(), 0, mavlink.HEADER_LEN_V1 + 2
+            mav.have_prefix_error = False
+            try:
+                msgs = mav.parse_buffer(data) or []
+            except mavlink.MAVError:
+                continue
+            for msg in msgs:
+                self._admit(msg, addr)
+
+    def _admit(self, msg: Any, addr: tuple[str, int] | None) -> None:
+        if msg.get_type() == "BAD_DATA":
+            return
+        assert self.gate is not None
+        rebinds = len(self.gate.rebinds)
+        if self.gate.admit(msg, addr, time.monotonic()) is not None:
+            return
+        if len(self.gate.rebinds) > rebinds and self.on_ignored is not None:
+            old, new = self.gate.rebinds[-1]
+            self.on_ignored({}, f"{old[0]}:{old[1]} -> {new[0]}:{new[1]}" if old else f"{new[0]}:{new[1]}")
+        self._handle(msg)
+
+    def _say_ignored(self) -> None:
+        """Counts of ignored messages, rate-limited per reason (another id: a GCS or a camera
+        on a shared link is common and harmless, so said rarely)."""
+        gate, cb = self.gate, self.on_ignored
+        if gate is None or cb is None or not gate.ignored:
+            return
+        now = time.monotonic()
+        fresh: dict[str, int] = {}
+        for why, total in gate.ignored.items():
+            if why == UNBOUND:  # telemetry that came before the first heartbeat: normal at link-up
+                continue
+            said_at, said_total = self._ignored_said.get(why, (-math.inf, 0))
+            every = IGNORED_OTHER_ID_EVERY if why == OTHER_ID else IGNORED_EVERY
+            if total > said_total and now - said_at >= every:
+                fresh[why] = total - said_total
+                self._ignored_said[why] = (now, total)
+        if fresh:
+            cb(fresh, None)
 
     def _handle(self, msg: Any) -> None:
         kind = msg.get_type()
-        if kind == "BAD_DATA" or msg.get_srcSystem() != self.cfg.vehicle.sysid:
-            return
         now = time.monotonic()
         self.tap.mavlink_received(msg, now)
         st = self.state

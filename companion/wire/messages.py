@@ -144,6 +144,51 @@ def _converters(max_chars: int) -> tuple[Any, Any]:
     return to_int, to_float
 
 
+class _DuplicateKey(Exception):
+    pass
+
+
+def _unique_pairs(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """object_pairs_hook: a dict, or _DuplicateKey when a key is given twice (json.loads would
+    keep the last silently: `{"add": [obstacle], "add": []}` would drop the obstacle)."""
+    out = dict(pairs)
+    if len(out) != len(pairs):
+        raise _DuplicateKey
+    return out
+
+
+class _Marked(dict[str, Any]):
+    """A parsed object that repeats `dup` (only built to find where a duplicate is)."""
+
+    dup: str = ""
+
+
+def _marking_pairs(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    seen: set[str] = set()
+    for k, _ in pairs:
+        if k in seen:
+            out = _Marked(pairs)
+            out.dup = k
+            return out
+        seen.add(k)
+    return dict(pairs)
+
+
+def _duplicate_path(text: str, to_int: Any, to_float: Any) -> tuple[str, str]:
+    """The JSON path and name of the first repeated key (parsed again: only for a message that has one)."""
+    doc = json.loads(text, parse_int=to_int, parse_float=to_float, object_pairs_hook=_marking_pairs)
+    stack: list[tuple[Any, tuple[Any, ...]]] = [(doc, ())]
+    while stack:
+        node, path = stack.pop()
+        if isinstance(node, _Marked):
+            return json_path((*path, node.dup)), node.dup
+        if isinstance(node, dict):
+            stack.extend((v, (*path, k)) for k, v in reversed(list(node.items())))
+        elif isinstance(node, list):
+            stack.extend((v, (*path, i)) for i, v in reversed(list(enumerate(node))))
+    return "", ""  # pragma: no cover - called only when a duplicate was seen
+
+
 def parse_json(payload: bytes | Oversized, max_bytes: int, max_number_chars: int = 32) -> Any:
     if len(payload) > max_bytes or isinstance(payload, Oversized):
         raise MessageError("", f"payload of {len(payload)} bytes exceeds the limit of {max_bytes} "
@@ -154,7 +199,11 @@ def parse_json(payload: bytes | Oversized, max_bytes: int, max_number_chars: int
         raise MessageError("", f"not UTF-8: {exc.reason} at byte {exc.start}") from None
     to_int, to_float = _converters(max_number_chars)
     try:
-        return json.loads(text, parse_int=to_int, parse_float=to_float)
+        return json.loads(text, parse_int=to_int, parse_float=to_float, object_pairs_hook=_unique_pairs)
+    except _DuplicateKey:
+        where, key = _duplicate_path(text, to_int, to_float)
+        raise MessageError(where, f"key {quote(key, 40)} appears more than once in the same object: which one "
+                                  "was meant is ambiguous (duplicate keys are refused)") from None
     except json.JSONDecodeError as exc:
         raise MessageError("", f"malformed JSON: {exc.msg} at line {exc.lineno} column {exc.colno}") from None
     except _LongNumber as exc:
@@ -363,6 +412,33 @@ def _check_counts(kind: str, obj: dict[str, Any], lim: LimitsConfig) -> None:
         if len(body["waypoints"]) > lim.max_waypoints:
             raise MessageError("append.waypoints", f"{len(body['waypoints'])} waypoints exceed the limit of "
                                                    f"{lim.max_waypoints} ([limits] max_waypoints)")
+
+
+def check_durations(durations: Any, field: str, lim: LimitsConfig, waypoints: Any = None,
+                    speed: FloatArray | None = None, first: int = 0, what: str = "duration") -> None:
+    """Each segment duration (s) within [limits] min/max_segment_duration and, with the
+    waypoints it joins (`waypoints[i]` -> `waypoints[i + 1]`) and the velocity bound per axis
+    (`speed`), not shorter than any curve within that bound can fly: |dx| / v on every axis
+    (the mean value theorem: a proven floor). `field` names the array; `first` is the index
+    of its entry for the segment from waypoint 0 (1 for `times`)."""
+    d = np.asarray(durations, dtype=float).reshape(-1)
+    lo, hi = lim.min_segment_duration, lim.max_segment_duration
+    for i in np.flatnonzero((d < lo) | (d > hi))[:1]:
+        word = "shorter" if d[i] < lo else "longer"
+        name = "min_segment_duration" if d[i] < lo else "max_segment_duration"
+        raise MessageError(f"{field}[{int(i) + first}]" if field.endswith("s") else field,
+                           f"a {what} of {d[i]:.6g} s is {word} than {lo if d[i] < lo else hi:g} s ([limits] {name})")
+    if waypoints is None or speed is None:
+        return
+    wps = np.asarray(waypoints, dtype=float)
+    need = np.max(np.abs(np.diff(wps, axis=0)) / np.asarray(speed, dtype=float), axis=1)
+    short = np.flatnonzero(d < need * (1.0 - 1e-9))
+    if short.size:
+        i = int(short[0])
+        length = float(np.linalg.norm(wps[i + 1] - wps[i]))
+        raise MessageError(f"{field}[{i + first}]" if field.endswith("s") else field,
+                           f"{d[i]:.6g} s is too short for the {length:.3g} m from waypoint {i} to "
+                           f"{i + 1}: within the velocity bound no curve flies it in less than {need[i]:.3g} s")
 
 
 def _check_lengths(obj: dict[str, Any]) -> None:
@@ -632,8 +708,13 @@ def mission_from_message(obj: dict[str, Any], cfg: Config, frame: str = "ned") -
                 initial[row] = obj["initial"][name]
     # obstacles are inflated by the vehicle's radius and by how far it may stray from the plan
     radius = max(cfg.planner.vehicle_radius, float(obj.get("vehicle_radius", 0.0))) + cfg.planner.tracking_allowance
+    bounds = bounds_from(obj.get("bounds"), cfg)
+    if durations is not None:
+        speed = np.minimum(-bounds.lo[0], bounds.hi[0])
+        check_durations(durations, "durations" if "durations" in obj else "times", cfg.limits, wps, speed,
+                        first=0 if "durations" in obj else 1)
     return MissionSpec(
-        id=str(obj["id"]), waypoints=wps, durations=durations, bounds=bounds_from(obj.get("bounds"), cfg),
+        id=str(obj["id"]), waypoints=wps, durations=durations, bounds=bounds,
         obstacles=obstacles, map_lo=map_lo, map_hi=map_hi, radius=radius, start=start,
         autostart=bool(obj.get("autostart", True)), initial=initial, frame=frame, raw=obj,
         allowance=cfg.planner.tracking_allowance,
@@ -663,11 +744,14 @@ def change_from_message(obj: dict[str, Any], cfg: Config, frame: str = "ned") ->
         body = RemoveChange(int(obj["remove_waypoint"]["index"]))
     elif "duration" in obj:
         b = obj["duration"]
+        check_durations([b["value"]], "duration.value", cfg.limits)
         body = DurationChange(int(b["index"]), float(b["value"]))
     elif "append" in obj:
         b = obj["append"]
         wps = np.asarray(b["waypoints"], dtype=float)
         check_geofence(wps, lo, hi, "append.waypoints", frame)
+        if "durations" in b:
+            check_durations(b["durations"], "append.durations", cfg.limits)
         body = AppendChange(wps, None if "durations" not in b else np.asarray(b["durations"], dtype=float))
     else:  # pragma: no cover - the schema requires one
         raise MessageError("", "no change given")

@@ -124,8 +124,14 @@ class ZenohIO:
         self.on_refused: Callable[[dict[str, int]], None] | None = None
         self._refusal_due = False
         self._refusal_said = -math.inf
-        self.session: Any = None
         self.tap: Tap = NO_TAP  # the flight recorder (companion/tap.py)
+        # A put whose key expression is not this vehicle's exact key (`bezier/*/command`,
+        # `bezier/drone1/*`, `bezier/**`: it reaches every subscriber it intersects) is never
+        # acted on: `on_wrong_key(kind, key_expr, size)` (on the loop) says so.
+        self.wrong_keys = 0
+        self.on_wrong_key: Callable[[str, str, int], None] | None = None
+        self.session: Any = None
+        self.zid = ""  # this session's Zenoh id: status and events carry it (`session`)
         self.exposure: list[str] = []
         self._decls: list[Any] = []
         self._pubs: dict[str, Any] = {}
@@ -141,6 +147,7 @@ class ZenohIO:
                         "Zenoh configuration ([zenoh] config_file, see docs/security.md).", "; ".join(why))
         self.exposure = why
         self.session = zenoh.open(zcfg)
+        self.zid = str(self.session.zid())
         for kind in INBOUND:
             self._decls.append(self.session.declare_subscriber(self.cfg.key(kind), self._inbound(kind)))
         for kind in OUTBOUND:
@@ -151,6 +158,7 @@ class ZenohIO:
 
     def _inbound(self, kind: str) -> Callable[[Any], None]:
         limit = self.cfg.limits.max_message_bytes
+        exact = self.cfg.key(kind)
 
         def callback(sample: Any) -> None:
             arrived = time.monotonic()
@@ -160,6 +168,10 @@ class ZenohIO:
                     self.loop.call_soon_threadsafe(self._say_refusals)
                 return
             size = len(sample.payload)  # without copying it out of zenoh
+            key = str(sample.key_expr)
+            if key != exact:
+                self.loop.call_soon_threadsafe(self._wrong_key, kind, key, size)
+                return
             payload: bytes | Oversized = Oversized(size) if size > limit else sample.payload.to_bytes()
             self.loop.call_soon_threadsafe(self._enqueue, kind, payload, arrived)
 
@@ -183,6 +195,11 @@ class ZenohIO:
                 self.on_dropped(kind, len(payload))
             return
         self.inbox.put_nowait((kind, payload, arrived))
+
+    def _wrong_key(self, kind: str, key: str, size: int) -> None:
+        self.wrong_keys += 1
+        if self.on_wrong_key is not None:
+            self.on_wrong_key(kind, key, size)
 
     def _queried(self, kind: str) -> Callable[[Any], None]:
         def callback(query: Any) -> None:

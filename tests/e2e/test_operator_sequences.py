@@ -17,7 +17,9 @@ takeoff or start was sent):
  (f) every published plan is verified (hodograph and corridor certificate rechecked) and
      equals the previous one up to its split (the `replanned` event's `split_time`; else the
      flown piece: up to shortly before it was received);
- (g) (extra) no `error` event (an internal error in a handler).
+ (g) (extra) no `error` event (an internal error in a handler);
+ (h) a mission that replaces the one being flown (`replace_mission`) is planned and flown, never
+     refused for lack of planning time (issue 21.8); a refusal for another cause names it.
 
 Each sequence runs on a fresh rig (mock + companion restarted: ~1.5 s, faster than landing
 and disarming, ~3.6 s, and it also resets obstacles and the companion's mission state).
@@ -99,6 +101,7 @@ def _clip(p: np.ndarray) -> list[float]:
 ACTION_ARGS: dict[str, dict[str, st.SearchStrategy[Any]]] = {
     "takeoff": {"altitude": st.sampled_from([1.0, 1.5, 2.0])},
     "mission_msg": {"points": waypoint_lists, "autostart": st.booleans()},
+    "replace_mission": {"points": waypoint_lists},
     "change": {"kind": st.sampled_from(["move_waypoint", "move_waypoint", "insert_waypoint", "remove_waypoint",
                                         "duration", "append"]),
                "index": st.integers(0, 7), "offset": offsets},
@@ -236,6 +239,7 @@ class OperatorSequences(RuleBasedStateMachine):
             acts += ["mission_msg", "mission_msg", "hold", "land", "abort", "pause_link", "pilot_switch",
                      "obstacle", "obstacle"] + ["resume"] * (m is not None) + ["start"] * pending
             acts += ["change"] * (3 * (flying and bool(m and m["changeable"])))
+            acts += ["replace_mission"] * (2 * flying)
         elif p == "air_other":
             acts += ["start", "land", "abort"]
         else:
@@ -346,7 +350,12 @@ class OperatorSequences(RuleBasedStateMachine):
         self.send_mission(points, autostart)
         self.observe()
 
-    def send_mission(self, points: list[tuple[float, float, float]], autostart: bool) -> None:
+    def replace_mission(self, points: list[tuple[float, float, float]]) -> None:
+        """A new mission while one is flown: it replaces it in flight."""
+        self.send_mission(points, autostart=True, replacing=True)
+        self.observe()
+
+    def send_mission(self, points: list[tuple[float, float, float]], autostart: bool, replacing: bool = False) -> None:
         self.n_missions += 1
         mid = f"s{self.seq}m{self.n_missions}"
         wps = [list(p) for p in points]
@@ -356,6 +365,10 @@ class OperatorSequences(RuleBasedStateMachine):
         self.rig.put("mission", {"id": mid, "frame": "ned", "autostart": autostart, "waypoints": wps})
         ev = self.rig.find_event(lambda e: e.get("key") == "mission" and e["type"] in ("accepted", "rejected", "error")
                                  and (e.get("mission") == mid or mid in e.get("message", "")), 10, since)
+        if replacing and ev is not None and ev["type"] == "rejected":
+            reason = str(ev.get("reason", ""))
+            if "split time" in reason or "planning took" in reason or not reason:
+                self.violate("h", f"mission {mid} replacing the flown one was refused for time: {reason!r}")
         if ev is not None and ev["type"] == "accepted":
             self.set_mission(mid, wps, pending=bool(ev.get("pending")))
             if not ev.get("pending"):

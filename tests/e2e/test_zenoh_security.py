@@ -70,7 +70,7 @@ def companion(tmp_path_factory: pytest.TempPathFactory) -> Any:
 
     th = threading.Thread(target=publish_status, daemon=True)
     th.start()
-    yield {"port": port, "got": got, "lock": lock}
+    yield {"port": port, "got": got, "lock": lock, "session": session}
     stop.set()
     th.join()
     for s in subs:
@@ -119,6 +119,25 @@ def _try(companion: Any, user: str | None, password: str | None, tag: str) -> tu
 
 def test_operator_commands_and_watches(companion: Any) -> None:
     assert _try(companion, "operator", "op-secret", "op-1") == (True, True)
+
+
+def test_operator_cannot_fake_what_the_companion_publishes(companion: Any) -> None:
+    """Issue 21.2: an operator's put on `events` or `status` does not pass the companion's
+    access control (the operator's rights to put are on the four inbound keys only)."""
+    seen: list[bytes] = []
+    sub = companion["session"].declare_subscriber(f"{PREFIX}/events", lambda s: seen.append(s.payload.to_bytes()))
+    session = _client(companion["port"], "operator", "op-secret")
+    assert session is not None
+    try:
+        time.sleep(0.5)
+        for _ in range(5):
+            session.put(f"{PREFIX}/events", b'{"type": "completed", "key": "command", "fake": true}')
+            time.sleep(0.1)
+        time.sleep(0.5)
+    finally:
+        session.close()
+        sub.undeclare()
+    assert not seen
 
 
 def test_observer_watches_but_cannot_command(companion: Any) -> None:

@@ -1,0 +1,180 @@
+"""Issue 21.8 / 20.5: valid missions of 5-300 waypoints sent in flight, one every 1.5 s, are
+all planned and flown (none refused for lack of time) while a CPU hog spins beside the test;
+the split time follows the planning time measured in the service. And each cause of a refused
+swap has its own reason, said once."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import math
+import subprocess
+import sys
+import time
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+import pytest
+from companionkit import Events, service_for, serving, until
+
+from companion.config import Config
+from companion.control import SWAP_DIFFERS, SWAP_LATE
+from companion.navigator import MAX_AHEAD, Navigator
+from companion.route import Outcome
+from companion.wire.messages import read
+from sitl_mock import MockAutopilot, MockConfig
+
+
+def mission(mid: str, n: int, phase: float) -> bytes:
+    """n waypoints 2 m apart, a lawn-mower pattern of rows of 8 from near the origin at 2 m up
+    (`phase` shifts it sideways); a long one flies for minutes: the next one replaces it."""
+    k = np.arange(n)
+    row, col = k // 8, k % 8
+    col = np.where(row % 2 == 1, 7 - col, col)
+    wps = np.stack([2.0 * col - 7.0 + phase, 2.0 * row + 1.0, np.full(n, -2.0)], axis=1).round(3).tolist()
+    return json.dumps({"id": mid, "waypoints": wps}).encode()
+
+
+@pytest.fixture(params=[False, True], ids=["quiet", "cpu_hog"])
+def cpu_hog(request: pytest.FixtureRequest) -> Any:
+    """A process spinning on one core for the test's duration (normal scheduling), or none."""
+    if not request.param:
+        yield None
+        return
+    proc = subprocess.Popen([sys.executable, "-c", "while True: pass"])
+    try:
+        yield proc
+    finally:
+        proc.kill()
+        proc.wait()
+
+
+@pytest.mark.slow
+def test_missions_replaced_in_flight_are_all_flown(tmp_path: Path, cpu_hog: Any) -> None:
+    """Each mission is sent 1.5 s after the previous one, or once that one is answered if it
+    takes longer (an operator replacing missions as fast as they are taken)."""
+    mock = MockAutopilot(MockConfig(autopilot="px4", endpoints=["udpin:127.0.0.1:0"],
+                                    log_path=str(tmp_path / "f.jsonl"))).start()
+    sizes = [5, 40, 5, 300, 20, 5]
+    stalled: list[str] = []
+
+    async def go() -> None:
+        svc = service_for(mock, planner={"executor": "process"})
+        events = Events(svc)
+
+        def answered(mid: str) -> bool:
+            return any(e.get("mission") == mid for e in events.of("accepted") + events.of("rejected"))
+
+        async with serving(svc):
+            await until(lambda: svc.link.state.position_problem() is None, 20, "position")
+            await svc.commands.takeoff(2.0)
+            ids = [f"m{i}-{n}" for i, n in enumerate(sizes)]
+            try:
+                for i, (mid, n) in enumerate(zip(ids, sizes, strict=True)):
+                    sent = time.monotonic()
+                    svc._dispatch("mission", b"", sent, read("mission", mission(mid, n, 0.7 * i), svc.cfg))
+                    await until(lambda mid=mid: answered(mid), 150, f"mission {mid} answered")  # type: ignore[misc]
+                    await asyncio.sleep(max(0.0, 1.5 - (time.monotonic() - sent)))
+                await until(lambda: any(e.get("mission") == ids[-1] for e in events.of("mission_complete")), 60,
+                            "the last mission flown to its end")
+            except AssertionError:
+                if not events.of("stalled"):
+                    for e in events.all:
+                        print(e["type"], e.get("message", "")[:300])
+                    raise
+            stalled.extend(e["message"] for e in events.of("stalled"))
+            if stalled:
+                return
+            rejected = [e["message"] for e in events.of("rejected")]
+            assert not rejected, rejected
+            flown = [e["mission"] for e in events.of("accepted") if e.get("mission") in ids]
+            assert flown == ids, flown  # in order, each planned and swapped in
+            print(f"estimated plan time per waypoint {svc.navigator.plan_per_waypoint * 1000:.1f} ms; "
+                  f"split ahead for 5 / 300 waypoints: {svc.navigator.split_ahead_for(5):.2f} / "
+                  f"{svc.navigator.split_ahead_for(300):.2f} s; "
+                  f"plans (ms): {[e.get('plan_ms') for e in events.of('accepted')]}")
+
+    try:
+        asyncio.run(go())
+    finally:
+        mock.stop()
+    if stalled:
+        # the setpoint stream starved by the load (issue 21.7, not this test's subject): the
+        # companion released control, as it must; what missions do then is not in question
+        pytest.xfail(f"setpoint thread starved under load (issue 21.7): {stalled[0][:200]}")
+
+
+# -- the retry loop's reasons, on its own -----------------------------------------------------
+
+
+class _Control:
+    def __init__(self, refusals: list[str]) -> None:
+        self.refusals = refusals
+        self.active: Any = object()
+        self.flying = True
+        self.refusal = ""
+        self.t = 0.0
+
+    def now(self) -> float:
+        return self.t
+
+    def swap(self, *_: Any) -> bool:
+        self.refusal = self.refusals.pop(0) if self.refusals else ""
+        return not self.refusal
+
+
+def _navigator(refusals: list[str]) -> Navigator:
+    nav = object.__new__(Navigator)
+    nav.cfg = Config()
+    nav.control = _Control(refusals)  # type: ignore[assignment]
+    nav.flight = SimpleNamespace(flying_ours=True, state=SimpleNamespace(value="STREAMING"))  # type: ignore[assignment]
+    nav.route = None
+    nav.interrupted = None
+    nav.plan_per_waypoint = 0.004
+    return nav
+
+
+def _run(nav: Navigator, aheads: list[float]) -> Any:
+    async def plan_at(_base: Any, t_split: float) -> Outcome:
+        aheads.append(t_split)
+        await asyncio.sleep(0.01)
+        return Outcome(True, route=SimpleNamespace(trajectory=None))  # type: ignore[arg-type]
+
+    import companion.navigator as navmod
+
+    splice, navmod.splice = navmod.splice, lambda a, b: b  # type: ignore[assignment]
+    try:
+        notes: list[str] = []
+        return asyncio.run(nav._swap_at_split("mission x", None, plan_at, notes=notes)), notes
+    finally:
+        navmod.splice = splice
+
+
+def test_a_swap_refused_by_the_check_says_so_once_not_the_split_time() -> None:
+    done, notes = _run(_navigator([SWAP_DIFFERS, SWAP_DIFFERS, SWAP_DIFFERS]), [])
+    assert not done.ok and done.reason == SWAP_DIFFERS and notes == [SWAP_DIFFERS]
+    assert "split time" not in done.reason
+
+
+def test_a_late_plan_is_planned_again_once_further_ahead() -> None:
+    aheads: list[float] = []
+    done, notes = _run(_navigator([SWAP_LATE]), aheads)
+    assert done.ok and len(aheads) == 2 and aheads[1] > aheads[0]
+    assert len(notes) == 1 and "planned again once, further ahead" in notes[0]
+    aheads.clear()
+    done, notes = _run(_navigator([SWAP_LATE, SWAP_LATE, SWAP_LATE]), aheads)
+    assert not done.ok and len(aheads) == 2 and "twice" in done.reason and len(notes) == 2
+
+
+def test_the_split_follows_the_measured_planning_time() -> None:
+    nav = _navigator([])
+    floor = nav.cfg.planner.split_ahead
+    assert floor <= nav.split_ahead_for(5) < 0.2  # idle: about the configured split
+    for _ in range(5):
+        nav._measured(1.0, 5)  # a loaded machine: 1 s for 5 waypoints
+    assert nav.split_ahead_for(5) >= 1.4 and nav.split_ahead_for(300) == MAX_AHEAD
+    for _ in range(40):
+        nav._measured(0.03, 5)
+    assert nav.split_ahead_for(5) < 0.3 and math.isfinite(nav.plan_per_waypoint)
