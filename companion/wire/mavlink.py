@@ -40,8 +40,19 @@ APM_GUIDED = 4
 APM_LAND = 9
 # Modes the companion may hand over to, as (DO_SET_MODE param2, param3) and as decoded
 # from the heartbeat (mavutil.mode_string_v10 names).
-PX4_MODES: dict[str, tuple[int, int]] = {"LOITER": (4, 3), "RTL": (4, 5), "LAND": (4, 6)}
-APM_MODES: dict[str, int] = {"LOITER": 5, "RTL": 6, "LAND": 9, "BRAKE": 17}
+# PX4's "LOITER" is AUTO.LOITER (autonomous); POSCTL and ALTCTL are pilot modes.
+PX4_MODES: dict[str, tuple[int, int]] = {"LOITER": (4, 3), "RTL": (4, 5), "LAND": (4, 6), "POSCTL": (3, 0),
+                                         "ALTCTL": (2, 0)}
+APM_MODES: dict[str, int] = {"STABILIZE": 0, "ALT_HOLD": 2, "GUIDED": 4, "LOITER": 5, "RTL": 6, "LAND": 9,
+                             "POSHOLD": 16, "BRAKE": 17}
+# Position only (velocity, acceleration and yaw rate ignored): ArduPilot's GUIDED holds such a
+# target with no timeout (mode_guided.cpp pos_control_run; docs/handover.md).
+POSITION_ONLY_MASK = 8 | 16 | 32 | 64 | 128 | 256 | 2048
+# RC_CHANNELS: a transmitter is live when heard this recently (s) ...
+RC_FRESH = 1.0
+# ... and its throttle stick is centred (us): ArduCopter's pilot modes then climb at 0
+# (ArduCopter/Attitude.cpp get_pilot_desired_climb_rate, the deadband around mid-stick).
+RC_MID_STICK = (1400, 1600)
 
 # The telemetry the companion uses, at the rate it asks for (Hz). HEARTBEAT is unsolicited.
 WANTED: dict[str, float] = {"LOCAL_POSITION_NED": 30.0, "ATTITUDE": 10.0, "EXTENDED_SYS_STATE": 2.0}
@@ -134,6 +145,8 @@ class VehicleState:
     last_landed_state: float = -math.inf  # when EXTENDED_SYS_STATE last arrived
     # HOME_POSITION's local x, y, z (NED, the autopilot's local frame); None until reported
     home: np.ndarray | None = None
+    rc_throttle: int | None = None  # RC_CHANNELS chan3_raw (us), when the autopilot sends it
+    last_rc: float = -math.inf
     notes: collections.deque[Note] = field(default_factory=lambda: collections.deque(maxlen=16))
 
     @property
@@ -157,6 +170,12 @@ class VehicleState:
         if not self.has_position:
             return "no position estimate from the autopilot: LOCAL_POSITION_NED is not finite"
         return None
+
+    def pilot_sticks_live(self, now: float | None = None) -> bool:
+        """A transmitter is heard (RC_CHANNELS within RC_FRESH) with the throttle centred."""
+        now = time.monotonic() if now is None else now
+        return (self.rc_throttle is not None and now - self.last_rc <= RC_FRESH
+                and RC_MID_STICK[0] <= self.rc_throttle <= RC_MID_STICK[1])
 
     def in_follow_mode(self) -> bool:
         if self.autopilot == "px4":
@@ -281,6 +300,10 @@ class MavlinkLink:
             home = np.array([msg.x, msg.y, msg.z], dtype=float)
             if np.all(np.isfinite(home)):
                 st.home = home
+        elif kind == "RC_CHANNELS":
+            if int(msg.chancount) >= 3 and 800 <= int(msg.chan3_raw) <= 2200:
+                st.rc_throttle = int(msg.chan3_raw)
+                st.last_rc = now
         elif kind == "STATUSTEXT":
             sev = mavlink.enums["MAV_SEVERITY"].get(int(msg.severity))
             level = sev.name.removeprefix("MAV_SEVERITY_") if sev is not None else str(msg.severity)
@@ -331,6 +354,16 @@ class MavlinkLink:
         with self._send_lock:
             self.conn.mav.send(msg)
             self.sent_setpoints += 1
+
+    def send_position_target(self, position: np.ndarray, yaw: float) -> None:
+        """One position-only target (ArduPilot GUIDED keeps holding it with no timeout)."""
+        p = position
+        msg = self.conn.mav.set_position_target_local_ned_encode(
+            int((time.monotonic() - self._boot) * 1000) & 0xFFFFFFFF,
+            self.cfg.vehicle.sysid, self.cfg.vehicle.autopilot_component, mavlink.MAV_FRAME_LOCAL_NED,
+            POSITION_ONLY_MASK, float(p[0]), float(p[1]), float(p[2]), 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, float(yaw), 0.0)
+        with self._send_lock:
+            self.conn.mav.send(msg)
 
     async def command(self, command: int, *params: float, timeout: float | None = None) -> int:
         """COMMAND_LONG and wait for its COMMAND_ACK; returns MAV_RESULT."""
