@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import logging
 import math
+import time
 from typing import Any
 
 import numpy as np
@@ -26,6 +27,7 @@ from planner_core import Problem, allocate_times, plan, splice, takeoff_duration
 
 log = logging.getLogger("companion")
 S = State
+MAV_LANDED_ON_GROUND = 1
 MAV_LANDED_IN_AIR = 2
 LAG_MIN_SPEED = 0.5  # m/s of the plan: slower samples say little about a time lag
 LAG_ALPHA = 0.03  # smoothing per position sample (~1 s at 30 Hz)
@@ -110,7 +112,10 @@ class Commands:
             await self.nav.resume(arrived)
             done = self.nav.interrupted is None
         elif name == "land":
-            done = await self.land()
+            if await self.land():
+                # `completed` once the vehicle is on the ground, not when the landing starts
+                self.task = asyncio.create_task(self._sequence(name, self._until_on_ground()))
+            return
         elif name == "abort":
             await self.abort(arrived)
         elif name == "disarm":
@@ -281,6 +286,18 @@ class Commands:
             self.report.refuse("land", f"failed: {exc}", by="autopilot", **exc.fields())
             return False
         return True
+
+    async def _until_on_ground(self) -> None:
+        """The landing ends on the ground: disarmed, or EXTENDED_SYS_STATE on-ground (fresh)."""
+        st = self.link.state
+        height = 0.0 if self.flight.ground_z is None or not st.has_position else \
+            max(0.0, self.flight.ground_z - float(st.position[2]))
+
+        def on_ground(s: Any) -> bool:
+            return (not s.armed or (s.landed_state == MAV_LANDED_ON_GROUND
+                                    and time.monotonic() - s.last_landed_state < 3.0))
+
+        await self.link.wait_for(on_ground, 30.0 + height / 0.3, "the vehicle to be on the ground")
 
     async def abort(self, arrived: float) -> None:
         self.cancel_sequence()
