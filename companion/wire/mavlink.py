@@ -56,13 +56,14 @@ RC_MID_STICK = (1400, 1600)
 
 # The telemetry the companion uses, at the rate it asks for (Hz). HEARTBEAT is unsolicited.
 WANTED: dict[str, float] = {"LOCAL_POSITION_NED": 30.0, "ATTITUDE": 10.0, "EXTENDED_SYS_STATE": 2.0}
-# ArduPilot's legacy stream groups (REQUEST_DATA_STREAM) carrying them, and the parameter
-# that sets each group's rate at boot (MAVn_* from 4.7, SRn_* before).
+# ArduPilot's legacy stream groups (REQUEST_DATA_STREAM) carrying them, and the suffix of the
+# parameter that sets each group's rate at boot on the link's port (MAVn_* from 4.7, SRn_* before).
 APM_STREAMS: dict[str, tuple[int, str]] = {
-    "LOCAL_POSITION_NED": (mavlink.MAV_DATA_STREAM_POSITION, "MAV1_POSITION (SR1_POSITION before 4.7)"),
-    "ATTITUDE": (mavlink.MAV_DATA_STREAM_EXTRA1, "MAV1_EXTRA1 (SR1_EXTRA1 before 4.7)"),
-    "EXTENDED_SYS_STATE": (mavlink.MAV_DATA_STREAM_EXTENDED_STATUS, "MAV1_EXT_STAT (SR1_EXT_STAT before 4.7)"),
+    "LOCAL_POSITION_NED": (mavlink.MAV_DATA_STREAM_POSITION, "POSITION"),
+    "ATTITUDE": (mavlink.MAV_DATA_STREAM_EXTRA1, "EXTRA1"),
+    "EXTENDED_SYS_STATE": (mavlink.MAV_DATA_STREAM_EXTENDED_STATUS, "EXT_STAT"),
 }
+APM_MAVN_FROM = (4, 7)  # the SRn_* rate parameters became MAVn_* in ArduPilot 4.7
 POSITION_STALE = 1.0  # s without LOCAL_POSITION_NED: no position estimate
 # What the autopilot says (EVENT, STATUSTEXT) this long before a refusing COMMAND_ACK, or up
 # to NOTE_AFTER after it, is taken as the refusal's reason.
@@ -145,6 +146,9 @@ class VehicleState:
     last_landed_state: float = -math.inf  # when EXTENDED_SYS_STATE last arrived
     # HOME_POSITION's local x, y, z (NED, the autopilot's local frame); None until reported
     home: np.ndarray | None = None
+    sw_version: tuple[int, int, int] | None = None  # AUTOPILOT_VERSION.flight_sw_version
+    # why LOCAL_POSITION_NED is missing, once the companion has told the causes apart
+    position_advice: str | None = None
     rc_throttle: int | None = None  # RC_CHANNELS chan3_raw (us), when the autopilot sends it
     last_rc: float = -math.inf
     notes: collections.deque[Note] = field(default_factory=lambda: collections.deque(maxlen=16))
@@ -159,8 +163,10 @@ class VehicleState:
         if "LOCAL_POSITION_NED" not in self.received:
             hint = ("the autopilot has not sent LOCAL_POSITION_NED since the link came up (requested at "
                     f"{WANTED['LOCAL_POSITION_NED']:.0f} Hz); ")
-            if self.autopilot == "ardupilot":
-                hint += f"set {APM_STREAMS['LOCAL_POSITION_NED'][1]} if it ignores requests, and check its EKF origin"
+            if self.position_advice is not None:
+                hint += self.position_advice
+            elif self.autopilot == "ardupilot":
+                hint += "see the `telemetry` event for the cause (no EKF origin yet, or requests ignored)"
             else:
                 hint += "check its position estimate (EKF2 / GPS or vision) and the MAVLink instance's mode"
             return f"no position estimate from the autopilot: {hint}"
@@ -300,6 +306,9 @@ class MavlinkLink:
             home = np.array([msg.x, msg.y, msg.z], dtype=float)
             if np.all(np.isfinite(home)):
                 st.home = home
+        elif kind == "AUTOPILOT_VERSION":
+            v = int(msg.flight_sw_version)
+            st.sw_version = ((v >> 24) & 0xFF, (v >> 16) & 0xFF, (v >> 8) & 0xFF)
         elif kind == "RC_CHANNELS":
             if int(msg.chancount) >= 3 and 800 <= int(msg.chan3_raw) <= 2200:
                 st.rc_throttle = int(msg.chan3_raw)
@@ -457,9 +466,39 @@ class MavlinkLink:
         """The messages in WANTED that have not arrived since `since` (monotonic)."""
         return [name for name in WANTED if self.state.received.get(name, -math.inf) < since]
 
+    async def request_version(self) -> None:
+        """AUTOPILOT_VERSION (which rate parameters ArduPilot has); a refusal is not fatal."""
+        await self.command(mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION)
+
+    def serial_port(self) -> int | None:
+        """The ArduPilot SERIALn port this link is on, where the URL tells it for certain:
+        SITL's first TCP port (5760) and a USB CDC device are SERIAL0. None otherwise
+        (ArduPilot does not say which port a message came in on)."""
+        url = self.cfg.mavlink.url
+        if url.startswith(("tcp:", "tcpin:")) and url.rsplit(":", 1)[-1] == "5760":
+            return 0
+        device = parse_url(url)[0]
+        if device.startswith(("/dev/ttyACM", "/dev/serial/by-id/usb-ArduPilot")):
+            return 0
+        return None
+
+    def rate_parameter(self, group: str) -> str:
+        """The rate parameter of a stream group on this link's port, by the autopilot's version
+        (SRn_* before 4.7, MAVn_* from 4.7) and port; never a port number it cannot know."""
+        n, ver = self.serial_port(), self.state.sw_version
+        port = "SERIAL0" if n == 0 else "the serial port this link is on"
+        if ver is not None and ver[:2] >= APM_MAVN_FROM:
+            return f"MAVn_{group} (n: the MAVLink instance on {port})"
+        if ver is not None:
+            return f"SR0_{group}" if n == 0 else f"SRn_{group} (n: the MAVLink channel of {port})"
+        where = f"SR0_{group}" if n == 0 else f"SRn_{group}"
+        return (f"{where} before 4.7, MAVn_{group} from 4.7 (the autopilot did not send AUTOPILOT_VERSION; "
+                f"n: the MAVLink instance on {port})")
+
     def telemetry_hint(self, missing: list[str]) -> str:
         if self.state.autopilot == "ardupilot":
-            return "set " + ", ".join(f"{APM_STREAMS[m][1]} (for {m})" for m in missing) + " to a rate in Hz"
+            return "set " + ", ".join(f"{self.rate_parameter(APM_STREAMS[m][1])} (for {m})" for m in missing) + \
+                " to a rate in Hz"
         return ("PX4 streams these in its Onboard MAVLink mode: check MAV_n_MODE = Onboard on this link, or add "
                 "'mavlink stream -r RATE -s MESSAGE' in the SD card's etc/extras.txt")
 
