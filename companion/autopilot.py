@@ -44,6 +44,27 @@ GROUND_SPEED = 0.2  # m/s
 GROUND_FOR = 1.0  # ... for this long
 
 
+def waiting_hint(url: str) -> str:
+    """What a companion waiting for a first heartbeat listens on, and the usual causes."""
+    kind, _, rest = url.partition(":")
+    if kind == "udpin":
+        where = (f"listening on UDP {rest}: the autopilot (or mavlink-router) must send to this port; usual "
+                 "causes: it sends to another port or host (PX4 SITL sends from 14580 to 14540), the port here "
+                 "is wrong, or the mock was started with other ports (python -m sitl_mock sends to "
+                 "127.0.0.1:14540 from 14580 by default; with --endpoint udpin:HOST:PORT it listens instead, and "
+                 "the companion must use udpout:HOST:PORT)")
+    elif kind in ("udpout", "udp"):
+        where = (f"sending heartbeats to UDP {rest} and listening for the answer: usual causes: nothing listens "
+                 "there (a mock or autopilot that sends rather than listens needs udpin: here), or a firewall")
+    elif kind in ("tcp", "tcpin"):
+        where = (f"connecting to TCP {rest}: usual causes: nothing listens there (ArduPilot SITL serves "
+                 "tcp:127.0.0.1:5760) or it has not started yet")
+    else:
+        where = ("reading the serial port: usual causes: the wrong device or baud, or the autopilot's port is "
+                 "not set to MAVLink 2 (ArduPilot SERIALn_PROTOCOL = 2; PX4 MAV_n_CONFIG)")
+    return where + "; also check [vehicle] sysid matches the autopilot's"
+
+
 class AutopilotWatch:
     def __init__(self, cfg: Config, flight: Flight, link: MavlinkLink, report: Reporter,
                  release_control: Callable[[], None],
@@ -283,9 +304,10 @@ class AutopilotWatch:
                 first = self._waiting_said == -math.inf
                 self._waiting_said = now
                 text = f"waiting for autopilot heartbeat on {self.cfg.mavlink.url}"
-                log.warning("%s", text)
+                hint = waiting_hint(self.cfg.mavlink.url)
+                log.warning("%s (%s)", text, hint if first else hint.split(";")[0])
                 if first:
-                    self.report.event("link", text, url=self.cfg.mavlink.url)
+                    self.report.event("link", f"{text}: {hint}", url=self.cfg.mavlink.url, hint=hint)
             return
         if not fl.seen_link or fl.link_lost or self.link.link_ok():
             return

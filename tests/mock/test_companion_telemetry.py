@@ -135,7 +135,10 @@ def test_waiting_for_a_heartbeat_is_said() -> None:
         task = asyncio.create_task(svc.run())
         try:
             await until(lambda: events.of("link"), 60, "the waiting line")
-            assert "waiting for autopilot heartbeat on udpin:127.0.0.1:0" in events.of("link")[0]["message"]
+            said = events.of("link")[0]
+            assert "waiting for autopilot heartbeat on udpin:127.0.0.1:0" in said["message"]
+            # what it listens on and the usual causes (issue 20.7)
+            assert "listening on UDP 127.0.0.1:0" in said["hint"] and "sitl_mock" in said["hint"], said
             assert not svc.flight.seen_link
         finally:
             svc.requested.set()
