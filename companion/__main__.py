@@ -56,6 +56,9 @@ EXIT_NO_ANSWER = 3  # no companion answered within --wait (nobody serves that ve
 EXIT_REFUSED = 4  # the command was refused by the companion (state, no position estimate, ...)
 EXIT_DENIED = 5  # the autopilot denied it (or did not answer it)
 EXIT_UNFINISHED = 6  # accepted, but not completed (or --wait-for STATE not reached) within --wait
+# The companion is heard, but its subscription to the key never reached this client: Zenoh's
+# access control denies this user publishing there (or nothing serves that key).
+EXIT_ACCESS_DENIED = 7
 
 # How long `send` waits by default: a command runs its whole sequence (takeoff: ~10 s).
 DEFAULT_WAIT = {"command": 30.0, "mission": 10.0, "obstacles": 5.0, "change": 5.0}
@@ -99,8 +102,13 @@ def cmd_send(args: argparse.Namespace) -> int:
 
         subs = [session.declare_subscriber(f"{base}/events", on_event),
                 session.declare_subscriber(f"{base}/status", on_status)]
-        time.sleep(0.3)  # let the subscription reach the companion before the message
-        session.put(f"{base}/{args.key}", payload)
+        # A publisher says whether any subscriber matches its key: the companion's subscription
+        # reaches this client only where access control lets this user publish there (Zenoh
+        # drops a denied put silently, so this is how a denial can be told from silence).
+        pub = session.declare_publisher(f"{base}/{args.key}")
+        time.sleep(0.3)  # let the subscriptions meet before the message
+        matched = [bool(pub.matching_status.matching)]
+        pub.put(payload)
         deadline = time.monotonic() + wait
         code: int | None = None
         shown = 0
@@ -116,13 +124,20 @@ def cmd_send(args: argparse.Namespace) -> int:
                 break
         for e in events[shown:]:
             print(json.dumps(e), flush=True)
+        matched.append(bool(pub.matching_status.matching))
         for s in subs:
             s.undeclare()
+        pub.undeclare()
         if code is None:
             if not heard[0]:
                 print(f"send: no companion answered for vehicle {args.vehicle!r} within {wait:g} s "
                       "(is it running? --vehicle, --prefix and --connect must match it)", file=sys.stderr)
                 return EXIT_NO_ANSWER
+            if not any(matched) and not [e for e in events if e.get("key") == args.key]:
+                print(f"send: denied: the companion of vehicle {args.vehicle!r} is heard, but nothing receives "
+                      f"{base}/{args.key} from this client: Zenoh's access control denies this user publishing "
+                      "there (an observer may only watch; use an operator's credentials)", file=sys.stderr)
+                return EXIT_ACCESS_DENIED
             print(f"send: the companion did not say within {wait:g} s whether {args.key} was done", file=sys.stderr)
             return EXIT_UNFINISHED
         if code == EXIT_OK and args.wait_for and not (statuses and statuses[-1].get("state") == args.wait_for):
@@ -255,7 +270,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--wait", type=float, default=None,
                    help="seconds to wait for the outcome (default: 30 for a command, which runs its whole "
                    "sequence; 10 for a mission; 5 otherwise). Exit 0 accepted (a command: and completed), "
-                   "1 rejected, 3 no companion answered, 4 refused, 5 denied by the autopilot, 6 not done in time")
+                   "1 rejected, 3 no companion answered, 4 refused, 5 denied by the autopilot, 6 not done in time, "
+                   "7 denied by access control (the companion is heard but does not receive this key)")
     s.add_argument("--wait-for", metavar="STATE", help="after success, also wait until the status says STATE "
                    "(e.g. READY, HOLDING); exit 6 if it does not within --wait")
     _add_client_args(s)
