@@ -284,7 +284,8 @@ class Service:
             kind, payload, arrived = await self.zio.inbox.get()
             try:
                 if kind == "obstacles" and len(payload) <= INLINE_DECODE_BYTES:
-                    self._dispatch(kind, payload, arrived, read(kind, payload, self.cfg, self.link.state.home))
+                    self._dispatch(kind, payload, arrived, read(kind, payload, self.cfg, self.link.state.home,
+                                                                home_pending=self.link.state.home_pending))
                 elif self._ordered.qsize() >= self.cfg.limits.max_queued_messages:
                     self._dropped(kind, len(payload))
                 else:
@@ -300,7 +301,8 @@ class Service:
             # spares two thread hand-offs. One message at a time, so the order is kept.
             try:
                 assert self.loop is not None
-                job = functools.partial(read, kind, payload, self.cfg, self.link.state.home)
+                job = functools.partial(read, kind, payload, self.cfg, self.link.state.home,
+                                        home_pending=self.link.state.home_pending)
                 msg = job() if len(payload) <= INLINE_DECODE_BYTES else \
                     await self.loop.run_in_executor(self.runtime.decode_pool, job)
                 self._dispatch(kind, payload, arrived, msg)

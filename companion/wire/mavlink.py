@@ -146,6 +146,8 @@ class VehicleState:
     last_landed_state: float = -math.inf  # when EXTENDED_SYS_STATE last arrived
     # HOME_POSITION's local x, y, z (NED, the autopilot's local frame); None until reported
     home: np.ndarray | None = None
+    # PX4 sent HOME_POSITION at the local origin: home is not valid yet (the autopilot is not ready)
+    home_pending: bool = False
     sw_version: tuple[int, int, int] | None = None  # AUTOPILOT_VERSION.flight_sw_version
     # why LOCAL_POSITION_NED is missing, once the companion has told the causes apart
     position_advice: str | None = None
@@ -304,8 +306,14 @@ class MavlinkLink:
             st.last_landed_state = now
         elif kind == "HOME_POSITION":
             home = np.array([msg.x, msg.y, msg.z], dtype=float)
-            if np.all(np.isfinite(home)):
+            if st.autopilot == "px4" and not np.any(home):
+                # PX4 reports home at the local origin until its estimator is ready (~37 s after
+                # boot on SIH 1.15) while its estimate on the ground reads z +0.4..+2.3 m: not a
+                # home to place anything by (autopilot-facts.md)
+                st.home_pending = True
+            elif np.all(np.isfinite(home)):
                 st.home = home
+                st.home_pending = False
         elif kind == "AUTOPILOT_VERSION":
             v = int(msg.flight_sw_version)
             st.sw_version = ((v >> 24) & 0xFF, (v >> 16) & 0xFF, (v >> 8) & 0xFF)
