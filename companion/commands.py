@@ -219,11 +219,11 @@ class Commands:
         if pending is not None and pending.autostart and not self.flight.starting:
             await self.nav.fly(pending, None)
 
-    async def _px4_climb(self, target: np.ndarray) -> None:
-        """A verified vertical climb streamed in OFFBOARD (PX4 has no GUIDED-style takeoff for us)."""
+    async def _plan_climb(self, target: np.ndarray, ahead: float) -> Any:
+        """The climb from the flown jet `ahead` s from now, swapped in; None if too slow."""
         base = self.control.active
         assert base is not None
-        t_split = self.control.now() + self.cfg.planner.split_ahead
+        t_split = self.control.now() + ahead
         jet = base.jet(t_split)
         bounds = bounds_from(None, self.cfg)
         points = np.vstack([jet[0], target])
@@ -240,7 +240,22 @@ class Commands:
         if not result.ok or result.trajectory is None:
             raise CommandFailed(f"no verified climb: {result.message}")
         if not self.control.swap(splice(base, result.trajectory), t_split, None, "takeoff"):
-            raise CommandFailed("climb planning was too slow")
+            return None
+        return result
+
+    async def _px4_climb(self, target: np.ndarray) -> None:
+        """A verified vertical climb streamed in OFFBOARD (PX4 has no GUIDED-style takeoff for us).
+        Planned a little ahead of now; when planning takes longer than that (a loaded computer),
+        planned again further ahead (twice, up to 0.6 s), as in-flight replans are."""
+        ahead = self.cfg.planner.split_ahead
+        while True:
+            result = await self._plan_climb(target, ahead)
+            if result is not None:
+                break
+            if ahead >= 0.6:
+                raise CommandFailed("climb planning was slower than 0.6 s (the look-ahead) three times: "
+                                    "the computer is overloaded")
+            ahead = min(0.6, 2 * ahead)
         tol, rest = self.cfg.safety.arrival_tolerance, self.cfg.safety.rest_speed
         end = result.trajectory.t_end
         await self.link.wait_for(

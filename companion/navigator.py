@@ -168,16 +168,19 @@ class Navigator:
         """Plan from a split a little ahead of now and swap the plan in; further ahead when the
         plan came too late or the flown plan changed meanwhile. `plan_at(base, t_split)`."""
         messages = notes if notes is not None else []
+        took = 0.0  # how long the last attempt planned: a loaded computer needs a split that far ahead
         for attempt in range(3):
             if not self.control.flying or not self.flight.flying_ours:
                 return Swapped(None, reason=f"no longer in control ({self.flight.state.value})")
             base, route = self.control.active, self.route
             assert base is not None
-            t_split = self.control.now() + self.cfg.planner.split_ahead * (2**attempt)
+            t_split = self.control.now() + max(self.cfg.planner.split_ahead * (2**attempt), 1.5 * took)
             if hit is not None and t_split >= hit:
                 messages.append("too close to the obstacle to replan")
                 break
+            t0 = time.monotonic()
             outcome = await plan_at(base, t_split)
+            took = time.monotonic() - t0
             if not outcome.ok or outcome.route is None:
                 return Swapped(outcome, t_split, outcome.message)
             if self.control.active is not base or self.route is not route:

@@ -56,6 +56,7 @@ from companion.wire.messages import (
     MissionSpec,
     ObstacleUpdate,
     Oversized,
+    fence_at_home,
     quote,
     read,
     warm_validators,
@@ -254,6 +255,7 @@ class Service:
             "armed": st.armed,
             "origin": "local",
             "home": enc.vec(st.home) if st.home is not None else None,
+            "geofence": self._geofence(),
             "ground_z": enc.num(self.flight.ground_z),
             "link": self.link.link_ok() if self.flight.seen_link else False,
             "streaming": ctl.streaming,
@@ -269,6 +271,14 @@ class Service:
             "gc_pause_max_ms": round(self.gc.worst * 1000, 2),
             "setpoints_stalled": self.setpoints_stalled,
         }
+
+    def _geofence(self) -> dict[str, Any]:
+        """The geofence box in use, in the local frame, and what it is relative to."""
+        home = self.link.state.home
+        fence = fence_at_home(self.cfg, home).geofence
+        follows = self.cfg.geofence.origin == "home" and home is not None
+        return {"min": enc.vec(np.asarray(fence.min)), "max": enc.vec(np.asarray(fence.max)),
+                "relative_to": "home" if follows else "local"}
 
     # -- inbound messages: one reader per kind ------------------------------------------------------
 

@@ -68,9 +68,12 @@ def test_a_mission_before_home_is_valid_waits_for_the_autopilot(tmp_path: Path) 
         events = Events(svc)
         async with serving(svc):
             await until(lambda: svc.link.state.home_pending and svc.link.state.has_position, 10, "home at origin")
+            assert svc.status()["geofence"]["relative_to"] == "local" and svc.status()["home"] is None
             early = await _send(svc, events, MISSION)
             mock.home_ned = np.array([0.0, 0.0, 1.6])  # ready: home where the vehicle stands
             await until(lambda: svc.link.state.home is not None, 10, "a valid home")
+            fence = svc.status()["geofence"]  # the box follows home, in the local frame
+            assert fence["relative_to"] == "home" and fence["max"][2] == 2.1 and fence["min"][2] == -48.4, fence
             late = await _send(svc, events, {**MISSION, "origin": "home",
                                              "waypoints": [[2.0, 0.0, -1.0], [2.0, 2.0, -1.0]]})
             return early, late, svc.link.state.home
