@@ -9,6 +9,7 @@ with the autopilot's answer) and leaves the vehicle in a state it can be command
 from __future__ import annotations
 
 import asyncio
+import functools
 import logging
 import math
 import time
@@ -35,6 +36,10 @@ LAG_GRID = np.arange(0.0, 0.2401, 0.002)  # s: shifts of the setpoint stream tri
 # Modes that hold with no pilot input, per autopilot (docs/handover.md): never "pilot modes".
 AUTONOMOUS_HOLDS = {"px4": ("LOITER",), "ardupilot": ("GUIDED", "BRAKE")}
 TRACKING_SAMPLES = 3  # position samples in a row above the limit (0.1 s at 30 Hz) before acting
+
+
+def in_mode(mode: str, state: Any) -> bool:
+    return bool(state.mode == mode)
 
 
 def at_rest(velocity: np.ndarray, threshold: float) -> bool:
@@ -491,7 +496,7 @@ class Commands:
                     self.link.send_position_target(stop, self.yaw_now())
                 else:
                     await self.link.set_mode(mode)
-                    await self.link.wait_for(lambda s, m=mode: s.mode == m, 3.0, f"the autopilot to confirm {mode}")
+                    await self.link.wait_for(functools.partial(in_mode, mode), 3.0, f"the autopilot to confirm {mode}")
             except CommandFailed as exc:
                 self.report.event("error", f"{reason}: hand-over to {mode} failed: {exc}", mode=st.mode)
                 why = f"after the hand-over to {mode} failed"

@@ -294,8 +294,7 @@ class Service:
             kind, payload, arrived = await self.zio.inbox.get()
             try:
                 if kind == "obstacles" and len(payload) <= INLINE_DECODE_BYTES:
-                    self._dispatch(kind, payload, arrived, read(kind, payload, self.cfg, self.link.state.home,
-                                                                home_pending=self.link.state.home_pending))
+                    self._dispatch(kind, payload, arrived, read(kind, payload, self.cfg, self.link.state.home))
                 elif self._ordered.qsize() >= self.cfg.limits.max_queued_messages:
                     self._dropped(kind, len(payload))
                 else:
