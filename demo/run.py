@@ -548,6 +548,7 @@ def main(argv: list[str] | None = None, prog: str = "python -m demo") -> int:
     try:
         with rig(out, args.autopilot, lead=args.lead) as r:
             print(f"  companion pid {r.companion.pid}, mock pid {r.mock.pid}, logs in {out}/")
+            print("  waiting for the autopilot to be ready (a valid home)", flush=True)
             home = r.wait_home()
             print(f"  home (the ground where the vehicle stands) at local NED {home.round(2).tolist()}: "
                   "the demo's missions and the positions it prints are ENU from home")
