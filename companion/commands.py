@@ -574,8 +574,9 @@ class Commands:
     def after_stall(self, reason: str) -> asyncio.Task[None] | None:
         """The companion stalled (its loop or the setpoint thread): setpoints were withheld
         from the stall on. Stop commanding (FAILSAFE: control is taken back only by `start`)
-        and, if the autopilot still flies in our mode, ask it for an autonomous hold (PX4 AUTO.LOITER, ArduPilot BRAKE) rather than
-        leave it to its offboard-loss failsafe. Returns the hold request's task, if any."""
+        and, if the autopilot still flies in our mode, ask it for an autonomous hold (PX4
+        AUTO.LOITER, ArduPilot BRAKE) rather than leave it to its offboard-loss failsafe.
+        Returns the hold request's task, if any."""
         fl, st = self.flight, self.link.state
         if not fl.controlling:
             return None
