@@ -27,7 +27,7 @@ from companion.config import Config, ConfigError, ZenohConfig, config_to_toml, l
 KEYS = ("mission", "obstacles", "change", "command")
 
 
-def _client_session(args: argparse.Namespace) -> Any:
+def _client_session(args: argparse.Namespace, patience: float = 0.0) -> Any:
     import zenoh
 
     from companion.wire.zenoh import zenoh_config
@@ -38,7 +38,20 @@ def _client_session(args: argparse.Namespace) -> Any:
         multicast_scouting=not args.connect,
         config_file=args.zenoh_config or "",
     )
-    return zenoh.open(zenoh_config(zc, listen=False))
+    # A client started right after `python -m companion run &` waits for it to listen.
+    deadline = time.monotonic() + patience
+    said = False
+    while True:
+        try:
+            return zenoh.open(zenoh_config(zc, listen=False))
+        except zenoh.ZError:
+            if time.monotonic() >= deadline:
+                raise
+            if not said:
+                print(f"{args.command}: waiting for the companion at {', '.join(args.connect or ())}",
+                      file=sys.stderr, flush=True)
+                said = True
+            time.sleep(0.5)
 
 
 def _add_client_args(p: argparse.ArgumentParser) -> None:
@@ -114,9 +127,12 @@ EXIT_NO_ANSWER = 3  # no companion answered within --wait (nobody serves that ve
 EXIT_REFUSED = 4  # the command was refused by the companion (state, no position estimate, ...)
 EXIT_DENIED = 5  # the autopilot denied it (or did not answer it)
 EXIT_UNFINISHED = 6  # accepted, but not completed (or --wait-for STATE not reached) within --wait
+# The companion is heard, but its subscription to the key never reached this client: Zenoh's
+# access control denies this user publishing there (or nothing serves that key).
+EXIT_ACCESS_DENIED = 7
 
 # How long `send` waits by default: a command runs its whole sequence (takeoff: ~10 s).
-DEFAULT_WAIT = {"command": 30.0, "mission": 10.0, "obstacles": 5.0, "change": 5.0}
+DEFAULT_WAIT = {"command": 30.0, "mission": 30.0, "obstacles": 10.0, "change": 10.0}
 
 
 def _outcome(key: str, events: list[dict[str, Any]]) -> int | None:
@@ -141,7 +157,7 @@ def _outcome(key: str, events: list[dict[str, Any]]) -> int | None:
 def cmd_send(args: argparse.Namespace) -> int:
     payload = sys.stdin.buffer.read() if args.file == "-" else Path(args.file).read_bytes()
     wait = DEFAULT_WAIT[args.key] if args.wait is None else args.wait
-    session = _client_session(args)
+    session = _client_session(args, wait)
     try:
         events: list[dict[str, Any]] = []
         statuses: list[dict[str, Any]] = []
@@ -166,7 +182,12 @@ def cmd_send(args: argparse.Namespace) -> int:
         origin.append(Origin(session, base))
         if origin[0].companion is None:
             print(f"send: {origin[0].note}", file=sys.stderr)
-        session.put(f"{base}/{args.key}", payload)
+        # A publisher says whether any subscriber matches its key: the companion's subscription
+        # reaches this client only where access control lets this user publish there (Zenoh
+        # drops a denied put silently, so this is how a denial can be told from silence).
+        pub = session.declare_publisher(f"{base}/{args.key}")
+        matched = [bool(pub.matching_status.matching)]
+        pub.put(payload)
         deadline = time.monotonic() + wait
         code: int | None = None
         shown = 0
@@ -182,16 +203,23 @@ def cmd_send(args: argparse.Namespace) -> int:
                 break
         for e in events[shown:]:
             print(json.dumps(e), flush=True)
+        matched.append(bool(pub.matching_status.matching))
         for s in subs:
             s.undeclare()
         ignored = origin[0].summary()
         if ignored:
             print(f"send: {ignored}", file=sys.stderr)
+        pub.undeclare()
         if code is None:
             if not heard[0]:
                 print(f"send: no companion answered for vehicle {args.vehicle!r} within {wait:g} s "
                       "(is it running? --vehicle, --prefix and --connect must match it)", file=sys.stderr)
                 return EXIT_NO_ANSWER
+            if not any(matched) and not [e for e in events if e.get("key") == args.key]:
+                print(f"send: denied: the companion of vehicle {args.vehicle!r} is heard, but nothing receives "
+                      f"{base}/{args.key} from this client: Zenoh's access control denies this user publishing "
+                      "there (an observer may only watch; use an operator's credentials)", file=sys.stderr)
+                return EXIT_ACCESS_DENIED
             print(f"send: the companion did not say within {wait:g} s whether {args.key} was done", file=sys.stderr)
             return EXIT_UNFINISHED
         if code == EXIT_OK and args.wait_for and not (statuses and statuses[-1].get("state") == args.wait_for):
@@ -203,8 +231,19 @@ def cmd_send(args: argparse.Namespace) -> int:
         session.close()
 
 
+def status_reached(status: dict[str, Any], wanted: str) -> bool:
+    """`--wait-for`: a state name (IDLE, READY, HOLDING, ...), or `link` (the autopilot is heard),
+    or `home` (it reported a valid home: PX4 does once its estimator is ready, ArduPilot once its
+    EKF origin is set; before, missions are refused as "not ready")."""
+    if wanted == "link":
+        return status.get("link") is True
+    if wanted == "home":
+        return isinstance(status.get("home"), list)
+    return bool(status.get("state") == wanted)
+
+
 def cmd_watch(args: argparse.Namespace) -> int:
-    session = _client_session(args)
+    session = _client_session(args, args.duration or 30.0)
     topics = ["status", "events"] + (["telemetry"] if args.telemetry else [])
     last_heard = [time.monotonic()]
     reached = [False]
@@ -224,7 +263,7 @@ def cmd_watch(args: argparse.Namespace) -> int:
         print(f"{key} {text}", flush=True)
         if args.wait_for and key == "status":
             with contextlib.suppress(ValueError, AttributeError):
-                if json.loads(text).get("state") == args.wait_for:
+                if status_reached(json.loads(text), args.wait_for):
                     reached[0] = True
 
     base = f"{args.prefix}/{args.vehicle}"
@@ -357,8 +396,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("file", help="JSON file, or - for stdin")
     s.add_argument("--wait", type=float, default=None,
                    help="seconds to wait for the outcome (default: 30 for a command, which runs its whole "
-                   "sequence; 10 for a mission; 5 otherwise). Exit 0 accepted (a command: and completed), "
-                   "1 rejected, 3 no companion answered, 4 refused, 5 denied by the autopilot, 6 not done in time")
+                   "sequence, and a mission; 10 otherwise). Exit 0 accepted (a command: and completed), "
+                   "1 rejected, 3 no companion answered, 4 refused, 5 denied by the autopilot, 6 not done in time, "
+                   "7 denied by access control (the companion is heard but does not receive this key)")
     s.add_argument("--wait-for", metavar="STATE", help="after success, also wait until the status says STATE "
                    "(e.g. READY, HOLDING); exit 6 if it does not within --wait")
     _add_client_args(s)
@@ -367,7 +407,8 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("--duration", type=float, default=0.0, help="stop after this many seconds (0: never)")
     w.add_argument("--silence", type=float, default=3.0, metavar="SECONDS",
                    help="say so on stderr when nothing has been heard for this long (default 3)")
-    w.add_argument("--wait-for", metavar="STATE", help="exit 0 once the status says STATE (6 if --duration ends first)")
+    w.add_argument("--wait-for", metavar="STATE", help="exit 0 once the status says STATE (6 if --duration ends "
+                   "first); 'link': once the autopilot is heard; 'home': once it reported a valid home (ready)")
     _add_client_args(w)
     sub.add_parser("demo", help="a scripted demo flight against the mock autopilot (= python -m demo)",
                    add_help=False)

@@ -13,6 +13,7 @@ import asyncio
 import contextlib
 import logging
 import math
+import re
 import time
 from collections.abc import Callable
 from typing import Any
@@ -26,6 +27,8 @@ from companion.wire.mavlink import WANTED, CommandFailed, MavlinkLink
 
 log = logging.getLogger("companion")
 S = State
+# What an autopilot says while it has no position estimate (ArduPilot PreArm texts, PX4 events).
+ESTIMATE_WORDS = re.compile(r"EKF|GPS|origin|position estimate|local_pos|estimator", re.IGNORECASE)
 TELEMETRY_CHECK = 3.0  # s after the requests: what has not arrived by then is reported
 WAITING_EVERY = 5.0  # s between "waiting for autopilot heartbeat" lines
 MAV_LANDED_ON_GROUND = 1
@@ -39,6 +42,27 @@ AIR_HEIGHT = 0.5  # m above the ground: in the air
 GROUND_HEIGHT = 0.3  # m: on the ground when also at rest ...
 GROUND_SPEED = 0.2  # m/s
 GROUND_FOR = 1.0  # ... for this long
+
+
+def waiting_hint(url: str) -> str:
+    """What a companion waiting for a first heartbeat listens on, and the usual causes."""
+    kind, _, rest = url.partition(":")
+    if kind == "udpin":
+        where = (f"listening on UDP {rest}: the autopilot (or mavlink-router) must send to this port; usual "
+                 "causes: it sends to another port or host (PX4 SITL sends from 14580 to 14540), the port here "
+                 "is wrong, or the mock was started with other ports (python -m sitl_mock sends to "
+                 "127.0.0.1:14540 from 14580 by default; with --endpoint udpin:HOST:PORT it listens instead, and "
+                 "the companion must use udpout:HOST:PORT)")
+    elif kind in ("udpout", "udp"):
+        where = (f"sending heartbeats to UDP {rest} and listening for the answer: usual causes: nothing listens "
+                 "there (a mock or autopilot that sends rather than listens needs udpin: here), or a firewall")
+    elif kind in ("tcp", "tcpin"):
+        where = (f"connecting to TCP {rest}: usual causes: nothing listens there (ArduPilot SITL serves "
+                 "tcp:127.0.0.1:5760) or it has not started yet")
+    else:
+        where = ("reading the serial port: usual causes: the wrong device or baud, or the autopilot's port is "
+                 "not set to MAVLink 2 (ArduPilot SERIALn_PROTOCOL = 2; PX4 MAV_n_CONFIG)")
+    return where + "; also check [vehicle] sysid matches the autopilot's"
 
 
 class AutopilotWatch:
@@ -77,17 +101,22 @@ class AutopilotWatch:
 
     async def _ask_telemetry(self, why: str) -> None:
         since = time.monotonic()
+        st = self.link.state
+        st.position_advice = None
         try:
             answers = await self.link.request_telemetry()
         except OSError as exc:
             log.warning("telemetry request not sent: %s", exc)
             answers = {}
+        if st.autopilot == "ardupilot" and st.sw_version is None:
+            with contextlib.suppress(CommandFailed, OSError):  # which rate parameters it has
+                await self.link.request_version()
         await self._ask_home()
         if self.link.state.autopilot == "px4" and self.link.events.metadata is None:
             # PX4's events in words: its metadata over MAVLink FTP (or the cache), meanwhile
             self._events_task = asyncio.get_running_loop().create_task(self.link.events.load())
         await asyncio.sleep(max(0.0, since + TELEMETRY_CHECK - time.monotonic()))
-        if self.link.state.home is None:
+        if st.home is None:
             await self._ask_home()
         missing = self.link.missing_telemetry(since)
         self.missing_telemetry = missing
@@ -95,12 +124,55 @@ class AutopilotWatch:
             self.report.event("telemetry", f"telemetry arriving ({why}): {', '.join(WANTED)}", missing=[],
                               requested={k: v for k, v in WANTED.items()})
             return
-        hint = self.link.telemetry_hint(missing)
-        said = "; ".join(f"{k}: {v}" for k, v in answers.items() if k in missing)
-        msg = (f"the autopilot does not send {', '.join(missing)} ({why}, requested "
-               f"{TELEMETRY_CHECK:.0f} s ago{'; it answered ' + said if said else ''}): {hint}")
+        no_estimate = self.no_position_estimate(missing, answers, since)
+        ignored = [m for m in missing if not (m == "LOCAL_POSITION_NED" and no_estimate is not None)]
+        parts = []
+        if no_estimate is not None:
+            st.position_advice = (f"the autopilot has no position estimate yet ({no_estimate}): wait for its EKF "
+                                  "origin (a GPS fix, or SET_GPS_GLOBAL_ORIGIN without GPS)")
+            parts.append(st.position_advice)
+        if ignored:
+            hint = self.link.telemetry_hint(ignored)
+            said = "; ".join(f"{k}: {v}" for k, v in answers.items() if k in ignored)
+            parts.append(f"the autopilot ignores the requests for {', '.join(ignored)}"
+                         f"{' (it answered ' + said + ')' if said else ''}: {hint}")
+            if "LOCAL_POSITION_NED" in ignored:
+                st.position_advice = hint
+        msg = (f"the autopilot does not send {', '.join(missing)} ({why}, requested {TELEMETRY_CHECK:.0f} s ago): "
+               + "; ".join(parts))
         log.warning("%s", msg)
-        self.report.event("telemetry", msg, missing=missing, answers=answers, hint=hint)
+        self.report.event("telemetry", msg, missing=missing, answers=answers,
+                          cause="no_position_estimate" if not ignored else "requests_ignored",
+                          hint="; ".join(parts))
+        # Say so when it arrives after all (the EKF origin set, a parameter changed).
+        while missing:
+            await asyncio.sleep(0.25)
+            missing = self.link.missing_telemetry(since)
+        st.position_advice = None
+        self.missing_telemetry = []
+        took = time.monotonic() - since
+        self.report.event("telemetry", f"telemetry arriving after all ({took:.1f} s after the request): "
+                          f"{', '.join(WANTED)}; the advice above "
+                          "is withdrawn", missing=[], resolved=True, after_s=round(took, 1))
+
+    def no_position_estimate(self, missing: list[str], answers: dict[str, str], since: float) -> str | None:
+        """Why LOCAL_POSITION_NED is missing because the autopilot has no position estimate
+        (ArduPilot sends none before its EKF origin is set, even when its interval request was
+        accepted), not because it ignores requests: None when nothing says so."""
+        if "LOCAL_POSITION_NED" not in missing or "LOCAL_POSITION_NED" in answers:
+            return None  # not accepted: that is the request's problem
+        st = self.link.state
+        signs = ["its interval request was accepted"]
+        if any(st.received.get(m, -math.inf) >= since for m in WANTED if m != "LOCAL_POSITION_NED"):
+            signs.append("the other requested messages arrive")
+        if "GPS_GLOBAL_ORIGIN" not in st.received:
+            signs.append("no GPS_GLOBAL_ORIGIN yet")
+        if st.home is None:
+            signs.append("no HOME_POSITION yet")
+        said = [n.text for n in st.notes if ESTIMATE_WORDS.search(n.text)]
+        if said:
+            signs.append(f"it said {said[-1]!r}")
+        return ", ".join(signs) if len(signs) > 1 else None
 
     async def _ask_home(self) -> None:
         """HOME_POSITION (origin 'home' messages need it); a refusal is said, not fatal."""
@@ -243,9 +315,10 @@ class AutopilotWatch:
                 first = self._waiting_said == -math.inf
                 self._waiting_said = now
                 text = f"waiting for autopilot heartbeat on {self.cfg.mavlink.url}"
-                log.warning("%s", text)
+                hint = waiting_hint(self.cfg.mavlink.url)
+                log.warning("%s (%s)", text, hint if first else hint.split(";")[0])
                 if first:
-                    self.report.event("link", text, url=self.cfg.mavlink.url)
+                    self.report.event("link", f"{text}: {hint}", url=self.cfg.mavlink.url, hint=hint)
             return
         if not fl.seen_link or fl.link_lost or self.link.link_ok():
             return

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
-import contextlib
+import functools
 import logging
 import math
 import time
@@ -24,20 +24,27 @@ from companion.flight import HOLDING_CONTROL, Flight, State
 from companion.lag import LagEstimator
 from companion.navigator import MAX_AHEAD, RETRY_MARGIN, Navigator
 from companion.report import Reporter
-from companion.wire.mavlink import CommandFailed, MavlinkLink
+from companion.wire.mavlink import APM_MODES, PX4_MODES, CommandFailed, MavlinkLink
 from companion.wire.messages import Command
 from planner_core import Problem, allocate_times, plan, splice, takeoff_duration
 
 log = logging.getLogger("companion")
 S = State
+MAV_LANDED_ON_GROUND = 1
 MAV_LANDED_IN_AIR = 2
 LEAD_SLEW = 0.1  # s per s: how fast the auto lead follows the lag estimate (the setpoints run 10 % fast or slow)
+# Modes that hold with no pilot input, per autopilot (docs/handover.md): never "pilot modes".
+AUTONOMOUS_HOLDS = {"px4": ("LOITER",), "ardupilot": ("GUIDED", "BRAKE")}
 TRACKING_SAMPLES = 3  # position samples in a row above the limit (0.1 s at 30 Hz) before acting
 # The tracking measured in flight against [planner] tracking_allowance: an event when the RMS
 # over the last TRACKING_WINDOW samples (or the largest error) passes this share of it.
 TRACKING_WINDOW = 150  # position samples (~5 s at 30 Hz)
 TRACKING_RMS_SHARE = 0.5
 TRACKING_MAX_SHARE = 0.8
+
+
+def in_mode(mode: str, state: Any) -> bool:
+    return bool(state.mode == mode)
 
 
 def at_rest(velocity: np.ndarray, threshold: float) -> bool:
@@ -118,7 +125,10 @@ class Commands:
             await self.nav.resume(arrived)
             done = self.nav.interrupted is None
         elif name == "land":
-            done = await self.land()
+            if await self.land():
+                # `completed` once the vehicle is on the ground, not when the landing starts
+                self.task = asyncio.create_task(self._sequence(name, self._until_on_ground()))
+            return
         elif name == "abort":
             await self.abort(arrived)
         elif name == "disarm":
@@ -310,6 +320,18 @@ class Commands:
             return False
         return True
 
+    async def _until_on_ground(self) -> None:
+        """The landing ends on the ground: disarmed, or EXTENDED_SYS_STATE on-ground (fresh)."""
+        st = self.link.state
+        height = 0.0 if self.flight.ground_z is None or not st.has_position else \
+            max(0.0, self.flight.ground_z - float(st.position[2]))
+
+        def on_ground(s: Any) -> bool:
+            return (not s.armed or (s.landed_state == MAV_LANDED_ON_GROUND
+                                    and time.monotonic() - s.last_landed_state < 3.0))
+
+        await self.link.wait_for(on_ground, 30.0 + height / 0.3, "the vehicle to be on the ground")
+
     async def abort(self, arrived: float) -> None:
         self.cancel_sequence()
         state = self.flight.state
@@ -430,10 +452,14 @@ class Commands:
         """Leave the vehicle to the autopilot's own control before the service exits.
 
         In the air and in control: brake to a verified stop (when the setpoint stream still
-        works), then ask for `[safety] on_exit` (PX4 AUTO.LOITER; ArduPilot BRAKE then LOITER;
-        LAND; RTL) and wait for the heartbeat that confirms it, streaming the hold until then
-        so that the autopilot's offboard-loss failsafe never fires. Armed on the ground in
-        control: disarm. Returns True when nothing was left to a failsafe."""
+        works), then hand over as `[safety] on_exit` says: "hold" is an autonomous hold that
+        needs no pilot (PX4 AUTO.LOITER; ArduPilot GUIDED holding a position target at the
+        stop point, or BRAKE when no setpoint can be sent; a configured pilot mode only when a
+        pilot is known present: docs/handover.md), "land" or "rtl". The hold is confirmed by
+        watching the vehicle (`hold_confirm` s within the altitude and speed tolerances), not
+        only its mode. Armed on the ground in control: disarm. Returns True when the vehicle
+        was left holding (or landing, as asked), False when the hand-over failed or the
+        vehicle moved."""
         fl, st = self.flight, self.link.state
         self.cancel_sequence()
         if fl.state is S.ARMING and fl.airborne and self.control.flying:
@@ -458,11 +484,13 @@ class Commands:
                 return True
         if fl.state is S.TAKEOFF:
             self.report.go(S.READY, f"{reason}: takeoff interrupted")
+        braked = False
         if can_brake and self.control.streaming and fl.state in HOLDING_CONTROL:
-            await self._brake_for_exit(reason)
-        return await self._request_exit_mode(reason)
+            braked = await self._brake_for_exit(reason)
+        return await self._request_exit_mode(reason, stream_works=can_brake and self.control.streaming and braked)
 
-    async def _brake_for_exit(self, reason: str) -> None:
+    async def _brake_for_exit(self, reason: str) -> bool:
+        """A verified stop, flown to rest; True when the vehicle is at rest at its end."""
         try:
             await asyncio.wait_for(self.nav.hold(f"{reason}: stopping before the hand-over", None), 2.0)
         except TimeoutError:  # a plan change held the navigator: hold where the vehicle is
@@ -471,37 +499,114 @@ class Commands:
                 self.control.hold_here(self.link.state.position)
         ctl, rest = self.control, self.cfg.safety.rest_speed
         end = ctl.active.t_end if ctl.active is not None else 0.0
-        with contextlib.suppress(CommandFailed):
+        try:
             await self.link.wait_for(
                 lambda s: not ctl.flying or (ctl.now() >= end and at_rest(s.velocity, rest)),
                 max(0.0, end - (ctl.now() if ctl.flying else 0.0)) + 3.0, "the vehicle to stop")
+        except CommandFailed:
+            return False
+        return ctl.flying
 
-    async def _request_exit_mode(self, reason: str) -> bool:
+    def exit_plan(self, stream_works: bool) -> tuple[str, str]:
+        """(mode to ask for, why) for `[safety] on_exit`. "GUIDED" means: stay in GUIDED with
+        a position target at the stop point (ArduPilot). Never a pilot mode unless configured
+        and a pilot is known present (docs/handover.md)."""
+        st, sc = self.link.state, self.cfg.safety
+        if sc.on_exit == "land":
+            return "LAND", "[safety] on_exit = land"
+        if sc.on_exit == "rtl":
+            return "RTL", "[safety] on_exit = rtl"
+        pilot = sc.exit_pilot_mode
+        known = PX4_MODES if st.autopilot == "px4" else APM_MODES
+        if pilot and pilot in known and pilot not in AUTONOMOUS_HOLDS.get(st.autopilot or "", ()):
+            if sc.pilot_present or st.pilot_sticks_live():
+                how = "[safety] pilot_present" if sc.pilot_present else "RC_CHANNELS: a live transmitter, throttle centred"
+                return pilot, f"[safety] exit_pilot_mode = {pilot}, a pilot is known present ({how})"
+            self.report.event("handover", f"[safety] exit_pilot_mode {pilot} not used: no pilot is known present "
+                              "(no [safety] pilot_present, no RC_CHANNELS with a live transmitter at mid-stick); "
+                              "an autonomous hold instead", mode=pilot, pilot_mode_refused=True)
+        if st.autopilot == "px4":
+            return "LOITER", "AUTO.LOITER holds without a pilot"
+        if stream_works:
+            return "GUIDED", "GUIDED holds a position target with no timeout"
+        return "BRAKE", "BRAKE holds until the mode is changed (setpoints cannot be sent)"
+
+    async def _request_exit_mode(self, reason: str, stream_works: bool = False) -> bool:
         st = self.link.state
-        wanted = {"hold": "LOITER", "land": "LAND", "rtl": "RTL"}[self.cfg.safety.on_exit]
-        steps = ["BRAKE", "LOITER"] if wanted == "LOITER" and st.autopilot == "ardupilot" else [wanted]
+        wanted, why = self.exit_plan(stream_works)
         self.flight.exit_requested = True  # our mode changes: not a pilot takeover
-        for attempt in (steps, ["LAND"]) if wanted != "LAND" else (steps,):
+        fallbacks = [wanted] + ([] if wanted in ("LAND", "BRAKE") or st.autopilot == "px4" else ["BRAKE"])
+        fallbacks += [] if wanted == "LAND" else ["LAND"]
+        for mode in fallbacks:
             try:
-                for mode in attempt:
+                if mode == "GUIDED":
+                    if not st.in_follow_mode() or self.control.active is None or not self.control.flying:
+                        raise CommandFailed("not in GUIDED with a verified stop to hold")
+                    stop = self.control.jet(self.control.active.t_end)[0]
+                    self.control.release()  # the stream stops: the position target is the last word
+                    self.link.send_position_target(stop, self.yaw_now())
+                else:
                     await self.link.set_mode(mode)
-                    await self.link.wait_for(lambda s, m=mode: s.mode == m, 3.0, f"the autopilot to confirm {mode}")
-                    if mode == "BRAKE":
-                        with contextlib.suppress(CommandFailed):
-                            await self.link.wait_for(lambda s: at_rest(s.velocity, self.cfg.safety.rest_speed), 3.0,
-                                                     "the vehicle to stop in BRAKE")
+                    await self.link.wait_for(functools.partial(in_mode, mode), 3.0, f"the autopilot to confirm {mode}")
             except CommandFailed as exc:
-                self.report.event("error", f"{reason}: hand-over to {attempt[-1]} failed: {exc}",
-                                  mode=st.mode)
+                self.report.event("error", f"{reason}: hand-over to {mode} failed: {exc}", mode=st.mode)
+                why = f"after the hand-over to {mode} failed"
                 continue
             self.nav.release()
             self.control.release()
-            to = S.LANDING if attempt[-1] == "LAND" else S.PILOT
+            to = S.LANDING if mode == "LAND" else S.PILOT
             self.report.go(to, f"{reason}: handed over to the autopilot ({st.mode})")
-            self.report.event("handover", f"{reason}: the autopilot holds the vehicle in {st.mode}",
-                              mode=st.mode, reason=reason)
-            return True
+            if mode in ("LAND", "RTL"):
+                self.report.event("handover", f"{reason}: the autopilot {'lands' if mode == 'LAND' else 'returns'} "
+                                  f"in {st.mode} ({why})", mode=st.mode, reason=reason, held=None)
+                return True
+            return await self._confirm_hold(reason, mode, why)
         return False
+
+    def yaw_now(self) -> float:
+        """The heading last commanded (the measured one when nothing was sent)."""
+        sp = self.control.last_sp
+        return float(sp.yaw) if sp is not None else float(self.link.state.attitude[2])
+
+    async def _confirm_hold(self, reason: str, mode: str, why: str) -> bool:
+        """Watch the vehicle for `[safety] hold_confirm` s: the hold is confirmed only if the
+        mode stays, the vehicle stays armed, its altitude within `hold_altitude_tolerance` of
+        where the hold began and its speed under `hold_speed_tolerance`."""
+        st, sc = self.link.state, self.cfg.safety
+        z0, mode_now = float(st.position[2]), st.mode
+        worst_dz, worst_v = 0.0, 0.0
+        deadline = asyncio.get_running_loop().time() + sc.hold_confirm
+        problem = None
+        while asyncio.get_running_loop().time() < deadline:
+            await asyncio.sleep(0.05)
+            dz = float(st.position[2]) - z0
+            speed = float(np.linalg.norm(st.velocity))
+            worst_dz = dz if abs(dz) > abs(worst_dz) else worst_dz
+            worst_v = max(worst_v, speed)
+            if not st.armed:
+                problem = "the vehicle disarmed"
+            elif st.mode != mode_now:
+                problem = f"the autopilot left {mode_now} for {st.mode}"
+            elif abs(dz) > sc.hold_altitude_tolerance:
+                problem = f"the vehicle {'descends' if dz > 0 else 'climbs'}: {abs(dz):.2f} m from where the hold began"
+            elif speed > sc.hold_speed_tolerance:
+                vz = float(st.velocity[2])
+                how = f" ({'descending' if vz > 0 else 'climbing'} at {abs(vz):.2f} m/s)" if abs(vz) >= 0.5 * speed else ""
+                problem = f"the vehicle moves at {speed:.2f} m/s{how}"
+            if problem is not None:
+                break
+        fields = {"mode": st.mode, "reason": reason, "altitude_change": round(worst_dz, 3),
+                  "speed_max": round(worst_v, 3), "watched_s": sc.hold_confirm}
+        if problem is not None:
+            msg = (f"{reason}: the hand-over to {mode_now} does not hold: {problem} (limits "
+                   f"{sc.hold_altitude_tolerance} m, {sc.hold_speed_tolerance} m/s over {sc.hold_confirm} s)")
+            log.error("%s", msg)
+            self.report.event("handover", msg, held=False, **fields)
+            return False
+        self.report.event("handover", f"{reason}: the autopilot holds the vehicle in {mode_now} ({why}): "
+                          f"altitude within {abs(worst_dz):.2f} m, speed under {worst_v:.2f} m/s for "
+                          f"{sc.hold_confirm:g} s", held=True, **fields)
+        return True
 
     async def disarm(self) -> bool:
         self.flight.disarm_requested = True
@@ -520,8 +625,9 @@ class Commands:
     def after_stall(self, reason: str) -> asyncio.Task[None] | None:
         """The companion stalled (its loop or the setpoint thread): setpoints were withheld
         from the stall on. Stop commanding (FAILSAFE: control is taken back only by `start`)
-        and, if the autopilot still flies in our mode, ask it to hold (its LOITER) rather than
-        leave it to its offboard-loss failsafe. Returns the hold request's task, if any."""
+        and, if the autopilot still flies in our mode, ask it for an autonomous hold (PX4
+        AUTO.LOITER, ArduPilot BRAKE) rather than leave it to its offboard-loss failsafe.
+        Returns the hold request's task, if any."""
         fl, st = self.flight, self.link.state
         if not fl.controlling:
             return None
@@ -546,12 +652,16 @@ class Commands:
         return "in control as before" if fl.controlling else "not in control"
 
     async def _hold_after_stall(self, reason: str) -> None:
+        """An autonomous hold (never a pilot mode: no pilot is known): PX4 AUTO.LOITER,
+        ArduPilot BRAKE (it stops the vehicle at its own deceleration and holds until the mode
+        is changed; no verified stop of ours is flying after a stall)."""
         st = self.link.state
+        mode = "LOITER" if st.autopilot == "px4" else "BRAKE"
         try:
-            await self.link.set_mode("LOITER")
-            await self.link.wait_for(lambda s: s.mode == "LOITER", 3.0, "the autopilot to confirm LOITER")
+            await self.link.set_mode(mode)
+            await self.link.wait_for(lambda s: s.mode == mode, 3.0, f"the autopilot to confirm {mode}")
         except CommandFailed as exc:
-            self.report.event("error", f"{reason}: asking the autopilot to hold (LOITER) failed: {exc}",
+            self.report.event("error", f"{reason}: asking the autopilot to hold ({mode}) failed: {exc}",
                               mode=st.mode, **exc.fields())
             return
         self.report.event("handover", f"{reason}: the autopilot holds the vehicle in {st.mode}", mode=st.mode,

@@ -246,11 +246,26 @@ class SafetyConfig:
     # Takeoff is complete within `arrival_tolerance` of its altitude AND below this speed (m/s).
     rest_speed: float = 0.2
     # On SIGINT/SIGTERM in flight (or an internal failure the service cannot recover from):
-    # brake to a verified stop, then hand over to the autopilot's own "hold" (PX4 AUTO.LOITER,
-    # ArduPilot BRAKE then LOITER), "land" or "rtl", and wait (at most `exit_timeout` s in
-    # all) for it to confirm the mode before exiting. Keep it below systemd's TimeoutStopSec.
+    # brake to a verified stop, then hand over to the autopilot's own "hold" (an autonomous
+    # hold that needs no pilot: PX4 AUTO.LOITER; ArduPilot GUIDED holding a position target at
+    # the stop point, or BRAKE when setpoints can no longer be sent: docs/handover.md), "land"
+    # or "rtl", confirm it by watching the vehicle, and exit (at most `exit_timeout` s in
+    # all). Keep it below systemd's TimeoutStopSec.
     on_exit: str = "hold"
     exit_timeout: float = 8.0
+    # A pilot mode to hand over to instead of the autonomous hold (ArduPilot LOITER, ALT_HOLD,
+    # POSHOLD; PX4 POSCTL, ALTCTL): used only when a pilot is known present (`pilot_present`,
+    # or RC_CHANNELS from a live transmitter with the throttle stick centred); otherwise the
+    # autonomous hold, and an event says why. With no pilot input, ArduCopter's pilot modes
+    # descend (throttle at minimum: -PILOT_SPEED_DN).
+    exit_pilot_mode: str = ""
+    pilot_present: bool = False
+    # The hand-over is confirmed by watching the vehicle, not only its mode: for `hold_confirm`
+    # s its altitude stays within `hold_altitude_tolerance` m of where the hold began and its
+    # speed below `hold_speed_tolerance` m/s; otherwise it is reported as failed (exit 1).
+    hold_confirm: float = 3.0
+    hold_altitude_tolerance: float = 0.5
+    hold_speed_tolerance: float = 0.5
 
 
 @dataclass(frozen=True)
@@ -302,6 +317,7 @@ _CHOICES: dict[str, tuple[str, ...]] = {
     "planner.urgent": ("process", "thread"),
     "planner.timing": ("default", "fastest"),
     "safety.on_exit": ("hold", "land", "rtl"),
+    "safety.exit_pilot_mode": ("", "LOITER", "ALT_HOLD", "POSHOLD", "STABILIZE", "POSCTL", "ALTCTL"),
     "geofence.origin": ("home", "local"),
 }
 _POSITIVE = {
@@ -346,6 +362,9 @@ _POSITIVE = {
     "recording.max_bytes",
     "recording.keep_bytes",
     "recording.queue",
+    "safety.hold_confirm",
+    "safety.hold_altitude_tolerance",
+    "safety.hold_speed_tolerance",
 }
 
 

@@ -19,7 +19,8 @@ from typing import Any
 import numpy as np
 
 from companion.config import Config
-from companion.obstacles import Known, as_known, blocked_text
+from companion.obstacles import Known, as_known, blocked_text, waypoint_name
+from companion.wire.frames import fmt_box, fmt_point
 from companion.wire.messages import MissionSpec
 from planner_core import (
     Bounds,
@@ -98,6 +99,24 @@ class OutcomeStatus(enum.Enum):
     INFEASIBLE = "infeasible"  # no plan within the bounds (or not verified)
 
 
+def outside_map_text(mission: MissionSpec, waypoints: FloatArray, labels: FloatArray, wp: int | None) -> str | None:
+    """A waypoint (or the current position) outside the map box, said as such with the box and
+    the position: never "an obstacle" (issue 20.5)."""
+    if wp is None or not 0 <= wp < len(waypoints):
+        return None
+    lo, hi, r = np.asarray(mission.map_lo), np.asarray(mission.map_hi), float(mission.radius)
+    p = np.asarray(waypoints[wp], dtype=float)
+    if np.all(p >= lo + r - 1e-9) and np.all(p <= hi - r + 1e-9):
+        return None
+    axis = int(np.argmax(np.maximum(lo + r - p, p - (hi - r))))
+    side = "below the floor of" if axis == 2 and p[2] > hi[2] - r else "outside"
+    f = mission.frame
+    return (f"{waypoint_name(labels, wp)} {fmt_point(p, f)} is {side} the map box {fmt_box(lo, hi, f)} "
+            f"(the geofence, relative to home once the autopilot reports it, intersected with the mission's map; "
+            f"{f.upper()}, local frame) by more than the vehicle radius {r:g} m on axis "
+            f"{('xyz' if f != 'enu' else 'yxz')[axis]}")
+
+
 def plan_route(
     mission: MissionSpec,
     waypoints: FloatArray,
@@ -122,7 +141,8 @@ def plan_route(
         corridors = build_corridors(waypoints, known.polytopes, mission)
     except CorridorError as exc:
         wp, seg, ob = exc.waypoint, exc.segment, exc.obstacle
-        what, blocked = blocked_text(labels, seg, wp, known.name(ob))
+        outside = outside_map_text(mission, waypoints, labels, wp) if ob is None else None
+        what, blocked = (outside, None) if outside is not None else blocked_text(labels, seg, wp, known.name(ob))
         return Outcome(False, message=what, blocked_waypoint=blocked,
                        stats={"plan_seconds": time.perf_counter() - t0},
                        blocked_segment=seg if blocked is None else None, obstacle=ob)

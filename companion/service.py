@@ -59,6 +59,7 @@ from companion.wire.messages import (
     MissionSpec,
     ObstacleUpdate,
     Oversized,
+    fence_at_home,
     quote,
     read,
     warm_validators,
@@ -297,6 +298,7 @@ class Service:
             "armed": st.armed,
             "origin": "local",
             "home": enc.vec(st.home) if st.home is not None else None,
+            "geofence": self._geofence(),
             "ground_z": enc.num(self.flight.ground_z),
             "link": self.link.link_ok() if self.flight.seen_link else False,
             "streaming": ctl.streaming,
@@ -329,6 +331,14 @@ class Service:
                                     "horizontal": enc.num(float(b.horizontal[i]))}
                              for i, name in enumerate(("velocity", "acceleration", "jerk", "snap"))},
         }
+
+    def _geofence(self) -> dict[str, Any]:
+        """The geofence box in use, in the local frame, and what it is relative to."""
+        home = self.link.state.home
+        fence = fence_at_home(self.cfg, home).geofence
+        follows = self.cfg.geofence.origin == "home" and home is not None
+        return {"min": enc.vec(np.asarray(fence.min)), "max": enc.vec(np.asarray(fence.max)),
+                "relative_to": "home" if follows else "local"}
 
     # -- inbound messages: one reader per kind ------------------------------------------------------
 
@@ -364,7 +374,8 @@ class Service:
             # spares two thread hand-offs. One message at a time, so the order is kept.
             try:
                 assert self.loop is not None
-                job = functools.partial(read, kind, payload, self.cfg, self.link.state.home)
+                job = functools.partial(read, kind, payload, self.cfg, self.link.state.home,
+                                        home_pending=self.link.state.home_pending)
                 msg = job() if len(payload) <= INLINE_DECODE_BYTES else \
                     await self.loop.run_in_executor(self.runtime.decode_pool, job)
                 self._dispatch(kind, payload, arrived, msg)

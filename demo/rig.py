@@ -172,8 +172,9 @@ class Rig:
     # messages are home-relative ("origin": "home"), what it measures is in the local frame
     home: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
-    def wait_home(self, timeout: float = 15.0) -> np.ndarray:
-        """Until the companion reports home (it asks the autopilot at link-up)."""
+    def wait_home(self, timeout: float = 90.0) -> np.ndarray:
+        """Until the companion reports a valid home (it asks the autopilot at link-up; PX4 reports
+        one only once its estimator is ready, ~40 s after boot on a real PX4)."""
         deadline = time.monotonic() + timeout
         while True:
             status = self.peer.query("status", timeout=1.0) or {}

@@ -201,7 +201,7 @@ class Progress:
 
 def _status_line(name: str, status: Any, pos: np.ndarray | None, elapsed: float) -> str:
     st = status if isinstance(status, dict) else {}
-    where = "" if pos is None else f"  ENU [{pos[0]:6.2f} {pos[1]:6.2f} {pos[2]:5.2f}] m"
+    where = "" if pos is None else f"  ENU from home [{pos[0]:6.2f} {pos[1]:6.2f} {pos[2]:5.2f}] m"
     progress = st.get("progress")
     prog = f" {100 * progress:3.0f}%" if isinstance(progress, int | float) else ""
     err = st.get("tracking_error")
@@ -259,7 +259,7 @@ def fly(r: Rig, mission: dict[str, Any], actions: list[Action], timeout: float, 
                 reason = f"{kind}: {ev.get('message', '')}"
         now = time.monotonic()
         tel = r.peer.latest.get("telemetry")
-        pos = _enu_position(tel.data if tel else None)
+        pos = _enu_position(tel.data if tel else None, r.home)
         if t_stream is not None:
             for a in actions:
                 if a.sent is None and a.when(now - t_stream, pos):
@@ -277,10 +277,11 @@ def fly(r: Rig, mission: dict[str, Any], actions: list[Action], timeout: float, 
     return FlightOutcome(not reason, reason, t_put, trajectories, t_stream, t_done, actions, events, leads)
 
 
-def _enu_position(telemetry: Any) -> np.ndarray | None:
+def _enu_position(telemetry: Any, home: np.ndarray) -> np.ndarray | None:
+    """Telemetry's local NED position as the demo's missions give positions: ENU from home."""
     if isinstance(telemetry, dict) and isinstance(telemetry.get("position"), list):
         with contextlib.suppress(ValueError, TypeError):
-            return swap_points(np.asarray(telemetry["position"], dtype=float))
+            return swap_points(np.asarray(telemetry["position"], dtype=float) - home)
     return None
 
 
@@ -610,9 +611,10 @@ def main(argv: list[str] | None = None, prog: str = "python -m demo") -> int:
         recordings = out / "recordings"
         with rig(out, args.autopilot, lead=args.lead, recording=None if args.no_recording else recordings) as r:
             print(f"  companion pid {r.companion.pid}, mock pid {r.mock.pid}, logs in {out}/")
+            print("  waiting for the autopilot to be ready (a valid home)", flush=True)
             home = r.wait_home()
             print(f"  home (the ground where the vehicle stands) at local NED {home.round(2).tolist()}: "
-                  "the demo's positions are home-relative")
+                  "the demo's missions and the positions it prints are ENU from home")
             to_sim = sim_clock(r)
             plans: list[tuple[str, str, dict[str, Any], list[Action], dict[str, Any] | None, dict[str, Any] | None]] = []
             if args.quick:

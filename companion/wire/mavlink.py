@@ -47,18 +47,30 @@ APM_GUIDED = 4
 APM_LAND = 9
 # Modes the companion may hand over to, as (DO_SET_MODE param2, param3) and as decoded
 # from the heartbeat (mavutil.mode_string_v10 names).
-PX4_MODES: dict[str, tuple[int, int]] = {"LOITER": (4, 3), "RTL": (4, 5), "LAND": (4, 6)}
-APM_MODES: dict[str, int] = {"LOITER": 5, "RTL": 6, "LAND": 9, "BRAKE": 17}
+# PX4's "LOITER" is AUTO.LOITER (autonomous); POSCTL and ALTCTL are pilot modes.
+PX4_MODES: dict[str, tuple[int, int]] = {"LOITER": (4, 3), "RTL": (4, 5), "LAND": (4, 6), "POSCTL": (3, 0),
+                                         "ALTCTL": (2, 0)}
+APM_MODES: dict[str, int] = {"STABILIZE": 0, "ALT_HOLD": 2, "GUIDED": 4, "LOITER": 5, "RTL": 6, "LAND": 9,
+                             "POSHOLD": 16, "BRAKE": 17}
+# Position only (velocity, acceleration and yaw rate ignored): ArduPilot's GUIDED holds such a
+# target with no timeout (mode_guided.cpp pos_control_run; docs/handover.md).
+POSITION_ONLY_MASK = 8 | 16 | 32 | 64 | 128 | 256 | 2048
+# RC_CHANNELS: a transmitter is live when heard this recently (s) ...
+RC_FRESH = 1.0
+# ... and its throttle stick is centred (us): ArduCopter's pilot modes then climb at 0
+# (ArduCopter/Attitude.cpp get_pilot_desired_climb_rate, the deadband around mid-stick).
+RC_MID_STICK = (1400, 1600)
 
 # The telemetry the companion uses, at the rate it asks for (Hz). HEARTBEAT is unsolicited.
 WANTED: dict[str, float] = {"LOCAL_POSITION_NED": 30.0, "ATTITUDE": 10.0, "EXTENDED_SYS_STATE": 2.0}
-# ArduPilot's legacy stream groups (REQUEST_DATA_STREAM) carrying them, and the parameter
-# that sets each group's rate at boot (MAVn_* from 4.7, SRn_* before).
+# ArduPilot's legacy stream groups (REQUEST_DATA_STREAM) carrying them, and the suffix of the
+# parameter that sets each group's rate at boot on the link's port (MAVn_* from 4.7, SRn_* before).
 APM_STREAMS: dict[str, tuple[int, str]] = {
-    "LOCAL_POSITION_NED": (mavlink.MAV_DATA_STREAM_POSITION, "MAV1_POSITION (SR1_POSITION before 4.7)"),
-    "ATTITUDE": (mavlink.MAV_DATA_STREAM_EXTRA1, "MAV1_EXTRA1 (SR1_EXTRA1 before 4.7)"),
-    "EXTENDED_SYS_STATE": (mavlink.MAV_DATA_STREAM_EXTENDED_STATUS, "MAV1_EXT_STAT (SR1_EXT_STAT before 4.7)"),
+    "LOCAL_POSITION_NED": (mavlink.MAV_DATA_STREAM_POSITION, "POSITION"),
+    "ATTITUDE": (mavlink.MAV_DATA_STREAM_EXTRA1, "EXTRA1"),
+    "EXTENDED_SYS_STATE": (mavlink.MAV_DATA_STREAM_EXTENDED_STATUS, "EXT_STAT"),
 }
+APM_MAVN_FROM = (4, 7)  # the SRn_* rate parameters became MAVn_* in ArduPilot 4.7
 POSITION_STALE = 1.0  # s without LOCAL_POSITION_NED: no position estimate
 IGNORED_EVERY = 5.0  # s between two reports of messages ignored as not the autopilot's
 IGNORED_OTHER_ID_EVERY = 60.0  # the same for other ids (a GCS or camera on a shared link)
@@ -151,6 +163,13 @@ class VehicleState:
     last_landed_state: float = -math.inf  # when EXTENDED_SYS_STATE last arrived
     # HOME_POSITION's local x, y, z (NED, the autopilot's local frame); None until reported
     home: np.ndarray | None = None
+    # PX4 sent HOME_POSITION at the local origin: home is not valid yet (the autopilot is not ready)
+    home_pending: bool = False
+    sw_version: tuple[int, int, int] | None = None  # AUTOPILOT_VERSION.flight_sw_version
+    # why LOCAL_POSITION_NED is missing, once the companion has told the causes apart
+    position_advice: str | None = None
+    rc_throttle: int | None = None  # RC_CHANNELS chan3_raw (us), when the autopilot sends it
+    last_rc: float = -math.inf
     notes: collections.deque[Note] = field(default_factory=lambda: collections.deque(maxlen=16))
 
     @property
@@ -163,8 +182,10 @@ class VehicleState:
         if "LOCAL_POSITION_NED" not in self.received:
             hint = ("the autopilot has not sent LOCAL_POSITION_NED since the link came up (requested at "
                     f"{WANTED['LOCAL_POSITION_NED']:.0f} Hz); ")
-            if self.autopilot == "ardupilot":
-                hint += f"set {APM_STREAMS['LOCAL_POSITION_NED'][1]} if it ignores requests, and check its EKF origin"
+            if self.position_advice is not None:
+                hint += self.position_advice
+            elif self.autopilot == "ardupilot":
+                hint += "see the `telemetry` event for the cause (no EKF origin yet, or requests ignored)"
             else:
                 hint += "check its position estimate (EKF2 / GPS or vision) and the MAVLink instance's mode"
             return f"no position estimate from the autopilot: {hint}"
@@ -174,6 +195,12 @@ class VehicleState:
         if not self.has_position:
             return "no position estimate from the autopilot: LOCAL_POSITION_NED is not finite"
         return None
+
+    def pilot_sticks_live(self, now: float | None = None) -> bool:
+        """A transmitter is heard (RC_CHANNELS within RC_FRESH) with the throttle centred."""
+        now = time.monotonic() if now is None else now
+        return (self.rc_throttle is not None and now - self.last_rc <= RC_FRESH
+                and RC_MID_STICK[0] <= self.rc_throttle <= RC_MID_STICK[1])
 
     def in_follow_mode(self) -> bool:
         if self.autopilot == "px4":
@@ -452,8 +479,21 @@ class MavlinkLink:
             st.last_landed_state = now
         elif kind == "HOME_POSITION":
             home = np.array([msg.x, msg.y, msg.z], dtype=float)
-            if np.all(np.isfinite(home)):
+            if st.autopilot == "px4" and not np.any(home):
+                # PX4 reports home at the local origin until its estimator is ready (~37 s after
+                # boot on SIH 1.15) while its estimate on the ground reads z +0.4..+2.3 m: not a
+                # home to place anything by (autopilot-facts.md)
+                st.home_pending = True
+            elif np.all(np.isfinite(home)):
                 st.home = home
+                st.home_pending = False
+        elif kind == "AUTOPILOT_VERSION":
+            v = int(msg.flight_sw_version)
+            st.sw_version = ((v >> 24) & 0xFF, (v >> 16) & 0xFF, (v >> 8) & 0xFF)
+        elif kind == "RC_CHANNELS":
+            if int(msg.chancount) >= 3 and 800 <= int(msg.chan3_raw) <= 2200:
+                st.rc_throttle = int(msg.chan3_raw)
+                st.last_rc = now
         elif kind == "STATUSTEXT":
             sev = mavlink.enums["MAV_SEVERITY"].get(int(msg.severity))
             level = sev.name.removeprefix("MAV_SEVERITY_") if sev is not None else str(msg.severity)
@@ -526,6 +566,16 @@ class MavlinkLink:
         with self._send_lock:
             self.conn.mav.send(msg)
             self._sent += 1
+
+    def send_position_target(self, position: np.ndarray, yaw: float) -> None:
+        """One position-only target (ArduPilot GUIDED keeps holding it with no timeout)."""
+        p = position
+        msg = self.conn.mav.set_position_target_local_ned_encode(
+            int((time.monotonic() - self._boot) * 1000) & 0xFFFFFFFF,
+            self.cfg.vehicle.sysid, self.cfg.vehicle.autopilot_component, mavlink.MAV_FRAME_LOCAL_NED,
+            POSITION_ONLY_MASK, float(p[0]), float(p[1]), float(p[2]), 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, float(yaw), 0.0)
+        with self._send_lock:
+            self.conn.mav.send(msg)
 
     async def command(self, command: int, *params: float, timeout: float | None = None) -> int:
         """COMMAND_LONG and wait for its COMMAND_ACK; returns MAV_RESULT."""
@@ -662,9 +712,39 @@ class MavlinkLink:
         """The messages in WANTED that have not arrived since `since` (monotonic)."""
         return [name for name in WANTED if self.state.received.get(name, -math.inf) < since]
 
+    async def request_version(self) -> None:
+        """AUTOPILOT_VERSION (which rate parameters ArduPilot has); a refusal is not fatal."""
+        await self.command(mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION)
+
+    def serial_port(self) -> int | None:
+        """The ArduPilot SERIALn port this link is on, where the URL tells it for certain:
+        SITL's first TCP port (5760) and a USB CDC device are SERIAL0. None otherwise
+        (ArduPilot does not say which port a message came in on)."""
+        url = self.cfg.mavlink.url
+        if url.startswith(("tcp:", "tcpin:")) and url.rsplit(":", 1)[-1] == "5760":
+            return 0
+        device = parse_url(url)[0]
+        if device.startswith(("/dev/ttyACM", "/dev/serial/by-id/usb-ArduPilot")):
+            return 0
+        return None
+
+    def rate_parameter(self, group: str) -> str:
+        """The rate parameter of a stream group on this link's port, by the autopilot's version
+        (SRn_* before 4.7, MAVn_* from 4.7) and port; never a port number it cannot know."""
+        n, ver = self.serial_port(), self.state.sw_version
+        port = "SERIAL0" if n == 0 else "the serial port this link is on"
+        if ver is not None and ver[:2] >= APM_MAVN_FROM:
+            return f"MAVn_{group} (n: the MAVLink instance on {port})"
+        if ver is not None:
+            return f"SR0_{group}" if n == 0 else f"SRn_{group} (n: the MAVLink channel of {port})"
+        where = f"SR0_{group}" if n == 0 else f"SRn_{group}"
+        return (f"{where} before 4.7, MAVn_{group} from 4.7 (the autopilot did not send AUTOPILOT_VERSION; "
+                f"n: the MAVLink instance on {port})")
+
     def telemetry_hint(self, missing: list[str]) -> str:
         if self.state.autopilot == "ardupilot":
-            return "set " + ", ".join(f"{APM_STREAMS[m][1]} (for {m})" for m in missing) + " to a rate in Hz"
+            return "set " + ", ".join(f"{self.rate_parameter(APM_STREAMS[m][1])} (for {m})" for m in missing) + \
+                " to a rate in Hz"
         return ("PX4 streams these in its Onboard MAVLink mode: check MAV_n_MODE = Onboard on this link, or add "
                 "'mavlink stream -r RATE -s MESSAGE' in the SD card's etc/extras.txt")
 

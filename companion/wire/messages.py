@@ -783,7 +783,13 @@ def fence_at_home(cfg: Config, home: FloatArray | None) -> Config:
     return dataclasses.replace(cfg, geofence=fence)
 
 
-def read(kind: str, payload: bytes | Oversized, cfg: Config, home: FloatArray | None = None) -> Message | MessageError:
+NOT_READY = ("the autopilot is not ready: it reports HOME_POSITION at its local origin (PX4 does so until its "
+             "estimator is ready, ~40 s after boot), so the geofence, which follows home ([geofence] origin = "
+             "\"home\"), cannot be placed yet; send the mission again once status `home` is set")
+
+
+def read(kind: str, payload: bytes | Oversized, cfg: Config, home: FloatArray | None = None, *,
+         home_pending: bool = False) -> Message | MessageError:
     """Bytes -> a typed NED message in the autopilot's local frame, or the MessageError that
     says why not. `home`: HOME_POSITION's local position, for messages with `"origin":
     "home"`. Never raises: anything unforeseen comes back as an `InternalError` (a rejection
@@ -791,6 +797,8 @@ def read(kind: str, payload: bytes | Oversized, cfg: Config, home: FloatArray | 
     try:
         obj = decode(kind, payload, limits=cfg.limits)
         frame = str(obj.get("frame", "ned"))
+        if kind == "mission" and home_pending and home is None and cfg.geofence.origin == "home":
+            return MessageError("", NOT_READY)
         cfg = fence_at_home(cfg, home)
         try:
             if kind == "mission":

@@ -13,6 +13,8 @@ import numpy as np
 import pytest
 from e2e_rig import Rig
 
+from companion.wire.mavlink import POSITION_ONLY_MASK
+
 pytestmark = pytest.mark.slow
 
 LONG = {"id": "long", "frame": "ned",
@@ -56,31 +58,46 @@ def _after(log: list[dict[str, Any]], t: float, kind: str) -> list[dict[str, Any
 
 @pytest.mark.parametrize(("autopilot", "sig"), [("px4", signal.SIGINT), ("ardupilot", signal.SIGTERM)])
 def test_signal_in_flight_brakes_and_hands_over(rig_factory: Any, autopilot: str, sig: int) -> None:
+    """The hand-over holds without a pilot (issue 20): PX4 AUTO.LOITER; ArduPilot stays in GUIDED
+    holding a position target at the stop point (never LOITER, a pilot mode that descends with
+    no RC input on ArduCopter). The vehicle still holds its altitude 10 s after the companion
+    exited, read from the mock's own state."""
     rig: Rig = rig_factory(autopilot)
     t_sig, code, log = _signal_in_flight(rig, sig)
     assert code == 0, (rig.tmp / f"{autopilot}-companion.err").read_text()[-3000:]
     modes = _after(log, t_sig, "mode")
-    assert modes, "no mode change after the signal"
-    assert all(m["reason"] == "command" for m in modes), modes
-    assert modes[-1]["to"] == "LOITER"
-    if autopilot == "ardupilot":
-        assert [m["to"] for m in modes] == ["BRAKE", "LOITER"]
     failsafes = [r for r in _after(log, t_sig, "event") if r.get("event") == "failsafe"]
     assert not failsafes, failsafes
-    # braked to rest (by a verified stop) before the hand-over: slow when the mode changed
-    t_mode = modes[0]["t"]
-    at_mode = [r for r in _after(log, t_mode - 0.05, "state")][:5]
-    assert at_mode and max(float(np.linalg.norm(r["vel"])) for r in at_mode) <= 0.3
-    # and the stop was ours: setpoints applied after the signal, before the mode change
-    applied = [r for r in _after(log, t_sig, "setpoint") if r["t"] < t_mode and r["applied"]]
-    assert len(applied) > 10
-    # the autopilot still holds the vehicle, armed, in the air, a while later
-    time.sleep(2.0)
-    st = rig.control.state()
-    assert st["mode"] == "LOITER" and st["armed"] and not st["landed"]
-    assert float(np.linalg.norm(st["velocity"])) <= 0.2
+    applied = [r for r in _after(log, t_sig, "setpoint") if r["applied"]]
+    if autopilot == "px4":
+        assert modes and all(m["reason"] == "command" for m in modes), modes
+        assert [m["to"] for m in modes] == ["LOITER"]
+        t_hand = modes[0]["t"]
+        hold_mode = "LOITER"
+    else:
+        assert modes == [], modes  # no mode change at all: GUIDED keeps the position target
+        # the last setpoint applied is position-only, at rest at the verified stop's end
+        last = applied[-1]
+        assert last["type_mask"] == POSITION_ONLY_MASK, last
+        t_hand = last["t"]
+        hold_mode = "GUIDED"
+    # braked to rest (by a verified stop) before the hand-over: slow when it happened
+    at_hand = _after(log, t_hand - 0.05, "state")[:5]
+    assert at_hand and max(float(np.linalg.norm(r["vel"])) for r in at_hand) <= 0.3
+    # and the stop was ours: setpoints applied after the signal, before the hand-over
+    assert len([r for r in applied if r["t"] < t_hand]) > 10
+    # the autopilot holds the vehicle, armed, in the air, at its altitude for 10 s after the exit
+    z0 = rig.control.state()["position"][2]
+    t_end = time.monotonic() + 10.0
+    while time.monotonic() < t_end:
+        st = rig.control.state()
+        assert st["mode"] == hold_mode and st["armed"] and not st["landed"], st
+        assert abs(st["position"][2] - z0) <= 0.2, (st["position"], z0)
+        assert float(np.linalg.norm(st["velocity"])) <= 0.2, st
+        time.sleep(0.2)
     events = rig.events_since(0)
-    assert any(e["type"] == "handover" for e in events)
+    held = [e for e in events if e["type"] == "handover"]
+    assert held and held[-1]["held"] is True and held[-1]["mode"] == hold_mode, held
     assert any(e["type"] == "stopped" and e.get("handed_over") for e in events)
 
 

@@ -238,3 +238,30 @@ def test_shipped_files_load() -> None:
         zenoh.Config.from_file(str(REPO / "config" / name))
     users = (REPO / "config" / "zenoh-users.example.txt").read_text().split()
     assert [u.split(":")[0] for u in users] == ["operator", "observer"]
+
+
+# -- `send` tells an access-control denial apart (issue 20.7) ------------------------------------
+
+
+def _send_as(companion: Any, tmp_path: Path, user: str, password: str) -> subprocess.CompletedProcess[str]:
+    conf = tmp_path / f"{user}.json5"
+    conf.write_text(json.dumps({
+        "mode": "client", "connect": {"endpoints": [f"tcp/127.0.0.1:{companion['port']}"]},
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+        "transport": {"auth": {"usrpwd": {"user": user, "password": password}}}}))
+    import sys
+
+    return subprocess.run([sys.executable, "-m", "companion", "send", "command", "-", "--zenoh-config", str(conf),
+                           "--vehicle", "drone1", "--wait", "2"], input='{"command": "hold"}', cwd=REPO,
+                          capture_output=True, text=True, timeout=60)
+
+
+def test_send_reports_an_observers_command_as_denied(companion: Any, tmp_path: Path) -> None:
+    from companion.__main__ import EXIT_ACCESS_DENIED, EXIT_UNFINISHED
+
+    denied = _send_as(companion, tmp_path, "observer", "obs-secret")
+    assert denied.returncode == EXIT_ACCESS_DENIED, denied.stderr
+    assert "denied" in denied.stderr and "access control" in denied.stderr
+    # an operator's command reaches the (test's) companion, which says nothing: not a denial
+    allowed = _send_as(companion, tmp_path, "operator", "op-secret")
+    assert allowed.returncode == EXIT_UNFINISHED, allowed.stderr

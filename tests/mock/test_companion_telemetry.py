@@ -49,16 +49,77 @@ def test_missing_streams_are_reported_with_the_parameter_to_set(tmp_path: Path) 
     async def check(svc: Any, events: Events) -> None:
         ev = events.of("telemetry")[-1]
         assert set(ev["missing"]) == {"LOCAL_POSITION_NED", "ATTITUDE", "EXTENDED_SYS_STATE"}
-        assert "MAV1_POSITION" in ev["message"] and "MAV1_EXTRA1" in ev["message"]
+        # the mock says Copter 4.5 (AUTOPILOT_VERSION): SRn_*, and the port of a UDP link is not
+        # known, so no number is made up (issue 20.3: the old advice said MAV1_/SR1_)
+        assert ev["cause"] == "requests_ignored" and "ignores the requests" in ev["message"], ev["message"]
+        assert "SRn_POSITION" in ev["message"] and "SRn_EXTRA1" in ev["message"], ev["message"]
+        assert "MAV1_" not in ev["message"] and "SR1_" not in ev["message"]
         await svc.commands.on_command(Command("arm"), 0.0)
         refused = events.of("refused")[-1]
-        assert refused["command"] == "arm" and "MAV1_POSITION" in refused["reason"], refused
+        assert refused["command"] == "arm" and "SRn_POSITION" in refused["reason"], refused
         assert not mock.snapshot()["armed"]
 
     try:
         asyncio.run(_run(mock, check))
     finally:
         mock.stop()
+
+
+def test_no_position_estimate_is_told_apart_and_withdrawn_when_it_arrives(tmp_path: Path) -> None:
+    """ArduCopter sends no LOCAL_POSITION_NED before its EKF origin is set, though it accepted the
+    interval request (autopilot-facts.md): the companion says so, not "set a parameter", and says
+    when the message starts after all (event `telemetry`, `resolved`)."""
+    import threading
+
+    from pymavlink.dialects.v20 import common as mav
+
+    mock = MockAutopilot(MockConfig(autopilot="ardupilot", endpoints=["udpin:127.0.0.1:0"],
+                                    log_path=str(tmp_path / "f.jsonl"))).start()
+    origin_set = threading.Event()
+    send_stream = mock._send_stream
+
+    def no_position_before_origin(mid: int, target: Any) -> None:  # the EKF origin delay, emulated
+        if mid in (mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED, mav.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN,
+                   mav.MAVLINK_MSG_ID_HOME_POSITION) and not origin_set.is_set():
+            return
+        send_stream(mid, target)
+
+    mock._send_stream = no_position_before_origin  # type: ignore[method-assign]
+
+    async def check(svc: Any, events: Events) -> None:
+        ev = events.of("telemetry")[-1]
+        assert ev["missing"] == ["LOCAL_POSITION_NED"] and ev["cause"] == "no_position_estimate", ev
+        assert "no position estimate yet" in ev["message"] and "interval request was accepted" in ev["message"]
+        assert "ignores" not in ev["message"] and "SR" not in ev["message"], ev["message"]
+        await svc.commands.on_command(Command("arm"), 0.0)
+        refused = events.of("refused")[-1]
+        assert "no position estimate yet" in refused["reason"], refused
+        origin_set.set()
+        await until(lambda: events.of("telemetry")[-1].get("resolved"), 10, "the telemetry resolved")
+        assert events.of("telemetry")[-1]["missing"] == []
+        assert svc.link.state.position_problem() is None
+
+    try:
+        asyncio.run(_run(mock, check))
+    finally:
+        mock.stop()
+
+
+def test_the_rate_parameter_is_named_by_version_and_port() -> None:
+    from companion.config import config_from_dict
+    from companion.wire.mavlink import MavlinkLink
+
+    sitl = MavlinkLink(config_from_dict({"mavlink": {"url": "tcp:127.0.0.1:5760"}}))  # SITL's SERIAL0
+    sitl.state.sw_version = (4, 6, 0)
+    assert sitl.rate_parameter("POSITION") == "SR0_POSITION"
+    sitl.state.sw_version = (4, 7, 0)
+    assert sitl.rate_parameter("POSITION").startswith("MAVn_POSITION") and "SERIAL0" in sitl.rate_parameter("POSITION")
+    radio = MavlinkLink(config_from_dict({"mavlink": {"url": "serial:/dev/ttyAMA0:921600"}}))
+    radio.state.sw_version = (4, 5, 7)
+    assert radio.rate_parameter("EXTRA1").startswith("SRn_EXTRA1 (n:")
+    radio.state.sw_version = None
+    text = radio.rate_parameter("EXTRA1")
+    assert "SRn_EXTRA1 before 4.7" in text and "MAVn_EXTRA1 from 4.7" in text
 
 
 def test_waiting_for_a_heartbeat_is_said() -> None:
@@ -76,7 +137,10 @@ def test_waiting_for_a_heartbeat_is_said() -> None:
         task = asyncio.create_task(svc.run())
         try:
             await until(lambda: events.of("link"), 60, "the waiting line")
-            assert "waiting for autopilot heartbeat on udpin:127.0.0.1:0" in events.of("link")[0]["message"]
+            said = events.of("link")[0]
+            assert "waiting for autopilot heartbeat on udpin:127.0.0.1:0" in said["message"]
+            # what it listens on and the usual causes (issue 20.7)
+            assert "listening on UDP 127.0.0.1:0" in said["hint"] and "sitl_mock" in said["hint"], said
             assert not svc.flight.seen_link
         finally:
             svc.requested.set()
