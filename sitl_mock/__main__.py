@@ -48,7 +48,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m sitl_mock", description=__doc__)
     p.add_argument("--autopilot", choices=["px4", "ardupilot"], default="px4")
     p.add_argument("--endpoint", action="append", dest="endpoints", metavar="KIND:HOST:PORT",
-                   help="udpin:H:P (default udpin:127.0.0.1:14540), udpout:H:P or tcpin:H:P; repeatable")
+                   help=f"udpin:H:P, udpout:H:P[@BH:BP] or tcpin:H:P; repeatable (default {PX4_SITL_ENDPOINT}: PX4 "
+                   "SITL's offboard pair, which the companion's default URL meets)")
     p.add_argument("--px4-sitl-ports", action="store_true",
                    help=f"act as PX4 SITL's offboard link: {PX4_SITL_ENDPOINT} (listen on 14580, send to 14540, "
                    "where MAVSDK, MAVROS and the companion's default udpin:127.0.0.1:14540 listen)")
@@ -107,8 +108,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         config = MockConfig(
             autopilot=args.autopilot,
+            # by default PX4 SITL's offboard pair, which the companion's default URL
+            # (udpin:127.0.0.1:14540) meets: a newcomer starting both with no options gets a link
             endpoints=(args.endpoints or []) + ([PX4_SITL_ENDPOINT] if args.px4_sitl_ports else [])
-            or ["udpin:127.0.0.1:14540"],
+            or [PX4_SITL_ENDPOINT],
             sysid=args.sysid, compid=args.compid, log_path=args.log_path, speed=args.speed,
             control=args.control, faults=parse_faults(args.fault), rate_hz=args.rate_hz,
             log_rate_hz=args.log_rate_hz, home_lat=args.home_lat, home_lon=args.home_lon,
