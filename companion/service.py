@@ -352,8 +352,8 @@ class Service:
         self.zio.on_dropped = self._dropped
         while not self.stop.is_set():
             kind, payload, arrived = await self.zio.inbox.get()
-            self.tap.inbound(kind, payload, arrived)
             try:
+                self.tap.inbound(kind, payload, arrived)
                 if kind == "obstacles" and len(payload) <= INLINE_DECODE_BYTES:
                     self._dispatch(kind, payload, arrived, read(kind, payload, self.cfg, self.link.state.home))
                 elif self._ordered.qsize() >= self.cfg.limits.max_queued_messages:

@@ -14,6 +14,7 @@ import pytest
 from companion import service as service_mod
 from companion.config import Config, LimitsConfig, config_from_dict
 from companion.obstacles import ObstacleStore
+from companion.tap import NO_TAP
 from companion.wire import messages
 from companion.wire.messages import (
     MAX_REASON,
@@ -173,7 +174,8 @@ def test_loop_boundary_guard_reports_and_goes_on() -> None:
     stop = asyncio.Event()
     fake = SimpleNamespace(
         zio=SimpleNamespace(inbox=inbox, on_dropped=None), stop=stop, cfg=CFG, report=report,
-        link=SimpleNamespace(state=SimpleNamespace(home=None)), _ordered=asyncio.Queue(), _dispatch=dispatch, _dropped=lambda *a: None)
+        link=SimpleNamespace(state=SimpleNamespace(home=None)), _ordered=asyncio.Queue(), _dispatch=dispatch, _dropped=lambda *a: None,
+        tap=NO_TAP)
     fake._unforeseen = lambda kind, payload, exc: service_mod.Service._unforeseen(fake, kind, payload, exc)  # type: ignore[arg-type]
 
     async def main() -> None:
