@@ -367,7 +367,7 @@ class Commands:
             return
         self.tracking_error_max = max(self.tracking_error_max, err)
         self._estimate_lag(measured_at)
-        limit = self.cfg.planner.tracking_allowance
+        limit = self.cfg.safety.tracking_brake or self.cfg.planner.tracking_allowance
         if limit <= 0.0:  # no allowance: no inflation and no brake (planning tests, benches)
             return
         self._check_nearing(err, limit)

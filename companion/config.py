@@ -108,6 +108,11 @@ class SetpointConfig:
     lead: float | str = "auto"
     # The most the lead (and the lag estimate) may be (s): PX4 SIH lags ~0.3 s, ArduCopter ~0.06 s.
     lead_max: float = 0.5
+    # With lead = "auto": the lead until the estimate has seen enough motion (a few seconds of
+    # it): ArduCopter's measured lag (59-82 ms, autopilot-facts.md). Without it the first seconds
+    # of every flight lag by the whole response time (0.2-0.25 m at 3-4 m/s on ArduCopter, over
+    # a tight tracking allowance); PX4 SIH's ~0.33 s is reached by the estimate from there.
+    lead_initial: float = 0.06
     # The event loop not running for this long (s) is a stall of the companion: the setpoint
     # thread withholds setpoints from then on (it does so too when it itself wakes 0.5 s late).
     # Awake again, the companion holds (setpoints silent under 0.5 s: the autopilot still flies
@@ -245,6 +250,11 @@ class SafetyConfig:
     arrival_tolerance: float = 0.2
     # Takeoff is complete within `arrival_tolerance` of its altitude AND below this speed (m/s).
     rest_speed: float = 0.2
+    # The tracking error (m) at which the companion brakes; 0: [planner] tracking_allowance, the
+    # margin obstacles are inflated by (the certificate then covers every track flown). Larger
+    # only where the obstacles' geometry is fixed by something else (a test rig, a demo) and the
+    # vehicle is known to stray further: the track is then outside what was certified.
+    tracking_brake: float = 0.0
     # On SIGINT/SIGTERM in flight (or an internal failure the service cannot recover from):
     # brake to a verified stop, then hand over to the autopilot's own "hold" (an autonomous
     # hold that needs no pilot: PX4 AUTO.LOITER; ArduPilot GUIDED holding a position target at
@@ -368,7 +378,8 @@ _POSITIVE = {
 }
 
 
-_NON_NEGATIVE = {"planner.fallback_delay", "planner.reserve", "autopilot_limits.retries", "planner.tracking_allowance"}
+_NON_NEGATIVE = {"planner.fallback_delay", "planner.reserve", "autopilot_limits.retries", "planner.tracking_allowance",
+                 "setpoints.lead_initial", "safety.tracking_brake"}
 
 # Keys that were replaced: what to set instead (a safety option must not be dropped silently).
 _REPLACED = {

@@ -116,7 +116,8 @@ class Service:
         self.link.on_ignored = self._mavlink_ignored
         # lag compensation: a fixed lead, or "auto" (set by Commands from its estimate)
         self.commands.lead_target = self.sender
-        self.sender.lead = 0.0 if cfg.setpoints.lead == "auto" else float(cfg.setpoints.lead)
+        self.sender.lead = (min(cfg.setpoints.lead_initial, cfg.setpoints.lead_max) if cfg.setpoints.lead == "auto"
+                            else float(cfg.setpoints.lead))
         self.zio: ZenohIO | None = None
         self.notifier = Notifier()
         self.gc = GcPacer()

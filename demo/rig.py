@@ -210,7 +210,9 @@ def demo_config(zenoh_port: int, mav_port: int, rate_hz: float = 50.0, workers: 
         mavlink=MavlinkConfig(url=f"udpout:127.0.0.1:{mav_port}"),
         setpoints=SetpointConfig(rate_hz=rate_hz, lead=lead),
         geofence=GeofenceConfig(min=(-60.0, -60.0, -20.0), max=(60.0, 60.0, 0.5)),
-        safety=SafetyConfig(auto_arm=True, takeoff_altitude=TAKEOFF_ALTITUDE),
+        # the 0.2 m allowance is what scenario 2's gap leaves; the mock's responses peak ~0.25 m
+        # from the plan on the transit legs: brake only well beyond (docs/autopilot-limits.md)
+        safety=SafetyConfig(auto_arm=True, takeoff_altitude=TAKEOFF_ALTITUDE, tracking_brake=0.5),
         recording=RecordingConfig(path=str(recording) if recording is not None else ""),
     )
 
