@@ -350,6 +350,9 @@ class Commands:
     def lag_estimate(self) -> float | None:
         return self.lag.estimate
 
+    def _brake_name(self) -> str:
+        return "[safety] tracking_brake" if self.cfg.safety.tracking_brake else "[planner] tracking_allowance"
+
     def check_tracking(self, measured_at: float) -> None:
         """Each position sample: the time-aligned tracking error; above `[planner]
         tracking_allowance` (the margin the obstacles are inflated by) for TRACKING_SAMPLES
@@ -383,8 +386,8 @@ class Commands:
         ref = ctl.reference(measured_at)
         flying = fl.state is S.STREAMING and fl.airborne
         what = "braking to a stop and holding" if flying else "holding already"
-        self.report.event("tracking", f"tracking error {err:.2f} m over [planner] tracking_allowance {limit:.2f} m "
-                          f"(the margin obstacles are inflated by) for {self._over} samples: {what}",
+        self.report.event("tracking", f"tracking error {err:.2f} m over {self._brake_name()} {limit:.2f} m "
+                          f"for {self._over} samples: {what}",
                           error=round(err, 3), limit=limit, samples=self._over,
                           position=[round(float(x), 3) for x in st.position],
                           setpoint=None if ref is None else [round(float(x), 3) for x in ref])

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 from pymavlink.dialects.v20 import common as mavlink2
 
-from companion.config import Config, LimitsConfig, LiveConfig, RecordingConfig
+from companion.config import Config, LimitsConfig, LiveConfig, PlannerConfig, RecordingConfig
 from companion.mission import start_mission
 from companion.obstacles import Known
 from companion.route import Outcome
@@ -20,8 +20,10 @@ from planner_core import rest_jet
 
 def config(path: Path | str = "", queue: int = 4096, live: str = "", **rec: Any) -> Config:
     # a cold process checks its first obstacle slowly (imports): no decode deadline here
+    # the mission's box was placed for the vehicle radius alone (planning tests set no tracking
+    # allowance, as tests/companion/test_route.py does)
     return Config(recording=RecordingConfig(path=str(path), queue=queue, **rec), live=LiveConfig(foxglove=live),
-                  limits=LimitsConfig(decode_deadline=60.0))
+                  limits=LimitsConfig(decode_deadline=60.0), planner=PlannerConfig(tracking_allowance=0.0))
 
 
 class Wire:
