@@ -194,8 +194,13 @@ class Rig:
 
 
 def demo_config(zenoh_port: int, mav_port: int, rate_hz: float = 50.0, workers: int | None = None,
-                lead: float | str = "auto", recording: Path | None = None) -> Config:
-    from companion.config import PlannerConfig, RecordingConfig, SetpointConfig
+                lead: float | str = "auto", recording: Path | None = None, read_limits: bool = True) -> Config:
+    from companion.config import (
+        AutopilotLimitsConfig,
+        PlannerConfig,
+        RecordingConfig,
+        SetpointConfig,
+    )
 
     # the paper's scenario 2 passes a 1 m gap: with the scenario's 0.3 m vehicle radius that
     # leaves 0.2 m of tracking allowance each side (the default 0.4 m closes it); the tracking
@@ -214,20 +219,22 @@ def demo_config(zenoh_port: int, mav_port: int, rate_hz: float = 50.0, workers: 
         # from the plan on the transit legs: brake only well beyond (docs/autopilot-limits.md)
         safety=SafetyConfig(auto_arm=True, takeoff_altitude=TAKEOFF_ALTITUDE, tracking_brake=0.5),
         recording=RecordingConfig(path=str(recording) if recording is not None else ""),
+        autopilot_limits=AutopilotLimitsConfig(read=read_limits),
     )
 
 
 @contextlib.contextmanager
 def rig(out: Path, autopilot: str, rate_hz: float = 50.0, mock_args: tuple[str, ...] = (),
         mav_port: int | None = None, companion_mav_port: int | None = None,
-        workers: int | None = None, lead: float | str = "auto", recording: Path | None = None) -> Iterator[Rig]:
+        workers: int | None = None, lead: float | str = "auto", recording: Path | None = None,
+        read_limits: bool = True) -> Iterator[Rig]:
     """Mock + companion + our peer. `companion_mav_port` lets a relay sit between the two;
     `recording`: the companion's [recording] path (its MCAP file is complete once the rig closes)."""
     out.mkdir(parents=True, exist_ok=True)
     mav_port = mav_port or free_port(socket.SOCK_DGRAM)
     control_port, zenoh_port = free_port(), free_port()
     flight_log = out / "flight.jsonl"
-    cfg = demo_config(zenoh_port, companion_mav_port or mav_port, rate_hz, workers, lead, recording)
+    cfg = demo_config(zenoh_port, companion_mav_port or mav_port, rate_hz, workers, lead, recording, read_limits)
     cfg_path = out / "companion.toml"
     cfg_path.write_text(config_to_toml(cfg))
     py = sys.executable

@@ -588,6 +588,9 @@ def build_parser(prog: str = "python -m demo") -> argparse.ArgumentParser:
     p.add_argument("--quick", action="store_true", help="one short mission only (smoke test)")
     p.add_argument("--timeout", type=float, default=120.0, help="per mission, seconds")
     p.add_argument("--no-plots", action="store_true")
+    p.add_argument("--no-limits", action="store_true",
+                   help="do not read the autopilot's speed and acceleration limits (plan at the configured bounds "
+                        "only; docs/autopilot-limits.md): to compare the tracking with and without them")
     p.add_argument("--no-recording", action="store_true",
                    help="do not have the companion record the flight (out/demo/flight.mcap)")
     p.add_argument("--lead", type=_lead, default="auto", metavar="SECONDS|auto",
@@ -609,7 +612,8 @@ def main(argv: list[str] | None = None, prog: str = "python -m demo") -> int:
     print(f"bezier-companion demo: mock {args.autopilot} autopilot + companion service + Zenoh peer")
     try:
         recordings = out / "recordings"
-        with rig(out, args.autopilot, lead=args.lead, recording=None if args.no_recording else recordings) as r:
+        with rig(out, args.autopilot, lead=args.lead, recording=None if args.no_recording else recordings,
+                 read_limits=not args.no_limits) as r:
             print(f"  companion pid {r.companion.pid}, mock pid {r.mock.pid}, logs in {out}/")
             print("  waiting for the autopilot to be ready (a valid home)", flush=True)
             home = r.wait_home()
