@@ -34,7 +34,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from multiprocessing import reduction
+from multiprocessing import reduction, resource_tracker, shared_memory
 from typing import Any
 
 import numpy as np
@@ -50,6 +50,7 @@ from companion.setpoints import (
     realtime_here,
     sample,
 )
+from planner_core import Trajectory
 
 log = logging.getLogger("companion")
 
@@ -124,6 +125,7 @@ class SetpointProcess:
         self._feed: Feed | None = None
         self._lead = 0.0
         self._feeds: dict[int, Feed] = {}
+        self._segments: list[str] = []  # shared memory handed to the child, newest last
         self._next_id = 0
         self._route: tuple[Any, ...] = ()
         self._lock = threading.Lock()  # one writer of the command pipe at a time
@@ -150,7 +152,24 @@ class SetpointProcess:
         self._feeds[self._next_id] = feed
         if len(self._feeds) > _FEEDS_KEPT:
             del self._feeds[min(self._feeds)]
-        self._post(("feed", (self._next_id, feed.trajectory, feed.t_base, self.yaw.last)))
+        # The curve's numbers go through shared memory and the pipe carries only its name: a
+        # plan of 1000 segments pickled with its corridors is ~1 MB, which the child would read
+        # from the 64 kB pipe in pieces, waiting on a busy parent for each (missed ticks).
+        traj = feed.trajectory
+        times = np.ascontiguousarray(traj.times, dtype=float)
+        points = np.ascontiguousarray(traj.control_points, dtype=float)
+        shm = shared_memory.SharedMemory(create=True, size=times.nbytes + points.nbytes)
+        # the child unlinks it once read; not the resource tracker's to clean up at our exit
+        resource_tracker.unregister(shm._name, "shared_memory")  # type: ignore[attr-defined]
+        buf = shm.buf
+        assert buf is not None
+        buf[: times.nbytes] = times.tobytes()
+        buf[times.nbytes:] = points.tobytes()
+        del buf
+        self._segments.append(shm.name)
+        del self._segments[:-_FEEDS_KEPT]
+        shm.close()
+        self._post(("feed", (self._next_id, shm.name, times.shape, points.shape, feed.t_base, self.yaw.last)))
 
     @property
     def lead(self) -> float:
@@ -248,6 +267,12 @@ class SetpointProcess:
         if self._to_child is not None:
             self._to_child.close()
             self._to_child = None
+        for name in self._segments:  # the child unlinks what it read; what it never read is ours
+            with contextlib.suppress(FileNotFoundError):
+                seg = shared_memory.SharedMemory(name=name)
+                seg.close()
+                seg.unlink()
+        self._segments.clear()
         if self._reader is not None and self._reader is not threading.current_thread():
             self._reader.join(timeout)
 
@@ -352,6 +377,24 @@ class _Writer:
         return self.pack(msg)
 
 
+def _read_curve(name: str, t_shape: tuple[int, ...], p_shape: tuple[int, ...]) -> Trajectory:
+    """The curve the parent put in shared memory `name` (times, control points), copied out; the
+    segment is unlinked (its one reader is done with it)."""
+    seg = shared_memory.SharedMemory(name=name)  # (3.11 registers it with the tracker; unlink unregisters)
+    try:
+        buf = seg.buf
+        assert buf is not None
+        n_t = int(np.prod(t_shape)) * 8
+        times = np.frombuffer(buf[:n_t], dtype=float).reshape(t_shape).copy()
+        points = np.frombuffer(buf[n_t:n_t + int(np.prod(p_shape)) * 8], dtype=float).reshape(p_shape).copy()
+        del buf
+    finally:
+        seg.close()
+        with contextlib.suppress(FileNotFoundError):
+            seg.unlink()
+    return Trajectory(times, points)
+
+
 def _child_main(start: _Start, inbox: multiprocessing.connection.Connection, records_fd: Any) -> None:
     # `start.fd` and `records_fd` arrive here as plain descriptors (_Fd's reduction).
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the service stops us (first signal: hand-over)
@@ -384,8 +427,8 @@ def _child_main(start: _Start, inbox: multiprocessing.connection.Connection, rec
             if body is None:
                 feed = None
             else:
-                fid, traj, t_base, yaw_last = body
-                feed = (fid, Feed(traj, t_base))
+                fid, name, t_shape, p_shape, t_base, yaw_last = body
+                feed = (fid, Feed(_read_curve(name, t_shape, p_shape), t_base))
                 yaw.last = yaw_last
         elif kind == "lead":
             lead = body
