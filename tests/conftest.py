@@ -15,6 +15,22 @@ def _px4_mock_ready_at_boot(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(px4, "DEFAULT_READY_S", 0.0)
 
 
+@pytest.fixture(autouse=True)
+def _ardupilot_mock_origin_at_boot(monkeypatch: pytest.MonkeyPatch) -> None:
+    """In-process ArduPilot mocks set their EKF origin at boot unless a test asks for another
+    delay than the stock one: ArduCopter's ~40 s wait (sitl_mock.ardupilot) is the subject of
+    test_mock_ardupilot_strict.py, which sets its delays, not of every test that flies."""
+    from sitl_mock import server
+
+    stock = server.MockConfig().ekf_origin_delay_s
+    rules = server.ArduPilotRules
+
+    def fast(rc_throttle: int | None, ekf_origin_delay_s: float, *rest: object) -> object:
+        return rules(rc_throttle, 0.0 if ekf_origin_delay_s == stock else ekf_origin_delay_s, *rest)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(server, "ArduPilotRules", fast)
+
+
 @pytest.fixture(scope="session", autouse=True)
 def _compiled_planner_kernel() -> None:
     """Compile the planner's numba kernel once, here, into its on-disk cache: the companion's
