@@ -120,6 +120,9 @@ class _Control:
     def now(self) -> float:
         return self.t
 
+    def committed(self) -> float:  # no lead in this fake: what was sent ends now
+        return self.t
+
     def swap(self, *_: Any) -> bool:
         self.refusal = self.refusals.pop(0) if self.refusals else ""
         return not self.refusal
