@@ -31,6 +31,19 @@ def _ardupilot_mock_origin_at_boot(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(server, "ArduPilotRules", fast)
 
 
+@pytest.fixture(autouse=True)
+def _px4_mock_on_the_calibrated_response(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> None:
+    """In-process PX4 mocks respond as the calibrated (ArduCopter-like, ~60 ms) vehicle unless a
+    test gives its own: the companion's flights were written against it, and PX4 SIH's 0.3 s lag
+    (sitl_mock's PX4 default, `px4_sih`) is the subject of its own tests (the response's, the lag
+    estimate's), not of every test that flies. The CLI mock and the e2e rigs say what they fly."""
+    if request.node.module.__name__.endswith("test_mock_px4_response"):
+        return
+    from sitl_mock import server
+
+    monkeypatch.setitem(server.DEFAULT_RESPONSE, "px4", "calibrated")
+
+
 @pytest.fixture(scope="session", autouse=True)
 def _compiled_planner_kernel() -> None:
     """Compile the planner's numba kernel once, here, into its on-disk cache: the companion's

@@ -26,6 +26,7 @@ from companion.wire.peer import (
     signing_now,
 )
 from sitl_mock import MockAutopilot, MockConfig
+from sitl_mock.vehicle import RESPONSES
 
 MISSION = (b'{"id": "square", "waypoints": [[5, 0, -1.5], [5, 5, -1.5], [0, 5, -1.5], [0, 0, -1.5]],'
            b' "durations": [3.0, 3.0, 3.0]}')
@@ -34,6 +35,8 @@ KEY = bytes(range(32))
 
 def _mock(tmp_path: Path, port: int, name: str = "f", bind: int | None = None, **kw: Any) -> MockAutopilot:
     at = f"@127.0.0.1:{bind}" if bind is not None else ""
+    # the response the other in-process flights use (PX4 SIH's 0.3 s lag has tests of its own)
+    kw.setdefault("vehicle", RESPONSES["calibrated"])
     return MockAutopilot(MockConfig(autopilot="px4", endpoints=[f"udpout:127.0.0.1:{port}{at}"],
                                     log_path=str(tmp_path / f"{name}.jsonl"), log_rate_hz=50, **kw)).start()
 
