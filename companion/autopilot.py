@@ -111,10 +111,11 @@ class AutopilotWatch:
         if st.autopilot == "ardupilot" and st.sw_version is None:
             with contextlib.suppress(CommandFailed, OSError):  # which rate parameters it has
                 await self.link.request_version()
-        await self._ask_home()
         if self.link.state.autopilot == "px4" and self.link.events.metadata is None:
-            # PX4's events in words: its metadata over MAVLink FTP (or the cache), meanwhile
+            # PX4's events in words: its metadata over MAVLink FTP (or the cache), meanwhile;
+            # before asking for home, which a PX4 not yet ready answers only at its origin
             self._events_task = asyncio.get_running_loop().create_task(self.link.events.load())
+        await self._ask_home()
         await asyncio.sleep(max(0.0, since + TELEMETRY_CHECK - time.monotonic()))
         if st.home is None:
             await self._ask_home()
