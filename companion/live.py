@@ -8,11 +8,11 @@ client, never waits. It gets exactly what the MCAP file gets, from the recorder'
 
 from __future__ import annotations
 
-import ipaddress
 import logging
 from typing import Any
 
 from companion import channels as ch
+from companion.wire.zenoh import loopback
 
 log = logging.getLogger("companion")
 
@@ -24,15 +24,6 @@ def parse_address(text: str) -> tuple[str, int]:
     if not sep or not port.isdigit() or not 0 <= int(port) < 65536:
         raise ValueError(f"[live] foxglove = {text!r}: expected HOST:PORT, e.g. 127.0.0.1:8765")
     return (host.strip("[]") or "127.0.0.1"), int(port)
-
-
-def loopback(host: str) -> bool:
-    if host == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
 
 
 class LiveSink:

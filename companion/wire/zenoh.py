@@ -69,7 +69,11 @@ def _loopback(endpoint: str) -> bool:
     proto, _, rest = endpoint.partition("/")
     if proto.startswith("unixsock") or proto == "unixpipe":
         return True
-    host = rest.split("#")[0].rsplit(":", 1)[0].strip("[]")
+    return loopback(rest.split("#")[0].rsplit(":", 1)[0].strip("[]"))
+
+
+def loopback(host: str) -> bool:
+    """A host name or address that only this computer reaches (localhost, 127.0.0.0/8, ::1)."""
     if host == "localhost":
         return True
     try:
