@@ -232,12 +232,16 @@ def replay_one(rec: dict[str, Any]) -> Replayed:
     if rec.get("call") is None:
         return Replayed(rec["seq"], name, False, rec.get("latency_ms", 0.0), 0.0, "the call was not recorded (not picklable)")
     fn, args = loads(rec["call"])
-    use_compiled_kernel(bool(rec.get("compiled")), "replay: as recorded")
+    # process-wide switch: borrowed for this call only, or a library user's later plans (and
+    # the next test in the same process) would run as the recording did
+    before = use_compiled_kernel(bool(rec.get("compiled")), "replay: as recorded")
     t0 = time.perf_counter()
     try:
         result: Any = fn(*args)
     except Exception as exc:
         result = exc
+    finally:
+        use_compiled_kernel(before is None, before or "")
     took = (time.perf_counter() - t0) * 1000
     if fingerprint(result) == rec["fingerprint"]:
         return Replayed(rec["seq"], name, True, rec.get("latency_ms", 0.0), took)

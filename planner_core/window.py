@@ -52,15 +52,18 @@ _ORD = np.repeat(np.arange(1, 5), 3).astype(float)
 _kernel_off: list[str] = []  # set by use_compiled_kernel(False): this process never loads numba
 
 
-def use_compiled_kernel(enabled: bool, reason: str = "disabled by the caller") -> None:
+def use_compiled_kernel(enabled: bool, reason: str = "disabled by the caller") -> str | None:
     """Process-wide: allow the compiled pass (the default) or, with `enabled=False`, plan
     without it and never import numba (~105 MB resident; loading it from its cache ~0.4 s):
     the companion's processes, a one-shot CLI plan of a small problem. Per plan, the same
-    choice is `IterativeOptions.compiled`."""
+    choice is `IterativeOptions.compiled`. Returns the reason it was off before (None: it was
+    on), so a caller that borrows the switch (a replay) can put it back."""
+    before = _kernel_off[0] if _kernel_off else None
     if enabled:
         _kernel_off.clear()
     else:
         _kernel_off[:] = [reason]
+    return before
 
 
 def _kernel_or_reason() -> ModuleType | str:

@@ -96,3 +96,22 @@ def test_the_recorded_flight_in_tests_data_replays_bit_identically(capsys: pytes
     out = capsys.readouterr().out
     n = out.count(": identical")
     assert n >= 3 and f"{n} of {n} plans reproduced bit-identically" in out
+
+
+def test_replay_gives_the_compiled_switch_back_as_it_found_it(tmp_path: Path) -> None:
+    """A replay runs each call with the recording's choice of compiled pass; the switch is
+    process-wide, so after the replay a caller's own plans run as they did before it (this leaked
+    once, and the planner tests that ran after a replay in the same process planned uncompiled)."""
+    from planner_core.window import kernel_unavailable, use_compiled_kernel
+
+    cfg = config(tmp_path)
+    path = record(tmp_path, [plan_call(cfg)])
+    (rec,) = plan_records(path)
+    for before, recorded in ((True, False), (False, True), (True, True)):
+        use_compiled_kernel(before, "the caller's own reason")
+        try:
+            seen_before = kernel_unavailable()
+            replay.replay_one({**rec, "compiled": recorded})
+            assert kernel_unavailable() == seen_before
+        finally:
+            use_compiled_kernel(True)
