@@ -490,6 +490,7 @@ class MavlinkLink:
         elif kind == "AUTOPILOT_VERSION":
             v = int(msg.flight_sw_version)
             st.sw_version = ((v >> 24) & 0xFF, (v >> 16) & 0xFF, (v >> 8) & 0xFF)
+            self.events.on_message(kind, msg)  # the events metadata is keyed by the firmware
         elif kind == "RC_CHANNELS":
             if int(msg.chancount) >= 3 and 800 <= int(msg.chan3_raw) <= 2200:
                 st.rc_throttle = int(msg.chan3_raw)
@@ -505,7 +506,7 @@ class MavlinkLink:
                 st.notes.append(Note(now, "event", said.text, info.level, info.id, said.name, words=True))
             else:
                 st.notes.append(Note(now, "event", self.events.unknown(info.id), info.level, info.id, info.name))
-        elif kind in ("FILE_TRANSFER_PROTOCOL", "COMPONENT_METADATA", "AUTOPILOT_VERSION"):
+        elif kind in ("FILE_TRANSFER_PROTOCOL", "COMPONENT_METADATA"):
             self.events.on_message(kind, msg)
         elif kind == "PARAM_VALUE" and msg.get_srcComponent() == self.cfg.vehicle.autopilot_component:
             name = param_name(msg.param_id)

@@ -7,14 +7,12 @@ import re
 import time
 from pathlib import Path
 
-import pytest
 from companionkit import Events, service_for, serving, until
 
 from companion.wire.messages import Command
 from sitl_mock import MockAutopilot, MockConfig
 
 
-@pytest.mark.xfail(strict=False, reason="after the session-7 merges the metadata is not loaded within 20 s on this path (the decoding and cache tests pass; cause not found in the time left: closing note)")
 def test_arming_refusal_before_px4_is_ready_names_the_reason_in_words(tmp_path: Path) -> None:
     mock = MockAutopilot(MockConfig(autopilot="px4", endpoints=["udpin:127.0.0.1:0"], px4_ready_s=600.0,
                                     log_path=str(tmp_path / "f.jsonl"))).start()
