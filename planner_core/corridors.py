@@ -50,7 +50,6 @@ from dataclasses import dataclass
 from itertools import combinations
 from typing import Any
 
-import daqp
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -58,6 +57,7 @@ from planner_core.broadphase import count_beyond, overlapping_pairs
 from planner_core.errors import FieldError
 from planner_core.facets import facet_masks, triples
 from planner_core.problem import FloatArray, Polytope
+from planner_core.qp import SENSE_EQUALITY, DaqpSolver, QPStatus
 
 IntArray = NDArray[np.intp]
 BoolArray = NDArray[np.bool_]
@@ -427,6 +427,8 @@ def exclusion_margin(corridor: Polytope, obstacle_vertices: ArrayLike) -> float:
 
 _SVM_H = np.diag([1.0, 1.0, 1.0, 1e-12])
 _SVM_F = np.zeros(4)
+_SVM_SOLVER = DaqpSolver()  # daqp's default settings
+_PROX_SOLVER = DaqpSolver(eps_prox=-1.0)  # automatic proximal regularisation: the Hessian is singular
 
 
 def max_margin_normal(points: FloatArray, verts: FloatArray) -> FloatArray | None:
@@ -449,14 +451,14 @@ def max_margin_normal(points: FloatArray, verts: FloatArray) -> FloatArray | Non
     )
     k = rows.shape[0]
     sense = np.zeros(k, dtype=np.int32)  # fresh each call: daqp writes its active set back
-    x, _, flag, _ = daqp.solve(_SVM_H, _SVM_F, rows, -np.ones(k), np.full(k, -1e30), sense)
-    if flag == -1:
+    sol = _SVM_SOLVER.solve(_SVM_H, _SVM_F, rows, -np.ones(k), np.full(k, -1e30), sense)
+    if sol.status is QPStatus.INFEASIBLE:
         # a very thin gap makes the SVM badly scaled, and daqp may call it infeasible:
         # settle it with the closest-point pair, which is always well posed
         return _closest_pair_normal(p, v)
-    w = np.asarray(x[:3], dtype=float)
+    w = np.asarray(sol.x[:3], dtype=float)
     norm = float(np.linalg.norm(w))
-    if flag not in (1, 2) or not np.isfinite(norm) or norm == 0.0:
+    if not sol.ok or not np.isfinite(norm) or norm == 0.0:
         return _fallback_normal(points, verts)
     return -w / norm
 
@@ -478,11 +480,11 @@ def _closest_pair_normal(points: FloatArray, verts: FloatArray) -> FloatArray | 
     n = na + nb
     upper = np.concatenate([np.full(n, 1.0), np.ones(2)])
     lower = np.concatenate([np.zeros(n), np.ones(2)])
-    sense = np.concatenate([np.zeros(n, dtype=np.int32), np.full(2, 5, dtype=np.int32)])
-    x, _, flag, _ = daqp.solve(h, f, eq, upper, lower, sense, eps_prox=-1.0)
-    if flag not in (1, 2):
+    sense = np.concatenate([np.zeros(n, dtype=np.int32), np.full(2, SENSE_EQUALITY, dtype=np.int32)])
+    sol = _PROX_SOLVER.solve(h, f, eq, upper, lower, sense)
+    if not sol.ok:
         return None
-    d = np.asarray(m @ np.asarray(x, dtype=float), dtype=float)  # p* - v*
+    d = np.asarray(m @ np.asarray(sol.x, dtype=float), dtype=float)  # p* - v*
     norm = float(np.linalg.norm(d))
     if norm <= 1e-12:
         return None

@@ -37,7 +37,7 @@ from planner_core.jets import (
     trajectory_from_jets,
 )
 from planner_core.problem import FloatArray, Problem
-from planner_core.qp import refine_active_set, silenced_stdout
+from planner_core.qp import OsqpSolver, refine_active_set
 from planner_core.result import PlanResult, PlanStatus
 from planner_core.window import _stack_rows
 
@@ -174,18 +174,15 @@ def _solve_sparse(
 
 
 def _osqp_refined(qp: _GlobalQP, x0: FloatArray | None) -> FloatArray | None:
-    import osqp
-
-    solver = osqp.OSQP()
+    solver = OsqpSolver()
     settings: dict[str, Any] = dict(verbose=False, polishing=False, eps_abs=FAST_EPS, eps_rel=FAST_EPS, max_iter=4000)
-    with silenced_stdout():
-        solver.setup(sp.triu(qp.P, format="csc"), qp.q, qp.G, qp.lo_t, qp.hi_t, **settings)
-        if x0 is not None:
-            solver.warm_start(x=x0)
-        res = solver.solve(raise_error=False)
-    if res.x is None or not np.all(np.isfinite(res.x)):
+    solver.setup(sp.triu(qp.P, format="csc"), qp.q, qp.G, qp.lo_t, qp.hi_t, **settings)
+    if x0 is not None:
+        solver.warm_start(x=x0)
+    res = solver.solve()
+    if res.x is None or res.y is None:
         return None
-    return refine_active_set(qp.P, qp.q, qp.G, qp.lo_t, qp.hi_t, np.asarray(res.x), np.asarray(res.y), tol=1e-10)
+    return refine_active_set(qp.P, qp.q, qp.G, qp.lo_t, qp.hi_t, res.x, res.y, tol=1e-10)
 
 
 def _jets_of(ctrl: FloatArray, problem: Problem) -> FloatArray:

@@ -54,7 +54,7 @@ from planner_core.problem import (
     FloatArray,
     Polytope,
 )
-from planner_core.qp import solve_qp
+from planner_core.qp import DaqpSolver, solve_qp
 
 BoolArray = NDArray[np.bool_]
 CorridorOf = Callable[[int], Polytope | None]
@@ -519,17 +519,20 @@ def _bounds_key(bounds: Bounds) -> bytes:
 def _solve_dense(
     P: FloatArray, q: FloatArray, G: FloatArray, lo: FloatArray, hi: FloatArray, backend: str
 ) -> tuple[FloatArray | None, str]:
-    """daqp called directly on arrays built here (already contiguous float64, limits clipped):
+    """daqp's reusable handle on arrays built here (already contiguous float64, limits clipped):
     `solve_qp`'s conversions and result object cost as much as the solve at this size."""
     if backend != "daqp":
         res = solve_qp(P, q, G, lo, hi, backend)
         return (res.x if res.ok else None), res.status.value
-    import daqp
+    sol = _dense_solver().solve(P, q, G, hi, lo, np.zeros(lo.size, dtype=np.int32))
+    if sol.ok:
+        return np.asarray(sol.x, dtype=np.float64), sol.status.value
+    return None, sol.status.value
 
-    x, _, flag, _ = daqp.solve(P, q, G, hi, lo, np.zeros(lo.size, dtype=np.int32), primal_tol=1e-10, iter_limit=2000)
-    if flag == 1 or flag == 2:
-        return np.asarray(x, dtype=np.float64), "optimal"
-    return None, "infeasible" if flag == -1 else "failed"
+
+@lru_cache(maxsize=1)
+def _dense_solver() -> DaqpSolver:
+    return DaqpSolver(primal_tol=1e-10, iter_limit=2000)
 
 
 _MARGIN_SIGN = MARGIN * _SIGN

@@ -40,6 +40,7 @@ from numpy.typing import NDArray
 
 from planner_core.constraints import INF, cost_matrices
 from planner_core.jets import CHECK_TOL, MARGIN, NV, ProblemCache, _tighten
+from planner_core.qp import DaqpSolver
 
 FloatArray = NDArray[np.float64]
 
@@ -127,9 +128,7 @@ class WindowSolver:
     """
 
     def __init__(self, cache: ProblemCache, cost_order: int = 4) -> None:
-        import daqp
-
-        self._daqp_solve = daqp.solve
+        self._dense = DaqpSolver(primal_tol=1e-10, iter_limit=2000)
         problem = cache.problem
         self.problem = problem
         self.cache = cache
@@ -250,20 +249,18 @@ class WindowSolver:
             hw = lims[1, idx] / nrm
             lw = lims[0, idx] / nrm
             ts = perf_counter()
-            u, _, flag, info = self._daqp_solve(
-                eye, f, gw, hw, lw, self.sense[: idx.size], primal_tol=1e-10, iter_limit=2000
-            )
+            sol = self._dense.solve(eye, f, gw, hw, lw, self.sense[: idx.size])
             t_solve += perf_counter() - ts
-            if flag != 1 and flag != 2:
+            if not sol.ok:
                 return None
-            x = lt @ u
+            x = lt @ sol.x
             r = G @ x
             # hi_x < hi - 1e-6 (1 + |hi|): passing this check passes the untightened rows
             bad = (r > hi_x) | (r < lo_x)
             if not bad.any():
                 act = self.active[r0:r1]
                 act[:] = False
-                act[idx[info["lam"] != 0.0]] = True
+                act[idx[sol.lam != 0.0]] = True
                 self.times = (t_built - t_start, t_solve, perf_counter() - t_built - t_solve)
                 self.rows_used = int(idx.size)
                 return np.asarray((x * c).reshape(nf, 4, 3))
