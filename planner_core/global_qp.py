@@ -39,7 +39,7 @@ from planner_core.jets import (
 from planner_core.problem import FloatArray, Problem
 from planner_core.qp import OsqpSolver, refine_active_set
 from planner_core.result import PlanResult, PlanStatus
-from planner_core.window import _stack_rows
+from planner_core.window import stack_rows
 
 FAST_EPS = 1e-3  # OSQP accuracy before refinement: the refinement makes it exact
 
@@ -94,7 +94,7 @@ class _GlobalQP:
     def __init__(self, problem: Problem, cache: ProblemCache, cost: str) -> None:
         m = problem.m
         ones = np.ones((m, NV))
-        off, n1, n2, ab, c0, lim = _stack_rows(cache, ones)
+        off, n1, n2, ab, c0, lim = stack_rows(cache, ones)
         r0, r1 = n1[0], off[m - 2] + n1[m - 2] + n2[m - 2]
         seg = np.repeat(np.arange(m - 1), np.diff(off))[r0:r1]
         rows = ab[r0:r1]
@@ -187,11 +187,11 @@ def _osqp_refined(qp: _GlobalQP, x0: FloatArray | None) -> FloatArray | None:
 
 def _jets_of(ctrl: FloatArray, problem: Problem) -> FloatArray:
     """Jets at the waypoints from control points (the start jet of each segment), vectorised."""
-    from planner_core.certificate import _jet_rows
+    from planner_core.certificate import jet_rows
 
     d = problem.durations
     jets = initial_jets(problem)
-    u0 = _jet_rows()[0]
+    u0 = jet_rows()[0]
     jets[1:-1] = np.einsum("kp,spd->skd", u0, ctrl[1:, :5]) * (d[1:, None] ** -np.arange(5.0))[:, :, None]
     return jets
 
