@@ -121,3 +121,7 @@ def test_backends_are_imported_only_inside_the_qp_package() -> None:
     # and the qp package does hold them: one module per backend
     inside = {imp for name, path in _modules().items() if name.startswith("planner_core.qp.") for imp in _imports(name, path)}
     assert {"daqp", "osqp", "scipy.optimize"} <= inside
+
+
+def test_planner_core_has_no_import_cycle() -> None:
+    assert _cycles(_graph()) == []
