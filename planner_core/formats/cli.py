@@ -71,7 +71,7 @@ def _cmd_plan(args: argparse.Namespace, started: float) -> int:
     from planner_core.window import use_compiled_kernel
 
     try:
-        from planner_core.corridors import CorridorError
+        from planner_core.geometry import CorridorError
     except ImportError:  # pragma: no cover - corridors module always ships
         CorridorError = ValueError  # type: ignore[misc,assignment]
 

@@ -90,7 +90,7 @@ def replan_command(args: argparse.Namespace) -> int:
     from planner_core.verify import verify
 
     try:
-        from planner_core.corridors import CorridorError
+        from planner_core.geometry import CorridorError
     except ImportError:  # pragma: no cover
         CorridorError = ValueError  # type: ignore[misc,assignment]
 

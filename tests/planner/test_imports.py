@@ -125,3 +125,15 @@ def test_backends_are_imported_only_inside_the_qp_package() -> None:
 
 def test_planner_core_has_no_import_cycle() -> None:
     assert _cycles(_graph()) == []
+
+
+def test_no_module_imports_another_modules_private_names() -> None:
+    mods = _modules()
+    found = []
+    for name, path in mods.items():
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and node.module in mods and node.module != name:
+                found += [f"{name}: {node.module}.{a.name}" for a in node.names
+                          if a.name.startswith("_") and not a.name.startswith("__")]
+    assert found == []
