@@ -37,7 +37,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from planner_core import corridors as cor
+from planner_core import geometry as cor
 from planner_core.formats.io import load_scenario
 from planner_core.problem import Polytope
 
@@ -101,7 +101,7 @@ def bench(repeats: int = 50) -> list[Row]:
     def update(cold: bool) -> Callable[[], object]:
         def run() -> object:
             if cold:
-                cor._VERTEX_CACHE.clear()
+                cor.clear_vertex_cache()
             return cor.update_corridors(wps, cors, obstacles, [popup], map_box, r, prune=False)
         return run
 
@@ -115,7 +115,7 @@ def bench(repeats: int = 50) -> list[Row]:
     fw, fcors, fpop, fmap, fr = flight_popup()
 
     def flight() -> object:
-        cor._VERTEX_CACHE.clear()
+        cor.clear_vertex_cache()
         return cor.update_corridors(fw, fcors, [], [fpop], fmap, fr, prune=False)
 
     _, changed = cor.update_corridors(fw, fcors, [], [fpop], fmap, fr, prune=False)
@@ -135,7 +135,7 @@ def bench(repeats: int = 50) -> list[Row]:
     sc_map = (np.asarray(raw["map"]["min"], dtype=float), np.asarray(raw["map"]["max"], dtype=float))
 
     def scale_build() -> object:
-        cor._VERTEX_CACHE.clear()
+        cor.clear_vertex_cache()
         return cor.build_corridors(sc_wps, boxes, sc_map, float(raw["vehicle_radius"]))
 
     med, best = _time(scale_build, max(repeats // 5, 3))

@@ -5,7 +5,7 @@
 Scenarios (seeded): 6-13 waypoints in a box map, box and triangular-prism
 obstacles placed near the path but never blocking a straight segment
 (reject-sampled with the corridor builder, vehicle radius 0.3), corridors from
-`planner_core.corridors.build_corridors`, times from
+`planner_core.geometry.build_corridors`, times from
 `planner_core.timing.allocate_times`; bounds v 3-7, a 3-6.5 and jerk / snap
 drawn low enough to bind. "Fast" variants fly some of the scenes with every
 duration scaled by 0.6-0.85, which makes the bounds bind more often.
@@ -34,7 +34,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from planner_core import Bounds, IterativeOptions, Polytope, Problem, Trajectory, verify
 from planner_core.constraints import integrated_cost
-from planner_core.corridors import (
+from planner_core.geometry import (
     CorridorError,
     build_corridors,
     polytope_from_box,

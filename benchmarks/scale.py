@@ -34,7 +34,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-import planner_core.corridors as cor
+import planner_core.geometry as cor
 from planner_core import plan
 from planner_core.formats.io import load_scenario
 
@@ -138,7 +138,7 @@ class _CorridorTimer:
 
 
 def run_once(text: str) -> Row:
-    cor._VERTEX_CACHE.clear()  # a user's obstacles are new to the process
+    cor.clear_vertex_cache()  # a user's obstacles are new to the process
     t0 = time.perf_counter()
     with _CorridorTimer() as timer:
         sc = load_scenario(json.loads(text))

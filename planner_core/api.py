@@ -55,7 +55,6 @@ if TYPE_CHECKING:
         parse_polytope,
     )
     from planner_core.collision import first_hit, inflate
-    from planner_core.corridors import CorridorError, build_corridors, polytope_vertices
     from planner_core.errors import FieldError
     from planner_core.feasibility import Binding, ScaleSearch, scale_search
     from planner_core.feasibility import scaled as scaled_durations
@@ -66,6 +65,7 @@ if TYPE_CHECKING:
         trajectory_to_dict,
         vehicle_bound,
     )
+    from planner_core.geometry import CorridorError, build_corridors, polytope_vertices
     from planner_core.indices import PlannedChange, WaypointMap, to_planned
     from planner_core.iterative import IterativeOptions, warm_up
     from planner_core.lower_bound import FlightTimeBound, flight_time_lower_bound
@@ -104,11 +104,11 @@ _WHERE: dict[str, tuple[str, str]] = {
     "Binding": ("planner_core.feasibility", "Binding"),
     "Bounds": ("planner_core.problem", "Bounds"),
     "braking_trajectory": ("planner_core.braking", "braking_trajectory"),
-    "build_corridors": ("planner_core.corridors", "build_corridors"),
+    "build_corridors": ("planner_core.geometry", "build_corridors"),
     "ChangeError": ("planner_core.changes", "ChangeError"),
     "ChangeSet": ("planner_core.changes", "ChangeSet"),
     "corridor_cap": ("planner_core.timing", "corridor_cap"),
-    "CorridorError": ("planner_core.corridors", "CorridorError"),
+    "CorridorError": ("planner_core.geometry", "CorridorError"),
     "DEFAULT_MIN_DURATION": ("planner_core.timing", "DEFAULT_MIN_DURATION"),
     "Diagnosis": ("planner_core.result", "Diagnosis"),
     "durations_from_lengths": ("planner_core.timing", "durations_from_lengths"),
@@ -136,7 +136,7 @@ _WHERE: dict[str, tuple[str, str]] = {
     "PlanResult": ("planner_core.result", "PlanResult"),
     "PlanStatus": ("planner_core.result", "PlanStatus"),
     "Polytope": ("planner_core.problem", "Polytope"),
-    "polytope_vertices": ("planner_core.corridors", "polytope_vertices"),
+    "polytope_vertices": ("planner_core.geometry", "polytope_vertices"),
     "Problem": ("planner_core.problem", "Problem"),
     "RemoveWaypoint": ("planner_core.changes", "RemoveWaypoint"),
     "replan": ("planner_core.replan", "replan"),

@@ -9,11 +9,18 @@ from __future__ import annotations
 
 from functools import cache, lru_cache
 from math import comb, factorial
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 
-from planner_core.problem import DEGREE, JET_ORDER, FloatArray, Trajectory
+if TYPE_CHECKING:
+    from planner_core.problem import Trajectory  # the value type sits above this module
+
+FloatArray = NDArray[np.float64]
+
+DEGREE = 9
+JET_ORDER = 5  # position .. snap
 
 N = DEGREE
 

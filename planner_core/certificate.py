@@ -17,7 +17,7 @@ from functools import lru_cache
 import numpy as np
 
 from planner_core.bezier import certificate_matrix, hodograph_matrix
-from planner_core.constraints import HULL_PIECES, _unit_templates
+from planner_core.constraints import HULL_PIECES, unit_templates
 from planner_core.problem import (
     DEGREE,
     JET_ORDER,
@@ -34,31 +34,35 @@ from planner_core.problem import (
 # d = 1 times d**p for an integer p in -7..4 (hull maps -4..4, snap cost 1 - 2*4 + 0..8).
 # One table of d's powers and a gather scale a whole precomputed layout, so a cache miss
 # costs a few numpy calls instead of building matrices in Python loops.
-_POW_LO = -7
-_POW_EXP = np.arange(_POW_LO, 5, dtype=float)
+# The row layout below (and `power_table`, `read_only`, `hodograph_limits`, `jet_rows`) is
+# public: localqp builds its QP on the same certified rows, and must not copy this layout.
+POWER_LO = -7
+POWER_EXPONENTS = np.arange(POWER_LO, 5, dtype=float)
 # the certified hodograph points: orders 1..4, each on HULL_PIECES de Casteljau pieces
 _CERT_BLOCKS = tuple(certificate_matrix(k, HULL_PIECES) for k in range(1, 5))
-_ORDER_OF_ROW = np.concatenate([np.full(b.shape[0], k) for k, b in enumerate(_CERT_BLOCKS, start=1)])
+ORDER_OF_ROW = np.concatenate([np.full(b.shape[0], k) for k, b in enumerate(_CERT_BLOCKS, start=1)])
 # (2, 3 n): index of each hodograph value's lower (upper) bound in the 24 entries of (lo, hi) flattened
-_LIM_IDX = np.stack([((_ORDER_OF_ROW - 1)[:, None] * 3 + np.arange(3)).ravel() + 12 * side for side in (0, 1)])
-_HODO = slice(N_CTRL, None)  # hull rows 10..: certified hodograph points of orders 1..4
-_INNER = slice(1, DEGREE)  # control points P^1..P^8
-_N_HODO = int(_ORDER_OF_ROW.size)  # certified hodograph points of orders 1..4 per segment
+LIMIT_INDEX = np.stack([((ORDER_OF_ROW - 1)[:, None] * 3 + np.arange(3)).ravel() + 12 * side for side in (0, 1)])
+HODO_ROWS = slice(N_CTRL, None)  # hull rows 10..: certified hodograph points of orders 1..4
+INNER_POINTS = slice(1, DEGREE)  # control points P^1..P^8
+N_HODO = int(ORDER_OF_ROW.size)  # certified hodograph points of orders 1..4 per segment
 
 
-def _power_table(d: float) -> FloatArray:
-    out: FloatArray = np.power(d, _POW_EXP)
+def power_table(d: float) -> FloatArray:
+    """d ** POWER_EXPONENTS: index it by (power - POWER_LO)."""
+    out: FloatArray = np.power(d, POWER_EXPONENTS)
     return out
 
 
-def _read_only(a: FloatArray) -> FloatArray:
+def read_only(a: FloatArray) -> FloatArray:
+    """`a`, made read-only in place (cached arrays are shared between callers)."""
     a.setflags(write=False)
     return a
 
 
-def _limits(bounds: Bounds) -> FloatArray:
+def hodograph_limits(bounds: Bounds) -> FloatArray:
     """(2, n, 3): lower and upper bound of every certified hodograph point of orders 1..4."""
-    return np.asarray(np.concatenate((bounds.lo, bounds.hi), axis=None)[_LIM_IDX].reshape(2, _N_HODO, 3))
+    return np.asarray(np.concatenate((bounds.lo, bounds.hi), axis=None)[LIMIT_INDEX].reshape(2, N_HODO, 3))
 
 
 def _norm_excess(h: FloatArray, bounds: Bounds) -> FloatArray | None:
@@ -69,11 +73,11 @@ def _norm_excess(h: FloatArray, bounds: Bounds) -> FloatArray | None:
         return None
     from planner_core.constraints import polygon_excess
 
-    return polygon_excess(h, bounds.horizontal[_ORDER_OF_ROW - 1], bounds.sides)
+    return polygon_excess(h, bounds.horizontal[ORDER_OF_ROW - 1], bounds.sides)
 
 
 @lru_cache(maxsize=1)
-def _jet_rows() -> tuple[FloatArray, FloatArray]:
+def jet_rows() -> tuple[FloatArray, FloatArray]:
     """(5, 5) maps from P^0..P^4 (resp. P^5..P^9) to the unscaled start (end) jet."""
     u0 = np.zeros((JET_ORDER, JET_ORDER))
     u1 = np.zeros((JET_ORDER, JET_ORDER))
@@ -89,13 +93,13 @@ def _jet_rows() -> tuple[FloatArray, FloatArray]:
 @lru_cache(maxsize=1)
 def _cert_unit() -> tuple[FloatArray, FloatArray]:
     """The (n + 10, 10) certificate map at d = 1 and the power of d that scales each of its rows."""
-    u0, u1 = _jet_rows()
-    unit = np.zeros((_N_HODO + 2 * JET_ORDER, N_CTRL))
-    unit[:_N_HODO] = np.vstack(_CERT_BLOCKS)
-    unit[_N_HODO : _N_HODO + JET_ORDER, :JET_ORDER] = u0
-    unit[_N_HODO + JET_ORDER :, JET_ORDER:] = u1
-    order = np.concatenate([_ORDER_OF_ROW, np.arange(JET_ORDER), np.arange(JET_ORDER)])
-    return _read_only(unit), _read_only(-order.astype(float))
+    u0, u1 = jet_rows()
+    unit = np.zeros((N_HODO + 2 * JET_ORDER, N_CTRL))
+    unit[:N_HODO] = np.vstack(_CERT_BLOCKS)
+    unit[N_HODO : N_HODO + JET_ORDER, :JET_ORDER] = u0
+    unit[N_HODO + JET_ORDER :, JET_ORDER:] = u1
+    order = np.concatenate([ORDER_OF_ROW, np.arange(JET_ORDER), np.arange(JET_ORDER)])
+    return read_only(unit), read_only(-order.astype(float))
 
 
 @lru_cache(maxsize=1024)
@@ -106,16 +110,16 @@ def _cert_map(d: float) -> FloatArray:
     certificate stays independent of the model it checks.
     """
     unit, power = _cert_unit()
-    return _read_only(unit * (d**power)[:, None])
+    return read_only(unit * (d**power)[:, None])
 
 
 def _hodograph_stack(d: float) -> FloatArray:
     """(n, 10): control points -> certified hodograph points of orders 1..4, stacked."""
-    return _cert_map(d)[:_N_HODO]
+    return _cert_map(d)[:N_HODO]
 
 
-_START_ROWS = slice(_N_HODO, _N_HODO + JET_ORDER)
-_END_ROWS = slice(_N_HODO + JET_ORDER, None)
+_START_ROWS = slice(N_HODO, N_HODO + JET_ORDER)
+_END_ROWS = slice(N_HODO + JET_ORDER, None)
 
 
 def start_jet_of(ctrl: FloatArray, duration: float) -> FloatArray:
@@ -130,8 +134,8 @@ def end_jet_of(ctrl: FloatArray, duration: float) -> FloatArray:
 @lru_cache(maxsize=1024)
 def _ctrl_map(d: float) -> FloatArray:
     """(10, 10): a segment's end jets, stacked (J0; J1), -> its control points P^0..P^9."""
-    q1, power, _, _ = _unit_templates()
-    return _read_only(q1[:N_CTRL] * _power_table(d)[power[:N_CTRL] - _POW_LO])
+    q1, power, _, _ = unit_templates()
+    return read_only(q1[:N_CTRL] * power_table(d)[power[:N_CTRL] - POWER_LO])
 
 
 def segment_ctrl(jet0: FloatArray, jet1: FloatArray, duration: float) -> FloatArray:
@@ -150,11 +154,11 @@ def _hull_failure_one(
     worst = np.maximum(h - lim[1], lim[0] - h)
     w = float(worst.max())
     if not w <= tol:  # NaN fails too
-        k = int(_ORDER_OF_ROW[int(np.argmax(worst.max(axis=1)))])
+        k = int(ORDER_OF_ROW[int(np.argmax(worst.max(axis=1)))])
         return f"{ORDER_NAMES[k]} bound exceeded by {w:.3g} on segment {name}"
     ex = None if bounds is None else _norm_excess(h, bounds)
     if ex is not None and not float(ex.max()) <= tol:
-        k = int(_ORDER_OF_ROW[int(np.argmax(ex))])
+        k = int(ORDER_OF_ROW[int(np.argmax(ex))])
         return f"horizontal {ORDER_NAMES[k]} norm bound (polygon) exceeded by {float(ex.max()):.3g} on segment {name}"
     if poly is not None and poly.A.shape[0] > 0:
         v = float((ctrl @ poly.A.T - poly.b).max())
@@ -178,7 +182,7 @@ def hull_violation(
     indices to name in the message (default 0..s-1). NaN never passes.
     """
     names = list(range(ctrl.shape[0])) if labels is None else list(labels)
-    lim = _limits(bounds)
+    lim = hodograph_limits(bounds)
     for i in range(ctrl.shape[0]):
         msg = _hull_failure_one(ctrl[i], float(durations[i]), lim, corridors[i], tol, names[i], bounds)
         if msg is not None:
@@ -220,8 +224,8 @@ def certify_rebuilt(
     at = {s: i for i, s in enumerate(segs)}
     durs = [float(times[s + 1] - times[s]) for s in segs]
     Y = np.array([_cert_map(d) for d in durs]) @ _take(ctrl, segs)  # (k, n + 10, 3)
-    h = _take(Y, [at[s] for s in rebuild])[:, :_N_HODO]
-    lim = _limits(bounds)
+    h = _take(Y, [at[s] for s in rebuild])[:, :N_HODO]
+    lim = hodograph_limits(bounds)
     hull_ok = float(np.maximum(h - lim[1], lim[0] - h).max()) <= tol
     ex = _norm_excess(h, bounds)
     if hull_ok and ex is not None:

@@ -167,7 +167,7 @@ def parse_polytope(obj: Any, field: str) -> Polytope:
             raise ChangeError(f"{field}.vertices", "must be numeric") from exc
         if verts.ndim != 2 or verts.shape[1] != 3 or verts.shape[0] < 4:
             raise ChangeError(f"{field}.vertices", f"need >= 4 points of 3 coordinates, got {verts.shape}")
-        from planner_core.corridors import polytope_from_vertices
+        from planner_core.geometry import polytope_from_vertices
 
         try:
             return polytope_from_vertices(verts)

@@ -46,7 +46,7 @@ HULL_PIECES = 3  # de Casteljau pieces per hodograph in the bound rows (measured
 
 
 @lru_cache(maxsize=1)
-def _unit_templates() -> tuple[FloatArray, IntArray, IntArray, IntArray]:
+def unit_templates() -> tuple[FloatArray, IntArray, IntArray, IntArray]:
     """Q(1) (10 + n, 10): ctrl points, then the control points of the `HULL_PIECES` de Casteljau
     pieces of the hodographs of orders 1..4 (`bezier.certificate_matrix`), over (side*5+order);
     power table; row order; row index (within its order).
@@ -68,12 +68,12 @@ def _unit_templates() -> tuple[FloatArray, IntArray, IntArray, IntArray]:
 
 def n_bound_points() -> int:
     """Certified hodograph points (orders 1..4, all pieces) per segment and axis."""
-    return int(_unit_templates()[0].shape[0]) - N_CTRL
+    return int(unit_templates()[0].shape[0]) - N_CTRL
 
 
 def hull_maps(durations: FloatArray) -> FloatArray:
     """Per segment, the (10 + n, 10) map from one axis of (J0, J1) to ctrl + certified hodograph points."""
-    q1, power, _, _ = _unit_templates()
+    q1, power, _, _ = unit_templates()
     d = np.asarray(durations, dtype=float)
     # integer powers -4..4: one small table per segment, then a gather (elementwise ** with an
     # integer array exponent goes through pow() 400 times a segment: ~5x slower at m = 1000)
@@ -96,7 +96,7 @@ def _bound_q_rows() -> IntArray:
 @lru_cache(maxsize=1)
 def _bound_meta() -> tuple[IntArray, IntArray, IntArray, NDArray[np.bool_]]:
     """Per box row (point * 3 + axis): order, point index, axis, depends on the start jet only."""
-    q1, _, row_order, row_index = _unit_templates()
+    q1, _, row_order, row_index = unit_templates()
     rows = _bound_q_rows()
     order = np.repeat(row_order[rows], 3)
     index = np.repeat(row_index[rows], 3)
@@ -151,7 +151,7 @@ class BoundLayout:
 @lru_cache(maxsize=16)
 def _layout_structure(norm_orders: tuple[bool, ...], sides: int) -> tuple[IntArray, IntArray, FloatArray, IntArray]:
     order, _, axis, _ = _bound_meta()
-    q_order = _unit_templates()[2][_bound_q_rows()]  # order of each certified point
+    q_order = unit_templates()[2][_bound_q_rows()]  # order of each certified point
     point = np.repeat(np.arange(q_order.size), 3)
     code = axis.astype(np.int64)
     direction = np.eye(3)[axis]
@@ -183,7 +183,7 @@ def _bound_layout(key: bytes, norm_orders: tuple[bool, ...], sides: int) -> Boun
     r = hor[order - 1] * np.cos(np.pi / sides)
     lo = np.where(box, lo4[order - 1, axis], -r)
     hi = np.where(box, hi4[order - 1, axis], r)
-    q1 = _unit_templates()[0]
+    q1 = unit_templates()[0]
     qrows = _bound_q_rows()[point]
     start_only = np.all(q1[qrows, JET_ORDER:] == 0.0, axis=1)
     end_only = np.all(q1[qrows, :JET_ORDER] == 0.0, axis=1)
@@ -199,7 +199,7 @@ def bound_layout(bounds: Bounds) -> BoundLayout:
 
 def bound_sides() -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
     """Per box row (point * 3 + axis): depends on the start jet only; on the end jet only."""
-    q1 = _unit_templates()[0]
+    q1 = unit_templates()[0]
     rows = _bound_q_rows()
     a_only = np.repeat(np.all(q1[rows, JET_ORDER:] == 0.0, axis=1), 3)
     b_only = np.repeat(np.all(q1[rows, :JET_ORDER] == 0.0, axis=1), 3)
@@ -240,8 +240,8 @@ def bernstein_gram(n: int) -> FloatArray:
 
 
 @lru_cache(maxsize=8)
-def _unit_cost(order: int) -> tuple[FloatArray, FloatArray]:
-    q1 = _unit_templates()[0]
+def unit_cost(order: int) -> tuple[FloatArray, FloatArray]:
+    q1 = unit_templates()[0]
     # the plain hodograph (the cost integrates the curve itself, not the certificate's pieces)
     m = hodograph_matrix(order, 1.0) @ q1[:N_CTRL]  # (10-order, 10)
     k1 = m.T @ bernstein_gram(DEGREE - order) @ m
@@ -253,7 +253,7 @@ def _unit_cost(order: int) -> tuple[FloatArray, FloatArray]:
 
 def cost_matrices(durations: FloatArray, order: int = 4) -> FloatArray:
     """Per segment (10, 10) per-axis matrix K with ∫|x^(order)|^2 dt = Σ_axis z_d' K z_d."""
-    k1, power = _unit_cost(order)
+    k1, power = unit_cost(order)
     d = np.asarray(durations, dtype=float)
     return k1[None] * d[:, None, None] ** power[None]
 

@@ -16,7 +16,7 @@ import scipy.sparse as sp
 from planner_core.constraints import INF, KIND_BOUND
 from planner_core.jets import ProblemCache, assemble, group_name
 from planner_core.problem import FloatArray, Problem
-from planner_core.qp import solve_qp
+from planner_core.qp import solve_lp, solve_qp
 from planner_core.result import Diagnosis
 
 
@@ -74,9 +74,7 @@ def _elastic_slack(
     keys: list[tuple[int, int, int]],
     groups: list[tuple[int, int, int]],
 ) -> dict[tuple[int, int, int], float]:
-    """Smallest relaxation per group (one slack per group, rows normalised), by LP (HiGHS)."""
-    from scipy.optimize import linprog
-
+    """Smallest relaxation per group (one slack per group, rows normalised), by LP (HiGHS, `qp.solve_lp`)."""
     Gd = np.asarray(G.toarray()) if isinstance(G, sp.spmatrix | sp.sparray) else np.asarray(G)
     n, ng = Gd.shape[1], len(groups)
     gi = {g: i for i, g in enumerate(groups)}
@@ -91,14 +89,13 @@ def _elastic_slack(
     A, b = A / norms[:, None], b / norms
     E = np.zeros((A.shape[0], ng))
     E[np.arange(A.shape[0]), cols] = 1.0
-    res = linprog(
+    res = solve_lp(
         np.concatenate([np.zeros(n), np.ones(ng)]),
-        A_ub=np.hstack([A, -E]),
-        b_ub=b,
-        bounds=[(None, None)] * n + [(0, None)] * ng,
-        method="highs",
+        np.hstack([A, -E]),
+        b,
+        [(None, None)] * n + [(0, None)] * ng,
     )
-    if res.status != 0 or res.x is None:
+    if not res.ok or res.x is None:
         return {}
     return {g: float(res.x[n + i]) for g, i in gi.items()}
 

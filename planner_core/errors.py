@@ -3,7 +3,7 @@
 `FieldError(field, reason)` is a `ValueError` whose message is "field: reason";
 `.field` says where (a dotted/indexed path such as "move.index" or
 "waypoints[3]") and `.reason` says what is wrong. Subclasses: `ChangeError`
-(planner_core.changes), `CorridorError` (planner_core.corridors),
+(planner_core.changes), `CorridorError` (planner_core.geometry),
 `ScenarioError` (planner_core.formats.io) and `InputError`
 (planner_core.formats.cli).
 """

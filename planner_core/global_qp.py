@@ -37,9 +37,9 @@ from planner_core.jets import (
     trajectory_from_jets,
 )
 from planner_core.problem import FloatArray, Problem
-from planner_core.qp import refine_active_set, silenced_stdout
+from planner_core.qp import OsqpSolver, refine_active_set
 from planner_core.result import PlanResult, PlanStatus
-from planner_core.window import _stack_rows
+from planner_core.window import stack_rows
 
 FAST_EPS = 1e-3  # OSQP accuracy before refinement: the refinement makes it exact
 
@@ -94,7 +94,7 @@ class _GlobalQP:
     def __init__(self, problem: Problem, cache: ProblemCache, cost: str) -> None:
         m = problem.m
         ones = np.ones((m, NV))
-        off, n1, n2, ab, c0, lim = _stack_rows(cache, ones)
+        off, n1, n2, ab, c0, lim = stack_rows(cache, ones)
         r0, r1 = n1[0], off[m - 2] + n1[m - 2] + n2[m - 2]
         seg = np.repeat(np.arange(m - 1), np.diff(off))[r0:r1]
         rows = ab[r0:r1]
@@ -174,27 +174,24 @@ def _solve_sparse(
 
 
 def _osqp_refined(qp: _GlobalQP, x0: FloatArray | None) -> FloatArray | None:
-    import osqp
-
-    solver = osqp.OSQP()
+    solver = OsqpSolver()
     settings: dict[str, Any] = dict(verbose=False, polishing=False, eps_abs=FAST_EPS, eps_rel=FAST_EPS, max_iter=4000)
-    with silenced_stdout():
-        solver.setup(sp.triu(qp.P, format="csc"), qp.q, qp.G, qp.lo_t, qp.hi_t, **settings)
-        if x0 is not None:
-            solver.warm_start(x=x0)
-        res = solver.solve(raise_error=False)
-    if res.x is None or not np.all(np.isfinite(res.x)):
+    solver.setup(sp.triu(qp.P, format="csc"), qp.q, qp.G, qp.lo_t, qp.hi_t, **settings)
+    if x0 is not None:
+        solver.warm_start(x=x0)
+    res = solver.solve()
+    if res.x is None or res.y is None:
         return None
-    return refine_active_set(qp.P, qp.q, qp.G, qp.lo_t, qp.hi_t, np.asarray(res.x), np.asarray(res.y), tol=1e-10)
+    return refine_active_set(qp.P, qp.q, qp.G, qp.lo_t, qp.hi_t, res.x, res.y, tol=1e-10)
 
 
 def _jets_of(ctrl: FloatArray, problem: Problem) -> FloatArray:
     """Jets at the waypoints from control points (the start jet of each segment), vectorised."""
-    from planner_core.certificate import _jet_rows
+    from planner_core.certificate import jet_rows
 
     d = problem.durations
     jets = initial_jets(problem)
-    u0 = _jet_rows()[0]
+    u0 = jet_rows()[0]
     jets[1:-1] = np.einsum("kp,spd->skd", u0, ctrl[1:, :5]) * (d[1:, None] ** -np.arange(5.0))[:, :, None]
     return jets
 

@@ -129,6 +129,27 @@ def _bound_groups(start_only: NDArray[np.bool_], end_only: NDArray[np.bool_]) ->
     return perm, int(start_only.sum()), int(both.sum())
 
 
+@dataclass(frozen=True)
+class BoundRowSpec:
+    """The vehicle-bound rows of one segment, in block order [start only | both | end only]
+    (`constraints.bound_layout`, permuted): what the row builders of `window` read."""
+
+    point: NDArray[np.int64]  # the certified hodograph point of each row
+    code: NDArray[np.int64]  # its axis (0..2) or `constraints.CODE_NORM` (a horizontal direction)
+    direction: FloatArray  # (nb, 3) the direction of each row: an axis or a horizontal one
+    order: NDArray[np.int64]  # the derivative order of each row
+    n_start: int  # rows on the start jet only
+    n_both: int  # rows on both jets (the end-only rows follow)
+    lo: FloatArray  # limits, clipped to +-INF
+    hi: FloatArray
+    lo_t: FloatArray  # the same, tightened (`tighten`)
+    hi_t: FloatArray
+
+    @property
+    def size(self) -> int:
+        return int(self.point.size)
+
+
 class ProblemCache:
     """Everything that depends only on durations, bounds and corridors, built once per problem.
 
@@ -139,8 +160,7 @@ class ProblemCache:
     m = 1000) are built only for the compiled pass, which reads them all;
     the numpy paths build those of the segments they touch (`hull_of`).
 
-    Bound rows (`constraints.bound_layout`, in block order): `_bpt` the certified point of each,
-    `_bcode` its axis (0..2) or `constraints.CODE_NORM` (a horizontal polygon direction, `_bdir`).
+    Bound rows (`constraints.bound_layout`, in block order): `bound_spec` (a `BoundRowSpec`).
     """
 
     def __init__(self, problem: Problem) -> None:
@@ -153,15 +173,14 @@ class ProblemCache:
         self._blocks: dict[int, SegBlocks] = {}
         self._cost: dict[int, FloatArray] = {}
         lay = bound_layout(problem.bounds)
-        perm, self._bn1, self._bn2 = _bound_groups(lay.start_only, lay.end_only)
-        self._bpt = lay.point[perm]
-        self._bcode = lay.code[perm]
-        self._bdir = np.ascontiguousarray(lay.direction[perm])
+        perm, n_start, n_both = _bound_groups(lay.start_only, lay.end_only)
         lo = np.clip(lay.lo[perm], -INF, INF)
         hi = np.clip(lay.hi[perm], -INF, INF)
-        self._blo, self._bhi = lo, hi
-        self._blo_t, self._bhi_t = _tighten(lo, hi)
-        self._border = lay.order[perm].astype(np.int64)
+        lo_t, hi_t = tighten(lo, hi)
+        self.bound_spec = BoundRowSpec(
+            lay.point[perm], lay.code[perm], np.ascontiguousarray(lay.direction[perm]),
+            lay.order[perm].astype(np.int64), n_start, n_both, lo, hi, lo_t, hi_t,
+        )
 
     @cached_property
     def hull(self) -> FloatArray:
@@ -180,9 +199,9 @@ class ProblemCache:
 
     def bound_rows(self, s: int) -> tuple[FloatArray, FloatArray, FloatArray]:
         """Bound rows of segment s in block order: (A (R, 12), B (R, 12), c0 (R,))."""
-        qb = self.hull_of(s)[10:][self._bpt]  # (R, 10) the certified point of each row
+        qb = self.hull_of(s)[10:][self.bound_spec.point]  # (R, 10) the certified point of each row
         nb = qb.shape[0]
-        dirs = self._bdir
+        dirs = self.bound_spec.direction
         rows_a = (qb[:, 1:5, None] * dirs[:, None, :]).reshape(nb, 12)
         rows_b = (qb[:, 6:10, None] * dirs[:, None, :]).reshape(nb, 12)
         w = self.problem.waypoints
@@ -203,15 +222,15 @@ class ProblemCache:
         return blk
 
     def _build_blocks(self, s: int) -> SegBlocks:
-        n1, n2 = self._bn1, self._bn2
+        n1, n2 = self.bound_spec.n_start, self.bound_spec.n_both
         poly = self.problem.corridor(s)
-        nb = self._border.size
+        nb = self.bound_spec.order.size
         kb = np.full(nb, KIND_BOUND, dtype=np.int64)
         bA, bB, bc0 = self.bound_rows(s)
         if poly is None or poly.A.shape[0] == 0:
             return SegBlocks(
-                bA, bB, bc0, self._blo, self._bhi, self._blo_t, self._bhi_t,
-                np.full(nb, s, dtype=np.int64), kb, self._border, n1, n2,
+                bA, bB, bc0, self.bound_spec.lo, self.bound_spec.hi, self.bound_spec.lo_t, self.bound_spec.hi_t,
+                np.full(nb, s, dtype=np.int64), kb, self.bound_spec.order, n1, n2,
             )
         q = self.hull_of(s)
         f = poly.A.shape[0]
@@ -231,7 +250,7 @@ class ProblemCache:
         c0 = np.concatenate([bc0[sl_a], ca0, bc0[sl_m], bc0[sl_b], cb0])
         neg = np.full(4 * f, -INF)
         hi_c = np.clip(cb_hi, -INF, INF)
-        hi_ct = _tighten(neg, hi_c)[1]
+        hi_ct = tighten(neg, hi_c)[1]
 
         def mix(bound: NDArray[Any], cor: NDArray[Any]) -> NDArray[Any]:
             return np.concatenate([bound[sl_a], cor, bound[sl_m], bound[sl_b], cor])
@@ -239,8 +258,8 @@ class ProblemCache:
         kc = np.full(4 * f, KIND_CORRIDOR, dtype=np.int64)
         zc = np.zeros(4 * f, dtype=np.int64)
         return SegBlocks(
-            A, B, c0, mix(self._blo, neg), mix(self._bhi, hi_c), mix(self._blo_t, neg), mix(self._bhi_t, hi_ct),
-            np.full(nb + 8 * f, s, dtype=np.int64), mix(kb, kc), mix(self._border, zc), n1 + 4 * f, n2,
+            A, B, c0, mix(self.bound_spec.lo, neg), mix(self.bound_spec.hi, hi_c), mix(self.bound_spec.lo_t, neg), mix(self.bound_spec.hi_t, hi_ct),
+            np.full(nb + 8 * f, s, dtype=np.int64), mix(kb, kc), mix(self.bound_spec.order, zc), n1 + 4 * f, n2,
         )
 
     def cost30(self, order: int, segments: Sequence[int] | None = None) -> FloatArray:
@@ -260,7 +279,7 @@ def _cost30(durations: FloatArray, order: int) -> FloatArray:
     return np.asarray(2.0 * np.einsum("sij,de->sidje", k, np.eye(3)).reshape(k.shape[0], 30, 30))
 
 
-def _tighten(lo: FloatArray, hi: FloatArray) -> tuple[FloatArray, FloatArray]:
+def tighten(lo: FloatArray, hi: FloatArray) -> tuple[FloatArray, FloatArray]:
     lo_t = np.where(lo > -INF, lo + MARGIN * (1.0 + np.abs(lo)), lo)
     hi_t = np.where(hi < INF, hi - MARGIN * (1.0 + np.abs(hi)), hi)
     return lo_t, hi_t

@@ -26,24 +26,24 @@ import numpy as np
 from numpy.typing import NDArray
 
 from planner_core.certificate import (
-    _HODO,
-    _INNER,
-    _LIM_IDX,
-    _N_HODO,
-    _ORDER_OF_ROW,
-    _POW_EXP,
-    _POW_LO,
-    _limits,
-    _power_table,
-    _read_only,
+    HODO_ROWS,
+    INNER_POINTS,
+    LIMIT_INDEX,
+    N_HODO,
+    ORDER_OF_ROW,
+    POWER_EXPONENTS,
+    POWER_LO,
+    hodograph_limits,
+    power_table,
+    read_only,
 )
 from planner_core.constraints import (
     KIND_BOUND,
-    _unit_cost,
-    _unit_templates,
     cost_matrices,
     hull_maps,
     segment_rows,
+    unit_cost,
+    unit_templates,
 )
 from planner_core.problem import (
     DEGREE,
@@ -54,7 +54,7 @@ from planner_core.problem import (
     FloatArray,
     Polytope,
 )
-from planner_core.qp import solve_qp
+from planner_core.qp import DaqpSolver, solve_qp
 
 BoolArray = NDArray[np.bool_]
 CorridorOf = Callable[[int], Polytope | None]
@@ -198,7 +198,7 @@ class _Layout:
     """What a segment's QP block looks like for one choice of free sides, at every duration.
 
     `unit` holds every duration-scaled array of `_SegmentMats` at d = 1, flattened end to
-    end; `power` is the index of each entry's power of d in `_power_table`.
+    end; `power` is the index of each entry's power of d in `power_table`.
     """
 
     unit: FloatArray
@@ -224,14 +224,14 @@ def _expand_power(p: NDArray[np.int64]) -> NDArray[np.int64]:
 
 @lru_cache(maxsize=4)
 def _free_layout(free0: bool, free1: bool) -> _Layout:
-    q1, hpow, _, _ = _unit_templates()
-    k1, kpow_f = _unit_cost(4)
+    q1, hpow, _, _ = unit_templates()
+    k1, kpow_f = unit_cost(4)
     kpow = kpow_f.astype(np.int64)
     cols = {side: np.arange(side * JET_ORDER + 1, side * JET_ORDER + JET_ORDER) for side, f in ((0, free0), (1, free1)) if f}
     fixed = np.ones(2 * JET_ORDER, dtype=bool)
     for c in cols.values():
         fixed[c] = False
-    qb, qi = q1[_HODO], q1[_INNER]
+    qb, qi = q1[HODO_ROWS], q1[INNER_POINTS]
     live_b = np.zeros(qb.shape[0], dtype=bool)
     live_c = np.zeros(qi.shape[0], dtype=bool)
     for c in cols.values():
@@ -240,8 +240,8 @@ def _free_layout(free0: bool, free1: bool) -> _Layout:
     eye3 = np.eye(3)
     entries: list[tuple[str, FloatArray, NDArray[np.int64]]] = [("qfix", q1 * fixed, hpow)]
     for sa, ca in cols.items():
-        entries.append((f"gb{sa}", _expand(qb[live_b][:, ca], eye3), _expand_power(hpow[_HODO][live_b][:, ca])))
-        entries.append((f"qc{sa}", qi[live_c][:, ca], hpow[_INNER][live_c][:, ca]))
+        entries.append((f"gb{sa}", _expand(qb[live_b][:, ca], eye3), _expand_power(hpow[HODO_ROWS][live_b][:, ca])))
+        entries.append((f"qc{sa}", qi[live_c][:, ca], hpow[INNER_POINTS][live_c][:, ca]))
         entries.append((f"kq{sa}", 2.0 * k1[ca] * fixed, kpow[ca]))
         for sb, cb in cols.items():
             ix = np.ix_(ca, cb)
@@ -253,8 +253,8 @@ def _free_layout(free0: bool, free1: bool) -> _Layout:
         start += arr.size
     axes = np.arange(3)
     return _Layout(
-        unit=_read_only(np.concatenate([a.ravel() for _, a, _ in entries])),
-        power=np.concatenate([p.ravel() for _, _, p in entries]) - _POW_LO,
+        unit=read_only(np.concatenate([a.ravel() for _, a, _ in entries])),
+        power=np.concatenate([p.ravel() for _, _, p in entries]) - POWER_LO,
         parts=tuple(parts),
         live_b=(np.flatnonzero(live_b)[:, None] * 3 + axes).ravel(),
         dead_b=(np.flatnonzero(~live_b)[:, None] * 3 + axes).ravel(),
@@ -280,7 +280,7 @@ class _SegmentMats:
 @lru_cache(maxsize=512)  # ~10 kB each: a few MB at most on the companion
 def _segment_mats(d: float, free0: bool, free1: bool) -> _SegmentMats:
     lay = _free_layout(free0, free1)
-    flat = _read_only(lay.unit * _power_table(d).take(lay.power))
+    flat = read_only(lay.unit * power_table(d).take(lay.power))
     return _SegmentMats(lay, {name: flat[a:b].reshape(shape) for name, a, b, shape in lay.parts})
 
 
@@ -330,8 +330,8 @@ def _pattern(n_free: int, pat: tuple[tuple[int, int, int, int], ...]) -> _Patter
     fo = 0
     for i, (_, p0, p1, faces) in enumerate(pat):
         lay = _free_layout(p0 >= 0, p1 >= 0)
-        lives.append(i * 3 * _N_HODO + lay.live_b)
-        deads.append(i * 3 * _N_HODO + lay.dead_b)
+        lives.append(i * 3 * N_HODO + lay.live_b)
+        deads.append(i * 3 * N_HODO + lay.dead_b)
         face_off.append(fo)
         if faces:
             f = np.arange(faces)
@@ -413,7 +413,7 @@ def _scatter_plan(
     """
     k, n, nj = len(pat), _NV * n_free, len(col_of)
     shapes: list[tuple[str, tuple[int, ...]]] = [
-        ("hodo", (k * _N_HODO, JET_ORDER * nj)),
+        ("hodo", (k * N_HODO, JET_ORDER * nj)),
         ("inner", (k * DEGREE, JET_ORDER * nj)),
         ("grad", ((JET_ORDER - 1) * n_free, JET_ORDER * nj)),
         ("P", (n, n)),
@@ -435,9 +435,9 @@ def _scatter_plan(
     for i, ((o, p0, p1, _), lay, part) in enumerate(zip(pat, layouts, parts, strict=True)):
         dest = np.full(lay.unit.size, size, dtype=np.int64)
         c = JET_ORDER * col_of[o]  # the segment's two jets are adjacent in `jets`
-        qfix = np.full((N_CTRL + _N_HODO, 2 * JET_ORDER), size, dtype=np.int64)
+        qfix = np.full((N_CTRL + N_HODO, 2 * JET_ORDER), size, dtype=np.int64)
         qfix[:DEGREE] = _block_index(regions["inner"], DEGREE * i, c, DEGREE, 2 * JET_ORDER)
-        qfix[_HODO] = _block_index(regions["hodo"], _N_HODO * i, c, _N_HODO, 2 * JET_ORDER)
+        qfix[HODO_ROWS] = _block_index(regions["hodo"], N_HODO * i, c, N_HODO, 2 * JET_ORDER)
         start = part["qfix"][0]
         dest[start : start + qfix.size] = qfix.ravel()
         sides = [(side, p) for side, p in ((0, p0), (1, p1)) if p >= 0]
@@ -452,9 +452,9 @@ def _scatter_plan(
                 _place(dest, part[f"qc{sa}"], regions[f"qc{i}.{sa}"], 0, 0)
         r += nbi
         units.append(lay.unit)
-        powers.append(i * _POW_EXP.size + lay.power)
+        powers.append(i * POWER_EXPONENTS.size + lay.power)
         dests.append(dest)
-    return _read_only(np.concatenate(units)), np.concatenate(powers), np.concatenate(dests), size, regions
+    return read_only(np.concatenate(units)), np.concatenate(powers), np.concatenate(dests), size, regions
 
 
 @dataclass(frozen=True)
@@ -479,10 +479,10 @@ class _Structure:
 def _structure(n_free: int, pat: tuple[tuple[int, int, int, int], ...], ds: tuple[float, ...]) -> _Structure:
     """ds: the segments' durations, in the order of `pat`. One scatter-add builds every number."""
     pt = _pattern(n_free, pat)
-    table = np.power(np.array(ds)[:, None], _POW_EXP).ravel()
+    table = np.power(np.array(ds)[:, None], POWER_EXPONENTS).ravel()
     # float64: bincount with float weights sums them (P and grad entries shared by two segments)
     sums = np.bincount(pt.dest, weights=pt.unit * table.take(pt.power), minlength=pt.buf_size + 1)
-    buf = _read_only(np.asarray(sums, dtype=np.float64))
+    buf = read_only(np.asarray(sums, dtype=np.float64))
 
     def view(name: str) -> FloatArray:
         off, shape = pt.regions[name]
@@ -508,8 +508,8 @@ def _structure(n_free: int, pat: tuple[tuple[int, int, int, int], ...], ds: tupl
 @lru_cache(maxsize=64)
 def _bound_limits(bounds_key: bytes, k: int) -> tuple[FloatArray, bool]:
     """(2, 3 n k) lower / upper bound of every certified hodograph value of k segments; all finite?"""
-    lim = np.tile(np.frombuffer(bounds_key, dtype=np.float64)[_LIM_IDX], (1, k))
-    return _read_only(lim), bool(np.isfinite(lim).all())
+    lim = np.tile(np.frombuffer(bounds_key, dtype=np.float64)[LIMIT_INDEX], (1, k))
+    return read_only(lim), bool(np.isfinite(lim).all())
 
 
 def _bounds_key(bounds: Bounds) -> bytes:
@@ -519,17 +519,20 @@ def _bounds_key(bounds: Bounds) -> bytes:
 def _solve_dense(
     P: FloatArray, q: FloatArray, G: FloatArray, lo: FloatArray, hi: FloatArray, backend: str
 ) -> tuple[FloatArray | None, str]:
-    """daqp called directly on arrays built here (already contiguous float64, limits clipped):
+    """daqp's reusable handle on arrays built here (already contiguous float64, limits clipped):
     `solve_qp`'s conversions and result object cost as much as the solve at this size."""
     if backend != "daqp":
         res = solve_qp(P, q, G, lo, hi, backend)
         return (res.x if res.ok else None), res.status.value
-    import daqp
+    sol = _dense_solver().solve(P, q, G, hi, lo, np.zeros(lo.size, dtype=np.int32))
+    if sol.ok:
+        return np.asarray(sol.x, dtype=np.float64), sol.status.value
+    return None, sol.status.value
 
-    x, _, flag, _ = daqp.solve(P, q, G, hi, lo, np.zeros(lo.size, dtype=np.int32), primal_tol=1e-10, iter_limit=2000)
-    if flag == 1 or flag == 2:
-        return np.asarray(x, dtype=np.float64), "optimal"
-    return None, "infeasible" if flag == -1 else "failed"
+
+@lru_cache(maxsize=1)
+def _dense_solver() -> DaqpSolver:
+    return DaqpSolver(primal_tol=1e-10, iter_limit=2000)
 
 
 _MARGIN_SIGN = MARGIN * _SIGN
@@ -677,19 +680,19 @@ def _norm_structure(n_free: int, pat: tuple[tuple[int, int, int, int], ...], ds:
     st = _structure(n_free, pat, ds)
     pt = st.pat
     k, n = len(pat), pt.n
-    normed = np.array([orders[o - 1] for o in _ORDER_OF_ROW])
+    normed = np.array([orders[o - 1] for o in ORDER_OF_ROW])
     pts = np.flatnonzero(normed)
     normals = polygon_normals(sides)
-    full = np.zeros((k * 3 * _N_HODO, n))
+    full = np.zeros((k * 3 * N_HODO, n))
     full[pt.live_b] = st.G[: pt.n_bound]
-    base = ((np.arange(k)[:, None] * _N_HODO + pts[None, :]).ravel() * 3).astype(np.int64)
+    base = ((np.arange(k)[:, None] * N_HODO + pts[None, :]).ravel() * 3).astype(np.int64)
     gx, gy = full[base], full[base + 1]  # (k p, n)
     rows = (normals[None, :, 0, None] * gx[:, None, :] + normals[None, :, 1, None] * gy[:, None, :]).reshape(-1, n)
     live = np.any(rows != 0.0, axis=1)
-    order = np.repeat(np.tile(_ORDER_OF_ROW[pts], k), normals.shape[0]).astype(np.int64)
+    order = np.repeat(np.tile(ORDER_OF_ROW[pts], k), normals.shape[0]).astype(np.int64)
     for a in (live, base, order):
         a.setflags(write=False)
-    return _NormRows(_read_only(np.ascontiguousarray(rows[live])), live, base, normals, order,
+    return _NormRows(read_only(np.ascontiguousarray(rows[live])), live, base, normals, order,
                      int(pts.size * normals.shape[0]))
 
 
@@ -712,16 +715,16 @@ def _fixed_failure(
     n: int,
 ) -> LocalSolution | None:
     """The first row (segments in order, bounds before corridor) that fixed jets already violate, named."""
-    lim = _limits(bounds)
+    lim = hodograph_limits(bounds)
     for s in segs:
         mt = _segment_mats(float(durations[s]), s in pos, s + 1 in pos)
         lay = mt.layout
         base = mt.arrays["qfix"] @ np.concatenate([jets[s], jets[s + 1]])
-        v = base[_HODO].ravel()[lay.dead_b]
+        v = base[HODO_ROWS].ravel()[lay.dead_b]
         over = np.maximum(v - lim[1].ravel()[lay.dead_b], lim[0].ravel()[lay.dead_b] - v)
         if over.size and not float(over.max()) <= CHECK_TOL:
             i = int(np.argmax(over)) if not np.isnan(over).any() else int(np.flatnonzero(np.isnan(over))[0])
-            k = int(_ORDER_OF_ROW[int(lay.dead_b[i]) // 3])
+            k = int(ORDER_OF_ROW[int(lay.dead_b[i]) // 3])
             return LocalSolution(False, {}, f"{ORDER_NAMES[k]} bound of segment {s} violated by "
                                  f"{float(over[i]):.3g} by jets held fixed", 0.0, n, 0)
         poly = corridor_of(s)

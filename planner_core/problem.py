@@ -20,11 +20,13 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-FloatArray = NDArray[np.float64]
+# the Bézier facts live with the Bernstein maths (bezier.py imports nothing of planner_core)
+from planner_core.bezier import DEGREE as DEGREE
+from planner_core.bezier import JET_ORDER as JET_ORDER
+from planner_core.bezier import FloatArray as FloatArray
+from planner_core.bezier import evaluate_trajectory, trajectory_jet
 
-DEGREE = 9
 N_CTRL = DEGREE + 1
-JET_ORDER = 5  # position .. snap
 ORDER_NAMES = ("position", "velocity", "acceleration", "jerk", "snap")
 
 
@@ -237,12 +239,8 @@ class Trajectory:
 
     def evaluate(self, t: FloatArray | float, order: int = 0) -> FloatArray:
         """Derivative `order` (0..9) at times t (clamped to the trajectory span)."""
-        from planner_core.bezier import evaluate_trajectory
-
         return evaluate_trajectory(self, np.asarray(t, dtype=float), order)
 
     def jet(self, t: float) -> FloatArray:
         """Position, velocity, acceleration, jerk and snap at time t, shape (5, 3)."""
-        from planner_core.bezier import trajectory_jet
-
         return trajectory_jet(self, float(t))

@@ -418,7 +418,7 @@ def _rebuild_corridors(work: _Work) -> None:
     env = work.env
     if env is None or (work.corridors is None and not work.new_obstacles):
         return
-    from planner_core.corridors import CorridorError, build_corridors, update_corridors
+    from planner_core.geometry import CorridorError, build_corridors, update_corridors
 
     corridors = work.writable_corridors() if work.corridors is None else work.corridors
     obstacles = (*env.obstacles, *work.new_obstacles)

@@ -39,7 +39,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from planner_core.constraints import INF, cost_matrices
-from planner_core.jets import CHECK_TOL, MARGIN, NV, ProblemCache, _tighten
+from planner_core.jets import CHECK_TOL, MARGIN, NV, ProblemCache, tighten
+from planner_core.qp import DaqpSolver
 
 FloatArray = NDArray[np.float64]
 
@@ -127,9 +128,7 @@ class WindowSolver:
     """
 
     def __init__(self, cache: ProblemCache, cost_order: int = 4) -> None:
-        import daqp
-
-        self._daqp_solve = daqp.solve
+        self._dense = DaqpSolver(primal_tol=1e-10, iter_limit=2000)
         problem = cache.problem
         self.problem = problem
         self.cache = cache
@@ -250,20 +249,18 @@ class WindowSolver:
             hw = lims[1, idx] / nrm
             lw = lims[0, idx] / nrm
             ts = perf_counter()
-            u, _, flag, info = self._daqp_solve(
-                eye, f, gw, hw, lw, self.sense[: idx.size], primal_tol=1e-10, iter_limit=2000
-            )
+            sol = self._dense.solve(eye, f, gw, hw, lw, self.sense[: idx.size])
             t_solve += perf_counter() - ts
-            if flag != 1 and flag != 2:
+            if not sol.ok:
                 return None
-            x = lt @ u
+            x = lt @ sol.x
             r = G @ x
             # hi_x < hi - 1e-6 (1 + |hi|): passing this check passes the untightened rows
             bad = (r > hi_x) | (r < lo_x)
             if not bad.any():
                 act = self.active[r0:r1]
                 act[:] = False
-                act[idx[info["lam"] != 0.0]] = True
+                act[idx[sol.lam != 0.0]] = True
                 self.times = (t_built - t_start, t_solve, perf_counter() - t_built - t_solve)
                 self.rows_used = int(idx.size)
                 return np.asarray((x * c).reshape(nf, 4, 3))
@@ -326,7 +323,7 @@ class WindowSolver:
         return bool(np.all(v <= store.lim[3, lo:hi] + CHECK_TOL) and np.all(v >= store.lim[2, lo:hi] - CHECK_TOL))
 
 
-def _stack_rows(
+def stack_rows(
     cache: ProblemCache, cs: FloatArray
 ) -> tuple[list[int], list[int], list[int], FloatArray, FloatArray, FloatArray]:
     """All segments' rows in `SegBlocks` order, stacked: offsets per segment, n1, n2 per
@@ -356,20 +353,20 @@ class _RowStore:
         n_seg = problem.m - 1
         self.polys = list(problem.corridors) if problem.corridors is not None else [None] * n_seg
         self.faces = np.array([0 if p is None else p.b.size for p in self.polys], dtype=np.int64)
-        nb = cache._bpt.size
+        nb = cache.bound_spec.point.size
         off = np.concatenate([[0], np.cumsum(nb + 8 * self.faces)])
         n_rows = int(off[-1])
         self.n_rows = n_rows
         self._off = off
         self.off: list[int] = off.tolist()
-        self.n1: list[int] = (cache._bn1 + 4 * self.faces).tolist()
-        self.n2: list[int] = [cache._bn2] * n_seg
+        self.n1: list[int] = (cache.bound_spec.n_start + 4 * self.faces).tolist()
+        self.n2: list[int] = [cache.bound_spec.n_both] * n_seg
         # corridors flattened: faces of segment s are rows face_off[s]:face_off[s+1] of pa, pb
         self._face_off = np.concatenate([[0], np.cumsum(self.faces)]).astype(np.int64)
         planes = [p for p in self.polys if p is not None and p.A.shape[0]]
         self._pa = np.concatenate([p.A for p in planes]) if planes else np.zeros((0, 3))
         self._pb = np.concatenate([p.b for p in planes]) if planes else np.zeros(0)
-        self._blim = np.stack([cache._blo_t, cache._bhi_t, cache._blo, cache._bhi])
+        self._blim = np.stack([cache.bound_spec.lo_t, cache.bound_spec.hi_t, cache.bound_spec.lo, cache.bound_spec.hi])
         self.span = n_seg if span is None else max(1, min(span, n_seg))
         self._working = working
         # room for the rows of any `span` consecutive segments
@@ -432,15 +429,15 @@ class _RowStore:
         # fill_rows writes segment s at off[s]: offsets shifted to the store's first row; it skips
         # the working limits when limw has no columns (the global QP's store)
         kernel.fill_rows(
-            segments, self._off - self.row0, cache.hull, cache.problem.waypoints, self.cs, cache._bpt,
-            cache._bcode, cache._bdir, int(cache._bn1), self._blim, self._face_off, self._pa, self._pb, INF, MARGIN, self.ab, self.c0, self.lim,
+            segments, self._off - self.row0, cache.hull, cache.problem.waypoints, self.cs, cache.bound_spec.point,
+            cache.bound_spec.code, cache.bound_spec.direction, int(cache.bound_spec.n_start), self._blim, self._face_off, self._pa, self._pb, INF, MARGIN, self.ab, self.c0, self.lim,
             self.limw, ADD_TOL,
         )
 
     def _fill_group(self, segs: NDArray[np.int64], f: int) -> None:
         cache, cs = self.cache, self.cs
-        nb = cache._bpt.size
-        bn1 = cache._bn1
+        nb = cache.bound_spec.point.size
+        bn1 = cache.bound_spec.n_start
         w = cache.problem.waypoints
         g = segs.size
         nrow = nb + 8 * f
@@ -451,8 +448,8 @@ class _RowStore:
         blk = np.zeros((g, nrow, 2 * NV))
         cblk = np.empty((g, nrow))
         lblk = np.empty((4, g, nrow))
-        dirs = cache._bdir  # (nb, 3) the direction of each bound row: an axis or a horizontal one
-        qb = hull[:, 10:][:, cache._bpt]  # (g, nb, 10) the certified hodograph point of each row
+        dirs = cache.bound_spec.direction  # (nb, 3) the direction of each bound row: an axis or a horizontal one
+        qb = hull[:, 10:][:, cache.bound_spec.point]  # (g, nb, 10) the certified hodograph point of each row
         ra = (qb[:, :, 1:5, None] * dirs[None, :, None, :]).reshape(g, nb, NV)
         rb = (qb[:, :, 6:10, None] * dirs[None, :, None, :]).reshape(g, nb, NV)
         blk[:, bpos, :NV] = ra * cs[segs, None, :]
@@ -460,7 +457,7 @@ class _RowStore:
         # direction . waypoint: exactly the coordinate for an axis row (products with 0 and 1)
         cb0 = qb[:, :, 0] * (w[segs] @ dirs.T) + qb[:, :, 5] * (w[segs + 1] @ dirs.T)
         cblk[:, bpos] = cb0
-        blim = np.stack([cache._blo_t, cache._bhi_t, cache._blo, cache._bhi])  # (4, nb)
+        blim = np.stack([cache.bound_spec.lo_t, cache.bound_spec.hi_t, cache.bound_spec.lo, cache.bound_spec.hi])  # (4, nb)
         lblk[:, :, bpos] = blim[:, None, :]
         if f:
             polys = [self.polys[s] for s in segs.tolist()]
@@ -476,7 +473,7 @@ class _RowStore:
             cblk[:, ka] = (q[:, 1:5, 0, None] * np.einsum("gfd,gd->gf", pa, w[segs])[:, None, :]).reshape(g, -1)
             cblk[:, kb] = (q[:, 5:9, 5, None] * np.einsum("gfd,gd->gf", pa, w[segs + 1])[:, None, :]).reshape(g, -1)
             hi = np.clip(np.broadcast_to(pb[:, None, :], (g, 4, f)).reshape(g, 4 * f), -INF, INF)
-            hi_t = _tighten(np.full(hi.shape, -INF), hi)[1]
+            hi_t = tighten(np.full(hi.shape, -INF), hi)[1]
             for k in (ka, kb):
                 lblk[0, :, k] = -INF
                 lblk[1, :, k] = hi_t
@@ -514,14 +511,14 @@ def _widen(lo_t: FloatArray, hi_t: FloatArray) -> tuple[FloatArray, FloatArray]:
 
 def _compact_rows(store: _RowStore) -> _CompactRows:
     cache = store.cache
-    blo_t, bhi_t = cache._blo_t, cache._bhi_t
-    b6 = np.stack([blo_t, bhi_t, cache._blo, cache._bhi, *_widen(blo_t, bhi_t), cache._bdir[:, 0], cache._bdir[:, 1]])
+    blo_t, bhi_t = cache.bound_spec.lo_t, cache.bound_spec.hi_t
+    b6 = np.stack([blo_t, bhi_t, cache.bound_spec.lo, cache.bound_spec.hi, *_widen(blo_t, bhi_t), cache.bound_spec.direction[:, 0], cache.bound_spec.direction[:, 1]])
     hi = np.clip(store._pb, -INF, INF)
     lo = np.full(hi.shape, -INF)
-    lo_t, hi_t = _tighten(lo, hi)
+    lo_t, hi_t = tighten(lo, hi)
     f6 = np.stack([lo_t, hi_t, lo, hi, *_widen(lo_t, hi_t)])
     return _CompactRows(
         np.asarray(store.off, dtype=np.int64), np.asarray(store.n1, dtype=np.int64),
-        np.asarray(store.n2, dtype=np.int64), cache._bpt.astype(np.int64), cache._bcode.astype(np.int64),
-        int(cache._bn1), int(cache._bpt.size), store._face_off, np.ascontiguousarray(store._pa, dtype=float), b6, f6,
+        np.asarray(store.n2, dtype=np.int64), cache.bound_spec.point.astype(np.int64), cache.bound_spec.code.astype(np.int64),
+        int(cache.bound_spec.n_start), int(cache.bound_spec.point.size), store._face_off, np.ascontiguousarray(store._pa, dtype=float), b6, f6,
     )

@@ -15,12 +15,15 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from planner_core.errors import FieldError
-
-EXIT_OK = 0
-EXIT_VERIFY_FAILED = 1
-EXIT_INVALID = 2
-EXIT_INFEASIBLE = 3
+from planner_core.formats.cli_common import (
+    EXIT_INFEASIBLE,
+    EXIT_INVALID,
+    EXIT_OK,
+    EXIT_VERIFY_FAILED,
+    InputError,
+    err,
+    read_json,
+)
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -60,23 +63,6 @@ def _parser() -> argparse.ArgumentParser:
     return p
 
 
-def _read_json(path: Path, what: str) -> Any:
-    try:
-        return json.loads(path.read_text())
-    except OSError as e:
-        raise InputError(what, f"cannot read {path}: {e.strerror}") from e
-    except json.JSONDecodeError as e:
-        raise InputError(what, f"{path}: invalid JSON ({e.msg} at line {e.lineno})") from e
-
-
-class InputError(FieldError):
-    """An input file that cannot be read or is not JSON; `.field` names which input."""
-
-
-def _err(msg: str) -> None:
-    print(f"error: {msg}", file=sys.stderr)
-
-
 def _cmd_plan(args: argparse.Namespace, started: float) -> int:
     from dataclasses import replace
 
@@ -85,18 +71,18 @@ def _cmd_plan(args: argparse.Namespace, started: float) -> int:
     from planner_core.window import use_compiled_kernel
 
     try:
-        from planner_core.corridors import CorridorError
+        from planner_core.geometry import CorridorError
     except ImportError:  # pragma: no cover - corridors module always ships
         CorridorError = ValueError  # type: ignore[misc,assignment]
 
     t_imported = time.perf_counter()
     try:
-        scenario = load_scenario(_read_json(args.scenario, "scenario"))
+        scenario = load_scenario(read_json(args.scenario, "scenario"))
     except (ScenarioError, InputError) as e:
-        _err(f"invalid scenario: {e}")
+        err(f"invalid scenario: {e}")
         return EXIT_INVALID
     except CorridorError as e:
-        _err(f"no safe corridor: {e}")
+        err(f"no safe corridor: {e}")
         return EXIT_INFEASIBLE
     t_loaded = time.perf_counter()
     m = scenario.problem.m
@@ -116,7 +102,7 @@ def _cmd_plan(args: argparse.Namespace, started: float) -> int:
     opts: dict[str, Any] = {}
     if args.method == "iterative" and args.window is not None:
         if args.window < 1:
-            _err("invalid option: --window: must be >= 1")
+            err("invalid option: --window: must be >= 1")
             return EXIT_INVALID
         opts["window"] = args.window
     if args.method == "iterative" and args.no_recover:
@@ -124,12 +110,12 @@ def _cmd_plan(args: argparse.Namespace, started: float) -> int:
     if args.backend is not None:
         opts["backend"] = args.backend
     if args.method == "global" and args.cost == "waypoint-snap":
-        _err("invalid option: --cost: the global planner takes snap or jerk")
+        err("invalid option: --cost: the global planner takes snap or jerk")
         return EXIT_INVALID
     timing = args.timing or scenario.timing
     rho = args.time_weight if args.time_weight is not None else scenario.time_weight
     if rho is not None and not (rho > 0.0 and rho < float("inf")):
-        _err(f"invalid option: --time-weight: must be finite and > 0, got {rho}")
+        err(f"invalid option: --time-weight: must be finite and > 0, got {rho}")
         return EXIT_INVALID
     from planner_core.missions import plan_mission
 
@@ -146,7 +132,7 @@ def _cmd_plan(args: argparse.Namespace, started: float) -> int:
     fastest_note = _allocation_note(result, mission.timing, m, rho)
     plan_s = time.perf_counter() - t_ready  # planning and verifying, nothing of the start-up
     if not result.ok or result.trajectory is None:
-        _err(result.message)
+        err(result.message)
         if result.diagnosis is not None:
             print(json.dumps({"diagnosis": result.diagnosis.to_dict()}), file=sys.stderr)
         return EXIT_INFEASIBLE
@@ -181,7 +167,7 @@ def _cmd_plan(args: argparse.Namespace, started: float) -> int:
         try:
             from planner_core.formats.plot import plot_all
         except ImportError as e:  # matplotlib missing
-            _err(f"plotting unavailable: {e}")
+            err(f"plotting unavailable: {e}")
         else:
             for path in plot_all(result.trajectory, scenario, args.plot):
                 print(f"wrote {path}")
@@ -213,13 +199,13 @@ def _cmd_verify(args: argparse.Namespace) -> int:
     from planner_core.verify import verify
 
     try:
-        scenario = load_scenario(_read_json(args.scenario, "scenario"))
-        traj = trajectory_from_dict(_read_json(args.trajectory, "trajectory"))
+        scenario = load_scenario(read_json(args.scenario, "scenario"))
+        traj = trajectory_from_dict(read_json(args.trajectory, "trajectory"))
     except (ScenarioError, InputError) as e:
-        _err(f"invalid input: {e}")
+        err(f"invalid input: {e}")
         return EXIT_INVALID
     except ValueError as e:  # CorridorError: the scenario itself cannot be flown
-        _err(f"no safe corridor: {e}")
+        err(f"no safe corridor: {e}")
         return EXIT_INFEASIBLE
     problem = scenario.problem
     if traj.corridors is not None and problem.corridors is None:

@@ -5,7 +5,7 @@ field and index ("bounds.velocity[1]: lo 3 > hi 2"). When a scenario has no
 times/durations, the problem's times come from `planner_core.timing.allocate_times`
 (a start for the planner; `Scenario.durations_given` says they were not the user's);
 when it has obstacles but no corridors, corridors come from
-`planner_core.corridors.build_corridors` (both imported lazily; a blocked
+`planner_core.geometry.build_corridors` (both imported lazily; a blocked
 segment raises that module's `CorridorError`, which is not an input error).
 
 Bounds: each order is a per-axis form (`_bound`) or the vehicle form {"horizontal", "up",
@@ -229,7 +229,7 @@ def _polytope(obj: Any, name: str, allow_vertices: bool) -> Polytope:
             raise ScenarioError(name, "give either {A, b} or {vertices}, not both")
         verts = _matrix(obj["vertices"], f"{name}.vertices", 3, 4)
         try:
-            from planner_core.corridors import polytope_from_vertices
+            from planner_core.geometry import polytope_from_vertices
         except ImportError:
             return _hull_polytope(verts, name)
         try:
@@ -409,7 +409,7 @@ def _corridors(
         return polys
     if not obstacles:
         return None
-    from planner_core.corridors import build_corridors
+    from planner_core.geometry import build_corridors
 
     return tuple(build_corridors(wps, obstacles, map_box, radius))
 

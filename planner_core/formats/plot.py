@@ -27,7 +27,7 @@ def _plt() -> Any:
 
 def _vertices(poly: Polytope) -> FloatArray | None:
     try:
-        from planner_core.corridors import polytope_vertices
+        from planner_core.geometry import polytope_vertices
 
         v = polytope_vertices(poly)
     except (ImportError, ValueError):

@@ -27,13 +27,13 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from planner_core.formats.cli import (
+from planner_core.formats.cli_common import (
     EXIT_INFEASIBLE,
     EXIT_INVALID,
     EXIT_OK,
     InputError,
-    _err,
-    _read_json,
+    err,
+    read_json,
 )
 from planner_core.problem import Problem, Trajectory
 
@@ -90,38 +90,38 @@ def replan_command(args: argparse.Namespace) -> int:
     from planner_core.verify import verify
 
     try:
-        from planner_core.corridors import CorridorError
+        from planner_core.geometry import CorridorError
     except ImportError:  # pragma: no cover
         CorridorError = ValueError  # type: ignore[misc,assignment]
 
     try:
-        raw_scenario = _read_json(args.scenario, "scenario")
-        raw_traj = _read_json(args.trajectory, "trajectory")
-        raw_change = _read_json(args.change, "change")
+        raw_scenario = read_json(args.scenario, "scenario")
+        raw_traj = read_json(args.trajectory, "trajectory")
+        raw_change = read_json(args.change, "change")
     except InputError as e:
-        _err(f"invalid input: {e}")
+        err(f"invalid input: {e}")
         return EXIT_INVALID
     try:
         scenario = load_scenario(raw_scenario)
     except CorridorError as e:
-        _err(f"no safe corridor for the scenario: {e}")
+        err(f"no safe corridor for the scenario: {e}")
         return EXIT_INFEASIBLE
     except ScenarioError as e:
-        _err(f"invalid scenario: {e}")
+        err(f"invalid scenario: {e}")
         return EXIT_INVALID
     try:
         traj = trajectory_from_dict(raw_traj)
         index = waypoint_index_from_dict(raw_traj)
     except ValueError as e:
-        _err(f"invalid trajectory: {e}")
+        err(f"invalid trajectory: {e}")
         return EXIT_INVALID
     try:
         change = parse_change(raw_change)
     except ValueError as e:
-        _err(f"invalid change: {e}")
+        err(f"invalid change: {e}")
         return EXIT_INVALID
     if args.max_widen < 0 or args.max_stretch < 0:
-        _err("invalid option: --max-widen and --max-stretch must be >= 0")
+        err("invalid option: --max-widen and --max-stretch must be >= 0")
         return EXIT_INVALID
     planned_m = traj.n_segments + 1
     wmap = WaypointMap.identity(planned_m) if index is None else WaypointMap(index, planned_m)
@@ -131,22 +131,22 @@ def replan_command(args: argparse.Namespace) -> int:
     try:
         mapped = to_planned(change, wmap, problem.waypoints, traj.times)  # its errors are in user indices
     except ChangeError as e:
-        _err(f"invalid change: {e}")
+        err(f"invalid change: {e}")
         return EXIT_INVALID
     try:
         result = replan(problem, traj, mapped.change, options=opts)
     except ChangeError as e:  # the planned change's indices, told in the user's
-        _err(f"invalid change: {wmap.relabel_text(str(e))}")
+        err(f"invalid change: {wmap.relabel_text(str(e))}")
         return EXIT_INVALID
     if not result.ok or result.trajectory is None:
         at = wmap.split_at(result.stats.get("split_index"))
-        _err(at.relabel_text(result.message))
+        err(at.relabel_text(result.message))
         if result.diagnosis is not None:
             print(json.dumps({"diagnosis": at.relabel_diagnosis(result.diagnosis)}), file=sys.stderr)
         return EXIT_INFEASIBLE
     report = verify(result.trajectory, result.problem)
     if not report.ok:
-        _err(f"replanned trajectory failed the certificate: {report.summary()}")
+        err(f"replanned trajectory failed the certificate: {report.summary()}")
         return EXIT_INFEASIBLE
     new_map = mapped.map_after(result.stats.get("split_index"), result.problem.m)
     message = new_map.relabel_text(result.message)

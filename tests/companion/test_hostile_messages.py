@@ -25,7 +25,7 @@ from companion.wire.messages import (
     Oversized,
     read,
 )
-from planner_core.corridors import polytope_from_vertices
+from planner_core.geometry import polytope_from_vertices
 
 CFG = Config()
 CUBE = [[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)]

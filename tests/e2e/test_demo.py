@@ -66,7 +66,7 @@ def test_demo_scenarios_are_flyable_after_lifting_and_moving() -> None:
 
     from demo import run as demo
     from planner_core import plan
-    from planner_core.corridors import CorridorError, build_corridors
+    from planner_core.geometry import CorridorError, build_corridors
     from planner_core.problem import Bounds, Polytope, Problem
 
     raw = demo.load_example("scenario2.json")

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from scipy.spatial import ConvexHull
 
-from planner_core.corridors import axis_box_of, polytope_from_vertices, polytope_vertices
 from planner_core.formats.io import load_scenario
+from planner_core.geometry import axis_box_of, polytope_from_vertices, polytope_vertices
 from planner_core.problem import Polytope
 
 BITS = ((np.arange(8)[:, None] >> np.arange(3)[None, :]) & 1).astype(bool)
@@ -122,7 +122,7 @@ def test_a_scenario_of_vertex_boxes_builds_the_corridors_of_its_plane_boxes() ->
 def test_small_hulls_without_qhull_are_qhulls(seed: int) -> None:
     """Up to SMALL_HULL_POINTS points the hull is found by point triples: the same facets and the
     same hull vertices as qhull's, on random clouds (some points inside) at any scale and offset."""
-    from planner_core.corridors import SMALL_HULL_POINTS
+    from planner_core.geometry import SMALL_HULL_POINTS
 
     rng = np.random.default_rng(1000 + seed)
     k = int(rng.integers(4, SMALL_HULL_POINTS + 1))
@@ -146,7 +146,7 @@ def test_scipy_is_not_imported_for_small_obstacles() -> None:
     import sys
     from pathlib import Path
 
-    code = ("import sys, numpy as np\nfrom planner_core.corridors import polytope_from_vertices\n"
+    code = ("import sys, numpy as np\nfrom planner_core.geometry import polytope_from_vertices\n"
             "R = np.linalg.qr(np.random.default_rng(0).normal(size=(3, 3)))[0]\n"
             "box = np.array([[x, y, z] for x in (0, 1) for y in (0, 2) for z in (0, 3)], float)\n"
             "polytope_from_vertices(box); polytope_from_vertices(box @ R.T); polytope_from_vertices(box[:6])\n"

@@ -7,7 +7,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from planner_core.corridors import (
+from planner_core.geometry import (
     build_corridors,
     exclusion_margin,
     polytope_vertices,

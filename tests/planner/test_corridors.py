@@ -1,7 +1,7 @@
 """Safe corridors: containment, exclusion, blocking, pruning, room, updates, hulls.
 
 Distances are checked against independent QPs (closest points in primal form,
-solved by daqp), not against the SVM that corridors.py uses.
+solved by daqp), not against the SVM that planner_core.geometry uses.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import pytest
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
-from planner_core.corridors import (
+from planner_core.geometry import (
     CorridorError,
     analysis_boxes,
     build_corridors,

@@ -8,14 +8,8 @@ import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from planner_core.corridors import (
+from planner_core.geometry import (
     CorridorError,
-    _add_planes,
-    _check_waypoints_clear,
-    _context,
-    _first_of_duplicates,
-    _prepare_obstacles,
-    _segment_point_distance,
     build_corridors,
     exclusion_margin,
     normalised,
@@ -25,6 +19,12 @@ from planner_core.corridors import (
     separations,
     update_corridors,
 )
+from planner_core.geometry.building import add_planes as _add_planes
+from planner_core.geometry.building import build_context as _context
+from planner_core.geometry.building import check_waypoints_clear as _check_waypoints_clear
+from planner_core.geometry.obstacles import prepare_obstacles as _prepare_obstacles
+from planner_core.geometry.obstacles import segment_point_distance as _segment_point_distance
+from planner_core.geometry.pruning import _first_of_duplicates
 from planner_core.problem import Polytope
 from tests.planner.test_corridors import FAST, dist_segment_polytope, random_obstacle, random_scene
 

@@ -14,9 +14,8 @@ import pytest
 
 from planner_core import Bounds, Polytope, Problem, plan, verify
 from planner_core.broadphase import DENSE_PAIRS, count_beyond, overlapping_pairs
-from planner_core.corridors import (
-    _facet_mask,
-    _vertices,
+from planner_core.facets import facet_masks
+from planner_core.geometry import (
     analysis_boxes,
     build_corridors,
     exclusion_margin,
@@ -25,7 +24,8 @@ from planner_core.corridors import (
     segment_clearance,
     update_corridors,
 )
-from planner_core.facets import facet_masks
+from planner_core.geometry.polytopes import enumerate_vertices as _vertices
+from planner_core.geometry.pruning import _facet_mask
 
 R = 0.3
 

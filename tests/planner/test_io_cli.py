@@ -225,7 +225,7 @@ def test_osqp_prints_nothing(capfd: pytest.CaptureFixture[str]) -> None:
 
 
 def test_examples_segments_are_clear_of_obstacles() -> None:
-    from planner_core.corridors import polytope_vertices, separation
+    from planner_core.geometry import polytope_vertices, separation
 
     for name in ("scenario1.json", "scenario2.json"):
         sc = load_scenario(json.loads((EXAMPLES / name).read_text()))
@@ -264,7 +264,7 @@ def test_missing_times_use_allocation() -> None:
 
 
 def test_obstacles_without_corridors_build_corridors() -> None:
-    pytest.importorskip("planner_core.corridors")
+    pytest.importorskip("planner_core.geometry")
     sc = load_scenario(json.loads((EXAMPLES / "scenario1.json").read_text()))
     assert "corridors" not in sc.raw
     assert sc.problem.corridors is not None and len(sc.problem.corridors) == sc.problem.m - 1

@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 
 from planner_core.bezier import certificate_matrix, segment_from_jets, stacked_pieces
 from planner_core.constraints import HULL_PIECES
-from planner_core.corridors import CorridorError, build_corridors, polytope_from_box
+from planner_core.geometry import CorridorError, build_corridors, polytope_from_box
 from planner_core.problem import Bounds, Problem, rest_jet
 from planner_core.timing import (
     _HULL_C,
