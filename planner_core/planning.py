@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -14,6 +14,9 @@ from planner_core.iterative import IterativeOptions, plan_iterative
 from planner_core.problem import ORDER_NAMES, Problem
 from planner_core.result import Diagnosis, PlanResult, PlanStatus
 from planner_core.verify import verify
+
+if TYPE_CHECKING:
+    from planner_core.separation import Neighbours
 
 METHODS = ("iterative", "global")
 
@@ -33,7 +36,13 @@ def plan(problem: Problem, method: str = "iterative", cost: str | None = None, *
     that plans and the bound that binds first. With `recover` on, the plan at that scale is
     returned (stats `duration_scale`, `stretched_durations`); otherwise the INFEASIBLE
     result's diagnosis carries `binding`, `min_scale` and `min_durations`.
+
+    `neighbours` (a `separation.Neighbours`, default none): other vehicles' committed
+    trajectories to keep the separation from; see `_plan_against`.
     """
+    neighbours = opts.pop("neighbours", None)
+    if neighbours is not None and neighbours.trajectories:
+        return _plan_against(problem, neighbours, method, cost, opts)
     if method == "iterative":
         base = opts.pop("options", None) or IterativeOptions()
         if cost is not None:
@@ -51,6 +60,41 @@ def plan(problem: Problem, method: str = "iterative", cost: str | None = None, *
         quiet = {**opts, "diagnose": False}
         return _after_search(problem, result, lambda p: _plan_once(p, method, cost, dict(quiet)), False)
     raise ValueError(f"method: unknown method {method!r} (expected one of {METHODS})")
+
+
+def _plan_against(problem: Problem, neighbours: Neighbours, method: str, cost: str | None,
+                  opts: dict[str, Any]) -> PlanResult:
+    """Plan keeping the separation from neighbours' committed trajectories (method.md, the fleet).
+
+    Each segment's corridor is cut by one half-space per near neighbour (`separation.with_neighbours`:
+    a plane fixed from our reference, linear in our control points, so the QP stays a QP), the
+    cut problem is planned and verified as usual, and the result is then certified against every
+    neighbour (`separation.certify_all`: a `SeparationCertificate` per near neighbour, the broad
+    phase proves the far ones). OK only when every certificate holds. The trajectory keeps the
+    problem's own corridors; the certificates are in stats["separation"]["certificates"] as
+    (neighbour index, certificate). A recovery that stretches durations moves our plan in time
+    against the faces: the certification then decides."""
+    from planner_core.separation import certify_all, with_neighbours
+
+    t0 = time.perf_counter()
+    nb = neighbours.for_bounds(problem.bounds)
+    cut, why = with_neighbours(problem, nb)
+    t_faces = time.perf_counter() - t0
+    if why is not None:
+        stats: dict[str, Any] = {"separation": {"ok": False, "time_faces": t_faces}}
+        return PlanResult(PlanStatus.INFEASIBLE, None, "separation: " + why, None, stats)
+    result = plan(cut, method, cost, **opts)
+    if not result.ok or result.trajectory is None:
+        return replace(result, message=result.message + " (against neighbours)")
+    t1 = time.perf_counter()
+    certs, failure, near = certify_all(result.trajectory, nb)
+    info = {"ok": failure is None, "near": near, "neighbours": len(nb.trajectories), "certificates": certs,
+            "time_faces": t_faces, "time_certify": time.perf_counter() - t1}
+    stats = {**result.stats, "separation": info}
+    if failure is not None:
+        return PlanResult(PlanStatus.INFEASIBLE, None, "separation failed: " + failure.message, None, stats)
+    traj = replace(result.trajectory, corridors=problem.corridors, stats=stats)
+    return PlanResult(PlanStatus.OK, traj, result.message, None, stats)
 
 
 def _after_search(problem: Problem, failed: PlanResult, plan_at: Callable[[Problem], PlanResult],

@@ -131,10 +131,15 @@ def pieces_on(traj: Trajectory, knots: FloatArray) -> FloatArray:
     return out
 
 
-def common_pieces(a: Trajectory, b: Trajectory, extra: FloatArray | None = None) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """(knots (K+1,), a's pieces (K, 10, 3), b's pieces (K, 10, 3)) on the overlap, split at the
-    union of both knot sets (and `extra` times, e.g. a certificate's)."""
+def common_pieces(a: Trajectory, b: Trajectory, extra: FloatArray | None = None,
+                  span: tuple[float, float] | None = None) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """(knots (K+1,), a's pieces (K, 10, 3), b's pieces (K, 10, 3)) on the overlap (cut to `span`
+    when given), split at the union of both knot sets (and `extra` times, e.g. a certificate's)."""
     lo, hi = overlap(a, b)
+    if span is not None:
+        lo, hi = max(lo, span[0]), min(hi, span[1])
+        if hi <= lo:
+            return np.array([lo]), np.zeros((0, 10, 3)), np.zeros((0, 10, 3))
     parts = [a.times, b.times, np.array([lo, hi])]
     if extra is not None:
         parts.append(np.asarray(extra, dtype=float))
@@ -309,6 +314,7 @@ def certify_separation(
     speeds: tuple[float, float] | None = None,
     max_depth: int = MAX_DEPTH,
     exact: bool = False,
+    span: tuple[float, float] | None = None,
 ) -> SeparationCheck:
     """A certificate that A and B keep `separation` (+ the clock's price) at every instant of the
     overlap and after it, or the first common interval that could not be certified.
@@ -317,12 +323,16 @@ def certify_separation(
     own continuous-time speed bound (`speed_bound`). An interval whose best plane is short of
     s' is halved (both pieces at the same u, exactly) up to `max_depth` times. `exact`: the
     maximum-margin plane on every interval (default: a cheap axis or centroid plane where that
-    already clears s', the max-margin QP only where it does not)."""
+    already clears s', the max-margin QP only where it does not). `span` (t0, t1): certify only
+    that part of the overlap (a local replan's rebuilt part); the certificate then covers only it,
+    and its last plane covers no hold unless the span reaches the overlap's end."""
     if not separation >= 0.0 or not clock_tolerance >= 0.0:
         raise ValueError(f"separation and clock_tolerance must be >= 0, got {separation}, {clock_tolerance}")
     va, vb = (speed_bound(a), speed_bound(b)) if clock_tolerance > 0.0 and speeds is None else (speeds or (0.0, 0.0))
     need = separation + (va + vb) * clock_tolerance
-    knots, pa, pb = common_pieces(a, b)
+    knots, pa, pb = common_pieces(a, b, span=span)
+    if knots.size < 2:
+        return SeparationCheck(SeparationStatus.OK, None, message="no overlap within the span")
     n_qp = 0
     out_t: list[float] = []
     out_n: list[FloatArray] = []
@@ -630,8 +640,10 @@ def certify_all(traj: Trajectory, neighbours: Neighbours, t_from: float | None =
     if not neighbours.trajectories:
         return [], None, 0
     qlo, qhi = space_time_boxes(traj)
+    span = None
     if t_from is not None or t_to is not None:
-        keep = (qhi[:, 0] >= (t_from if t_from is not None else -FAR)) & (qlo[:, 0] <= (t_to if t_to is not None else FAR))
+        span = (t_from if t_from is not None else -FAR, t_to if t_to is not None else FAR)
+        keep = (qhi[:, 0] >= span[0]) & (qlo[:, 0] <= span[1])
         qlo, qhi = qlo[keep], qhi[keep]
     olo, ohi, owner = neighbours.boxes
     _, bk = near_pairs(qlo, qhi, olo, ohi, neighbours.max_required)
@@ -640,10 +652,11 @@ def certify_all(traj: Trajectory, neighbours: Neighbours, t_from: float | None =
     for k in near:
         chk = certify_separation(traj, neighbours.trajectories[k], neighbours.separation,
                                  clock_tolerance=neighbours.clock_tolerance,
-                                 speeds=(neighbours.our_speed, neighbours.speed_of(k)))
-        if not chk.ok or chk.certificate is None:
+                                 speeds=(neighbours.our_speed, neighbours.speed_of(k)), span=span)
+        if not chk.ok:
             return certs, replace_message(chk, f"neighbour {k}: {chk.message}"), len(near)
-        certs.append((k, chk.certificate))
+        if chk.certificate is not None:
+            certs.append((k, chk.certificate))
     return certs, None, len(near)
 
 
