@@ -84,6 +84,17 @@ def _plan_against(problem: Problem, neighbours: Neighbours, method: str, cost: s
         stats: dict[str, Any] = {"separation": {"ok": False, "time_faces": t_faces}}
         return PlanResult(PlanStatus.INFEASIBLE, None, "separation: " + why, None, stats)
     result = plan(cut, method, cost, **opts)
+    if result.ok and result.trajectory is not None and not np.array_equal(result.trajectory.times, problem.times):
+        # recovery stretched durations: the faces were for the old times; once more at the new ones
+        retimed = replace(problem, times=result.trajectory.times)
+        cut, why = with_neighbours(retimed, nb)
+        if why is not None:
+            return PlanResult(PlanStatus.INFEASIBLE, None, "separation (after stretching durations): " + why, None,
+                              {**result.stats, "separation": {"ok": False}})
+        result = plan(cut, method, cost, **opts)
+        if result.ok and result.trajectory is not None and not np.array_equal(result.trajectory.times, retimed.times):
+            return PlanResult(PlanStatus.INFEASIBLE, None, "separation: the plan needs longer durations than the "
+                              "neighbours' faces were built for", None, {**result.stats, "separation": {"ok": False}})
     if not result.ok or result.trajectory is None:
         return replace(result, message=result.message + " (against neighbours)")
     t1 = time.perf_counter()
