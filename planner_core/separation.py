@@ -57,6 +57,7 @@ __all__ = [
     "SeparationRows",
     "SeparationStatus",
     "bound_speed",
+    "certify_many",
     "certify_separation",
     "common_pieces",
     "near_pairs",
@@ -113,38 +114,66 @@ def overlap(a: Trajectory, b: Trajectory) -> tuple[float, float]:
     return max(a.t0, b.t0), max(a.t_end, b.t_end)
 
 
-def pieces_on(traj: Trajectory, knots: FloatArray) -> FloatArray:
-    """(K, 10, 3) control points of traj on each [knots[i], knots[i+1]] (knots within traj's span
-    or after its end, and including every knot of traj in their range): exact pieces; after the
-    end, the held last point."""
-    t0, t1 = knots[:-1], knots[1:]
+def _locate(traj: Trajectory, t0: FloatArray, t1: FloatArray) -> tuple[IntArray, FloatArray, FloatArray, NDArray[np.bool_]]:
+    """Segment, local u0, u1 and "held" (after the end) of each interval [t0, t1] (within one segment)."""
     times = traj.times
     mid = 0.5 * (t0 + t1)
     seg = np.clip(np.searchsorted(times, mid, side="right") - 1, 0, traj.n_segments - 1)
     d = times[seg + 1] - times[seg]
     u0 = np.clip((t0 - times[seg]) / d, 0.0, 1.0)
     u1 = np.clip((t1 - times[seg]) / d, 0.0, 1.0)
+    return seg, u0, u1, t0 >= traj.t_end - KNOT_TOL
+
+
+def pieces_on(traj: Trajectory, knots: FloatArray) -> FloatArray:
+    """(K, 10, 3) control points of traj on each [knots[i], knots[i+1]] (knots within traj's span
+    or after its end, and including every knot of traj in their range): exact pieces; after the
+    end, the held last point."""
+    return _pieces(traj, knots[:-1], knots[1:])
+
+
+def _pieces(traj: Trajectory, t0: FloatArray, t1: FloatArray) -> FloatArray:
+    seg, u0, u1, held = _locate(traj, t0, t1)
     out = restrict(traj.control_points[seg], u0, u1)
-    held = t0 >= traj.t_end - KNOT_TOL
     if held.any():
         out[held] = traj.control_points[-1, -1]
     return out
+
+
+def _boxes(traj: Trajectory, t0: FloatArray, t1: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """(lo, hi) (K, 3): the box of the whole segment holding each interval (it holds the piece's
+    control points: they are convex combinations of the segment's), or the held point."""
+    seg, _, _, held = _locate(traj, t0, t1)
+    ctrl = traj.control_points[seg]
+    lo, hi = ctrl.min(axis=1), ctrl.max(axis=1)
+    if held.any():
+        lo[held] = hi[held] = traj.control_points[-1, -1]
+    return lo, hi
+
+
+def common_knots(a: Trajectory, b: Trajectory, extra: FloatArray | None = None,
+                 span: tuple[float, float] | None = None) -> FloatArray:
+    """The overlap (cut to `span` when given) split at the union of both knot sets (and `extra`
+    times, e.g. a certificate's); a single time when the span leaves nothing."""
+    lo, hi = overlap(a, b)
+    if span is not None:
+        lo, hi = max(lo, span[0]), min(hi, span[1])
+        if hi <= lo:
+            return np.array([lo])
+    parts = [a.times, b.times, np.array([lo, hi])]
+    if extra is not None:
+        parts.append(np.asarray(extra, dtype=float))
+    ks = np.concatenate(parts)
+    return _merge_knots(ks[(ks >= lo) & (ks <= hi)])
 
 
 def common_pieces(a: Trajectory, b: Trajectory, extra: FloatArray | None = None,
                   span: tuple[float, float] | None = None) -> tuple[FloatArray, FloatArray, FloatArray]:
     """(knots (K+1,), a's pieces (K, 10, 3), b's pieces (K, 10, 3)) on the overlap (cut to `span`
     when given), split at the union of both knot sets (and `extra` times, e.g. a certificate's)."""
-    lo, hi = overlap(a, b)
-    if span is not None:
-        lo, hi = max(lo, span[0]), min(hi, span[1])
-        if hi <= lo:
-            return np.array([lo]), np.zeros((0, 10, 3)), np.zeros((0, 10, 3))
-    parts = [a.times, b.times, np.array([lo, hi])]
-    if extra is not None:
-        parts.append(np.asarray(extra, dtype=float))
-    ks = np.concatenate(parts)
-    knots = _merge_knots(ks[(ks >= lo) & (ks <= hi)])
+    knots = common_knots(a, b, extra, span)
+    if knots.size < 2:
+        return knots, np.zeros((0, 10, 3)), np.zeros((0, 10, 3))
     return knots, pieces_on(a, knots), pieces_on(b, knots)
 
 
@@ -322,39 +351,116 @@ def certify_separation(
     `speeds` (v_A, v_B): bound speeds that pay for `clock_tolerance`; default each trajectory's
     own continuous-time speed bound (`speed_bound`). An interval whose best plane is short of
     s' is halved (both pieces at the same u, exactly) up to `max_depth` times. `exact`: the
-    maximum-margin plane on every interval (default: a cheap axis or centroid plane where that
-    already clears s', the max-margin QP only where it does not). `span` (t0, t1): certify only
-    that part of the overlap (a local replan's rebuilt part); the certificate then covers only it,
-    and its last plane covers no hold unless the span reaches the overlap's end."""
+    maximum-margin plane on every interval (default: an axis plane between the two segments'
+    boxes, or an axis or centroid plane between the pieces, where that already clears s'; the
+    max-margin QP only where none does). `span` (t0, t1): certify only that part of the overlap
+    (a local replan's rebuilt part); the certificate then covers only it, and its last plane
+    covers no hold unless the span reaches the overlap's end."""
+    return certify_many(a, (b,), separation, clock_tolerance=clock_tolerance,
+                        speeds=None if speeds is None else (speeds,), max_depth=max_depth, exact=exact, span=span)[0]
+
+
+def certify_many(
+    a: Trajectory,
+    others: Sequence[Trajectory],
+    separation: float,
+    *,
+    clock_tolerance: float = 0.0,
+    speeds: Sequence[tuple[float, float]] | None = None,
+    max_depth: int = MAX_DEPTH,
+    exact: bool = False,
+    span: tuple[float, float] | None = None,
+) -> list[SeparationCheck]:
+    """`certify_separation` of A against each of `others`, batched: the intervals of every pair
+    are located, boxed and split in a few array operations (one de Casteljau pass for all)."""
     if not separation >= 0.0 or not clock_tolerance >= 0.0:
         raise ValueError(f"separation and clock_tolerance must be >= 0, got {separation}, {clock_tolerance}")
-    va, vb = (speed_bound(a), speed_bound(b)) if clock_tolerance > 0.0 and speeds is None else (speeds or (0.0, 0.0))
-    need = separation + (va + vb) * clock_tolerance
-    knots, pa, pb = common_pieces(a, b, span=span)
+    nk = len(others)
+    if speeds is None:
+        sa = speed_bound(a) if clock_tolerance > 0.0 else 0.0
+        sp = [(sa, speed_bound(b) if clock_tolerance > 0.0 else 0.0) for b in others]
+    else:
+        sp = [(float(x), float(y)) for x, y in speeds]
+    needs = [separation + (va + vb) * clock_tolerance for va, vb in sp]
+    knots = [common_knots(a, b, span=span) for b in others]
+    counts = np.array([max(k.size - 1, 0) for k in knots], dtype=np.intp)
+    starts = np.concatenate([[0], np.cumsum(counts)])
+    k0 = np.concatenate([k[:-1] for k in knots]) if nk else np.zeros(0)
+    k1 = np.concatenate([k[1:] for k in knots]) if nk else np.zeros(0)
+    need = np.repeat(np.asarray(needs, dtype=float), counts)
+    # boxes of the whole segments first (no splitting)
+    alo, ahi = _boxes(a, k0, k1)
+    blo, bhi = np.empty_like(alo), np.empty_like(ahi)
+    b_seg = np.zeros(k0.size, dtype=np.intp)
+    b_u0, b_u1 = np.zeros(k0.size), np.zeros(k0.size)
+    b_held = np.zeros(k0.size, dtype=bool)
+    for j, b in enumerate(others):
+        sl = slice(int(starts[j]), int(starts[j + 1]))
+        b_seg[sl], b_u0[sl], b_u1[sl], b_held[sl] = _locate(b, k0[sl], k1[sl])
+        ctrl = b.control_points[b_seg[sl]]
+        blo[sl], bhi[sl] = ctrl.min(axis=1), ctrl.max(axis=1)
+        if b_held[sl].any():
+            h = np.flatnonzero(b_held[sl]) + sl.start
+            blo[h] = bhi[h] = b.control_points[-1, -1]
+    gaps = np.concatenate([blo - ahi, alo - bhi], axis=1)
+    mids = np.concatenate([0.5 * (ahi + blo), -0.5 * (alo + bhi)], axis=1)
+    best = np.argmax(gaps, axis=1)
+    r = np.arange(k0.size)
+    cheap_n, cheap_gap, cheap_c = _AXES[best], gaps[r, best], mids[r, best]
+    todo = r if exact else np.flatnonzero(cheap_gap < need)
+    pa = np.zeros((k0.size, 10, 3))
+    pb = np.zeros((k0.size, 10, 3))
+    if todo.size:
+        pa[todo] = _pieces(a, k0[todo], k1[todo])
+        owner = np.repeat(np.arange(nk), counts)
+        ctrl_b = np.stack([others[int(o)].control_points[int(sg)] for o, sg in zip(owner[todo], b_seg[todo], strict=True)])
+        pb[todo] = restrict(ctrl_b, b_u0[todo], b_u1[todo])
+        for i in todo[b_held[todo]].tolist():
+            pb[i] = others[int(owner[i])].control_points[-1, -1]
+        cn, cg, cc = _cheap_planes(pa[todo], pb[todo])
+        better = cg > cheap_gap[todo]
+        cheap_n[todo[better]], cheap_gap[todo[better]], cheap_c[todo[better]] = cn[better], cg[better], cc[better]
+    return [_assemble_certificate(knots[j], int(starts[j]), cheap_n, cheap_gap, cheap_c, pa, pb, needs[j],
+                                  separation, clock_tolerance, sp[j], max_depth, exact) for j in range(nk)]
+
+
+def _halves() -> FloatArray:
+    from planner_core.bezier import subdivision_matrix
+
+    return subdivision_matrix(9, 2)
+
+
+def _assemble_certificate(knots: FloatArray, first: int, cheap_n: FloatArray, cheap_gap: FloatArray,
+                          cheap_c: FloatArray, pa: FloatArray, pb: FloatArray, need: float, separation: float,
+                          clock_tolerance: float, speeds: tuple[float, float], max_depth: int,
+                          exact: bool) -> SeparationCheck:
+    """One pair's intervals (rows first.. of the batch) -> its certificate or first failure."""
     if knots.size < 2:
         return SeparationCheck(SeparationStatus.OK, None, message="no overlap within the span")
+    halves = _halves()
     n_qp = 0
     out_t: list[float] = []
     out_n: list[FloatArray] = []
     out_c: list[float] = []
     min_gap = np.inf
-    cheap_n, cheap_gap, cheap_c = _cheap_planes(pa, pb)
     for i in range(knots.size - 1):
+        g = first + i
+        if not exact and cheap_gap[g] >= need:
+            out_t.append(float(knots[i]))
+            out_n.append(cheap_n[g])
+            out_c.append(float(cheap_c[g]))
+            min_gap = min(min_gap, float(cheap_gap[g]))
+            continue
         # a stack of (t0, t1, a-piece, b-piece, depth), worked depth first so the output stays in time order
-        stack: list[tuple[float, float, FloatArray, FloatArray, int]] = [(float(knots[i]), float(knots[i + 1]), pa[i], pb[i], 0)]
-        first = True
+        stack: list[tuple[float, float, FloatArray, FloatArray, int]] = [(float(knots[i]), float(knots[i + 1]), pa[g], pb[g], 0)]
         while stack:
             t0, t1, qa, qb, depth = stack.pop()
-            if first and not exact and cheap_gap[i] >= need:
-                n, gap, c = cheap_n[i], float(cheap_gap[i]), float(cheap_c[i])
+            n_qp += 1
+            if exact:
+                mm = max_margin_plane(qa, qb)
+                n, gap, c = mm if mm is not None else _plane(qa, qb, np.inf)
             else:
-                n_qp += 1
-                if exact:
-                    mm = max_margin_plane(qa, qb)
-                    n, gap, c = mm if mm is not None else _plane(qa, qb, np.inf)
-                else:
-                    n, gap, c = _plane(qa, qb, need)
-            first = False
+                n, gap, c = _plane(qa, qb, need)
             if gap >= need:
                 out_t.append(t0)
                 out_n.append(n)
@@ -367,14 +473,12 @@ def certify_separation(
                        f"{need - gap:.4g} m short of {need:.4g} m")
                 return SeparationCheck(SeparationStatus.TOO_CLOSE, None, i, (float(knots[i]), float(knots[i + 1])),
                                        float(need - gap), min_gap, msg, {"qps": n_qp})
-            la, ra = restrict(np.stack([qa, qa]), np.array([0.0, 0.5]), np.array([0.5, 1.0]))
-            lb, rb = restrict(np.stack([qb, qb]), np.array([0.0, 0.5]), np.array([0.5, 1.0]))
             tm = 0.5 * (t0 + t1)
-            stack.append((tm, t1, ra, rb, depth + 1))
-            stack.append((t0, tm, la, lb, depth + 1))
+            stack.append((tm, t1, halves[1] @ qa, halves[1] @ qb, depth + 1))
+            stack.append((t0, tm, halves[0] @ qa, halves[0] @ qb, depth + 1))
     out_t.append(float(knots[-1]))
     cert = SeparationCertificate(np.array(out_t), np.array(out_n).reshape(-1, 3), np.array(out_c), float(separation),
-                                 float(clock_tolerance), float(va), float(vb))
+                                 float(clock_tolerance), float(speeds[0]), float(speeds[1]))
     return SeparationCheck(SeparationStatus.OK, cert, min_gap=float(min_gap),
                            message=f"separated by >= {min_gap:.4g} m (required {need:.4g} m) on {cert.n_intervals} intervals",
                            stats={"qps": n_qp, "common_intervals": int(knots.size - 1)})
@@ -649,10 +753,10 @@ def certify_all(traj: Trajectory, neighbours: Neighbours, t_from: float | None =
     _, bk = near_pairs(qlo, qhi, olo, ohi, neighbours.max_required)
     near = sorted(set(owner[bk].tolist()))
     certs: list[tuple[int, SeparationCertificate]] = []
-    for k in near:
-        chk = certify_separation(traj, neighbours.trajectories[k], neighbours.separation,
-                                 clock_tolerance=neighbours.clock_tolerance,
-                                 speeds=(neighbours.our_speed, neighbours.speed_of(k)), span=span)
+    checks = certify_many(traj, [neighbours.trajectories[k] for k in near], neighbours.separation,
+                          clock_tolerance=neighbours.clock_tolerance,
+                          speeds=[(neighbours.our_speed, neighbours.speed_of(k)) for k in near], span=span)
+    for k, chk in zip(near, checks, strict=True):
         if not chk.ok:
             return certs, replace_message(chk, f"neighbour {k}: {chk.message}"), len(near)
         if chk.certificate is not None:

@@ -189,12 +189,13 @@ def test_rows_on_our_control_points_hold_exactly_where_the_certificate_does() ->
     assert cert is not None
     rows = separation_rows(a.times, cert)
     assert rows.violation(a.control_points) <= 1e-9
-    # pushing one of our middle control points towards B breaks a row
+    # pushing the segment of the tightest row towards B by its slack + 0.5 m breaks that row by 0.5 m
+    # (a piece's control points are convex combinations of its segment's: the weights sum to 1)
+    np.testing.assert_allclose(rows.weights.sum(axis=1), 1.0, atol=1e-12)
+    tight = int(np.argmax(rows.values(a.control_points) - rows.rhs))
     pushed = a.control_points.copy()
-    j = int(rows.segment[np.argmax(rows.values(a.control_points) - rows.rhs)])
-    n = rows.normal[np.argmax(rows.values(a.control_points) - rows.rhs)]
-    pushed[j, 4:6] += 3.0 * n
-    assert rows.violation(pushed) > 0.0
+    pushed[rows.segment[tight]] += (0.5 - rows.violation(a.control_points)) * rows.normal[tight]
+    assert rows.violation(pushed) == pytest.approx(0.5)
 
 
 # --- broad phase and planning against neighbours ------------------------------------------------
