@@ -681,12 +681,13 @@ def neighbour_faces(times: FloatArray, reference: Sequence[FloatArray], neighbou
     qlo[:, 1:] = np.array([r.min(axis=0) for r in reference])
     qhi[:, 1:] = np.array([r.max(axis=0) for r in reference])
     qi, bk = near_pairs(qlo, qhi, olo, ohi, neighbours.max_required + neighbours.reach)
-    faces: dict[int, tuple[list[FloatArray], list[float]]] = {}
-    seen: set[tuple[int, int]] = set()
-    for q, k in zip(qi.tolist(), owner[bk].tolist(), strict=True):
-        if (q, k) in seen:
-            continue
-        seen.add((q, k))
+    # one row per (pair, piece of the neighbour over our segment's span): located here, split below
+    # in one de Casteljau pass for every pair
+    pairs: list[tuple[int, int]] = []
+    piece_pair: list[int] = []
+    t_lo: list[FloatArray] = []
+    t_hi: list[FloatArray] = []
+    for q, k in sorted(set(zip(qi.tolist(), owner[bk].tolist(), strict=True))):
         s = segs[q]
         nb = neighbours.trajectories[k]
         t0, t1 = float(times[s]), float(times[s + 1])
@@ -695,10 +696,45 @@ def neighbour_faces(times: FloatArray, reference: Sequence[FloatArray], neighbou
             continue
         ks = nb.times[(nb.times > lo_t) & (nb.times < t1)]
         knots = _merge_knots(np.concatenate([[lo_t, t1], ks, [nb.t_end] if lo_t < nb.t_end < t1 else []]))
-        pts = pieces_on(nb, knots).reshape(-1, 3)
-        n, _, _ = _plane(reference[q], pts, np.inf)
-        rhs = float((pts @ n).min()) - neighbours.required(k)
-        entry = faces.setdefault(s, ([], []))
+        piece_pair.extend([len(pairs)] * (knots.size - 1))
+        pairs.append((q, k))
+        t_lo.append(knots[:-1])
+        t_hi.append(knots[1:])
+    if not pairs:
+        return {}
+    pp = np.asarray(piece_pair, dtype=np.intp)
+    k0, k1 = np.concatenate(t_lo), np.concatenate(t_hi)
+    ctrl = np.empty((k0.size, 10, 3))
+    u0, u1 = np.empty(k0.size), np.empty(k0.size)
+    held = np.zeros(k0.size, dtype=bool)
+    for j, (_, k) in enumerate(pairs):
+        rows = np.flatnonzero(pp == j)
+        nb = neighbours.trajectories[k]
+        sg, u0[rows], u1[rows], held[rows] = _locate(nb, k0[rows], k1[rows])
+        ctrl[rows] = nb.control_points[sg]
+        ctrl[rows[held[rows]]] = nb.control_points[-1, -1]
+    pieces = restrict(ctrl, u0, u1)
+    # cheap planes for every pair at once (pad each pair's points by repeating its first piece)
+    count = np.bincount(pp, minlength=len(pairs))
+    width = int(count.max())
+    first = np.concatenate([[0], np.cumsum(count)[:-1]])
+    slot = np.arange(k0.size) - first[pp]
+    padded = np.repeat(pieces[first][:, None], width, axis=1)  # (pairs, width, 10, 3)
+    padded[pp, slot] = pieces
+    pts_all = padded.reshape(len(pairs), width * 10, 3)
+    n_ref = max(r.shape[0] for r in reference)
+    refs = np.stack([reference[q][np.minimum(np.arange(n_ref), reference[q].shape[0] - 1)] for q, _ in pairs])
+    cn, cg, _ = _cheap_planes(refs, pts_all)
+    faces: dict[int, tuple[list[FloatArray], list[float]]] = {}
+    for j, (q, k) in enumerate(pairs):
+        need = neighbours.required(k)
+        pts = pts_all[j]
+        if cg[j] >= need + neighbours.reach:
+            n = cn[j]  # room for `reach` already: no solver
+        else:
+            n, _, _ = _plane(reference[q], pieces[pp == j].reshape(-1, 3), np.inf)
+        rhs = float((pts @ n).min()) - need
+        entry = faces.setdefault(segs[q], ([], []))
         entry[0].append(n)
         entry[1].append(rhs)
     return {s: (np.array(a), np.array(b)) for s, (a, b) in faces.items()}
