@@ -64,7 +64,72 @@ def plan(problem: Problem, method: str = "iterative", cost: str | None = None, *
 
 def _plan_against(problem: Problem, neighbours: Neighbours, method: str, cost: str | None,
                   opts: dict[str, Any]) -> PlanResult:
-    """Plan keeping the separation from neighbours' committed trajectories (method.md, the fleet).
+    """Plan keeping the separation from neighbours' committed trajectories (method.md, the fleet):
+    first with one face per segment and neighbour (`_plan_faces`, any planner), and when that
+    fails, with time-resolved rows (`_plan_rows`: a neighbour may cross our path within one of our
+    segments at another time). OK only when every near neighbour's certificate holds."""
+    coarse = _plan_faces(problem, neighbours, method, cost, opts)
+    if coarse.ok:
+        return coarse
+    fine = _plan_rows(problem, neighbours, cost)
+    if fine.ok:
+        return fine
+    stats = {**coarse.stats, "separation_rows": fine.stats.get("separation", {})}
+    return replace(coarse, message=f"{coarse.message}; with time-resolved rows: {fine.message}", stats=stats)
+
+
+ROW_ROUNDS = 3  # time-resolved rows: re-planes from the last plan, at most this many solves
+
+
+def _plan_rows(problem: Problem, neighbours: Neighbours, cost: str | None) -> PlanResult:
+    """All interior jets in one dense QP (the general jet solver) with the rows of
+    `separation.planning_rows` (planes per common piece of our reference and each near
+    neighbour). The reference is the given previous plan or the straight segments; when the
+    solution is not certified, the planes are rebuilt from it (up to ROW_ROUNDS solves).
+    Verified (`verify`, the rows, `certify_all`) like every plan."""
+    from planner_core.jets import ProblemCache, initial_jets, solve_jets, trajectory_from_jets
+    from planner_core.separation import certify_all, planning_rows, reference_trajectory
+
+    t0 = time.perf_counter()
+    nb = neighbours.for_bounds(problem.bounds)
+    m = problem.m
+    if m < 3:
+        return PlanResult(PlanStatus.INFEASIBLE, None, "one segment is fixed by its end jets: nothing to move",
+                          None, {"separation": {"ok": False}})
+    ref = reference_trajectory(problem, nb.reference)
+    jcost = cost if cost in ("snap", "jerk") else "snap"
+    last = "no round ran"
+    info: dict[str, Any] = {"ok": False, "rounds": 0}
+    for rnd in range(ROW_ROUNDS):
+        rows = planning_rows(problem.times, ref, nb)
+        cache = ProblemCache(problem, extra_rows=rows)
+        res = solve_jets(problem, initial_jets(problem), list(range(1, m - 1)), cost=jcost, backend="daqp", cache=cache)
+        info.update(rounds=rnd + 1, rows=int(rows.rhs.size))
+        if not res.ok:
+            last = f"QP {res.status.value} with {rows.rhs.size} separation rows"
+            break
+        traj = trajectory_from_jets(problem, res.jets)
+        report = verify(traj, problem)
+        over = rows.violation(traj.control_points)
+        if not report.ok or over > 1e-9:
+            last = "verification failed: " + "; ".join(report.failures()) if not report.ok else f"rows violated by {over:.3g}"
+            break
+        certs, failure, near = certify_all(traj, nb)
+        if failure is None:
+            info.update(ok=True, near=near, neighbours=len(nb.trajectories), certificates=certs,
+                        time_total=time.perf_counter() - t0)
+            stats = {"method": "jets+separation rows", "cost": jcost, "separation": info, "verified": True}
+            return PlanResult(PlanStatus.OK, replace(traj, stats=stats), "planned (time-resolved separation rows)",
+                              None, stats)
+        last = failure.message
+        ref = traj  # planes again, from this plan
+    info["time_total"] = time.perf_counter() - t0
+    return PlanResult(PlanStatus.INFEASIBLE, None, last, None, {"separation": info})
+
+
+def _plan_faces(problem: Problem, neighbours: Neighbours, method: str, cost: str | None,
+                opts: dict[str, Any]) -> PlanResult:
+    """Plan keeping the separation from neighbours with one face per segment and neighbour.
 
     Each segment's corridor is cut by one half-space per near neighbour (`separation.with_neighbours`:
     a plane fixed from our reference, linear in our control points, so the QP stays a QP), the

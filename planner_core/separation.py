@@ -62,6 +62,7 @@ __all__ = [
     "common_pieces",
     "near_pairs",
     "neighbour_faces",
+    "planning_rows",
     "separation_rows",
     "speed_bound",
     "verify_separation",
@@ -858,3 +859,67 @@ def separation_rows(times: FloatArray, cert: SeparationCertificate, n_segments: 
     kk = t0.size
     return SeparationRows(np.repeat(seg, 10).astype(np.intp), w.reshape(kk * 10, 10), np.repeat(n[which], 10, axis=0),
                           np.repeat(rhs[which], 10))
+
+
+def planning_rows(times: FloatArray, reference: Trajectory, neighbours: Neighbours, pieces: int = 2) -> SeparationRows:
+    """Time-resolved rows for planning on our segments of span `times` (m,): our reference (the
+    previous plan, or the straight segments at these times) and each near neighbour are split at
+    the union of their knots and ours, each common interval into `pieces` equal pieces; per piece
+    a plane (an axis or centroid plane where it leaves `reach` of room, else the max-margin
+    plane) and the rows n . a_k <= min_k n . b_k - s' on our piece's 10 control points (each a
+    fixed combination of its segment's). Pieces whose neighbour is farther than s' + reach from
+    our reference get no row. Unlike `neighbour_faces` (one plane per segment), a neighbour may
+    cross our path within one of our segments, at another time."""
+    if not neighbours.trajectories:
+        return SeparationRows(np.zeros(0, dtype=np.intp), np.zeros((0, 10)), np.zeros((0, 3)), np.zeros(0))
+    m1 = times.size - 1
+    qlo, qhi = space_time_boxes(reference)
+    olo, ohi, owner = neighbours.boxes
+    _, bk = near_pairs(qlo[:-1], qhi[:-1], olo, ohi, neighbours.max_required + neighbours.reach)
+    near = sorted(set(owner[bk].tolist()))
+    span = (float(times[0]), float(times[-1]))
+    seg_l: list[IntArray] = []
+    w_l: list[FloatArray] = []
+    n_l: list[FloatArray] = []
+    r_l: list[FloatArray] = []
+    frac = np.arange(pieces + 1) / pieces
+    for k in near:
+        nb = neighbours.trajectories[k]
+        knots = common_knots(reference, nb, extra=times, span=span)
+        if knots.size < 2:
+            continue
+        edges = (knots[:-1, None] + (knots[1:] - knots[:-1])[:, None] * frac[None, :])  # (K, pieces + 1)
+        t0, t1 = edges[:, :-1].ravel(), edges[:, 1:].ravel()
+        pa, pb = _pieces(reference, t0, t1), _pieces(nb, t0, t1)
+        need = neighbours.required(k)
+        n, gap, _ = _cheap_planes(pa, pb)
+        keep = gap < need + neighbours.reach  # farther pieces need no row
+        for i in np.flatnonzero(keep):
+            mm = max_margin_plane(pa[i], pb[i])
+            if mm is not None and mm[1] > gap[i]:
+                n[i] = mm[0]
+        if not keep.any():
+            continue
+        idx = np.flatnonzero(keep)
+        rhs = np.einsum("kx,kpx->kp", n[idx], pb[idx]).min(axis=1) - need
+        tm = 0.5 * (t0[idx] + t1[idx])
+        seg = np.clip(np.searchsorted(times, tm, side="right") - 1, 0, m1 - 1)
+        d = times[seg + 1] - times[seg]
+        u0 = np.clip((t0[idx] - times[seg]) / d, 0.0, 1.0)
+        u1 = np.clip((t1[idx] - times[seg]) / d, 0.0, 1.0)
+        w = restrict(np.broadcast_to(np.eye(10), (idx.size, 10, 10)), u0, u1)  # (P, 10, 10)
+        seg_l.append(np.repeat(seg, 10).astype(np.intp))
+        w_l.append(w.reshape(-1, 10))
+        n_l.append(np.repeat(n[idx], 10, axis=0))
+        r_l.append(np.repeat(rhs, 10))
+    if not seg_l:
+        return SeparationRows(np.zeros(0, dtype=np.intp), np.zeros((0, 10)), np.zeros((0, 3)), np.zeros(0))
+    return SeparationRows(np.concatenate(seg_l), np.concatenate(w_l), np.concatenate(n_l), np.concatenate(r_l))
+
+
+def reference_trajectory(problem: Problem, reference: Trajectory | None) -> Trajectory:
+    """Our reference in time: the previous plan where given, else the straight segments between
+    the problem's waypoints at its times."""
+    if reference is not None:
+        return reference
+    return Trajectory(problem.times.copy(), straight_reference(problem))

@@ -257,3 +257,20 @@ def test_local_replan_with_neighbours_keeps_separation() -> None:
     bare = replan(ours, first.trajectory, MoveWaypoint(2, np.array([0.3, 1.5, 0.0])))
     assert bare.ok and bare.trajectory is not None
     assert sampled_min_distance(bare.trajectory, neighbour) < 1.3
+
+
+def test_a_neighbour_crossing_within_one_segment_is_planned_around_with_time_resolved_rows() -> None:
+    # one face per segment cannot work here: the neighbour sweeps across our whole first segment's
+    # path during its span (crossing x = -5 at t = 5, when we are ~3.5 m past); planes per piece can
+    ours = Problem.from_waypoints([[-10, 0, 0], [0, 0, 0], [10, 0, 0]], [6.0, 6.0], BOUNDS)
+    neighbour = line([-5, -10, 0], [-5, 10, 0], 2.5, 7.5)
+    alone = plan(ours)
+    assert alone.ok and alone.trajectory is not None
+    assert sampled_min_distance(alone.trajectory, neighbour) < 4.0
+    res = plan(ours, neighbours=Neighbours((neighbour,), 4.0))
+    assert res.ok and res.trajectory is not None, res.message
+    assert "time-resolved" in res.message and res.stats["separation"]["ok"]
+    assert sampled_min_distance(res.trajectory, neighbour) >= 4.0
+    np.testing.assert_allclose(res.trajectory.waypoints, ours.waypoints)
+    (k, cert), = res.stats["separation"]["certificates"]
+    assert k == 0 and verify_separation(res.trajectory, neighbour, cert).ok
