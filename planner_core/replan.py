@@ -526,6 +526,30 @@ def _neighbour_cut(work: _Work, segs: list[int], opts: ReplanOptions) -> dict[in
     return {s: add_faces(None if corridors is None else corridors[s], faces[s]) for s in faces}
 
 
+def _solve_rows(work: _Work, free: set[int], opts: ReplanOptions) -> tuple[dict[int, FloatArray], float]:
+    """Jets for `free` with time-resolved separation rows (`separation.planning_rows`, planes per
+    common piece of the current plan and each near neighbour) in the general jet solver: for a
+    neighbour that crosses our path within one segment, at another time."""
+    from planner_core.jets import ProblemCache, solve_jets
+    from planner_core.separation import planning_rows, reference_trajectory
+
+    nb = opts.neighbours
+    if nb is None or not free:
+        return {}, 0.0
+    lo = min(free) - 1
+    sub, jets = _sub_problem(work, lo, max(free) + 1)
+    old = Trajectory(work.old_times, work.old_ctrl)
+    covers = old.t0 <= sub.times[0] + TIME_EPS and old.t_end >= sub.times[-1] - TIME_EPS
+    rows = planning_rows(sub.times, old if covers else reference_trajectory(sub, None), nb)
+    t0 = time.perf_counter()
+    res = solve_jets(sub, jets, [j - lo for j in sorted(free)], cost=opts.cost if opts.cost in ("snap", "jerk") else "snap",
+                     backend=opts.backend, cache=ProblemCache(sub, extra_rows=rows))
+    elapsed = time.perf_counter() - t0
+    if not res.ok:
+        raise _Infeasible(f"QP {res.status.value} for jets {sorted(free)} with {rows.rhs.size} separation rows")
+    return {j: res.jets[j - lo] for j in free}, elapsed
+
+
 def _sub_problem(work: _Work, lo: int, hi: int,
                  cut: dict[int, Polytope | None] | None = None) -> tuple[Problem, FloatArray]:
     """Waypoints lo..hi as a problem of their own, the end jets fixed to the current ones."""
@@ -707,19 +731,23 @@ def _search(work: _Work, opts: ReplanOptions, stats: dict[str, Any]) -> tuple[Tr
         free = set(work.seeds)
         for widen in range(opts.max_widen + 1):
             attempts += 1
-            try:
-                solved, qp_time = _solve(work, free, opts)
-                stats["qp_time_s"] += qp_time
-                traj, rebuild = _assemble(work, solved, free)
-                failure = _certify(traj, work, rebuild)
-                if failure is None and opts.neighbours is not None and rebuild:
-                    failure = _certify_separation(traj, rebuild, opts.neighbours, stats)
-                if failure is None:
-                    stats.update(attempts=attempts, widened=widen, rebuilt_segments=rebuild)
-                    return traj, free
-                last = f"certificate failed: {failure}"
-            except _Infeasible as exc:
-                last = str(exc)
+            for rows in (False, True) if opts.neighbours is not None else (False,):
+                # with neighbours: one face per segment first, then time-resolved rows
+                try:
+                    solved, qp_time = _solve_rows(work, free, opts) if rows else _solve(work, free, opts)
+                    stats["qp_time_s"] += qp_time
+                    traj, rebuild = _assemble(work, solved, free)
+                    failure = _certify(traj, work, rebuild)
+                    if failure is None and opts.neighbours is not None and rebuild:
+                        failure = _certify_separation(traj, rebuild, opts.neighbours, stats)
+                    if failure is None:
+                        stats.update(attempts=attempts, widened=widen, rebuilt_segments=rebuild)
+                        if rows:
+                            stats["separation_rows"] = True
+                        return traj, free
+                    last = f"certificate failed: {failure}"
+                except _Infeasible as exc:
+                    last = str(exc)
             if not checked:
                 # A waypoint outside its corridor fails every attempt (the certificate checks
                 # P^0 and P^9): name it now instead of widening and stretching in vain. Checked

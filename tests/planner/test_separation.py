@@ -274,3 +274,20 @@ def test_a_neighbour_crossing_within_one_segment_is_planned_around_with_time_res
     np.testing.assert_allclose(res.trajectory.waypoints, ours.waypoints)
     (k, cert), = res.stats["separation"]["certificates"]
     assert k == 0 and verify_separation(res.trajectory, neighbour, cert).ok
+
+
+def test_local_replan_falls_back_to_time_resolved_rows() -> None:
+    # our plan was committed before the neighbour: it crosses our segment 1's path within its span
+    ours = Problem.from_waypoints([[-15, 0, 0], [-10, 0, 0], [0, 0, 0], [10, 0, 0]], [4.0, 6.0, 6.0], BOUNDS)
+    first = plan(ours)
+    assert first.ok and first.trajectory is not None
+    neighbour = line([-5, -10, 0], [-5, 10, 0], 6.5, 11.5)
+    assert sampled_min_distance(first.trajectory, neighbour) < 4.0
+    change = MoveWaypoint(2, np.array([0.0, 0.3, 0.0]))
+    res = replan(ours, first.trajectory, change, options=ReplanOptions(neighbours=Neighbours((neighbour,), 4.0)))
+    assert res.ok and res.trajectory is not None, res.message
+    assert res.stats.get("separation_rows") and res.stats["separation"]["ok"]
+    assert sampled_min_distance(res.trajectory, neighbour) >= 4.0
+    bare = replan(ours, first.trajectory, change)
+    assert bare.ok and bare.trajectory is not None
+    assert sampled_min_distance(bare.trajectory, neighbour) < 4.0
