@@ -48,11 +48,11 @@ BOUNDS = Bounds.symmetric(7.0, 6.5, 40.0, 400.0)
 COUNTS = (1, 10, 50, 200)
 
 
-def _ours() -> tuple[Problem, Trajectory]:
+def _ours(m: int = 11) -> tuple[Problem, Trajectory]:
     """Our problem at durations the planner needs no stretching for, and its plan alone."""
-    x = np.linspace(-50.0, 50.0, 11)
+    x = np.linspace(-50.0, 50.0, m)
     wps = np.stack([x, np.zeros_like(x), np.zeros_like(x)], axis=1)
-    problem = Problem.from_waypoints(wps, np.full(10, 2.0), BOUNDS)
+    problem = Problem.from_waypoints(wps, np.full(m - 1, 20.0 / (m - 1)), BOUNDS)
     alone = plan(problem).trajectory
     assert alone is not None
     return replace(problem, times=alone.times), alone
@@ -102,13 +102,14 @@ def _med(ms: FloatArray) -> dict[str, float]:
 def _row(problem: Problem, alone: Trajectory, n: int, repeats: int) -> dict[str, Any]:
     trajs = _neighbours(n, alone)
     nb = Neighbours(trajs, SEPARATION, CLOCK, speeds=(SPEED,) * n)
-    row: dict[str, Any] = {"neighbours": n}
+    row: dict[str, Any] = {"waypoints": problem.m, "neighbours": n}
     first = plan(problem, neighbours=nb)
     if not first.ok or first.trajectory is None:
         row["error"] = first.message
         return row
     traj = first.trajectory
     row["near"] = first.stats["separation"]["near"]
+    row["plan_path"] = "rows" if "time-resolved" in first.message else "faces"
     ts = np.linspace(traj.t0, traj.t_end + 1.0, 4001)
     row["min_distance_sampled"] = float(min(np.linalg.norm(traj.evaluate(ts) - t.evaluate(ts), axis=1).min()
                                             for t in trajs))
@@ -119,13 +120,14 @@ def _row(problem: Problem, alone: Trajectory, n: int, repeats: int) -> dict[str,
     row["certify_each"] = _med(_ms(lambda: certify_many(traj, trajs, SEPARATION, clock_tolerance=CLOCK,
                                                         speeds=[(resolved.our_speed, SPEED)] * n), max(3, repeats // 4)))
     row["plan"] = _med(_ms(lambda: plan(problem, neighbours=nb), max(3, repeats // 4)))
-    j = 5
+    j = problem.m // 2
     change = MoveWaypoint(j, problem.waypoints[j] + np.array([0.5, 0.8, 0.3]))
     opts = ReplanOptions(neighbours=replace(nb, reference=traj))
     r = replan(problem, traj, change, options=opts)
     row["replan_ok"] = bool(r.ok)
     if r.ok and r.trajectory is not None:
         row["replan_near"] = r.stats["separation"]["near"]
+        row["replan_path"] = "rows" if r.stats.get("separation_rows") else "faces"
         row["replan"] = _med(_ms(lambda: replan(problem, traj, change, options=opts), repeats))
         row["replan_bare"] = _med(_ms(lambda: replan(problem, traj, change), repeats))
     else:
@@ -134,24 +136,30 @@ def _row(problem: Problem, alone: Trajectory, n: int, repeats: int) -> dict[str,
 
 
 def bench(counts: Sequence[int] = COUNTS, repeats: int = 20) -> list[dict[str, Any]]:
-    problem, alone = _ours()
-    return [_row(problem, alone, n, repeats) for n in counts]
+    """Two scenes: 11 waypoints (10 m segments: one face per segment and neighbour is enough), and
+    3 waypoints (50 m segments that neighbours cross within their span: time-resolved rows)."""
+    rows = []
+    for m in (11, 3):
+        problem, alone = _ours(m)
+        rows += [_row(problem, alone, n, repeats) for n in counts]
+    return rows
 
 
 def format_rows(rows: list[dict[str, Any]]) -> str:
-    lines = ["| neighbours | near | min dist (m) | certify near med/p95 ms | certify all N med ms | plan med ms | "
-             "replan med/p95 ms | replan w/o neighbours med ms |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = ["| waypoints | neighbours | near | min dist (m) | certify near med/p95 ms | certify all N med ms | "
+             "plan med ms (path) | replan med/p95 ms (path) | replan w/o neighbours med ms |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         if "error" in r:
-            lines.append(f"| {r['neighbours']} | plan failed: {r['error']} | | | | | | |")
+            lines.append(f"| {r['waypoints']} | {r['neighbours']} | plan failed: {r['error']} | | | | | | |")
             continue
-        rep = (f"{r['replan']['median_ms']:.2f} / {r['replan']['p95_ms']:.2f}" if "replan" in r
+        rep = (f"{r['replan']['median_ms']:.2f} / {r['replan']['p95_ms']:.2f} ({r['replan_path']})" if "replan" in r
                else f"failed: {r.get('replan_error')}")
         bare = f"{r['replan_bare']['median_ms']:.2f}" if "replan_bare" in r else ""
-        lines.append(f"| {r['neighbours']} | {r['near']} | {r['min_distance_sampled']:.2f} | "
+        lines.append(f"| {r['waypoints']} | {r['neighbours']} | {r['near']} | {r['min_distance_sampled']:.2f} | "
                      f"{r['certify_near']['median_ms']:.2f} / {r['certify_near']['p95_ms']:.2f} | "
-                     f"{r['certify_each']['median_ms']:.2f} | {r['plan']['median_ms']:.2f} | {rep} | {bare} |")
+                     f"{r['certify_each']['median_ms']:.2f} | {r['plan']['median_ms']:.2f} ({r['plan_path']}) | "
+                     f"{rep} | {bare} |")
     return "\n".join(lines)
 
 

@@ -512,7 +512,7 @@ def _neighbour_cut(work: _Work, segs: list[int], opts: ReplanOptions) -> dict[in
     nb = opts.neighbours
     if nb is None or not segs:
         return {}
-    from planner_core.separation import add_faces, neighbour_faces, reference_points
+    from planner_core.separation import NoFace, add_faces, neighbour_faces, reference_points
 
     old = Trajectory(work.old_times, work.old_ctrl)
     straight = np.stack([work.wps[segs], work.wps[[s + 1 for s in segs]]], axis=1)  # (k, 2, 3)
@@ -521,7 +521,10 @@ def _neighbour_cut(work: _Work, segs: list[int], opts: ReplanOptions) -> dict[in
     full = np.zeros((work.m - 1, 10, 3))
     full[segs] = lines
     ref = reference_points(work.times, full, old, segs)
-    faces = neighbour_faces(work.times, ref, nb, segs)
+    try:
+        faces = neighbour_faces(work.times, ref, nb, segs, give_up=True)
+    except NoFace as exc:
+        raise _Infeasible(f"separation: {exc}") from exc
     corridors = work.corridors
     return {s: add_faces(None if corridors is None else corridors[s], faces[s]) for s in faces}
 

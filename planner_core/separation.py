@@ -661,8 +661,13 @@ def reference_points(times: FloatArray, straight: FloatArray, ref: Trajectory | 
     return out
 
 
+class NoFace(Exception):
+    """One face per segment cannot hold our reference away from a neighbour (it sweeps across our
+    segment's path during its span): time-resolved rows are needed (`planning_rows`)."""
+
+
 def neighbour_faces(times: FloatArray, reference: Sequence[FloatArray], neighbours: Neighbours,
-                    segments: Sequence[int]) -> dict[int, tuple[FloatArray, FloatArray]]:
+                    segments: Sequence[int], give_up: bool = False) -> dict[int, tuple[FloatArray, FloatArray]]:
     """Per listed segment s of ours (span [times[s], times[s+1]], reference points reference[r]
     for the r-th listed segment):
     half-spaces (A (f, 3), b (f,)) with A x <= b on our control points, one per near neighbour:
@@ -733,7 +738,11 @@ def neighbour_faces(times: FloatArray, reference: Sequence[FloatArray], neighbou
         if cg[j] >= need + neighbours.reach:
             n = cn[j]  # room for `reach` already: no solver
         else:
-            n, _, _ = _plane(reference[q], pieces[pp == j].reshape(-1, 3), np.inf)
+            n, gap, _ = _plane(reference[q], pieces[pp == j].reshape(-1, 3), np.inf)
+            if give_up and gap < need:
+                raise NoFace(f"neighbour {k} comes within {max(gap, 0.0):.4g} m of our reference over segment "
+                             f"{segs[q]} [{times[segs[q]]:.6g}, {times[segs[q] + 1]:.6g}] s (one plane for the "
+                             f"segment; {need:.4g} m required)")
         rhs = float((pts @ n).min()) - need
         entry = faces.setdefault(segs[q], ([], []))
         entry[0].append(n)
@@ -757,7 +766,10 @@ def with_neighbours(problem: Problem, neighbours: Neighbours) -> tuple[Problem, 
     neighbours = neighbours.for_bounds(problem.bounds)
     segs = list(range(problem.m - 1))
     ref = reference_points(problem.times, straight_reference(problem), neighbours.reference, segs)
-    faces = neighbour_faces(problem.times, ref, neighbours, segs)
+    try:
+        faces = neighbour_faces(problem.times, ref, neighbours, segs, give_up=True)
+    except NoFace as exc:
+        return problem, str(exc)
     if not faces:
         return problem, None
     base = problem.corridors if problem.corridors is not None else (None,) * (problem.m - 1)
@@ -861,60 +873,78 @@ def separation_rows(times: FloatArray, cert: SeparationCertificate, n_segments: 
                           np.repeat(rhs[which], 10))
 
 
+def _others_pieces(others: Sequence[Trajectory], owner: IntArray, t0: FloatArray, t1: FloatArray) -> FloatArray:
+    """Pieces (K, 10, 3) of others[owner[i]] on [t0[i], t1[i]], one de Casteljau pass for all."""
+    seg = np.zeros(t0.size, dtype=np.intp)
+    u0, u1 = np.zeros(t0.size), np.zeros(t0.size)
+    held = np.zeros(t0.size, dtype=bool)
+    ctrl = np.empty((t0.size, 10, 3))
+    for j in np.unique(owner).tolist():
+        rows = np.flatnonzero(owner == j)
+        seg[rows], u0[rows], u1[rows], held[rows] = _locate(others[j], t0[rows], t1[rows])
+        ctrl[rows] = others[j].control_points[seg[rows]]
+    out = restrict(ctrl, u0, u1)
+    for i in np.flatnonzero(held).tolist():
+        out[i] = others[int(owner[i])].control_points[-1, -1]
+    return out
+
+
 def planning_rows(times: FloatArray, reference: Trajectory, neighbours: Neighbours, pieces: int = 2) -> SeparationRows:
     """Time-resolved rows for planning on our segments of span `times` (m,): our reference (the
     previous plan, or the straight segments at these times) and each near neighbour are split at
     the union of their knots and ours, each common interval into `pieces` equal pieces; per piece
-    a plane (an axis or centroid plane where it leaves `reach` of room, else the max-margin
-    plane) and the rows n . a_k <= min_k n . b_k - s' on our piece's 10 control points (each a
-    fixed combination of its segment's). Pieces whose neighbour is farther than s' + reach from
-    our reference get no row. Unlike `neighbour_faces` (one plane per segment), a neighbour may
-    cross our path within one of our segments, at another time."""
+    a plane (an axis or centroid plane where it clears s', else the max-margin plane) and the rows
+    n . a_k <= min_k n . b_k - s' on our piece's 10 control points (each a fixed combination of
+    its segment's). Pieces whose neighbour is farther than s' + reach from our reference get no
+    row. Unlike `neighbour_faces` (one plane per segment), a neighbour may cross our path within
+    one of our segments, at another time. Every pair is split in one batch."""
+    empty = SeparationRows(np.zeros(0, dtype=np.intp), np.zeros((0, 10)), np.zeros((0, 3)), np.zeros(0))
     if not neighbours.trajectories:
-        return SeparationRows(np.zeros(0, dtype=np.intp), np.zeros((0, 10)), np.zeros((0, 3)), np.zeros(0))
+        return empty
     m1 = times.size - 1
     qlo, qhi = space_time_boxes(reference)
-    olo, ohi, owner = neighbours.boxes
+    olo, ohi, owner_box = neighbours.boxes
     _, bk = near_pairs(qlo[:-1], qhi[:-1], olo, ohi, neighbours.max_required + neighbours.reach)
-    near = sorted(set(owner[bk].tolist()))
+    near = sorted(set(owner_box[bk].tolist()))
+    if not near:
+        return empty
     span = (float(times[0]), float(times[-1]))
-    seg_l: list[IntArray] = []
-    w_l: list[FloatArray] = []
-    n_l: list[FloatArray] = []
-    r_l: list[FloatArray] = []
     frac = np.arange(pieces + 1) / pieces
+    t0_l: list[FloatArray] = []
+    t1_l: list[FloatArray] = []
+    own_l: list[IntArray] = []
     for k in near:
-        nb = neighbours.trajectories[k]
-        knots = common_knots(reference, nb, extra=times, span=span)
+        knots = common_knots(reference, neighbours.trajectories[k], extra=times, span=span)
         if knots.size < 2:
             continue
-        edges = (knots[:-1, None] + (knots[1:] - knots[:-1])[:, None] * frac[None, :])  # (K, pieces + 1)
-        t0, t1 = edges[:, :-1].ravel(), edges[:, 1:].ravel()
-        pa, pb = _pieces(reference, t0, t1), _pieces(nb, t0, t1)
-        need = neighbours.required(k)
-        n, gap, _ = _cheap_planes(pa, pb)
-        keep = gap < need + neighbours.reach  # farther pieces need no row
-        for i in np.flatnonzero(keep):
-            mm = max_margin_plane(pa[i], pb[i])
-            if mm is not None and mm[1] > gap[i]:
-                n[i] = mm[0]
-        if not keep.any():
-            continue
-        idx = np.flatnonzero(keep)
-        rhs = np.einsum("kx,kpx->kp", n[idx], pb[idx]).min(axis=1) - need
-        tm = 0.5 * (t0[idx] + t1[idx])
-        seg = np.clip(np.searchsorted(times, tm, side="right") - 1, 0, m1 - 1)
-        d = times[seg + 1] - times[seg]
-        u0 = np.clip((t0[idx] - times[seg]) / d, 0.0, 1.0)
-        u1 = np.clip((t1[idx] - times[seg]) / d, 0.0, 1.0)
-        w = restrict(np.broadcast_to(np.eye(10), (idx.size, 10, 10)), u0, u1)  # (P, 10, 10)
-        seg_l.append(np.repeat(seg, 10).astype(np.intp))
-        w_l.append(w.reshape(-1, 10))
-        n_l.append(np.repeat(n[idx], 10, axis=0))
-        r_l.append(np.repeat(rhs, 10))
-    if not seg_l:
-        return SeparationRows(np.zeros(0, dtype=np.intp), np.zeros((0, 10)), np.zeros((0, 3)), np.zeros(0))
-    return SeparationRows(np.concatenate(seg_l), np.concatenate(w_l), np.concatenate(n_l), np.concatenate(r_l))
+        edges = knots[:-1, None] + (knots[1:] - knots[:-1])[:, None] * frac[None, :]  # (K, pieces + 1)
+        t0_l.append(edges[:, :-1].ravel())
+        t1_l.append(edges[:, 1:].ravel())
+        own_l.append(np.full(t0_l[-1].size, k, dtype=np.intp))
+    if not t0_l:
+        return empty
+    t0, t1, owner = np.concatenate(t0_l), np.concatenate(t1_l), np.concatenate(own_l)
+    need = np.array([neighbours.required(k) for k in range(len(neighbours.trajectories))])[owner]
+    pa = _pieces(reference, t0, t1)
+    pb = _others_pieces(neighbours.trajectories, owner, t0, t1)
+    n, gap, _ = _cheap_planes(pa, pb)
+    keep = gap < need + neighbours.reach  # farther pieces need no row
+    for i in np.flatnonzero(keep & (gap < need)).tolist():
+        mm = max_margin_plane(pa[i], pb[i])
+        if mm is not None and mm[1] > gap[i]:
+            n[i] = mm[0]
+    idx = np.flatnonzero(keep)
+    if idx.size == 0:
+        return empty
+    rhs = np.einsum("kx,kpx->kp", n[idx], pb[idx]).min(axis=1) - need[idx]
+    tm = 0.5 * (t0[idx] + t1[idx])
+    seg = np.clip(np.searchsorted(times, tm, side="right") - 1, 0, m1 - 1)
+    d = times[seg + 1] - times[seg]
+    u0 = np.clip((t0[idx] - times[seg]) / d, 0.0, 1.0)
+    u1 = np.clip((t1[idx] - times[seg]) / d, 0.0, 1.0)
+    w = restrict(np.broadcast_to(np.eye(10), (idx.size, 10, 10)), u0, u1)  # (P, 10, 10)
+    return SeparationRows(np.repeat(seg, 10).astype(np.intp), w.reshape(-1, 10), np.repeat(n[idx], 10, axis=0),
+                          np.repeat(rhs, 10))
 
 
 def reference_trajectory(problem: Problem, reference: Trajectory | None) -> Trajectory:
