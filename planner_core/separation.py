@@ -609,7 +609,10 @@ class Neighbours:
 
         if self.speed is not None or self.clock_tolerance == 0.0:
             return self
-        return replace(self, speed=bound_speed(bounds))
+        out = replace(self, speed=bound_speed(bounds))
+        if "boxes" in self.__dict__:  # the same trajectories: their boxes carry over
+            out.__dict__["boxes"] = self.__dict__["boxes"]
+        return out
 
     def required(self, k: int) -> float:
         """s' against neighbour k."""
@@ -710,11 +713,13 @@ def neighbour_faces(times: FloatArray, reference: Sequence[FloatArray], neighbou
         return {}
     pp = np.asarray(piece_pair, dtype=np.intp)
     k0, k1 = np.concatenate(t_lo), np.concatenate(t_hi)
+    pair_owner = np.array([k for _, k in pairs], dtype=np.intp)
     ctrl = np.empty((k0.size, 10, 3))
     u0, u1 = np.empty(k0.size), np.empty(k0.size)
     held = np.zeros(k0.size, dtype=bool)
-    for j, (_, k) in enumerate(pairs):
-        rows = np.flatnonzero(pp == j)
+    piece_owner = pair_owner[pp]
+    for k in np.unique(pair_owner).tolist():
+        rows = np.flatnonzero(piece_owner == k)
         nb = neighbours.trajectories[k]
         sg, u0[rows], u1[rows], held[rows] = _locate(nb, k0[rows], k1[rows])
         ctrl[rows] = nb.control_points[sg]
