@@ -291,3 +291,27 @@ def test_local_replan_falls_back_to_time_resolved_rows() -> None:
     bare = replan(ours, first.trajectory, change)
     assert bare.ok and bare.trajectory is not None
     assert sampled_min_distance(bare.trajectory, neighbour) < 4.0
+
+
+def test_exact_planes_and_a_clock_tolerance_in_planning() -> None:
+    a = line([-10, 0, 0], [10, 0, 0], 0.0, 6.0)
+    b = line([0, -10, 0], [0, 10, 0], 2.5, 8.5)
+    exact = certify_separation(a, b, 2.0, exact=True)
+    assert exact.ok and exact.certificate is not None and verify_separation(a, b, exact.certificate).ok
+    ours, neighbour = _scene()
+    nb = Neighbours((neighbour,), 1.0, clock_tolerance=0.02)
+    res = plan(ours, neighbours=nb)
+    assert res.ok and res.trajectory is not None, res.message
+    from planner_core.separation import bound_speed
+
+    v_ours = bound_speed(ours.bounds)  # our bound speed from the problem's bounds
+    assert nb.for_bounds(ours.bounds).required(0) == pytest.approx(1.0 + (v_ours + speed_bound(neighbour)) * 0.02)
+    for _, c in res.stats["separation"]["certificates"]:  # those the broad phase did not settle
+        assert c.speed_a == pytest.approx(v_ours) and verify_separation(res.trajectory, neighbour, c).ok
+    chk = certify_separation(res.trajectory, neighbour, 1.0, clock_tolerance=0.02,
+                             speeds=(v_ours, speed_bound(neighbour)))
+    assert chk.ok and chk.certificate is not None
+    cert = chk.certificate
+    assert cert.required == pytest.approx(1.0 + (v_ours + speed_bound(neighbour)) * 0.02)
+    assert verify_separation(res.trajectory, neighbour, cert).ok
+    assert sampled_min_distance(res.trajectory, neighbour) >= cert.required
