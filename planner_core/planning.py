@@ -118,7 +118,8 @@ def _plan_rows(problem: Problem, neighbours: Neighbours, cost: str | None) -> Pl
         if failure is None:
             info.update(ok=True, near=near, neighbours=len(nb.trajectories), certificates=certs,
                         time_total=time.perf_counter() - t0)
-            stats = {"method": "jets+separation rows", "cost": jcost, "separation": info, "verified": True}
+            stats = {"method": "jets+separation rows", "cost": jcost, "separation": info, "verified": True,
+                     "separation_rows": True}
             return PlanResult(PlanStatus.OK, replace(traj, stats=stats), "planned (time-resolved separation rows)",
                               None, stats)
         last = failure.message

@@ -707,7 +707,8 @@ def replan(
     try:
         _apply(work, cs.edits, split)
         _rebuild_corridors(work)
-        traj_new, free = _search(work, opts, stats)
+        # a plan that needed time-resolved rows will need them again: try them first
+        traj_new, free = _search(work, opts, stats, rows_first=bool(traj.stats.get("separation_rows")))
     except _Infeasible as exc:
         stats["time_s"] = time.perf_counter() - t_start
         return ReplanResult(
@@ -721,7 +722,8 @@ def replan(
     return ReplanResult(PlanStatus.OK, traj_new, new_problem, resolved, msg, stats, work.env)
 
 
-def _search(work: _Work, opts: ReplanOptions, stats: dict[str, Any]) -> tuple[Trajectory, set[int]]:
+def _search(work: _Work, opts: ReplanOptions, stats: dict[str, Any],
+            rows_first: bool = False) -> tuple[Trajectory, set[int]]:
     """Seeds first; widen one neighbour per step; then stretch the touched durations."""
     attempts = 0
     last = ""
@@ -734,7 +736,8 @@ def _search(work: _Work, opts: ReplanOptions, stats: dict[str, Any]) -> tuple[Tr
         free = set(work.seeds)
         for widen in range(opts.max_widen + 1):
             attempts += 1
-            for rows in (False, True) if opts.neighbours is not None else (False,):
+            order = ((True, False) if rows_first else (False, True)) if opts.neighbours is not None else (False,)
+            for rows in order:
                 # with neighbours: one face per segment first, then time-resolved rows
                 try:
                     solved, qp_time = _solve_rows(work, free, opts) if rows else _solve(work, free, opts)
