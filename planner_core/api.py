@@ -16,7 +16,7 @@ no files (the JSON codec below turns trajectories into dicts and back, nothing m
   `scale_search`, `scaled_durations`; process-wide `use_compiled_kernel`
 - certificate: `verify`, `verify_changed` (a local replan, checked only where it changed)
 - the fleet: `certify_separation` -> `SeparationCheck` (status, first failing interval) carrying a
-  `SeparationCertificate`; `verify_separation` (what a receiver runs); `common_pieces`,
+  `SeparationCertificate` (`certify_many`: one trajectory against many, batched); `verify_separation` (what a receiver runs); `common_pieces`,
   `speed_bound`; planning against other vehicles' committed trajectories: `Neighbours` (given to
   `plan(..., neighbours=...)` or `ReplanOptions(neighbours=...)`), `separation_rows` -> `SeparationRows`
 - local replanning: `replan`, `Environment`, `ReplanOptions`, `ChangeSet` and the edits
@@ -84,6 +84,7 @@ if TYPE_CHECKING:
         SeparationCheck,
         SeparationRows,
         SeparationStatus,
+        certify_many,
         certify_separation,
         common_pieces,
         separation_rows,
@@ -120,6 +121,7 @@ _WHERE: dict[str, tuple[str, str]] = {
     "SeparationRows": ("planner_core.separation", "SeparationRows"),
     "SeparationStatus": ("planner_core.separation", "SeparationStatus"),
     "certify_separation": ("planner_core.separation", "certify_separation"),
+    "certify_many": ("planner_core.separation", "certify_many"),
     "verify_separation": ("planner_core.separation", "verify_separation"),
     "separation_rows": ("planner_core.separation", "separation_rows"),
     "common_pieces": ("planner_core.separation", "common_pieces"),
@@ -241,6 +243,7 @@ __all__ = [
     "bounds_to_dict",
     "braking_trajectory",
     "build_corridors",
+    "certify_many",
     "certify_separation",
     "common_pieces",
     "corridor_cap",
