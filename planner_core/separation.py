@@ -894,14 +894,16 @@ def _others_pieces(others: Sequence[Trajectory], owner: IntArray, t0: FloatArray
     return out
 
 
-def planning_rows(times: FloatArray, reference: Trajectory, neighbours: Neighbours, pieces: int = 2) -> SeparationRows:
+def planning_rows(times: FloatArray, reference: Trajectory, neighbours: Neighbours, pieces: int = 2,
+                  max_depth: int = 3) -> SeparationRows:
     """Time-resolved rows for planning on our segments of span `times` (m,): our reference (the
     previous plan, or the straight segments at these times) and each near neighbour are split at
     the union of their knots and ours, each common interval into `pieces` equal pieces; per piece
     a plane (an axis or centroid plane where it clears s', else the max-margin plane) and the rows
     n . a_k <= min_k n . b_k - s' on our piece's 10 control points (each a fixed combination of
-    its segment's). Pieces whose neighbour is farther than s' + reach from our reference get no
-    row. Unlike `neighbour_faces` (one plane per segment), a neighbour may cross our path within
+    its segment's). A piece whose best plane leaves our reference within s' of the neighbour is
+    halved (up to `max_depth` times) so that the plan may pass at another time. Pieces whose
+    neighbour is farther than s' + reach from our reference get no row. Unlike `neighbour_faces` (one plane per segment), a neighbour may cross our path within
     one of our segments, at another time. Every pair is split in one batch."""
     empty = SeparationRows(np.zeros(0, dtype=np.intp), np.zeros((0, 10)), np.zeros((0, 3)), np.zeros(0))
     if not neighbours.trajectories:
@@ -932,16 +934,40 @@ def planning_rows(times: FloatArray, reference: Trajectory, neighbours: Neighbou
     need = np.array([neighbours.required(k) for k in range(len(neighbours.trajectories))])[owner]
     pa = _pieces(reference, t0, t1)
     pb = _others_pieces(neighbours.trajectories, owner, t0, t1)
-    n, gap, _ = _cheap_planes(pa, pb)
-    keep = gap < need + neighbours.reach  # farther pieces need no row
-    for i in np.flatnonzero(keep & (gap < need)).tolist():
-        mm = max_margin_plane(pa[i], pb[i])
-        if mm is not None and mm[1] > gap[i]:
-            n[i] = mm[0]
-    idx = np.flatnonzero(keep)
-    if idx.size == 0:
+    halves = _halves()
+    out_t0: list[FloatArray] = []
+    out_t1: list[FloatArray] = []
+    out_n: list[FloatArray] = []
+    out_rhs: list[FloatArray] = []
+    for level in range(max_depth + 1):
+        n, gap, _ = _cheap_planes(pa, pb)
+        keep = gap < need + neighbours.reach  # farther pieces need no row
+        for i in np.flatnonzero(keep & (gap < need)).tolist():
+            mm = max_margin_plane(pa[i], pb[i])
+            if mm is not None and mm[1] > gap[i]:
+                n[i], gap[i] = mm[0], mm[1]
+        # where even the best plane leaves our reference within s', halve both pieces (exactly)
+        # and look again: finer pieces give the plan room to pass at another time
+        split = keep & (gap < need) & (level < max_depth)
+        done = keep & ~split
+        out_t0.append(t0[done])
+        out_t1.append(t1[done])
+        out_n.append(n[done])
+        out_rhs.append(np.einsum("kx,kpx->kp", n[done], pb[done]).min(axis=1) - need[done])
+        if not split.any():
+            break
+        tm = 0.5 * (t0[split] + t1[split])
+        t0 = np.concatenate([t0[split], tm])
+        t1 = np.concatenate([tm, t1[split]])
+        need = np.concatenate([need[split], need[split]])
+        pa = np.concatenate([np.matmul(halves[0], pa[split]), np.matmul(halves[1], pa[split])])
+        pb = np.concatenate([np.matmul(halves[0], pb[split]), np.matmul(halves[1], pb[split])])
+    t0, t1 = np.concatenate(out_t0), np.concatenate(out_t1)
+    if t0.size == 0:
         return empty
-    rhs = np.einsum("kx,kpx->kp", n[idx], pb[idx]).min(axis=1) - need[idx]
+    idx = np.arange(t0.size)
+    n = np.concatenate(out_n).reshape(-1, 3)
+    rhs = np.concatenate(out_rhs)
     tm = 0.5 * (t0[idx] + t1[idx])
     seg = np.clip(np.searchsorted(times, tm, side="right") - 1, 0, m1 - 1)
     d = times[seg + 1] - times[seg]

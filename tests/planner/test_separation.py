@@ -26,6 +26,7 @@ from planner_core import (
     verify_separation,
 )
 from planner_core.bezier import segments_from_jets
+from planner_core.problem import FloatArray
 from planner_core.separation import near_pairs, space_time_boxes, with_neighbours
 
 BOUNDS = Bounds.symmetric(5.0, 5.0, 20.0, 100.0)
@@ -315,3 +316,39 @@ def test_exact_planes_and_a_clock_tolerance_in_planning() -> None:
     assert cert.required == pytest.approx(1.0 + (v_ours + speed_bound(neighbour)) * 0.02)
     assert verify_separation(res.trajectory, neighbour, cert).ok
     assert sampled_min_distance(res.trajectory, neighbour) >= cert.required
+
+
+def _cruise(p0: FloatArray, p1: FloatArray, t0: float, t1: float) -> Trajectory:
+    times = np.linspace(t0, t1, 3)
+    v = (p1 - p0) / (t1 - t0)
+    jets = np.zeros((3, 5, 3))
+    jets[:, 0] = p0 + (times - t0)[:, None] * v
+    jets[:, 1] = v
+    return Trajectory(times, segments_from_jets(jets, np.diff(times)))
+
+
+def test_fuzz_plans_against_random_neighbours_keep_separation_when_accepted() -> None:
+    rng = np.random.default_rng(24)
+    accepted = 0
+    for _ in range(8):
+        m = int(rng.integers(3, 6))
+        wps = np.cumsum(rng.uniform([3.0, -2.0, -0.5], [6.0, 2.0, 0.5], (m, 3)), axis=0)
+        ours = Problem.from_waypoints(wps, np.full(m - 1, 3.0), BOUNDS)
+        alone = plan(ours)
+        assert alone.ok and alone.trajectory is not None
+        others = []
+        for _ in range(int(rng.integers(1, 5))):
+            mid = alone.trajectory.evaluate(float(rng.uniform(0.0, alone.trajectory.t_end)))
+            d = rng.normal(size=3)
+            d /= np.linalg.norm(d)
+            tc = float(rng.uniform(-3.0, alone.trajectory.t_end + 3.0))
+            others.append(_cruise(mid - 8.0 * d + rng.normal(size=3), mid + 8.0 * d, tc - 2.0, tc + 2.0))
+        s = float(rng.uniform(1.0, 2.5))
+        res = plan(ours, neighbours=Neighbours(tuple(others), s))
+        if not res.ok:
+            continue
+        accepted += 1
+        assert res.trajectory is not None
+        for other in others:
+            assert sampled_min_distance(res.trajectory, other, 6001) >= s - 1e-9
+    assert accepted >= 3
