@@ -352,3 +352,18 @@ def test_fuzz_plans_against_random_neighbours_keep_separation_when_accepted() ->
         for other in others:
             assert sampled_min_distance(res.trajectory, other, 6001) >= s - 1e-9
     assert accepted >= 3
+
+
+def test_a_plans_certificates_survive_its_json_form() -> None:
+    import json
+
+    from planner_core import trajectory_from_dict, trajectory_to_dict
+
+    ours = Problem.from_waypoints([[-10, 0, 0], [0, 0, 0], [10, 0, 0]], [6.0, 6.0], BOUNDS)
+    neighbour = line([-5, -10, 0], [-5, 10, 0], 2.5, 7.5)
+    res = plan(ours, neighbours=Neighbours((neighbour,), 4.0))
+    assert res.ok and res.trajectory is not None
+    text = json.dumps(trajectory_to_dict(res.trajectory))
+    back = trajectory_from_dict(json.loads(text))
+    (k, d), = back.stats["separation"]["certificates"]
+    assert k == 0 and verify_separation(back, neighbour, SeparationCertificate.from_dict(d)).ok
