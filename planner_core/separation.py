@@ -20,10 +20,15 @@ hold for ever.
   interval that could not be certified and by how much.
 - `verify_separation(a, b, cert)`: what any receiver runs; status-coded, never raises on a bad
   certificate.
+- `certify_many(a, others, s, ...)`: the same against many trajectories in one batch;
+  `certify_all(traj, neighbours)`: against every neighbour the broad phase finds near.
 - Planning against neighbours: `Neighbours` (the other committed trajectories and the rules),
-  `neighbour_faces` (per segment of ours, half-spaces n . x <= c on our control points: a
-  corridor face, so the planner's QP stays a QP), `separation_rows` (the finer rows of a
-  certificate's intervals on our control points, for a QP that takes general rows).
+  `neighbour_faces` / `with_neighbours` (per segment of ours, half-spaces n . x <= c on our control
+  points: a corridor face, so every planner path takes them and the QP stays a QP),
+  `planning_rows` (time-resolved rows per common piece, for the general jet solver:
+  `jets.ProblemCache(extra_rows=...)`), `separation_rows` (the rows of an existing certificate's
+  intervals on our control points). `planning.plan(..., neighbours=)` and
+  `replan.ReplanOptions(neighbours=)` use them (docs/separation.md).
 - Broad phase: `near_pairs` (space-time boxes, a sorted sweep): far neighbours cost nothing.
 
 Pure numpy (plus daqp for the small max-margin QPs); no I/O.
