@@ -15,6 +15,10 @@ no files (the JSON codec below turns trajectories into dicts and back, nothing m
   takeoff climb's `takeoff_duration`; infeasibility help `Binding`, `ScaleSearch`,
   `scale_search`, `scaled_durations`; process-wide `use_compiled_kernel`
 - certificate: `verify`, `verify_changed` (a local replan, checked only where it changed)
+- the fleet: `certify_separation` -> `SeparationCheck` (status, first failing interval) carrying a
+  `SeparationCertificate` (`certify_many`: one trajectory against many, batched); `verify_separation` (what a receiver runs); `common_pieces`,
+  `speed_bound`; planning against other vehicles' committed trajectories: `Neighbours` (given to
+  `plan(..., neighbours=...)` or `ReplanOptions(neighbours=...)`), `separation_rows` -> `SeparationRows`
 - local replanning: `replan`, `Environment`, `ReplanOptions`, `ChangeSet` and the edits
   `MoveWaypoint`, `SetDuration`, `SetCorridor`, `AddObstacles`, `InsertWaypoint`,
   `RemoveWaypoint`, `AppendWaypoints`; `parse_change`, `parse_polytope`
@@ -74,6 +78,19 @@ if TYPE_CHECKING:
     from planner_core.problem import Bounds, FloatArray, Polytope, Problem, Trajectory, rest_jet
     from planner_core.replan import Environment, ReplanOptions, ReplanResult, replan
     from planner_core.result import Diagnosis, PlanResult, PlanStatus
+    from planner_core.separation import (
+        Neighbours,
+        SeparationCertificate,
+        SeparationCheck,
+        SeparationRows,
+        SeparationStatus,
+        certify_many,
+        certify_separation,
+        common_pieces,
+        separation_rows,
+        speed_bound,
+        verify_separation,
+    )
     from planner_core.timing import (
         DEFAULT_MIN_DURATION,
         allocate_times,
@@ -98,6 +115,17 @@ if TYPE_CHECKING:
 # only loads a scenario does not pay for scipy's sparse matrices, the elastic LP or numba,
 # and `python -m planner_core plan` starts in a fraction of the time.
 _WHERE: dict[str, tuple[str, str]] = {
+    "Neighbours": ("planner_core.separation", "Neighbours"),
+    "SeparationCertificate": ("planner_core.separation", "SeparationCertificate"),
+    "SeparationCheck": ("planner_core.separation", "SeparationCheck"),
+    "SeparationRows": ("planner_core.separation", "SeparationRows"),
+    "SeparationStatus": ("planner_core.separation", "SeparationStatus"),
+    "certify_separation": ("planner_core.separation", "certify_separation"),
+    "certify_many": ("planner_core.separation", "certify_many"),
+    "verify_separation": ("planner_core.separation", "verify_separation"),
+    "separation_rows": ("planner_core.separation", "separation_rows"),
+    "common_pieces": ("planner_core.separation", "common_pieces"),
+    "speed_bound": ("planner_core.separation", "speed_bound"),
     "AddObstacles": ("planner_core.changes", "AddObstacles"),
     "allocate_times": ("planner_core.timing", "allocate_times"),
     "AppendWaypoints": ("planner_core.changes", "AppendWaypoints"),
@@ -191,6 +219,7 @@ __all__ = [
     "IterativeOptions",
     "MissionPlan",
     "MoveWaypoint",
+    "Neighbours",
     "PlanResult",
     "PlanStatus",
     "PlannedChange",
@@ -201,6 +230,10 @@ __all__ = [
     "ReplanResult",
     "Sampler",
     "ScaleSearch",
+    "SeparationCertificate",
+    "SeparationCheck",
+    "SeparationRows",
+    "SeparationStatus",
     "SetCorridor",
     "SetDuration",
     "Trajectory",
@@ -210,6 +243,9 @@ __all__ = [
     "bounds_to_dict",
     "braking_trajectory",
     "build_corridors",
+    "certify_many",
+    "certify_separation",
+    "common_pieces",
     "corridor_cap",
     "durations_from_lengths",
     "end_jet",
@@ -228,6 +264,8 @@ __all__ = [
     "sampler",
     "scale_search",
     "scaled_durations",
+    "separation_rows",
+    "speed_bound",
     "splice",
     "split_at",
     "split_segment",
@@ -243,6 +281,7 @@ __all__ = [
     "vehicle_bound",
     "verify",
     "verify_changed",
+    "verify_separation",
     "warm_up",
     "weighted_durations",
 ]

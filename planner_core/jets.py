@@ -33,7 +33,7 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from functools import cached_property
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -163,10 +163,13 @@ class ProblemCache:
     Bound rows (`constraints.bound_layout`, in block order): `bound_spec` (a `BoundRowSpec`).
     """
 
-    def __init__(self, problem: Problem) -> None:
+    def __init__(self, problem: Problem, extra_rows: ExtraRows | None = None) -> None:
         from planner_core.constraints import bound_layout
 
         self.problem = problem
+        # general rows on control points (planner_core.separation.SeparationRows: the fleet's
+        # separation), read only by the general path (`assemble`); None: none
+        self.extra_rows = extra_rows
         self.durations = problem.durations
         # the segments the general path touched last: a recovery re-solves the same few again and
         # again, and a long mission's many recoveries would otherwise keep ~0.1 MB a segment
@@ -216,6 +219,8 @@ class ProblemCache:
         blk = self._blocks.pop(s, None)  # re-inserted below: the dict's order is last use
         if blk is None:
             blk = self._build_blocks(s)
+            if self.extra_rows is not None:
+                blk = self._with_extra(blk, s, self.extra_rows)
             if len(self._blocks) >= BLOCKS_KEPT:
                 del self._blocks[next(iter(self._blocks))]  # the least recently used
         self._blocks[s] = blk
@@ -262,6 +267,33 @@ class ProblemCache:
             np.full(nb + 8 * f, s, dtype=np.int64), mix(kb, kc), mix(self.bound_spec.order, zc), n1 + 4 * f, n2,
         )
 
+    def _with_extra(self, blk: SegBlocks, s: int, extra: ExtraRows) -> SegBlocks:
+        """`blk` with segment s's extra rows sum_i w_i (n . P^i) <= rhs (both jets: the middle group)."""
+        sel = np.flatnonzero(extra.segment == s)
+        if sel.size == 0:
+            return blk
+        g = extra.weights[sel] @ self.hull_of(s)[:10]  # (r, 10): over (side, order) of the jet pair
+        n = extra.normal[sel]
+        r = sel.size
+        ea = (g[:, 1:5, None] * n[:, None, :]).reshape(r, 12)
+        eb = (g[:, 6:10, None] * n[:, None, :]).reshape(r, 12)
+        w = self.problem.waypoints
+        e0 = g[:, 0] * (n @ w[s]) + g[:, 5] * (n @ w[s + 1])
+        hi = np.clip(extra.rhs[sel], -INF, INF)
+        neg = np.full(r, -INF)
+        hi_t = _tighten(neg, hi)[1]
+        at = blk.n1 + blk.n2
+
+        def ins(a: NDArray[Any], b: NDArray[Any]) -> NDArray[Any]:
+            return np.concatenate([a[:at], b, a[at:]])
+
+        return SegBlocks(
+            ins(blk.A, ea), ins(blk.B, eb), ins(blk.c0, e0), ins(blk.lo, neg), ins(blk.hi, hi), ins(blk.lo_t, neg),
+            ins(blk.hi_t, hi_t), ins(blk.seg, np.full(r, s, dtype=np.int64)),
+            ins(blk.kind, np.full(r, KIND_CORRIDOR, dtype=np.int64)), ins(blk.order, np.zeros(r, dtype=np.int64)),
+            blk.n1, blk.n2 + r,
+        )
+
     def cost30(self, order: int, segments: Sequence[int] | None = None) -> FloatArray:
         """(S, 30, 30) per-segment cost matrices (times 2: the Hessian of z'Kz) in the 30-layout;
         with `segments`, (len(segments), 30, 30) of those, built for them alone unless every
@@ -272,6 +304,19 @@ class ProblemCache:
         if c is None:
             c = self._cost[order] = _cost30(self.durations, order)
         return c if segments is None else c[np.asarray(segments, dtype=np.int64)]
+
+
+class ExtraRows(Protocol):
+    """Rows sum_i weights[r, i] (normal[r] . P[segment[r], i]) <= rhs[r] on control points."""
+
+    @property
+    def segment(self) -> NDArray[np.intp]: ...
+    @property
+    def weights(self) -> FloatArray: ...
+    @property
+    def normal(self) -> FloatArray: ...
+    @property
+    def rhs(self) -> FloatArray: ...
 
 
 def _cost30(durations: FloatArray, order: int) -> FloatArray:

@@ -31,7 +31,7 @@ import re
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -54,6 +54,9 @@ from planner_core.localqp import solve_derivatives
 from planner_core.problem import JET_ORDER, FloatArray, Polytope, Problem, Trajectory, rest_jet
 from planner_core.result import PlanStatus
 from planner_core.trajectory import split_at
+
+if TYPE_CHECKING:
+    from planner_core.separation import Neighbours
 
 __all__ = [
     "ChangeError",
@@ -89,6 +92,10 @@ class ReplanOptions:
     cost: str = "snap"
     backend: str = "daqp"
     environment: Environment | None = None
+    # other vehicles' committed trajectories (planner_core.separation.Neighbours): the re-solved
+    # segments get one half-space per near neighbour (planes from the current plan) and are
+    # certified against every neighbour near them; default none
+    neighbours: Neighbours | None = None
 
 
 @dataclass(frozen=True)
@@ -481,15 +488,18 @@ def _solve(work: _Work, free: set[int], opts: ReplanOptions) -> tuple[dict[int, 
     jets = {i: work.jet(i) for s in segs for i in (s, s + 1)}
     durations = {s: float(work.times[s + 1] - work.times[s]) for s in segs}
     corridors = work.corridors
+    cut = _neighbour_cut(work, sorted(segs), opts)
 
     def corridor_of(s: int) -> Polytope | None:
+        if s in cut:
+            return cut[s]
         return None if corridors is None else corridors[s]
 
     if len(free) > JOINT_MAX and max(free) - min(free) + 1 == len(free):
         # a long run of free jets (a big append): the iterative pass, O(run), not one dense QP
-        return _solve_iterative(work, free, opts)
+        return _solve_iterative(work, free, opts, cut)
     if opts.cost != "snap":  # other costs: the core's general jet solver on a window sub-problem
-        return _solve_general(work, free, opts)
+        return _solve_general(work, free, opts, cut)
     t0 = time.perf_counter()
     sol = solve_derivatives(jets, durations, work.bounds, corridor_of, sorted(free), backend=opts.backend)
     if not sol.ok:
@@ -497,18 +507,69 @@ def _solve(work: _Work, free: set[int], opts: ReplanOptions) -> tuple[dict[int, 
     return sol.jets, time.perf_counter() - t0
 
 
-def _sub_problem(work: _Work, lo: int, hi: int) -> tuple[Problem, FloatArray]:
+def _neighbour_cut(work: _Work, segs: list[int], opts: ReplanOptions) -> dict[int, Polytope | None]:
+    """The corridors of the re-solved segments cut by their neighbour faces (empty: no neighbours)."""
+    nb = opts.neighbours
+    if nb is None or not segs:
+        return {}
+    from planner_core.separation import NoFace, add_faces, neighbour_faces, reference_points
+
+    old = Trajectory(work.old_times, work.old_ctrl)
+    straight = np.stack([work.wps[segs], work.wps[[s + 1 for s in segs]]], axis=1)  # (k, 2, 3)
+    u = np.linspace(0.0, 1.0, 10)[None, :, None]
+    lines = straight[:, :1] * (1.0 - u) + straight[:, 1:] * u  # (k, 10, 3)
+    full = np.zeros((work.m - 1, 10, 3))
+    full[segs] = lines
+    ref = reference_points(work.times, full, old, segs)
+    try:
+        faces = neighbour_faces(work.times, ref, nb, segs, give_up=True)
+    except NoFace as exc:
+        raise _Infeasible(f"separation: {exc}") from exc
+    corridors = work.corridors
+    return {s: add_faces(None if corridors is None else corridors[s], faces[s]) for s in faces}
+
+
+def _solve_rows(work: _Work, free: set[int], opts: ReplanOptions) -> tuple[dict[int, FloatArray], float]:
+    """Jets for `free` with time-resolved separation rows (`separation.planning_rows`, planes per
+    common piece of the current plan and each near neighbour) in the general jet solver: for a
+    neighbour that crosses our path within one segment, at another time."""
+    from planner_core.jets import ProblemCache, solve_jets
+    from planner_core.separation import planning_rows, reference_trajectory
+
+    nb = opts.neighbours
+    if nb is None or not free:
+        return {}, 0.0
+    lo = min(free) - 1
+    sub, jets = _sub_problem(work, lo, max(free) + 1)
+    old = Trajectory(work.old_times, work.old_ctrl)
+    covers = old.t0 <= sub.times[0] + TIME_EPS and old.t_end >= sub.times[-1] - TIME_EPS
+    rows = planning_rows(sub.times, old if covers else reference_trajectory(sub, None), nb)
+    t0 = time.perf_counter()
+    res = solve_jets(sub, jets, [j - lo for j in sorted(free)], cost=opts.cost if opts.cost in ("snap", "jerk") else "snap",
+                     backend=opts.backend, cache=ProblemCache(sub, extra_rows=rows))
+    elapsed = time.perf_counter() - t0
+    if not res.ok:
+        raise _Infeasible(f"QP {res.status.value} for jets {sorted(free)} with {rows.rhs.size} separation rows")
+    return {j: res.jets[j - lo] for j in free}, elapsed
+
+
+def _sub_problem(work: _Work, lo: int, hi: int,
+                 cut: dict[int, Polytope | None] | None = None) -> tuple[Problem, FloatArray]:
     """Waypoints lo..hi as a problem of their own, the end jets fixed to the current ones."""
     jets = np.stack([work.jet(i) for i in range(lo, hi + 1)])
     corr = None if work.corridors is None else tuple(work.corridors[lo:hi])
+    if cut:
+        base = corr if corr is not None else (None,) * (hi - lo)
+        corr = tuple(cut.get(s, c) for s, c in zip(range(lo, hi), base, strict=True))
     return Problem(work.wps[lo : hi + 1], work.times[lo : hi + 1], work.bounds, jets[0], jets[-1], corr), jets
 
 
-def _solve_iterative(work: _Work, free: set[int], opts: ReplanOptions) -> tuple[dict[int, FloatArray], float]:
+def _solve_iterative(work: _Work, free: set[int], opts: ReplanOptions,
+                     cut: dict[int, Polytope | None] | None = None) -> tuple[dict[int, FloatArray], float]:
     from planner_core.iterative import IterativeOptions, plan_iterative
 
     lo, hi = min(free) - 1, max(free) + 1
-    sub, _ = _sub_problem(work, lo, hi)
+    sub, _ = _sub_problem(work, lo, hi, cut)
     t0 = time.perf_counter()
     # no stretching inside: replan's own stretch step keeps the later segments' times consistent
     res = plan_iterative(sub, IterativeOptions(cost=opts.cost, backend=opts.backend, max_stretches=0, diagnose=False))
@@ -520,11 +581,12 @@ def _solve_iterative(work: _Work, free: set[int], opts: ReplanOptions) -> tuple[
     return {j: start_jet_of(ctrl[j - lo], float(d[j - lo])) for j in free}, elapsed
 
 
-def _solve_general(work: _Work, free: set[int], opts: ReplanOptions) -> tuple[dict[int, FloatArray], float]:
+def _solve_general(work: _Work, free: set[int], opts: ReplanOptions,
+                   cut: dict[int, Polytope | None] | None = None) -> tuple[dict[int, FloatArray], float]:
     from planner_core.jets import solve_jets
 
     lo = min(free) - 1
-    sub, jets = _sub_problem(work, lo, max(free) + 1)
+    sub, jets = _sub_problem(work, lo, max(free) + 1, cut)
     t0 = time.perf_counter()
     res = solve_jets(sub, jets, [j - lo for j in sorted(free)], cost=opts.cost, backend=opts.backend)
     elapsed = time.perf_counter() - t0
@@ -635,12 +697,18 @@ def replan(
             lock, split = _split_index(problem.times, t)
             if split:
                 problem, traj, lock = split_problem_at(problem, traj, t)
+    if opts.neighbours is not None:
+        from dataclasses import replace
+
+        opts = replace(opts, neighbours=opts.neighbours.for_bounds(problem.bounds)) if opts.neighbours.trajectories \
+            else replace(opts, neighbours=None)
     work = _Work(problem, traj, lock, opts.environment)
     stats: dict[str, Any] = {"split_index": lock if split else None, "lock": lock, "qp_time_s": 0.0}
     try:
         _apply(work, cs.edits, split)
         _rebuild_corridors(work)
-        traj_new, free = _search(work, opts, stats)
+        # a plan that needed time-resolved rows will need them again: try them first
+        traj_new, free = _search(work, opts, stats, rows_first=bool(traj.stats.get("separation_rows")))
     except _Infeasible as exc:
         stats["time_s"] = time.perf_counter() - t_start
         return ReplanResult(
@@ -654,7 +722,8 @@ def replan(
     return ReplanResult(PlanStatus.OK, traj_new, new_problem, resolved, msg, stats, work.env)
 
 
-def _search(work: _Work, opts: ReplanOptions, stats: dict[str, Any]) -> tuple[Trajectory, set[int]]:
+def _search(work: _Work, opts: ReplanOptions, stats: dict[str, Any],
+            rows_first: bool = False) -> tuple[Trajectory, set[int]]:
     """Seeds first; widen one neighbour per step; then stretch the touched durations."""
     attempts = 0
     last = ""
@@ -667,17 +736,24 @@ def _search(work: _Work, opts: ReplanOptions, stats: dict[str, Any]) -> tuple[Tr
         free = set(work.seeds)
         for widen in range(opts.max_widen + 1):
             attempts += 1
-            try:
-                solved, qp_time = _solve(work, free, opts)
-                stats["qp_time_s"] += qp_time
-                traj, rebuild = _assemble(work, solved, free)
-                failure = _certify(traj, work, rebuild)
-                if failure is None:
-                    stats.update(attempts=attempts, widened=widen, rebuilt_segments=rebuild)
-                    return traj, free
-                last = f"certificate failed: {failure}"
-            except _Infeasible as exc:
-                last = str(exc)
+            order = ((True, False) if rows_first else (False, True)) if opts.neighbours is not None else (False,)
+            for rows in order:
+                # with neighbours: one face per segment first, then time-resolved rows
+                try:
+                    solved, qp_time = _solve_rows(work, free, opts) if rows else _solve(work, free, opts)
+                    stats["qp_time_s"] += qp_time
+                    traj, rebuild = _assemble(work, solved, free)
+                    failure = _certify(traj, work, rebuild)
+                    if failure is None and opts.neighbours is not None and rebuild:
+                        failure = _certify_separation(traj, rebuild, opts.neighbours, stats)
+                    if failure is None:
+                        stats.update(attempts=attempts, widened=widen, rebuilt_segments=rebuild)
+                        if rows:
+                            stats["separation_rows"] = True
+                        return traj, free
+                    last = f"certificate failed: {failure}"
+                except _Infeasible as exc:
+                    last = str(exc)
             if not checked:
                 # A waypoint outside its corridor fails every attempt (the certificate checks
                 # P^0 and P^9): name it now instead of widening and stretching in vain. Checked
@@ -694,6 +770,21 @@ def _search(work: _Work, opts: ReplanOptions, stats: dict[str, Any]) -> tuple[Tr
         f"stretching up to {opts.max_stretch}x): {last}",
         {"kind": "replan", "seeds": sorted(work.seeds), "attempts": attempts},
     )
+
+
+def _certify_separation(traj: Trajectory, rebuild: list[int], nb: Neighbours, stats: dict[str, Any]) -> str | None:
+    """The rebuilt span of `traj` certified against every neighbour near it (kept segments were
+    certified when they were planned); the certificates go to stats["separation"]."""
+    from planner_core.separation import certify_all
+
+    t0 = time.perf_counter()
+    end = max(rebuild) + 1
+    # the span reaches for ever when the rebuilt part is the end: the held last point stays reserved
+    t_to = None if end >= traj.n_segments else float(traj.times[end])
+    certs, failure, near = certify_all(traj, nb, float(traj.times[min(rebuild)]), t_to)
+    stats["separation"] = {"ok": failure is None, "near": near, "neighbours": len(nb.trajectories),
+                           "certificates": certs, "time_certify": time.perf_counter() - t0}
+    return None if failure is None else f"separation: {failure.message}"
 
 
 def _check_waypoints_in_corridors(work: _Work) -> None:

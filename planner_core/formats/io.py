@@ -436,6 +436,9 @@ def _jsonable(x: Any) -> Any:
         return None
     if isinstance(x, str | int | float | bool) or x is None:
         return x
+    to_dict = getattr(x, "to_dict", None)  # e.g. a SeparationCertificate in a plan's stats
+    if callable(to_dict):
+        return _jsonable(to_dict())
     return str(x)
 
 
