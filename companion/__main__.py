@@ -7,6 +7,8 @@
     python -m companion demo ...
     python -m companion replay FILE.mcap [--from T] [--until T]
     python -m companion recording summary FILE.mcap
+    python -m companion router --listen tcp/HOST:PORT [--config FILE.json5]
+    python -m companion fleet [--connect ...]
 """
 
 from __future__ import annotations
@@ -414,6 +416,7 @@ def build_parser() -> argparse.ArgumentParser:
                    add_help=False)
     sub.add_parser("replay", help="run a recording's plans again and compare them bit for bit", add_help=False)
     sub.add_parser("recording", help="recording summary FILE.mcap: what a recorded flight holds", add_help=False)
+    sub.add_parser("router", help="run a Zenoh router for a fleet (docs/fleet.md)", add_help=False)
     return p
 
 
@@ -423,6 +426,10 @@ def main(argv: list[str] | None = None) -> int:
         from companion.replay import main as replay_main
 
         return replay_main(argv[1:])
+    if argv and argv[0] == "router":
+        from companion.router import main as router_main
+
+        return router_main(argv[1:])
     if argv and argv[0] == "recording":
         from companion.recording import main as recording_main
 
