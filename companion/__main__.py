@@ -2,7 +2,7 @@
 
     python -m companion run --config FILE.toml
     python -m companion --print-default-config
-    python -m companion send KEY FILE.json [--vehicle ID] [--connect tcp/127.0.0.1:7447]
+    python -m companion send KEY FILE.json [--vehicle ID[,ID...]] [--connect tcp/127.0.0.1:7447]
     python -m companion watch [--vehicle ID] [--connect ...] [--telemetry]
     python -m companion demo ...
     python -m companion replay FILE.mcap [--from T] [--until T]
@@ -156,81 +156,219 @@ def _outcome(key: str, events: list[dict[str, Any]]) -> int | None:
     return None
 
 
-def cmd_send(args: argparse.Namespace) -> int:
-    payload = sys.stdin.buffer.read() if args.file == "-" else Path(args.file).read_bytes()
-    wait = DEFAULT_WAIT[args.key] if args.wait is None else args.wait
-    session = _client_session(args, wait)
-    try:
-        events: list[dict[str, Any]] = []
-        statuses: list[dict[str, Any]] = []
-        heard = [False]
-        base = f"{args.prefix}/{args.vehicle}"
-        origin: list[Origin] = []  # set before the message goes out; nothing is taken before
+def vehicles_of(text: str) -> list[str]:
+    """`--vehicle A,B,C`: the vehicles, in order, each once; a bad name raises ValueError."""
+    out: list[str] = []
+    for v in text.split(","):
+        v = v.strip()
+        if not v or any(c in v for c in "/*?$#"):
+            raise ValueError(f"--vehicle: {v!r} is not a vehicle id (ids are joined with ',', no wildcards: "
+                             "a put on a wildcard key is refused by every companion)")
+        if v not in out:
+            out.append(v)
+    return out
 
-        def taker(into: list[dict[str, Any]], topic: str) -> Any:
-            def take(sample: Any) -> None:
-                body: Any = None
-                with contextlib.suppress(ValueError):
-                    body = json.loads(sample.payload.to_bytes())
-                if not origin or not origin[0].accepts(topic, sample, body) or not isinstance(body, dict):
-                    return
-                heard[0] = True
-                into.append(body)
-            return take
 
-        subs = [session.declare_subscriber(f"{base}/events", taker(events, "events")),
-                session.declare_subscriber(f"{base}/status", taker(statuses, "status"))]
-        # Which companion answers (this also lets the subscriptions reach it before the message).
-        origin.append(Origin(session, base))
-        if origin[0].companion is None:
-            print(f"send: {origin[0].note}", file=sys.stderr)
-        # A publisher says whether any subscriber matches its key: the companion's subscription
-        # reaches this client only where access control lets this user publish there (Zenoh
-        # drops a denied put silently, so this is how a denial can be told from silence).
-        pub = session.declare_publisher(f"{base}/{args.key}")
-        matched = [bool(pub.matching_status.matching)]
-        pub.put(payload)
-        deadline = time.monotonic() + wait
-        code: int | None = None
-        shown = 0
-        while time.monotonic() < deadline:
-            time.sleep(0.05)
-            for e in events[shown:]:
-                print(json.dumps(e), flush=True)
-            shown = len(events)
-            code = _outcome(args.key, events)
-            if code is not None and (code != EXIT_OK or not args.wait_for):
-                break
-            if code == EXIT_OK and statuses and statuses[-1].get("state") == args.wait_for:
-                break
-        for e in events[shown:]:
-            print(json.dumps(e), flush=True)
-        matched.append(bool(pub.matching_status.matching))
-        for s in subs:
-            s.undeclare()
-        ignored = origin[0].summary()
-        if ignored:
-            print(f"send: {ignored}", file=sys.stderr)
-        pub.undeclare()
+class _Target:
+    """One vehicle a `send` goes to: its subscriptions, the companion found, the outcome."""
+
+    def __init__(self, session: Any, args: argparse.Namespace, vehicle: str) -> None:
+        self.vehicle = vehicle
+        self.base = f"{args.prefix}/{vehicle}"
+        self.events: list[dict[str, Any]] = []
+        self.statuses: list[dict[str, Any]] = []
+        self.heard = False
+        self.shown = 0
+        self.code: int | None = None
+        self.done = False
+        self.origin: Origin | None = None  # set before the message goes out; nothing is taken before
+        self.subs = [session.declare_subscriber(f"{self.base}/events", self._taker(self.events, "events")),
+                     session.declare_subscriber(f"{self.base}/status", self._taker(self.statuses, "status"))]
+        self.pub: Any = None
+        self.matched: list[bool] = []
+
+    def _taker(self, into: list[dict[str, Any]], topic: str) -> Any:
+        def take(sample: Any) -> None:
+            body: Any = None
+            with contextlib.suppress(ValueError):
+                body = json.loads(sample.payload.to_bytes())
+            if self.origin is None or not self.origin.accepts(topic, sample, body) or not isinstance(body, dict):
+                return
+            self.heard = True
+            into.append(body)
+        return take
+
+    def show(self, tagged: bool) -> None:
+        for e in self.events[self.shown:]:
+            print(json.dumps({"vehicle": self.vehicle, **e} if tagged and "vehicle" not in e else e), flush=True)
+        self.shown = len(self.events)
+
+    def reached(self, wanted: str | None) -> bool:
+        return bool(self.statuses and self.statuses[-1].get("state") == wanted)
+
+    def verdict(self, args: argparse.Namespace, wait: float, say: str) -> int:
+        """The exit code for this vehicle, saying on stderr why it is not 0."""
+        code, key = self.code, args.key
         if code is None:
-            if not heard[0]:
-                print(f"send: no companion answered for vehicle {args.vehicle!r} within {wait:g} s "
+            if not self.heard:
+                print(f"{say}no companion answered for vehicle {self.vehicle!r} within {wait:g} s "
                       "(is it running? --vehicle, --prefix and --connect must match it)", file=sys.stderr)
                 return EXIT_NO_ANSWER
-            if not any(matched) and not [e for e in events if e.get("key") == args.key]:
-                print(f"send: denied: the companion of vehicle {args.vehicle!r} is heard, but nothing receives "
-                      f"{base}/{args.key} from this client: Zenoh's access control denies this user publishing "
+            if not any(self.matched) and not [e for e in self.events if e.get("key") == key]:
+                print(f"{say}denied: the companion of vehicle {self.vehicle!r} is heard, but nothing receives "
+                      f"{self.base}/{key} from this client: Zenoh's access control denies this user publishing "
                       "there (an observer may only watch; use an operator's credentials)", file=sys.stderr)
                 return EXIT_ACCESS_DENIED
-            print(f"send: the companion did not say within {wait:g} s whether {args.key} was done", file=sys.stderr)
+            print(f"{say}the companion did not say within {wait:g} s whether {key} was done", file=sys.stderr)
             return EXIT_UNFINISHED
-        if code == EXIT_OK and args.wait_for and not (statuses and statuses[-1].get("state") == args.wait_for):
-            last = statuses[-1].get("state") if statuses else "unknown"
-            print(f"send: state {args.wait_for} not reached within {wait:g} s (state {last})", file=sys.stderr)
+        if code == EXIT_OK and args.wait_for and not self.reached(args.wait_for):
+            last = self.statuses[-1].get("state") if self.statuses else "unknown"
+            print(f"{say}state {args.wait_for} not reached within {wait:g} s (state {last})", file=sys.stderr)
             return EXIT_UNFINISHED
         return code
+
+
+def cmd_send(args: argparse.Namespace) -> int:
+    """Put the message on each vehicle's exact key (`--vehicle A,B` fans it out: one put per vehicle,
+    all at once) and wait for each companion's outcome. Exit: the single vehicle's code; with several,
+    0 when every one succeeded, else the code of the first vehicle (in the order given) that did not."""
+    payload = sys.stdin.buffer.read() if args.file == "-" else Path(args.file).read_bytes()
+    try:
+        vehicles = vehicles_of(args.vehicle)
+    except ValueError as exc:
+        print(f"send: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    wait = DEFAULT_WAIT[args.key] if args.wait is None else args.wait
+    session = _client_session(args, wait)
+    fleet = len(vehicles) > 1
+    try:
+        targets = [_Target(session, args, v) for v in vehicles]
+        for t in targets:
+            # Which companion answers (this also lets the subscriptions reach it before the message).
+            t.origin = Origin(session, t.base)
+            if t.origin.companion is None:
+                print(f"send: {t.vehicle + ': ' if fleet else ''}{t.origin.note}", file=sys.stderr)
+        for t in targets:
+            # A publisher says whether any subscriber matches its key: the companion's subscription
+            # reaches this client only where access control lets this user publish there (Zenoh
+            # drops a denied put silently, so this is how a denial can be told from silence).
+            t.pub = session.declare_publisher(f"{t.base}/{args.key}")
+            t.matched = [bool(t.pub.matching_status.matching)]
+        for t in targets:  # the exact key of each vehicle, never a wildcard
+            t.pub.put(payload)
+        deadline = time.monotonic() + wait
+        while time.monotonic() < deadline and not all(t.done for t in targets):
+            time.sleep(0.05)
+            for t in targets:
+                if t.done:
+                    continue
+                t.show(fleet)
+                t.code = _outcome(args.key, t.events)
+                if t.code is not None and (t.code != EXIT_OK or not args.wait_for):
+                    t.done = True
+                if t.code == EXIT_OK and t.reached(args.wait_for):
+                    t.done = True
+        codes: list[int] = []
+        for t in targets:
+            t.show(fleet)
+            t.matched.append(bool(t.pub.matching_status.matching))
+            for sub in t.subs:
+                sub.undeclare()
+            assert t.origin is not None
+            ignored = t.origin.summary()
+            if ignored:
+                print(f"send: {t.vehicle + ': ' if fleet else ''}{ignored}", file=sys.stderr)
+            t.pub.undeclare()
+            codes.append(t.verdict(args, wait, f"send: {t.vehicle}: " if fleet else "send: "))
+        if fleet:
+            print("send: " + ", ".join(f"{t.vehicle} {c}" for t, c in zip(targets, codes, strict=True)),
+                  file=sys.stderr)
+        return next((c for c in codes if c != EXIT_OK), EXIT_OK)
     finally:
         session.close()
+
+
+def fleet_list(session: Any, prefix: str, timeout: float = 1.0) -> list[dict[str, Any]]:
+    """The vehicles present (a liveliness token at `<prefix>/<vehicle>/alive`), each with the
+    status its companion answers (`<prefix>/<vehicle>/status`, checked as `send` checks it: the
+    exact key, one session whose id is in the body), in vehicle order."""
+    present: set[str] = set()
+    with contextlib.suppress(Exception):
+        for reply in session.liveliness().get(f"{prefix}/*/alive", timeout=timeout):
+            if reply.ok is None:
+                continue
+            parts = str(reply.ok.key_expr).split("/")
+            if len(parts) == len(prefix.split("/")) + 2 and parts[-1] == "alive":
+                present.add(parts[-2])
+    out: list[dict[str, Any]] = []
+    for vehicle in sorted(present):
+        base = f"{prefix}/{vehicle}"
+        status: dict[str, Any] | None = None
+        origin = Origin(session, base, timeout=timeout)
+        if origin.companion is not None:
+            with contextlib.suppress(Exception):
+                for reply in session.get(f"{base}/status", timeout=timeout):
+                    if reply.ok is None or str(reply.ok.key_expr) != f"{base}/status":
+                        continue
+                    body = json.loads(reply.ok.payload.to_bytes())
+                    if isinstance(body, dict) and body.get("session") == origin.companion:
+                        status = body
+                        break
+        out.append({"vehicle": vehicle, "status": status, "note": None if status is not None else origin.note})
+    return out
+
+
+FLEET_COLUMNS = ("vehicle", "state", "mission", "progress", "armed", "link", "frame")
+
+
+def _fleet_row(entry: dict[str, Any]) -> dict[str, Any]:
+    st = entry["status"] or {}
+    fleet = st.get("fleet") if isinstance(st.get("fleet"), dict) else {}
+    return {"vehicle": entry["vehicle"], "state": st.get("state", "?"), "mission": st.get("mission"),
+            "progress": st.get("progress"), "armed": st.get("armed"), "link": st.get("link"),
+            "frame": fleet.get("frame") if fleet else None}
+
+
+def cmd_fleet(args: argparse.Namespace) -> int:
+    """List the vehicles present (liveliness) with their state, mission and progress (status).
+    Exit 0 when at least one vehicle is present, 3 when none is."""
+    session = _client_session(args, args.wait)
+    try:
+        deadline = time.monotonic() + args.wait
+        while True:
+            entries = fleet_list(session, args.prefix, timeout=min(1.0, max(args.wait, 0.1)))
+            if entries or time.monotonic() >= deadline:
+                break
+            time.sleep(0.2)
+    finally:
+        session.close()
+    if args.json:
+        for e in entries:
+            print(json.dumps({**_fleet_row(e), "status": e["status"], "note": e["note"]}), flush=True)
+    else:
+        rows = [[_cell(v) for v in _fleet_row(e).values()] for e in entries]
+        widths = [max([len(c)] + [len(r[i]) for r in rows]) for i, c in enumerate(FLEET_COLUMNS)]
+        print("  ".join(c.ljust(w) for c, w in zip(FLEET_COLUMNS, widths, strict=True)).rstrip())
+        for r in rows:
+            print("  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip())
+        for e in entries:
+            if e["note"]:
+                print(f"fleet: {e['vehicle']}: {e['note']}", file=sys.stderr)
+    if not entries:
+        print(f"fleet: no vehicle present under {args.prefix}/*/alive within {args.wait:g} s (--prefix and "
+              "--connect must match the fleet's router or companions)", file=sys.stderr)
+        return EXIT_NO_ANSWER
+    return 0
+
+
+def _cell(v: Any) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, bool):
+        return "yes" if v else "no"
+    if isinstance(v, float):
+        return f"{v:.0%}" if 0.0 <= v <= 1.0 else f"{v:g}"
+    return str(v)
 
 
 def status_reached(status: dict[str, Any], wanted: str) -> bool:
@@ -412,6 +550,14 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("--wait-for", metavar="STATE", help="exit 0 once the status says STATE (6 if --duration ends "
                    "first); 'link': once the autopilot is heard; 'home': once it reported a valid home (ready)")
     _add_client_args(w)
+    f = sub.add_parser("fleet", help="list the vehicles present (liveliness) with their state, mission and progress")
+    f.add_argument("--prefix", default="bezier")
+    f.add_argument("--connect", action="append", metavar="ENDPOINT",
+                   help="Zenoh endpoint of the fleet's router (or a companion), e.g. tcp/127.0.0.1:7447 (repeatable)")
+    f.add_argument("--zenoh-config", metavar="FILE.json5", help="full Zenoh configuration (TLS, auth)")
+    f.add_argument("--wait", type=float, default=2.0, metavar="SECONDS",
+                   help="how long to look for vehicles (default 2); exit 3 if none is present")
+    f.add_argument("--json", action="store_true", help="one JSON object per vehicle, with its whole status")
     sub.add_parser("demo", help="a scripted demo flight against the mock autopilot (= python -m demo)",
                    add_help=False)
     sub.add_parser("replay", help="run a recording's plans again and compare them bit for bit", add_help=False)
@@ -446,11 +592,11 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.command == "run":
         return cmd_run(args)
-    if args.command in ("send", "watch"):
+    if args.command in ("send", "watch", "fleet"):
         import zenoh
 
         try:
-            return cmd_send(args) if args.command == "send" else cmd_watch(args)
+            return {"send": cmd_send, "watch": cmd_watch, "fleet": cmd_fleet}[args.command](args)
         except zenoh.ZError as exc:
             print(f"zenoh: {exc}", file=sys.stderr)
             return 2

@@ -40,7 +40,7 @@ def run_router(listen: list[str], config_file: str | None, stop: threading.Event
 
     try:
         cfg = router_config(listen, config_file)
-        session = zenoh.open(cfg)
+        session: Any = zenoh.open(cfg)
     except zenoh.ZError as exc:
         print(f"router: {exc}", file=sys.stderr, flush=True)
         return 1
