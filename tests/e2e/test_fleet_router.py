@@ -266,3 +266,76 @@ def test_shipped_fleet_files_load() -> None:
         zenoh.Config.from_file(str(path))
     users = (REPO / "config" / "zenoh-fleet-users.example.txt").read_text().split()
     assert {"drone1", "drone2", "drone3", "operator", "observer"} <= {u.split(":")[0] for u in users}
+
+
+# -- mutual TLS, as shipped for links that cross a network ---------------------------------------
+
+
+def _openssl(*args: str, cwd: Path) -> None:
+    subprocess.run(["openssl", *args], cwd=cwd, check=True, capture_output=True)
+
+
+def test_mutual_tls_with_the_shipped_router_configuration(tmp_path: Path) -> None:
+    import shutil
+
+    if shutil.which("openssl") is None:
+        pytest.skip("openssl is not installed")
+    d = tmp_path
+    _openssl("req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes", "-keyout",
+             "ca-key.pem", "-out", "ca.pem", "-days", "2", "-subj", "/CN=fleet-ca", "-addext",
+             "basicConstraints=critical,CA:TRUE", "-addext", "keyUsage=critical,keyCertSign,cRLSign", cwd=d)
+    for name in ("router", "drone1", "operator"):
+        _openssl("req", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes", "-keyout",
+                 f"{name}-key.pem", "-out", f"{name}.csr", "-subj", f"/CN={name}", cwd=d)
+        (d / f"{name}.ext").write_text("subjectAltName=IP:127.0.0.1\nbasicConstraints=CA:FALSE\n"
+                                       "extendedKeyUsage=serverAuth,clientAuth\n")
+        _openssl("x509", "-req", "-in", f"{name}.csr", "-CA", "ca.pem", "-CAkey", "ca-key.pem", "-CAcreateserial",
+                 "-out", f"{name}.pem", "-days", "2", "-extfile", f"{name}.ext", cwd=d)
+    users = d / "users.txt"
+    users.write_text("".join(f"{u}:{p}\n" for u, p in USERS.items()))
+    port = _port()
+    cfg = router_config([f"tls/127.0.0.1:{port}"], str(SHIPPED))
+    cfg.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(users)))
+    cfg.insert_json5("transport/link/tls", json.dumps({
+        "root_ca_certificate": str(d / "ca.pem"), "listen_certificate": str(d / "router.pem"),
+        "listen_private_key": str(d / "router-key.pem"), "enable_mtls": True}))
+    router = zenoh.open(cfg)
+
+    def client(user: str, certificate: bool) -> Any:
+        c = zenoh.Config()
+        c.insert_json5("mode", '"client"')
+        c.insert_json5("connect/endpoints", json.dumps([f"tls/127.0.0.1:{port}"]))
+        c.insert_json5("scouting/multicast/enabled", "false")
+        c.insert_json5("connect/timeout_ms", "1000")
+        c.insert_json5("connect/exit_on_failure", "true")
+        tls: dict[str, Any] = {"root_ca_certificate": str(d / "ca.pem")}
+        if certificate:
+            tls |= {"enable_mtls": True, "connect_certificate": str(d / f"{user}.pem"),
+                    "connect_private_key": str(d / f"{user}-key.pem")}
+        c.insert_json5("transport/link/tls", json.dumps(tls))
+        c.insert_json5("transport/auth/usrpwd", json.dumps({"user": user, "password": USERS[user]}))
+        try:
+            return zenoh.open(c)
+        except zenoh.ZError:
+            return None
+
+    try:
+        op, d1 = client("operator", True), client("drone1", True)
+        assert op is not None and d1 is not None
+        try:
+            watch = Listener(op, "bezier/**")
+            time.sleep(0.3)
+            assert _put_until(d1, "bezier/drone1/trajectory", b"tls", lambda: watch.has("bezier/drone1/trajectory",
+                                                                                        b"tls"))
+            assert not _put_until(d1, "bezier/drone2/trajectory", b"tls-forged",
+                                  lambda: watch.has("bezier/drone2/trajectory", b"tls-forged"), timeout=0.6)
+        finally:
+            op.close()
+            d1.close()
+        # without a client certificate: no session (the password alone is not enough)
+        nocert = client("drone1", False)
+        if nocert is not None:
+            nocert.close()
+        assert nocert is None, "a client without a certificate opened a session"
+    finally:
+        router.close()
