@@ -57,7 +57,9 @@ def _client_session(args: argparse.Namespace, patience: float = 0.0) -> Any:
 
 
 def _add_client_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--vehicle", default="drone1")
+    p.add_argument("--vehicle", default="drone1",
+                   help="the vehicle id (default drone1); send: several joined with ',' (A,B,C): one put on each "
+                   "vehicle's exact key, all at once, and each one's outcome")
     p.add_argument("--prefix", default="bezier")
     p.add_argument("--connect", action="append", metavar="ENDPOINT",
                    help="Zenoh endpoint of the companion or a router, e.g. tcp/127.0.0.1:7447 (repeatable); "
