@@ -144,3 +144,18 @@ def test_fleet_config() -> None:
     assert cfg.fleet.origin == FLEET and cfg.fleet.offset_ned == (1.0, 2.0, 3.0) and cfg.fleet.clock_tolerance == 0.2
     assert Config().fleet.origin == ()
     assert np.allclose(lla_to_ned(LOCAL, FLEET), [30.0, -40.0, -1.6], atol=1e-6)
+
+
+def test_fleet_tool_says_when_a_vehicles_clock_is_off() -> None:
+    """`python -m companion fleet`: the vehicle's status time against this computer's clock,
+    said when it is off by more than the vehicle's [fleet] clock_tolerance beyond the round trip."""
+    from companion.__main__ import clock_warning
+
+    status = {"fleet": {"clock_tolerance": 0.05}}
+    ok = {"vehicle": "a", "status": status, "clock_offset_ms": 60.0, "clock_uncertainty_ms": 15.0}
+    off = {"vehicle": "b", "status": status, "clock_offset_ms": -120.0, "clock_uncertainty_ms": 5.0}
+    assert clock_warning(ok) is None  # 60 - 15 <= 50: may be within
+    said = clock_warning(off)
+    assert said is not None and "-120 ms" in said and "clock_tolerance (50 ms)" in said
+    assert clock_warning({"vehicle": "c", "status": {"fleet": None}, "clock_offset_ms": 900.0,
+                          "clock_uncertainty_ms": 1.0}) is None  # no fleet: nothing assumed

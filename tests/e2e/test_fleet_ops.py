@@ -170,6 +170,8 @@ def test_fleet_lists_the_vehicles_present(fleet: Fleet) -> None:
     assert set(rows) == set(HOMES), out.stdout
     for r in rows.values():
         assert r["state"] == "IDLE" and r["frame"] == "placed" and r["status"]["session"]
+        # the same computer's clock: off by the rounding of status `time` and the round trip only
+        assert abs(r["clock_ms"]) <= r["clock_uncertainty_ms"] + 2.0, r
     table = fleet.cli("fleet")
     assert table.returncode == 0 and table.stdout.splitlines()[0].split()[:4] == ["vehicle", "state", "mission",
                                                                                    "progress"]
