@@ -294,13 +294,15 @@ def fleet_list(session: Any, prefix: str, timeout: float = 1.0) -> list[dict[str
     """The vehicles present (a liveliness token at `<prefix>/<vehicle>/alive`), each with the
     status its companion answers (`<prefix>/<vehicle>/status`, checked as `send` checks it: the
     exact key, one session whose id is in the body), in vehicle order."""
+    from companion.wire.zenoh import ALIVE
+
     present: set[str] = set()
     with contextlib.suppress(Exception):
-        for reply in session.liveliness().get(f"{prefix}/*/alive", timeout=timeout):
+        for reply in session.liveliness().get(f"{prefix}/*/{ALIVE}", timeout=timeout):
             if reply.ok is None:
                 continue
             parts = str(reply.ok.key_expr).split("/")
-            if len(parts) == len(prefix.split("/")) + 2 and parts[-1] == "alive":
+            if len(parts) == len(prefix.split("/")) + 2 and parts[-1] == ALIVE:
                 present.add(parts[-2])
     out: list[dict[str, Any]] = []
     for vehicle in sorted(present):

@@ -31,6 +31,7 @@ log = logging.getLogger("companion")
 INBOUND = ("mission", "obstacles", "change", "command")
 OUTBOUND = ("status", "telemetry", "trajectory", "events")
 QUERYABLE = ("plan", "status")
+ALIVE = "alive"  # the liveliness token <prefix>/<vehicle>/alive: present while the service runs
 
 
 def zenoh_config(zc: ZenohConfig, *, listen: bool = True) -> zenoh.Config:
@@ -166,7 +167,7 @@ class ZenohIO:
             self._pubs[kind] = self.session.declare_publisher(self.cfg.key(kind))
         for kind in QUERYABLE:
             self._decls.append(self.session.declare_queryable(self.cfg.key(kind), self._queried(kind)))
-        self._decls.append(self.session.liveliness().declare_token(self.cfg.key("alive")))
+        self._decls.append(self.session.liveliness().declare_token(self.cfg.key(ALIVE)))
 
     def _inbound(self, kind: str) -> Callable[[Any], None]:
         limit = self.cfg.limits.max_message_bytes

@@ -339,3 +339,44 @@ def test_mutual_tls_with_the_shipped_router_configuration(tmp_path: Path) -> Non
         assert nocert is None, "a client without a certificate opened a session"
     finally:
         router.close()
+
+
+def _send_as(port: int, tmp: Path, user: str) -> subprocess.CompletedProcess[str]:
+    conf = tmp / f"{user}.json5"
+    conf.write_text(json.dumps({
+        "mode": "client", "connect": {"endpoints": [f"tcp/127.0.0.1:{port}"]},
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+        "transport": {"auth": {"usrpwd": {"user": user, "password": USERS[user]}}}}))
+    return subprocess.run([sys.executable, "-m", "companion", "send", "command", "-", "--zenoh-config", str(conf),
+                           "--vehicle", "drone2", "--wait", "1.5"], input='{"command": "hold"}', cwd=REPO,
+                          capture_output=True, text=True, timeout=60, env={**os.environ, "PYTHONPATH": str(REPO)})
+
+
+def test_send_through_the_router_tells_an_observers_denial(router: int, tmp_path: Path) -> None:
+    """Through the secured router, `send` as an observer exits 7 (denied by access control);
+    as an operator the (test's silent) companion receives it: 6, not done in time."""
+    from companion.__main__ import EXIT_ACCESS_DENIED, EXIT_UNFINISHED
+
+    d2 = _client(router, "drone2", USERS["drone2"])
+    assert d2 is not None
+    stop = threading.Event()
+    inbound = Listener(d2, "bezier/drone2/command")
+    pub = d2.declare_publisher("bezier/drone2/status")
+
+    def publish_status() -> None:
+        while not stop.is_set():
+            pub.put(b'{"state": "IDLE"}')
+            time.sleep(0.05)
+
+    th = threading.Thread(target=publish_status, daemon=True)
+    th.start()
+    try:
+        denied = _send_as(router, tmp_path, "observer")
+        assert denied.returncode == EXIT_ACCESS_DENIED, denied.stderr
+        allowed = _send_as(router, tmp_path, "operator")
+        assert allowed.returncode == EXIT_UNFINISHED, allowed.stderr
+        assert _wait_until(lambda: inbound.has("bezier/drone2/command", b'{"command": "hold"}'))
+    finally:
+        stop.set()
+        th.join()
+        d2.close()
