@@ -1,7 +1,9 @@
 """A fleet through one router, operator side (issue 24.2 and 24.5), with real processes on loopback:
-`python -m companion router`, two `sitl_mock --home` placed 10 m apart, two companions joining
-the router as Zenoh clients with a shared `[fleet] origin`; `python -m companion fleet` lists both
-(liveliness and status), `send --vehicle alpha,bravo` arms both with one exact put each, each
+`python -m companion router` with the shipped secured configuration (user/password and access
+control per vehicle; TLS off on loopback), two `sitl_mock --home` placed 10 m apart, two
+companions joining the router as Zenoh clients with their own credentials and a shared
+`[fleet] origin`; with an operator's credentials, `python -m companion fleet` lists both
+(liveliness and status), `send --vehicle drone1,drone2` arms both with one exact put each, each
 companion says where its local frame sits in the fleet frame, and a fleet-frame obstacle is taken.
 """
 
@@ -26,20 +28,29 @@ from e2e_rig import REPO, free_port
 from companion.geodesy import ned_to_lla
 
 FLEET = (47.397742, 8.545594, 488.0)
-# where each mock stands: alpha at the fleet origin, bravo 10 m north and 4 m east of it
-HOMES = {"alpha": FLEET, "bravo": ned_to_lla([10.0, 4.0, 0.0], FLEET)}
+# where each mock stands: drone1 at the fleet origin, drone2 10 m north and 4 m east of it
+HOMES = {"drone1": FLEET, "drone2": ned_to_lla([10.0, 4.0, 0.0], FLEET)}
+USERS = {"drone1": "d1-secret", "drone2": "d2-secret", "operator": "op-secret"}
+SHIPPED = REPO / "config" / "zenoh-router-fleet.json5"
 GROUND_Z = 1.6  # the PX4 mock's local origin is 1.6 m above the ground
 
 
-def _config(vehicle: str, router: int, mav_port: int) -> str:
+def _client_file(path: Path, user: str, router: int) -> Path:
+    """A client's Zenoh configuration (as config/zenoh-vehicle-fleet.json5, without TLS)."""
+    path.write_text(json.dumps({
+        "mode": "client", "connect": {"endpoints": [f"tcp/127.0.0.1:{router}"]},
+        "scouting": {"multicast": {"enabled": False}, "gossip": {"enabled": False}},
+        "transport": {"auth": {"usrpwd": {"user": user, "password": USERS[user]}}}}))
+    return path
+
+
+def _config(vehicle: str, zenoh_file: Path, mav_port: int) -> str:
     return f"""
 [vehicle]
 id = "{vehicle}"
 
 [zenoh]
-mode = "client"
-connect = ["tcp/127.0.0.1:{router}"]
-multicast_scouting = false
+config_file = "{zenoh_file}"
 
 [mavlink]
 url = "udpout:127.0.0.1:{mav_port}"
@@ -67,6 +78,7 @@ class Fleet:
         self.events: list[dict[str, Any]] = []
         self.lock = threading.Lock()
         self.session: Any = None
+        self.operator = Path()
 
     def start(self) -> None:
         env = {**os.environ, "PYTHONUNBUFFERED": "1", "PYTHONPATH": str(REPO)}
@@ -75,18 +87,25 @@ class Fleet:
             self.procs.append(subprocess.Popen([sys.executable, *cmd], cwd=REPO, env=env, stdout=subprocess.DEVNULL,
                                                stderr=open(self.tmp / f"{name}.err", "wb")))  # noqa: SIM115
 
-        spawn("router", "-m", "companion", "router", "--listen", f"tcp/127.0.0.1:{self.router}")
+        # the shipped secured router configuration, with the test's dictionary and no TLS on loopback
+        users = self.tmp / "users.txt"
+        users.write_text("".join(f"{u}:{p}\n" for u, p in USERS.items()))
+        users.chmod(0o600)
+        rcfg = zenoh.Config.from_file(str(SHIPPED))
+        rcfg.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(users)))
+        rcfg.insert_json5("transport/link/tls", json.dumps({}))
+        (self.tmp / "router.json").write_text(str(rcfg))
+        spawn("router", "-m", "companion", "router", "--config", str(self.tmp / "router.json"),
+              "--listen", f"tcp/127.0.0.1:{self.router}")
+        self.operator = _client_file(self.tmp / "operator.json", "operator", self.router)
         for vehicle, home in HOMES.items():
             mav = free_port(socket.SOCK_DGRAM)
             spawn(f"{vehicle}-mock", "-m", "sitl_mock", "--endpoint", f"udpin:127.0.0.1:{mav}", "--px4-ready-after",
                   "0", "--response", "ideal", "--home", ",".join(f"{v:.9f}" for v in home))
             cfg = self.tmp / f"{vehicle}.toml"
-            cfg.write_text(_config(vehicle, self.router, mav))
+            cfg.write_text(_config(vehicle, _client_file(self.tmp / f"{vehicle}.json", vehicle, self.router), mav))
             spawn(vehicle, "-m", "companion", "run", "--config", str(cfg))
-        zc = zenoh.Config()
-        zc.insert_json5("mode", '"client"')
-        zc.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{self.router}"]))
-        zc.insert_json5("scouting/multicast/enabled", "false")
+        zc = zenoh.Config.from_file(str(self.operator))
         deadline = time.monotonic() + 20
         while self.session is None:
             try:
@@ -121,7 +140,7 @@ class Fleet:
             raise AssertionError(f"{what}: not within {timeout} s; statuses {self.statuses}; see {self.tmp}")
 
     def cli(self, *args: str, stdin: str | None = None) -> subprocess.CompletedProcess[str]:
-        return subprocess.run([sys.executable, "-m", "companion", *args, "--connect", f"tcp/127.0.0.1:{self.router}"],
+        return subprocess.run([sys.executable, "-m", "companion", *args, "--zenoh-config", str(self.operator)],
                               capture_output=True, text=True, timeout=60, cwd=REPO, input=stdin,
                               env={**os.environ, "PYTHONPATH": str(REPO)})
 
@@ -152,7 +171,7 @@ def fleet(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Fleet]:
 
 def test_each_companion_places_its_frame_in_the_fleet_frame(fleet: Fleet) -> None:
     fleet.wait(lambda s: all((s.get(v, {}).get("fleet") or {}).get("placed") for v in HOMES), 15, "fleet frame placed")
-    want = {"alpha": [0.0, 0.0, -GROUND_Z], "bravo": [10.0, 4.0, -GROUND_Z]}
+    want = {"drone1": [0.0, 0.0, -GROUND_Z], "drone2": [10.0, 4.0, -GROUND_Z]}
     for vehicle, offset in want.items():
         st = fleet.statuses[vehicle]["fleet"]
         assert st["source"] in ("gps_global_origin", "home_position"), st
@@ -175,7 +194,7 @@ def test_fleet_lists_the_vehicles_present(fleet: Fleet) -> None:
     table = fleet.cli("fleet")
     assert table.returncode == 0 and table.stdout.splitlines()[0].split()[:4] == ["vehicle", "state", "mission",
                                                                                    "progress"]
-    assert "alpha" in table.stdout and "bravo" in table.stdout
+    assert "drone1" in table.stdout and "drone2" in table.stdout
 
 
 def test_fleet_says_when_nobody_is_present(fleet: Fleet) -> None:
@@ -185,7 +204,7 @@ def test_fleet_says_when_nobody_is_present(fleet: Fleet) -> None:
 
 def test_a_fleet_obstacle_reaches_each_vehicle_in_its_own_frame(fleet: Fleet) -> None:
     post = {"origin": "fleet", "add": [{"id": "post", "vertices": [[5, 2, 0], [6, 2, 0], [5, 3, 0], [5, 2, -3]]}]}
-    out = fleet.cli("send", "obstacles", "-", "--vehicle", "alpha,bravo", "--wait", "10", stdin=json.dumps(post))
+    out = fleet.cli("send", "obstacles", "-", "--vehicle", "drone1,drone2", "--wait", "10", stdin=json.dumps(post))
     assert out.returncode == 0, (out.stdout, out.stderr)
     events = [json.loads(line) for line in out.stdout.splitlines() if line.startswith("{")]
     assert {e["vehicle"] for e in events if e.get("type") == "accepted"} == set(HOMES), events
@@ -193,10 +212,35 @@ def test_a_fleet_obstacle_reaches_each_vehicle_in_its_own_frame(fleet: Fleet) ->
 
 
 def test_send_fans_a_command_out_to_each_vehicle(fleet: Fleet) -> None:
-    out = fleet.cli("send", "command", "examples/arm.json", "--vehicle", "alpha,bravo", "--wait", "20")
+    out = fleet.cli("send", "command", "examples/arm.json", "--vehicle", "drone1,drone2", "--wait", "20")
     assert out.returncode == 0, (out.stdout, out.stderr)
-    assert "alpha 0, bravo 0" in out.stderr
+    assert "drone1 0, drone2 0" in out.stderr
     fleet.wait(lambda s: all(s.get(v, {}).get("armed") for v in HOMES), 5, "both armed")
     # a vehicle that is not there: its own code, and the others' success does not hide it
-    miss = fleet.cli("send", "command", "examples/hold.json", "--vehicle", "nobody,alpha", "--wait", "3")
+    miss = fleet.cli("send", "command", "examples/hold.json", "--vehicle", "nobody,drone1", "--wait", "3")
     assert miss.returncode == 3 and "nobody 3" in miss.stderr, miss.stderr
+
+
+def test_the_router_is_the_secured_one(fleet: Fleet) -> None:
+    """The fleet above ran through the shipped access control: a session without credentials is
+    refused, and drone1's credentials cannot command drone2."""
+    zc = zenoh.Config()
+    zc.insert_json5("mode", '"client"')
+    zc.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{fleet.router}"]))
+    zc.insert_json5("scouting/multicast/enabled", "false")
+    zc.insert_json5("connect/timeout_ms", "500")
+    zc.insert_json5("connect/exit_on_failure", "true")
+    with pytest.raises(zenoh.ZError):
+        zenoh.open(zc).close()
+    d1 = zenoh.open(zenoh.Config.from_file(str(_client_file(fleet.tmp / "d1-tool.json", "drone1", fleet.router))))
+    try:
+        since = len(fleet.events)
+        for _ in range(5):
+            d1.put("bezier/drone2/command", b'{"command": "disarm"}')
+            time.sleep(0.1)
+        time.sleep(0.5)
+        with fleet.lock:
+            assert not [e for e in fleet.events[since:] if e["vehicle"] == "drone2" and e.get("key") == "command"]
+            assert fleet.statuses["drone2"]["armed"]
+    finally:
+        d1.close()
