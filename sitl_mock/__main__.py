@@ -80,7 +80,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--home", type=_home, default=None, metavar="LAT,LON,ALT",
                    help="where the mock stands in the world: latitude, longitude (degrees) and ground altitude "
                    "(m AMSL) of its boot point; GPS_GLOBAL_ORIGIN, HOME_POSITION and the global positions follow "
-                   "(default 47.397742,8.545594,488, as PX4 SITL); overrides --home-lat/--home-lon/--home-alt")
+                   "(default 47.397742,8.545594,488, as PX4 SITL; south or west: --home=-33.86,151.21,12); overrides "
+                   "--home-lat/--home-lon/--home-alt")
     p.add_argument("--home-lat", type=float, default=47.397742)
     p.add_argument("--home-lon", type=float, default=8.545594)
     p.add_argument("--home-alt", type=float, default=488.0)
