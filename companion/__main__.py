@@ -2,11 +2,13 @@
 
     python -m companion run --config FILE.toml
     python -m companion --print-default-config
-    python -m companion send KEY FILE.json [--vehicle ID] [--connect tcp/127.0.0.1:7447]
+    python -m companion send KEY FILE.json [--vehicle ID[,ID...]] [--connect tcp/127.0.0.1:7447]
     python -m companion watch [--vehicle ID] [--connect ...] [--telemetry]
     python -m companion demo ...
     python -m companion replay FILE.mcap [--from T] [--until T]
     python -m companion recording summary FILE.mcap
+    python -m companion router --listen tcp/HOST:PORT [--config FILE.json5]
+    python -m companion fleet [--connect ...]
 """
 
 from __future__ import annotations
@@ -55,7 +57,9 @@ def _client_session(args: argparse.Namespace, patience: float = 0.0) -> Any:
 
 
 def _add_client_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--vehicle", default="drone1")
+    p.add_argument("--vehicle", default="drone1",
+                   help="the vehicle id (default drone1); send: several joined with ',' (A,B,C): one put on each "
+                   "vehicle's exact key, all at once, and each one's outcome")
     p.add_argument("--prefix", default="bezier")
     p.add_argument("--connect", action="append", metavar="ENDPOINT",
                    help="Zenoh endpoint of the companion or a router, e.g. tcp/127.0.0.1:7447 (repeatable); "
@@ -154,81 +158,252 @@ def _outcome(key: str, events: list[dict[str, Any]]) -> int | None:
     return None
 
 
-def cmd_send(args: argparse.Namespace) -> int:
-    payload = sys.stdin.buffer.read() if args.file == "-" else Path(args.file).read_bytes()
-    wait = DEFAULT_WAIT[args.key] if args.wait is None else args.wait
-    session = _client_session(args, wait)
-    try:
-        events: list[dict[str, Any]] = []
-        statuses: list[dict[str, Any]] = []
-        heard = [False]
-        base = f"{args.prefix}/{args.vehicle}"
-        origin: list[Origin] = []  # set before the message goes out; nothing is taken before
+def vehicles_of(text: str) -> list[str]:
+    """`--vehicle A,B,C`: the vehicles, in order, each once; a bad name raises ValueError."""
+    out: list[str] = []
+    for v in text.split(","):
+        v = v.strip()
+        if not v or any(c in v for c in "/*?$#"):
+            raise ValueError(f"--vehicle: {v!r} is not a vehicle id (ids are joined with ',', no wildcards: "
+                             "a put on a wildcard key is refused by every companion)")
+        if v not in out:
+            out.append(v)
+    return out
 
-        def taker(into: list[dict[str, Any]], topic: str) -> Any:
-            def take(sample: Any) -> None:
-                body: Any = None
-                with contextlib.suppress(ValueError):
-                    body = json.loads(sample.payload.to_bytes())
-                if not origin or not origin[0].accepts(topic, sample, body) or not isinstance(body, dict):
-                    return
-                heard[0] = True
-                into.append(body)
-            return take
 
-        subs = [session.declare_subscriber(f"{base}/events", taker(events, "events")),
-                session.declare_subscriber(f"{base}/status", taker(statuses, "status"))]
-        # Which companion answers (this also lets the subscriptions reach it before the message).
-        origin.append(Origin(session, base))
-        if origin[0].companion is None:
-            print(f"send: {origin[0].note}", file=sys.stderr)
-        # A publisher says whether any subscriber matches its key: the companion's subscription
-        # reaches this client only where access control lets this user publish there (Zenoh
-        # drops a denied put silently, so this is how a denial can be told from silence).
-        pub = session.declare_publisher(f"{base}/{args.key}")
-        matched = [bool(pub.matching_status.matching)]
-        pub.put(payload)
-        deadline = time.monotonic() + wait
-        code: int | None = None
-        shown = 0
-        while time.monotonic() < deadline:
-            time.sleep(0.05)
-            for e in events[shown:]:
-                print(json.dumps(e), flush=True)
-            shown = len(events)
-            code = _outcome(args.key, events)
-            if code is not None and (code != EXIT_OK or not args.wait_for):
-                break
-            if code == EXIT_OK and statuses and statuses[-1].get("state") == args.wait_for:
-                break
-        for e in events[shown:]:
-            print(json.dumps(e), flush=True)
-        matched.append(bool(pub.matching_status.matching))
-        for s in subs:
-            s.undeclare()
-        ignored = origin[0].summary()
-        if ignored:
-            print(f"send: {ignored}", file=sys.stderr)
-        pub.undeclare()
+class _Target:
+    """One vehicle a `send` goes to: its subscriptions, the companion found, the outcome."""
+
+    def __init__(self, session: Any, args: argparse.Namespace, vehicle: str) -> None:
+        self.vehicle = vehicle
+        self.base = f"{args.prefix}/{vehicle}"
+        self.events: list[dict[str, Any]] = []
+        self.statuses: list[dict[str, Any]] = []
+        self.heard = False
+        self.shown = 0
+        self.code: int | None = None
+        self.done = False
+        self.origin: Origin | None = None  # set before the message goes out; nothing is taken before
+        self.subs = [session.declare_subscriber(f"{self.base}/events", self._taker(self.events, "events")),
+                     session.declare_subscriber(f"{self.base}/status", self._taker(self.statuses, "status"))]
+        self.pub: Any = None
+        self.matched: list[bool] = []
+
+    def _taker(self, into: list[dict[str, Any]], topic: str) -> Any:
+        def take(sample: Any) -> None:
+            body: Any = None
+            with contextlib.suppress(ValueError):
+                body = json.loads(sample.payload.to_bytes())
+            if self.origin is None or not self.origin.accepts(topic, sample, body) or not isinstance(body, dict):
+                return
+            self.heard = True
+            into.append(body)
+        return take
+
+    def show(self, tagged: bool) -> None:
+        for e in self.events[self.shown:]:
+            print(json.dumps({"vehicle": self.vehicle, **e} if tagged and "vehicle" not in e else e), flush=True)
+        self.shown = len(self.events)
+
+    def reached(self, wanted: str | None) -> bool:
+        return bool(self.statuses and self.statuses[-1].get("state") == wanted)
+
+    def verdict(self, args: argparse.Namespace, wait: float, say: str) -> int:
+        """The exit code for this vehicle, saying on stderr why it is not 0."""
+        code, key = self.code, args.key
         if code is None:
-            if not heard[0]:
-                print(f"send: no companion answered for vehicle {args.vehicle!r} within {wait:g} s "
+            if not self.heard:
+                print(f"{say}no companion answered for vehicle {self.vehicle!r} within {wait:g} s "
                       "(is it running? --vehicle, --prefix and --connect must match it)", file=sys.stderr)
                 return EXIT_NO_ANSWER
-            if not any(matched) and not [e for e in events if e.get("key") == args.key]:
-                print(f"send: denied: the companion of vehicle {args.vehicle!r} is heard, but nothing receives "
-                      f"{base}/{args.key} from this client: Zenoh's access control denies this user publishing "
+            if not any(self.matched) and not [e for e in self.events if e.get("key") == key]:
+                print(f"{say}denied: the companion of vehicle {self.vehicle!r} is heard, but nothing receives "
+                      f"{self.base}/{key} from this client: Zenoh's access control denies this user publishing "
                       "there (an observer may only watch; use an operator's credentials)", file=sys.stderr)
                 return EXIT_ACCESS_DENIED
-            print(f"send: the companion did not say within {wait:g} s whether {args.key} was done", file=sys.stderr)
+            print(f"{say}the companion did not say within {wait:g} s whether {key} was done", file=sys.stderr)
             return EXIT_UNFINISHED
-        if code == EXIT_OK and args.wait_for and not (statuses and statuses[-1].get("state") == args.wait_for):
-            last = statuses[-1].get("state") if statuses else "unknown"
-            print(f"send: state {args.wait_for} not reached within {wait:g} s (state {last})", file=sys.stderr)
+        if code == EXIT_OK and args.wait_for and not self.reached(args.wait_for):
+            last = self.statuses[-1].get("state") if self.statuses else "unknown"
+            print(f"{say}state {args.wait_for} not reached within {wait:g} s (state {last})", file=sys.stderr)
             return EXIT_UNFINISHED
         return code
+
+
+def cmd_send(args: argparse.Namespace) -> int:
+    """Put the message on each vehicle's exact key (`--vehicle A,B` fans it out: one put per vehicle,
+    all at once) and wait for each companion's outcome. Exit: the single vehicle's code; with several,
+    0 when every one succeeded, else the code of the first vehicle (in the order given) that did not."""
+    payload = sys.stdin.buffer.read() if args.file == "-" else Path(args.file).read_bytes()
+    try:
+        vehicles = vehicles_of(args.vehicle)
+    except ValueError as exc:
+        print(f"send: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    wait = DEFAULT_WAIT[args.key] if args.wait is None else args.wait
+    session = _client_session(args, wait)
+    fleet = len(vehicles) > 1
+    try:
+        targets = [_Target(session, args, v) for v in vehicles]
+        for t in targets:
+            # Which companion answers (this also lets the subscriptions reach it before the message).
+            t.origin = Origin(session, t.base)
+            if t.origin.companion is None:
+                print(f"send: {t.vehicle + ': ' if fleet else ''}{t.origin.note}", file=sys.stderr)
+        for t in targets:
+            # A publisher says whether any subscriber matches its key: the companion's subscription
+            # reaches this client only where access control lets this user publish there (Zenoh
+            # drops a denied put silently, so this is how a denial can be told from silence).
+            t.pub = session.declare_publisher(f"{t.base}/{args.key}")
+            t.matched = [bool(t.pub.matching_status.matching)]
+        for t in targets:  # the exact key of each vehicle, never a wildcard
+            t.pub.put(payload)
+        deadline = time.monotonic() + wait
+        while time.monotonic() < deadline and not all(t.done for t in targets):
+            time.sleep(0.05)
+            for t in targets:
+                if t.done:
+                    continue
+                t.show(fleet)
+                t.code = _outcome(args.key, t.events)
+                if t.code is not None and (t.code != EXIT_OK or not args.wait_for):
+                    t.done = True
+                if t.code == EXIT_OK and t.reached(args.wait_for):
+                    t.done = True
+        codes: list[int] = []
+        for t in targets:
+            t.show(fleet)
+            t.matched.append(bool(t.pub.matching_status.matching))
+            for sub in t.subs:
+                sub.undeclare()
+            assert t.origin is not None
+            ignored = t.origin.summary()
+            if ignored:
+                print(f"send: {t.vehicle + ': ' if fleet else ''}{ignored}", file=sys.stderr)
+            t.pub.undeclare()
+            codes.append(t.verdict(args, wait, f"send: {t.vehicle}: " if fleet else "send: "))
+        if fleet:
+            print("send: " + ", ".join(f"{t.vehicle} {c}" for t, c in zip(targets, codes, strict=True)),
+                  file=sys.stderr)
+        return next((c for c in codes if c != EXIT_OK), EXIT_OK)
     finally:
         session.close()
+
+
+def fleet_list(session: Any, prefix: str, timeout: float = 1.0) -> list[dict[str, Any]]:
+    """The vehicles present (a liveliness token at `<prefix>/<vehicle>/alive`), each with the
+    status its companion answers (`<prefix>/<vehicle>/status`, checked as `send` checks it: the
+    exact key, one session whose id is in the body), in vehicle order."""
+    from companion.wire.zenoh import ALIVE
+
+    present: set[str] = set()
+    with contextlib.suppress(Exception):
+        for reply in session.liveliness().get(f"{prefix}/*/{ALIVE}", timeout=timeout):
+            if reply.ok is None:
+                continue
+            parts = str(reply.ok.key_expr).split("/")
+            if len(parts) == len(prefix.split("/")) + 2 and parts[-1] == ALIVE:
+                present.add(parts[-2])
+    out: list[dict[str, Any]] = []
+    for vehicle in sorted(present):
+        base = f"{prefix}/{vehicle}"
+        status: dict[str, Any] | None = None
+        clock: tuple[float, float] | None = None
+        origin = Origin(session, base, timeout=timeout)
+        if origin.companion is not None:
+            with contextlib.suppress(Exception):
+                asked = time.time()
+                for reply in session.get(f"{base}/status", timeout=timeout):
+                    answered = time.time()
+                    if reply.ok is None or str(reply.ok.key_expr) != f"{base}/status":
+                        continue
+                    body = json.loads(reply.ok.payload.to_bytes())
+                    if isinstance(body, dict) and body.get("session") == origin.companion:
+                        status = body
+                        # the status is made when asked: its `time` (the vehicle's clock, ms) against
+                        # the middle of the round trip here, give or take half of it
+                        if isinstance(body.get("time"), int | float):
+                            half = (answered - asked) / 2.0
+                            clock = (float(body["time"]) - (asked + half), half + 0.0005)
+                        break
+        out.append({"vehicle": vehicle, "status": status, "note": None if status is not None else origin.note,
+                    "clock_offset_ms": None if clock is None else round(clock[0] * 1000.0, 1),
+                    "clock_uncertainty_ms": None if clock is None else round(clock[1] * 1000.0, 1)})
+    return out
+
+
+FLEET_COLUMNS = ("vehicle", "state", "mission", "progress", "armed", "link", "frame", "clock_ms")
+
+
+def _fleet_row(entry: dict[str, Any]) -> dict[str, Any]:
+    st = entry["status"] or {}
+    fleet = st.get("fleet") if isinstance(st.get("fleet"), dict) else {}
+    return {"vehicle": entry["vehicle"], "state": st.get("state", "?"), "mission": st.get("mission"),
+            "progress": st.get("progress"), "armed": st.get("armed"), "link": st.get("link"),
+            "frame": fleet.get("frame") if fleet else None, "clock_ms": entry.get("clock_offset_ms")}
+
+
+def clock_warning(entry: dict[str, Any]) -> str | None:
+    """The vehicle's clock is off this computer's by more than its `[fleet] clock_tolerance`
+    (beyond what the round trip leaves unknown): what to say, else None."""
+    st = entry["status"] or {}
+    fleet = st.get("fleet") if isinstance(st.get("fleet"), dict) else None
+    off, unsure = entry.get("clock_offset_ms"), entry.get("clock_uncertainty_ms")
+    if fleet is None or off is None or unsure is None or not isinstance(fleet.get("clock_tolerance"), int | float):
+        return None
+    tolerance_ms = float(fleet["clock_tolerance"]) * 1000.0
+    if abs(off) - unsure <= tolerance_ms:
+        return None
+    return (f"{entry['vehicle']}: its clock is {off:+.0f} ms (+-{unsure:.0f}) off this computer's, more than its "
+            f"[fleet] clock_tolerance ({tolerance_ms:.0f} ms): check NTP/chrony/PTP on both")
+
+
+def cmd_fleet(args: argparse.Namespace) -> int:
+    """List the vehicles present (liveliness) with their state, mission and progress (status).
+    Exit 0 when at least one vehicle is present, 3 when none is."""
+    session = _client_session(args, args.wait)
+    try:
+        deadline = time.monotonic() + args.wait
+        while True:
+            entries = fleet_list(session, args.prefix, timeout=min(1.0, max(args.wait, 0.1)))
+            if entries or time.monotonic() >= deadline:
+                break
+            time.sleep(0.2)
+    finally:
+        session.close()
+    if args.json:
+        for e in entries:
+            print(json.dumps({**_fleet_row(e), "clock_uncertainty_ms": e.get("clock_uncertainty_ms"),
+                              "status": e["status"], "note": e["note"]}), flush=True)
+    else:
+        rows = [[_cell(v, k) for k, v in _fleet_row(e).items()] for e in entries]
+        widths = [max([len(c)] + [len(r[i]) for r in rows]) for i, c in enumerate(FLEET_COLUMNS)]
+        print("  ".join(c.ljust(w) for c, w in zip(FLEET_COLUMNS, widths, strict=True)).rstrip())
+        for r in rows:
+            print("  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip())
+    for e in entries:
+        if e["note"] and not args.json:
+            print(f"fleet: {e['vehicle']}: {e['note']}", file=sys.stderr)
+        warning = clock_warning(e)
+        if warning is not None:
+            print(f"fleet: {warning}", file=sys.stderr)
+    if not entries:
+        print(f"fleet: no vehicle present under {args.prefix}/*/alive within {args.wait:g} s (--prefix and "
+              "--connect must match the fleet's router or companions)", file=sys.stderr)
+        return EXIT_NO_ANSWER
+    return 0
+
+
+def _cell(v: Any, column: str) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, bool):
+        return "yes" if v else "no"
+    if column == "progress" and isinstance(v, int | float):
+        return f"{v:.0%}"
+    if column == "clock_ms" and isinstance(v, int | float):
+        return f"{v:+.0f}"
+    return str(v)
 
 
 def status_reached(status: dict[str, Any], wanted: str) -> bool:
@@ -410,10 +585,19 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("--wait-for", metavar="STATE", help="exit 0 once the status says STATE (6 if --duration ends "
                    "first); 'link': once the autopilot is heard; 'home': once it reported a valid home (ready)")
     _add_client_args(w)
+    f = sub.add_parser("fleet", help="list the vehicles present (liveliness) with their state, mission and progress")
+    f.add_argument("--prefix", default="bezier")
+    f.add_argument("--connect", action="append", metavar="ENDPOINT",
+                   help="Zenoh endpoint of the fleet's router (or a companion), e.g. tcp/127.0.0.1:7447 (repeatable)")
+    f.add_argument("--zenoh-config", metavar="FILE.json5", help="full Zenoh configuration (TLS, auth)")
+    f.add_argument("--wait", type=float, default=2.0, metavar="SECONDS",
+                   help="how long to look for vehicles (default 2); exit 3 if none is present")
+    f.add_argument("--json", action="store_true", help="one JSON object per vehicle, with its whole status")
     sub.add_parser("demo", help="a scripted demo flight against the mock autopilot (= python -m demo)",
                    add_help=False)
     sub.add_parser("replay", help="run a recording's plans again and compare them bit for bit", add_help=False)
     sub.add_parser("recording", help="recording summary FILE.mcap: what a recorded flight holds", add_help=False)
+    sub.add_parser("router", help="run a Zenoh router for a fleet (docs/fleet.md)", add_help=False)
     return p
 
 
@@ -423,6 +607,10 @@ def main(argv: list[str] | None = None) -> int:
         from companion.replay import main as replay_main
 
         return replay_main(argv[1:])
+    if argv and argv[0] == "router":
+        from companion.router import main as router_main
+
+        return router_main(argv[1:])
     if argv and argv[0] == "recording":
         from companion.recording import main as recording_main
 
@@ -439,11 +627,11 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.command == "run":
         return cmd_run(args)
-    if args.command in ("send", "watch"):
+    if args.command in ("send", "watch", "fleet"):
         import zenoh
 
         try:
-            return cmd_send(args) if args.command == "send" else cmd_watch(args)
+            return {"send": cmd_send, "watch": cmd_watch, "fleet": cmd_fleet}[args.command](args)
         except zenoh.ZError as exc:
             print(f"zenoh: {exc}", file=sys.stderr)
             return 2

@@ -116,9 +116,19 @@ class AutopilotWatch:
             # before asking for home, which a PX4 not yet ready answers only at its origin
             self._events_task = asyncio.get_running_loop().create_task(self.link.events.load())
         await self._ask_home()
+        fleet = bool(self.cfg.fleet.origin) and not self.cfg.fleet.offset_ned
+        if fleet:
+            await self._ask_origin()
         await asyncio.sleep(max(0.0, since + TELEMETRY_CHECK - time.monotonic()))
         if st.home is None:
             await self._ask_home()
+        if fleet and st.gps_origin is None:
+            await self._ask_origin()
+            if st.gps_origin is None and st.home_lla is None:
+                self.report.event("fleet_frame", "fleet frame: cannot place this vehicle yet: the autopilot has "
+                                  "reported neither GPS_GLOBAL_ORIGIN nor a HOME_POSITION with a global position "
+                                  "(no GPS fix or EKF origin yet; a vehicle without GPS: set [fleet] offset_ned); "
+                                  "messages with origin 'fleet' are refused until it does", placed=False)
         missing = self.link.missing_telemetry(since)
         self.missing_telemetry = missing
         if not missing:
@@ -183,6 +193,14 @@ class AutopilotWatch:
             log.warning("HOME_POSITION not available: %s", exc)
             self.report.event("telemetry", f"HOME_POSITION not available ({exc}): messages with origin 'home' "
                               "are refused until the autopilot reports it", missing=["HOME_POSITION"])
+
+    async def _ask_origin(self) -> None:
+        """GPS_GLOBAL_ORIGIN, which places the vehicle in the fleet frame; a refusal is logged (the
+        frame may still come from HOME_POSITION; status `fleet` says whether it is placed)."""
+        try:
+            await self.link.request_origin()
+        except (CommandFailed, OSError) as exc:
+            log.warning("GPS_GLOBAL_ORIGIN not available: %s", exc)
 
     def on_message(self, kind: str, msg: Any) -> None:
         if kind == "HEARTBEAT":

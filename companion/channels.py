@@ -114,6 +114,8 @@ OUT_PROPERTIES: dict[str, dict[str, Any]] = {
         "recording": {"type": "object", "properties": {
             "file": _maybe("string"), "written": {"type": "integer"}, "dropped": {"type": "integer"},
             "error": _maybe("string")}},
+        "fleet": {"type": ["object", "null"], "description": "null without [fleet] origin (docs/fleet.md)",
+                  "properties": {"placed": {"type": "boolean"}, "source": _maybe("string"), "offset_ned": VEC}},
     },
     "telemetry": {
         "time": NUM, "frame": {"type": "string"}, "position": VEC, "velocity": VEC,

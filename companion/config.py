@@ -302,6 +302,20 @@ class LiveConfig:
 
 
 @dataclass(frozen=True)
+class FleetConfig:
+    # The fleet frame: NED (and ENU) metres about this point, [lat_deg, lon_deg, alt_m AMSL]; [] = none
+    # (a single vehicle). Messages may then say `"origin": "fleet"`; status `fleet` says where the
+    # autopilot's local frame sits in it (docs/fleet.md).
+    origin: tuple[float, ...] = ()
+    # A vehicle without GPS: where its local NED origin is in the fleet frame (NED, m), e.g. measured
+    # on the ground; [] = from the autopilot's GPS_GLOBAL_ORIGIN (or HOME_POSITION).
+    offset_ned: tuple[float, ...] = ()
+    # How far apart (s) the vehicles' system clocks may be (NTP, chrony, PTP): times between
+    # vehicles are absolute, and this much is paid for in the separation between their plans.
+    clock_tolerance: float = 0.05
+
+
+@dataclass(frozen=True)
 class Config:
     vehicle: VehicleConfig = field(default_factory=VehicleConfig)
     zenoh: ZenohConfig = field(default_factory=ZenohConfig)
@@ -314,6 +328,7 @@ class Config:
     safety: SafetyConfig = field(default_factory=SafetyConfig)
     recording: RecordingConfig = field(default_factory=RecordingConfig)
     live: LiveConfig = field(default_factory=LiveConfig)
+    fleet: FleetConfig = field(default_factory=FleetConfig)
 
     def key(self, topic: str) -> str:
         return f"{self.zenoh.prefix}/{self.vehicle.id}/{topic}"
@@ -378,7 +393,7 @@ _POSITIVE = {
 }
 
 
-_NON_NEGATIVE = {"planner.fallback_delay", "planner.reserve", "autopilot_limits.retries", "planner.tracking_allowance",
+_NON_NEGATIVE = {"fleet.clock_tolerance", "planner.fallback_delay", "planner.reserve", "autopilot_limits.retries", "planner.tracking_allowance",
                  "setpoints.lead_initial", "safety.tracking_brake"}
 
 # Keys that were replaced: what to set instead (a safety option must not be dropped silently).
@@ -399,6 +414,19 @@ def _convert(key: str, hint: Any, value: Any, default: Any) -> Any:
         if isinstance(value, bool) or not isinstance(value, int | float) or not 0.0 <= value <= 2.0:
             raise ConfigError(key, f"expected \"auto\" or seconds in [0, [setpoints] lead_max], got {value!r}")
         return float(value)
+    if key in ("fleet.origin", "fleet.offset_ned"):
+        if not isinstance(value, list) or len(value) not in (0, 3):
+            what = "[lat_deg, lon_deg, alt_m]" if key == "fleet.origin" else "[north_m, east_m, down_m]"
+            raise ConfigError(key, f"expected {what} (or [] for none), got {value!r}")
+        out = tuple(_convert(f"{key}[{i}]", float, v, 0.0) for i, v in enumerate(value))
+        if out and key == "fleet.origin":
+            from companion.geodesy import check_lla
+
+            try:
+                check_lla(out)
+            except ValueError as exc:
+                raise ConfigError(key, str(exc).split(": ", 1)[-1]) from None
+        return out
     if dataclasses.is_dataclass(default):
         if not isinstance(value, dict):
             raise ConfigError(key, f"expected a table, got {type(value).__name__}")
@@ -469,6 +497,8 @@ def config_from_dict(table: dict[str, Any]) -> Config:
     for i in range(3):
         if lo[i] >= hi[i]:
             raise ConfigError(f"geofence.min[{i}]", f"must be below geofence.max[{i}]")
+    if cfg.fleet.offset_ned and not cfg.fleet.origin:
+        raise ConfigError("fleet.offset_ned", "needs [fleet] origin (the frame the offset is in)")
     if cfg.live.foxglove:
         from companion.live import parse_address
 

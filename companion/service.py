@@ -31,6 +31,7 @@ from companion.braking import warm_up_brake
 from companion.commands import Commands
 from companion.config import Config
 from companion.control import Control
+from companion.fleet import FleetFrame
 from companion.flight import Flight
 from companion.limits_watch import LimitsWatch
 from companion.mission import warm_up, warm_up_replan
@@ -108,7 +109,9 @@ class Service:
         self.sender.liveness = self.liveness
         self.watch = AutopilotWatch(cfg, self.flight, self.link, self.report, self.commands.release_control,
                                     on_position=self.commands.check_tracking, stalled=self._stalled)
-        self.link.on_message = self.watch.on_message
+        self.link.on_message = self._on_mavlink
+        # where the autopilot's local frame sits in the fleet frame ([fleet] origin; companion.fleet)
+        self.fleet = FleetFrame(cfg.fleet)
         # the autopilot's own limits: read at link-up and after a reconnect, planned within
         self.limits = LimitsWatch(cfg, self.link, self.report)
         self.watch.on_link_up = self.limits.read
@@ -281,6 +284,14 @@ class Service:
                 if self.zio is not None:
                     self.zio.publish("status", self.status())
 
+    def _on_mavlink(self, kind: str, msg: Any) -> None:
+        self.watch.on_message(kind, msg)
+        if kind in ("GPS_GLOBAL_ORIGIN", "HOME_POSITION") and self.fleet.enabled:
+            st = self.link.state
+            said = self.fleet.update(st.gps_origin, st.home_lla, st.home)
+            if said is not None:
+                self.report.event("fleet_frame", said, **(self.fleet.status() or {}))
+
     def status(self) -> dict[str, Any]:
         st, ctl = self.link.state, self.control
         # measured position against the setpoint of the measurement's own time (Commands)
@@ -318,6 +329,7 @@ class Service:
             "setpoints_stalled": self.setpoints_stalled,
             **self.tap.status_fields(),
             "mavlink_ignored": dict(self.link.gate.ignored) if self.link.gate is not None else {},
+            "fleet": self.fleet.status(),
         }
 
     def _limits_status(self) -> dict[str, Any]:
@@ -356,7 +368,8 @@ class Service:
             try:
                 self.tap.inbound(kind, payload, arrived)
                 if kind == "obstacles" and len(payload) <= INLINE_DECODE_BYTES:
-                    self._dispatch(kind, payload, arrived, read(kind, payload, self.cfg, self.link.state.home))
+                    self._dispatch(kind, payload, arrived, read(kind, payload, self.cfg, self.link.state.home,
+                                                                fleet=self.fleet.for_messages()))
                 elif self._ordered.qsize() >= self.cfg.limits.max_queued_messages:
                     self._dropped(kind, len(payload))
                 else:
@@ -376,7 +389,8 @@ class Service:
             try:
                 assert self.loop is not None
                 job = functools.partial(read, kind, payload, self.cfg, self.link.state.home,
-                                        home_pending=self.link.state.home_pending)
+                                        home_pending=self.link.state.home_pending,
+                                        fleet=self.fleet.for_messages())
                 msg = job() if len(payload) <= INLINE_DECODE_BYTES else \
                     await self.loop.run_in_executor(self.runtime.decode_pool, job)
                 self._dispatch(kind, payload, arrived, msg)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import signal
 import sys
 from types import FrameType
@@ -26,6 +27,17 @@ def _triple(text: str) -> tuple[float, float, float]:
     if len(parts) != 3:
         raise argparse.ArgumentTypeError(f"--wind: expected N,E,D in m/s, got {text!r}")
     return float(parts[0]), float(parts[1]), float(parts[2])
+
+
+def _home(text: str) -> tuple[float, float, float]:
+    parts = text.split(",")
+    try:
+        lat, lon, alt = (float(v) for v in parts)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--home: expected LAT,LON,ALT (degrees, degrees, m AMSL), got {text!r}") from None
+    if not (-90.0 <= lat <= 90.0 and -180.0 <= lon <= 180.0 and math.isfinite(alt)):
+        raise argparse.ArgumentTypeError(f"--home: latitude in [-90, 90], longitude in [-180, 180], got {text!r}")
+    return lat, lon, alt
 
 
 def _param(text: str) -> tuple[str, float]:
@@ -65,6 +77,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--takeover-at", action="append", type=_takeover, default=[], metavar="SECONDS:MODE",
                    help="switch mode at this simulated time as a pilot would")
     p.add_argument("--rate-hz", type=float, default=250.0)
+    p.add_argument("--home", type=_home, default=None, metavar="LAT,LON,ALT",
+                   help="where the mock stands in the world: latitude, longitude (degrees) and ground altitude "
+                   "(m AMSL) of its boot point; GPS_GLOBAL_ORIGIN, HOME_POSITION and the global positions follow "
+                   "(default 47.397742,8.545594,488, as PX4 SITL; south or west: --home=-33.86,151.21,12); overrides "
+                   "--home-lat/--home-lon/--home-alt")
     p.add_argument("--home-lat", type=float, default=47.397742)
     p.add_argument("--home-lon", type=float, default=8.545594)
     p.add_argument("--home-alt", type=float, default=488.0)
@@ -105,6 +122,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.home is not None:
+        args.home_lat, args.home_lon, args.home_alt = args.home
     try:
         config = MockConfig(
             autopilot=args.autopilot,

@@ -129,6 +129,9 @@ class ArduPilotRules:
             mock.home_ned = mock.vehicle.state.pos.copy()
             mock.log.write("event", mock.t, event="ekf_origin_set", since_boot=mock.t - mock.boot_t)
             mock._text(mav.MAV_SEVERITY_INFO, "EKF3 IMU0 origin set")
+            # AP_AHRS::set_home: "send new home and ekf origin to GCS" (MSG_HOME, MSG_ORIGIN)
+            mock._send_stream(mav.MAVLINK_MSG_ID_HOME_POSITION, None)
+            mock._send_stream(mav.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN, None)
         p = self.params(mock)
         enabled = int(p["FS_THR_ENABLE"]) != 0
         if self.rc_throttle is not None:
@@ -195,6 +198,7 @@ class ArduPilotRules:
         mock.home_ned = mock.vehicle.state.pos.copy()
         mock.log.write("event", mock.t, event="home_set", home=mock.home_ned.tolist(), reason="armed")
         mock._send(tm.home_position(mock.enc.mav, mock.origin, mock.home_ned, int((mock.t - mock.boot_t) * 1e6)))
+        mock._send(tm.gps_global_origin(mock.enc.mav, mock.origin, int((mock.t - mock.boot_t) * 1e6)))  # set_home
         self.path = None
 
     def on_mode(self) -> None:

@@ -177,9 +177,19 @@ class Px4Rules:
             self.ready = True
             m.home_ned = m.vehicle.state.pos.copy()  # PX4 sets home where the vehicle stands
             m.log.write("event", m.t, event="px4_ready", home=m.home_ned.tolist())
+            # The estimator now has its global origin: PX4's GPS_GLOBAL_ORIGIN stream sends when the
+            # origin is new (src/modules/mavlink/streams/GPS_GLOBAL_ORIGIN.hpp), HOME_POSITION when home
+            # is set (streams/HOME_POSITION.hpp, on home_position updates).
+            m._send_stream(mav.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN, None)
+            m._send_stream(mav.MAVLINK_MSG_ID_HOME_POSITION, None)
             if not m.events:
                 m._text(mav.MAV_SEVERITY_INFO, "Ready for takeoff!")
             self.report()
+
+    def sends(self, msg_id: int) -> bool:
+        """GPS_GLOBAL_ORIGIN only once the estimator has a global origin (the stream sends nothing
+        while vehicle_local_position has no xy_global / z_global): here, once ready."""
+        return self.ready or msg_id != mav.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN
 
     def arm_refusal(self) -> str | None:
         """Why PX4 refuses to arm now (None: it may), after saying so as PX4 does."""

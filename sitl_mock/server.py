@@ -1087,6 +1087,8 @@ class MockAutopilot:
         s = self.vehicle.state
         if self.flavour is Flavour.ARDUPILOT and not self.ap.sends(mid):
             return  # no EKF origin yet (sitl_mock.ardupilot)
+        if self.px4 is not None and not self.px4.sends(mid):
+            return  # no global origin yet (sitl_mock.px4)
         if mid == mav.MAVLINK_MSG_ID_HEARTBEAT:
             self._send_heartbeat()
         elif mid == mav.MAVLINK_MSG_ID_SYS_STATUS:

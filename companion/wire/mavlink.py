@@ -165,6 +165,10 @@ class VehicleState:
     home: np.ndarray | None = None
     # PX4 sent HOME_POSITION at the local origin: home is not valid yet (the autopilot is not ready)
     home_pending: bool = False
+    # HOME_POSITION's latitude, longitude (deg) and altitude (m AMSL), with `home`; None until reported
+    home_lla: tuple[float, float, float] | None = None
+    # GPS_GLOBAL_ORIGIN: the local frame's origin, (lat deg, lon deg, alt m AMSL); None until reported
+    gps_origin: tuple[float, float, float] | None = None
     sw_version: tuple[int, int, int] | None = None  # AUTOPILOT_VERSION.flight_sw_version
     # why LOCAL_POSITION_NED is missing, once the companion has told the causes apart
     position_advice: str | None = None
@@ -487,6 +491,11 @@ class MavlinkLink:
             elif np.all(np.isfinite(home)):
                 st.home = home
                 st.home_pending = False
+                if msg.latitude != 0 or msg.longitude != 0:  # 0, 0: no global position (a vehicle without GPS)
+                    st.home_lla = (msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3)
+        elif kind == "GPS_GLOBAL_ORIGIN":
+            if msg.latitude != 0 or msg.longitude != 0:
+                st.gps_origin = (msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3)
         elif kind == "AUTOPILOT_VERSION":
             v = int(msg.flight_sw_version)
             st.sw_version = ((v >> 24) & 0xFF, (v >> 16) & 0xFF, (v >> 8) & 0xFF)
@@ -670,6 +679,13 @@ class MavlinkLink:
         result = await self.command(mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_HOME_POSITION)
         if result != mavlink.MAV_RESULT_ACCEPTED:
             raise CommandFailed(f"HOME_POSITION request refused: {result_name(result)}", result_name(result))
+
+    async def request_origin(self) -> None:
+        """Ask for GPS_GLOBAL_ORIGIN once (MAV_CMD_REQUEST_MESSAGE): the local frame's geodetic
+        origin, which places the vehicle in the fleet frame ([fleet] origin)."""
+        result = await self.command(mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN)
+        if result != mavlink.MAV_RESULT_ACCEPTED:
+            raise CommandFailed(f"GPS_GLOBAL_ORIGIN request refused: {result_name(result)}", result_name(result))
 
     async def set_follow_mode(self) -> None:
         """OFFBOARD (PX4) or GUIDED (ArduPilot) via MAV_CMD_DO_SET_MODE."""

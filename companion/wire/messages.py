@@ -24,14 +24,23 @@ import jsonschema
 import numpy as np
 
 from companion.config import Config, LimitsConfig
+from companion.geodesy import Placement
 from companion.wire.frames import (
     change_to_ned,
     fmt_box,
     fmt_point,
     obstacles_to_ned,
+    plain,
     scenario_to_ned,
 )
-from companion.wire.origin import change_from_home, obstacles_from_home, scenario_from_home
+from companion.wire.origin import (
+    change_from_fleet,
+    change_from_home,
+    obstacles_from_fleet,
+    obstacles_from_home,
+    scenario_from_fleet,
+    scenario_from_home,
+)
 from planner_core import (
     Bounds,
     FieldError,
@@ -758,10 +767,23 @@ def change_from_message(obj: dict[str, Any], cfg: Config, frame: str = "ned") ->
     return Change(body, frame)
 
 
-def to_local(kind: str, obj: dict[str, Any], home: FloatArray | None) -> dict[str, Any]:
+def to_local(kind: str, obj: dict[str, Any], home: FloatArray | None,
+             fleet: Placement | str | None = None) -> dict[str, Any]:
     """A NED message dict in the autopilot's local frame: shifted by `home` when it says
-    `"origin": "home"` (see companion.wire.origin), refused while home is unknown."""
-    if obj.get("origin", "local") != "home" or kind not in ("mission", "obstacles", "change"):
+    `"origin": "home"` (see companion.wire.origin), refused while home is unknown; mapped from
+    the fleet frame when it says `"origin": "fleet"` (`fleet`: the placement, the reason there
+    is none yet, or None without [fleet] origin)."""
+    if kind not in ("mission", "obstacles", "change"):
+        return obj
+    if obj.get("origin") == "fleet":
+        if fleet is None:
+            raise MessageError("origin", "a fleet-frame message (origin 'fleet') needs [fleet] origin in this "
+                                         "companion's configuration, and it has none (docs/fleet.md)")
+        if isinstance(fleet, str):
+            raise MessageError("origin", f"a fleet-frame message (origin 'fleet') cannot be placed yet: {fleet}")
+        to = {"mission": scenario_from_fleet, "obstacles": obstacles_from_fleet, "change": change_from_fleet}[kind]
+        return to(obj, fleet)
+    if obj.get("origin", "local") != "home":
         return obj
     if home is None or not np.all(np.isfinite(home)):
         raise MessageError("origin", "a home-relative message (origin 'home') cannot be placed yet: the autopilot "
@@ -789,10 +811,11 @@ NOT_READY = ("the autopilot is not ready: it reports HOME_POSITION at its local 
 
 
 def read(kind: str, payload: bytes | Oversized, cfg: Config, home: FloatArray | None = None, *,
-         home_pending: bool = False) -> Message | MessageError:
+         home_pending: bool = False, fleet: Placement | str | None = None) -> Message | MessageError:
     """Bytes -> a typed NED message in the autopilot's local frame, or the MessageError that
     says why not. `home`: HOME_POSITION's local position, for messages with `"origin":
-    "home"`. Never raises: anything unforeseen comes back as an `InternalError` (a rejection
+    "home"`; `fleet`: where the local frame sits in the fleet frame, for `"origin": "fleet"`
+    (companion.fleet.FleetFrame.for_messages). Never raises: anything unforeseen comes back as an `InternalError` (a rejection
     the service also reports as an `error` event)."""
     try:
         obj = decode(kind, payload, limits=cfg.limits)
@@ -802,12 +825,16 @@ def read(kind: str, payload: bytes | Oversized, cfg: Config, home: FloatArray | 
         cfg = fence_at_home(cfg, home)
         try:
             if kind == "mission":
-                return mission_from_message(to_local(kind, scenario_to_ned(obj), home), cfg, frame)
+                return mission_from_message(to_local(kind, scenario_to_ned(obj), home, fleet), cfg, frame)
             if kind == "obstacles":
-                return obstacles_from_message(to_local(kind, obstacles_to_ned(obj), home), frame, cfg.limits)
+                return obstacles_from_message(to_local(kind, obstacles_to_ned(obj), home, fleet), frame, cfg.limits)
             if kind == "change":
-                return change_from_message(to_local(kind, change_to_ned(obj), home), cfg, frame)
+                return change_from_message(to_local(kind, change_to_ned(obj), home, fleet), cfg, frame)
         except MessageError as exc:
+            if obj.get("origin") == "fleet" and exc.field != "origin" and isinstance(fleet, Placement):
+                off = ", ".join(f"{plain(v):g}" for v in fleet.offset)
+                raise MessageError(exc.field, f"{exc.reason} (local frame: the message's fleet-frame positions "
+                                              f"less the local origin's place in the fleet frame, [{off}] NED)") from None
             if obj.get("origin") != "home" or exc.field == "origin" or home is None:
                 raise
             # positions in reasons are local: say how they relate to what was sent

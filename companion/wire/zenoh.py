@@ -31,6 +31,7 @@ log = logging.getLogger("companion")
 INBOUND = ("mission", "obstacles", "change", "command")
 OUTBOUND = ("status", "telemetry", "trajectory", "events")
 QUERYABLE = ("plan", "status")
+ALIVE = "alive"  # the liveliness token <prefix>/<vehicle>/alive: present while the service runs
 
 
 def zenoh_config(zc: ZenohConfig, *, listen: bool = True) -> zenoh.Config:
@@ -46,7 +47,10 @@ def zenoh_config(zc: ZenohConfig, *, listen: bool = True) -> zenoh.Config:
             return True
     if want("mode"):
         cfg.insert_json5("mode", json.dumps(zc.mode))
-    if listen and zc.listen and want("listen"):
+    # A client (a companion joining a fleet's router) listens only where told: the default
+    # loopback endpoint would be taken by a router on the same computer (and a client needs none).
+    client_default = zc.mode == "client" and zc.listen == defaults.listen
+    if listen and zc.listen and want("listen") and not client_default:
         cfg.insert_json5("listen/endpoints", json.dumps(list(zc.listen)))
     if zc.connect and want("connect"):
         cfg.insert_json5("connect/endpoints", json.dumps(list(zc.connect)))
@@ -95,16 +99,21 @@ def exposure(cfg: zenoh.Config) -> list[str]:
     if auth.get("dictionary_file"):
         return []
     why: list[str] = []
+    mode = get("mode")
     listen = get("listen/endpoints") or []
     if isinstance(listen, dict):  # per-mode form {"router": [...], "peer": [...]}
-        listen = [e for v in listen.values() for e in (v or [])]
-    if not listen:
+        listen = (listen.get(mode) or []) if mode else [e for v in listen.values() for e in (v or [])]
+    if not listen and mode != "client":  # a client listens nowhere unless told
         why.append("listening on zenoh's default endpoint (every interface)")
     why += [f"listening on {e}" for e in listen if not _loopback(str(e))]
     connect = get("connect/endpoints") or []
     if isinstance(connect, dict):
         connect = [e for v in connect.values() for e in (v or [])]
-    why += [f"connecting to {e}" for e in connect if not _loopback(str(e))]
+    # A client that presents a user and password to its router (a fleet: docs/fleet.md) is reached
+    # only through that router, which authenticates every session and applies access control.
+    client_of_secured_router = mode == "client" and bool(auth.get("user"))
+    if not client_of_secured_router:
+        why += [f"connecting to {e}" for e in connect if not _loopback(str(e))]
     auto = get("scouting/multicast/autoconnect")
     if get("scouting/multicast/enabled") and auto not in ({"router": [], "peer": []}, [], ""):
         why.append("connecting to any peer found by multicast scouting")
@@ -158,7 +167,7 @@ class ZenohIO:
             self._pubs[kind] = self.session.declare_publisher(self.cfg.key(kind))
         for kind in QUERYABLE:
             self._decls.append(self.session.declare_queryable(self.cfg.key(kind), self._queried(kind)))
-        self._decls.append(self.session.liveliness().declare_token(self.cfg.key("alive")))
+        self._decls.append(self.session.liveliness().declare_token(self.cfg.key(ALIVE)))
 
     def _inbound(self, kind: str) -> Callable[[Any], None]:
         limit = self.cfg.limits.max_message_bytes
