@@ -281,7 +281,7 @@ class ProblemCache:
         e0 = g[:, 0] * (n @ w[s]) + g[:, 5] * (n @ w[s + 1])
         hi = np.clip(extra.rhs[sel], -INF, INF)
         neg = np.full(r, -INF)
-        hi_t = _tighten(neg, hi)[1]
+        hi_t = tighten(neg, hi)[1]
         at = blk.n1 + blk.n2
 
         def ins(a: NDArray[Any], b: NDArray[Any]) -> NDArray[Any]:
