@@ -134,6 +134,7 @@ class SetpointProcess:
         self._records = -1
         self._reader: threading.Thread | None = None
         self._stopping = False
+        self._gone = False  # the child's records ended: it is dead, whatever is_alive says yet
         self._hello = threading.Event()
 
     # -- what the loop sets ----------------------------------------------------------------------
@@ -206,7 +207,9 @@ class SetpointProcess:
 
     def _post(self, item: tuple[str, Any]) -> bool:
         conn = self._to_child
-        if conn is None or self._stopping:
+        # a dead child's pipe may still take bytes into its buffer: those would never be written,
+        # and a hand-over sent that way is lost (the caller writes itself when this says False)
+        if conn is None or self._stopping or self._gone or not (self._proc is not None and self._proc.is_alive()):
             return False
         try:
             with self._lock:
@@ -246,7 +249,7 @@ class SetpointProcess:
             spawn()
         spawned.wait(30.0)
         os.close(wr)
-        child_end.close()
+        child_end.close()  # the child's copy only: a dead child's pipe then refuses our writes
         if failed:
             raise failed[0]
         self._reader = threading.Thread(target=self._read_records, name="setpoint-ticks", daemon=True)
@@ -294,6 +297,7 @@ class SetpointProcess:
                 for off in range(0, whole, _RECORD.size):
                     self._record(_RECORD.unpack_from(buf, off))
                 buf = buf[whole:]
+        self._gone = True
         if not self._stopping:
             code = self._proc.exitcode if self._proc is not None else None
             self.on_failure(RuntimeError(f"the setpoint process exited (code {code})"))

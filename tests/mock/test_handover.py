@@ -89,7 +89,9 @@ def test_setpoint_sender_failure_hands_over_to_the_autopilot(autopilot: str, pro
     # as no setpoint (nor GUIDED's position target) can be sent without the setpoint thread
     hold_mode = "LOITER" if autopilot == "px4" else "BRAKE"
     modes = [r for r in records if r["type"] == "mode"]
-    assert modes[-1]["to"] == hold_mode and modes[-1]["reason"] == "command", modes[-3:]
+    events = [(r["t"], r.get("event"), r.get("reason") or r.get("cause")) for r in records if r["type"] == "event"]
+    assert modes[-1]["to"] == hold_mode and modes[-1]["reason"] == "command", (
+        [(m["t"], m["to"], m.get("reason")) for m in modes[-3:]], events[-5:])
     assert not [r for r in records if r["type"] == "event" and r.get("event") == "failsafe"]
     last = [r for r in records if r["type"] == "state"][-1]
     assert last["armed"] and not last["landed"] and last["mode"] == hold_mode

@@ -42,7 +42,10 @@ def test_ardupilot_sends_only_heartbeat_until_asked(make_mock) -> None:  # type:
     _, c = make_mock("ardupilot", speed=4.0)
     got = collect(c, 1.0)  # 4 simulated seconds
     assert len(got.get("HEARTBEAT", [])) >= 2
-    assert set(got) <= {"HEARTBEAT", "STATUSTEXT"}, sorted(got)
+    # ArduPilot announces home and the EKF origin once when home is set (AP_AHRS::set_home sends
+    # MSG_HOME and MSG_ORIGIN): one-off messages, not streams; nothing else unasked
+    assert set(got) <= {"HEARTBEAT", "STATUSTEXT", "HOME_POSITION", "GPS_GLOBAL_ORIGIN"}, sorted(got)
+    assert len(got.get("HOME_POSITION", [])) <= 1 and len(got.get("GPS_GLOBAL_ORIGIN", [])) <= 1, sorted(got)
 
 
 def test_ardupilot_streams_groups_at_the_requested_rate(make_mock) -> None:  # type: ignore[no-untyped-def]
