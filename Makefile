@@ -27,8 +27,10 @@ lint: $(STAMP)
 typecheck: $(STAMP)
 	$(PY) -m mypy planner_core
 
+# Two passes: everything but the timing/memory measurements two at a time, then those alone.
 pytest: $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n 2 -m "not serial"
+	$(PY) -m pytest -q -m serial
 
 test: lint typecheck pytest
 

@@ -52,3 +52,24 @@ def _compiled_planner_kernel() -> None:
     from planner_core.iterative import warm_up
 
     warm_up()
+
+
+# Run alone (`make test`'s second pass, without pytest-xdist's workers beside them): what they
+# measure is the machine's own timing or memory under a load they make themselves (a CPU hog,
+# a burst, a soak); another flight beside them would be a load nobody chose. Every other test
+# runs two at a time (`-n 2`): a flight spends most of its time waiting on the simulated clock.
+SERIAL = {
+    "test_memory_soak",  # the main process's RSS
+    "test_missions_in_flight",  # planning time against split times, with and without a hog
+    "test_fuzz_live",  # setpoint gaps under a flood of hostile messages
+    "test_lag_settles",  # the lag estimate's convergence in ms
+    "test_lead",  # tracking error with and without the auto lead
+    "test_setpoint_process",  # setpoint gaps while the loop holds the GIL
+    "test_inbound_burst",  # admitted rate of a 5,000-message burst
+}
+
+
+def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
+    for item in items:
+        if item.module is not None and item.module.__name__.rsplit(".", 1)[-1] in SERIAL:
+            item.add_marker(pytest.mark.serial)
