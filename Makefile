@@ -25,7 +25,7 @@ lint: $(STAMP)
 	$(PY) -m ruff check planner_core companion sitl_mock demo tests benchmarks examples
 
 typecheck: $(STAMP)
-	$(PY) -m mypy planner_core
+	$(PY) -m mypy planner_core companion sitl_mock demo
 
 # Two passes: everything but the timing/memory measurements two at a time, then those alone.
 pytest: $(STAMP)

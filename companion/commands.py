@@ -113,9 +113,12 @@ class Commands:
             return
         if name in ("arm", "takeoff", "start"):
             self.cancel_sequence()
-            body = {"arm": self.arm,
-                    "takeoff": lambda: self.takeoff(cmd.altitude or self.cfg.safety.takeoff_altitude, cmd.origin),
-                    "start": lambda: self.start(arrived)}[name]()
+            if name == "arm":
+                body = self.arm()
+            elif name == "takeoff":
+                body = self.takeoff(cmd.altitude or self.cfg.safety.takeoff_altitude, cmd.origin)
+            else:
+                body = self.start(arrived)
             self.task = asyncio.create_task(self._sequence(name, body))
             return
         done = True

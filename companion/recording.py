@@ -172,7 +172,7 @@ def extract(path: str, out: str, channels: list[str]) -> int:
             writer.add_message(chans[channel.id], log_time=message.log_time, data=message.data,
                                publish_time=message.publish_time)
             n += 1
-        writer.finish()
+        writer.finish()  # type: ignore[no-untyped-call]  # mcap's Writer.finish has no annotations
     return n
 
 

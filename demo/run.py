@@ -344,7 +344,8 @@ def setpoint_leads(sp_t: np.ndarray, tau_sp: np.ndarray, sent: np.ndarray, leads
     if not inside.any():
         return np.full(len(sp_t), fallback)
     c0 = float(np.median(lv[inside] - np.interp(s[inside], sp_t[ok], u[ok])))
-    return np.where(ok, u + c0, np.interp(sp_t, sp_t[ok], u[ok] + c0))
+    out: np.ndarray = np.where(ok, u + c0, np.interp(sp_t, sp_t[ok], u[ok] + c0))
+    return out
 
 
 def _full(vec: Any) -> bool:
