@@ -27,10 +27,13 @@ lint: $(STAMP)
 typecheck: $(STAMP)
 	$(PY) -m mypy planner_core companion sitl_mock demo
 
-# Two passes: everything but the timing/memory measurements two at a time, then those alone.
+# Two passes: everything but the timing/memory measurements two files at a time (a file's tests
+# keep their order on one worker: some flights go on from where the last one left the
+# vehicle), then those measurements alone.
 pytest: $(STAMP)
-	$(PY) -m pytest -q -n 2 -m "not serial"
-	$(PY) -m pytest -q -m serial
+	$(PY) -m pytest -q -n 2 --dist loadfile -m "not serial"; a=$$?; \
+	$(PY) -m pytest -q -m serial; b=$$?; \
+	test $$a = 0 && test $$b = 0
 
 test: lint typecheck pytest
 
