@@ -31,6 +31,7 @@ from planner_core import (
     ChangeSet,
     Environment,
     FloatArray,
+    Neighbours,
     Polytope,
     Problem,
     ReplanOptions,
@@ -62,7 +63,7 @@ def answered(fn: F) -> F:
 
 @answered
 def start_mission(mission: MissionSpec, initial: FloatArray, t_start: float, known: Known | Sequence[Polytope],
-                  cfg: Config) -> Outcome:
+                  cfg: Config, neighbours: Neighbours | None = None) -> Outcome:
     """Plan a fresh mission from the jet `initial` at `t_start`."""
     wps = mission.waypoints
     labels = mission.first_index + np.arange(len(wps), dtype=float)
@@ -101,7 +102,7 @@ def start_mission(mission: MissionSpec, initial: FloatArray, t_start: float, kno
     # allocation above then only gives t0 and the detour points' first guess).
     fastest = mission.durations is None and cfg.planner.timing == "fastest"
     return plan_with_detours(mission, points, times, lab, jet, as_known(known) + Known.of(mission.obstacles), cfg,
-                             allocate=fastest)
+                             allocate=fastest, neighbours=neighbours)
 
 
 @answered
@@ -114,7 +115,8 @@ def check_mission(mission: MissionSpec, initial: FloatArray, t_start: float, kno
 @answered
 def replan_remainder(route: Route, active: Trajectory, t_split: float, known: Known | Sequence[Polytope], cfg: Config,
                      waypoints: FloatArray | None = None, times: FloatArray | None = None,
-                     labels: FloatArray | None = None, *, allocate: bool = False) -> Outcome:
+                     labels: FloatArray | None = None, *, allocate: bool = False,
+                     neighbours: Neighbours | None = None) -> Outcome:
     """Re-plan everything after t_split from the jet of `active` at t_split.
 
     `waypoints/times/labels` (defaults: the route's) may carry an edit; only the entries
@@ -139,7 +141,8 @@ def replan_remainder(route: Route, active: Trajectory, t_split: float, known: Kn
     if new_times[1] - new_times[0] < min_first:
         new_times[1:] += min_first - (new_times[1] - new_times[0])
     return plan_with_detours(route.mission, points, new_times, new_labels, jet,
-                             as_known(known) + Known.of(route.mission.obstacles), cfg, allocate=allocate)
+                             as_known(known) + Known.of(route.mission.obstacles), cfg, allocate=allocate,
+                             neighbours=neighbours)
 
 
 def remaining(route: Route, t: float) -> MissionSpec | None:
@@ -172,7 +175,7 @@ def trim(route: Route, t: float) -> Route:
 
 
 def local_replan(route: Route, t_split: float, edit: LocalEdit, known: Known | Sequence[Polytope],
-                 cfg: Config) -> Outcome:
+                 cfg: Config, neighbours: Neighbours | None = None) -> Outcome:
     """planner_core.replan with from_time = t_split: only the touched jets are re-solved.
 
     `route` is the trimmed route the edit was resolved against (edits.resolve), so the
@@ -188,7 +191,7 @@ def local_replan(route: Route, t_split: float, edit: LocalEdit, known: Known | S
     env = Environment(before.polytopes, r.mission.corridor_map, r.mission.radius)
     try:
         result = replan(r.problem, r.trajectory, ChangeSet(edit.edits, from_time=t_split),
-                        options=ReplanOptions(environment=env))
+                        options=ReplanOptions(environment=env, neighbours=neighbours))
     except ChangeError as exc:
         return Outcome(False, message=str(exc), stats={"plan_seconds": time.perf_counter() - t0})
     except Exception as exc:  # a planner bug must degrade to the next fallback, not crash the service
