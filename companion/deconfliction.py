@@ -157,7 +157,8 @@ class Deconfliction:
         return {
             "commit": commit, "seq": seq, "vehicle": self.cfg.vehicle.id, "priority": self.cfg.fleet.priority,
             "time_base": tb, "frame": "fleet-ned", "offset_ned": None if pl is None else pl.offset.tolist(),
-            "rotation": None if pl is None else pl.rotation.tolist(), "radius": radius,
+            "rotation": None if pl is None else pl.rotation.tolist(),
+            "radius": radius or self.cfg.planner.vehicle_radius,
             "bound_speed": self.speed if math.isfinite(self.speed) else None,
             "separation": self.cfg.fleet.separation, "clock_tolerance": self.cfg.fleet.clock_tolerance,
             "expires": expires, "certificates": certs,

@@ -105,6 +105,30 @@ def start_mission(mission: MissionSpec, initial: FloatArray, t_start: float, kno
                              allocate=fastest, neighbours=neighbours)
 
 
+# s: how long a vehicle at rest may wait for the others before it starts a mission no separated
+# plan can fly at once (two crossing vehicles timed to meet: the later one starts a little later)
+FLEET_DELAYS = (0.5, 1.0, 2.0, 3.0, 4.0, 6.0, 8.0)
+
+
+@answered
+def start_separated(mission: MissionSpec, initial: FloatArray, t_start: float, known: Known | Sequence[Polytope],
+                    cfg: Config, neighbours: Neighbours | None = None) -> Outcome:
+    """start_mission against the other vehicles' trajectories; when no plan keeps the separation
+    and the vehicle is at rest, the same mission started later (FLEET_DELAYS: it holds where it
+    is meanwhile; stats `fleet_delay`). A timed mission keeps its durations."""
+    out = start_mission(mission, initial, t_start, known, cfg, neighbours)
+    if out.ok or neighbours is None or not neighbours.trajectories or "separation" not in out.message:
+        return out
+    if float(np.max(np.abs(np.asarray(initial, dtype=float)[1:]))) > 1e-3:
+        return out
+    for delay in FLEET_DELAYS:
+        later = start_mission(mission, initial, t_start + delay, known, cfg, neighbours)
+        if later.ok:
+            later.stats["fleet_delay"] = delay
+            return later
+    return replace(out, message=out.message + f" (and starting up to {FLEET_DELAYS[-1]:g} s later)")
+
+
 @answered
 def check_mission(mission: MissionSpec, initial: FloatArray, t_start: float, known: Known | Sequence[Polytope],
                   cfg: Config) -> Outcome:

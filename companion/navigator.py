@@ -30,7 +30,7 @@ from companion.mission import (
     local_replan,
     remaining,
     replan_remainder,
-    start_mission,
+    start_separated,
     trim,
 )
 from companion.obstacles import Known, ObstacleStore
@@ -364,7 +364,7 @@ class Navigator:
                 jet = self.control.jet(t_split)
                 t0 = time.perf_counter()
                 out: Outcome = self.logged(await self.runtime.plan(
-                    partial(start_mission, neighbours=self.neighbours(spec.bounds)), replace(spec, raw={}), jet,
+                    partial(start_separated, neighbours=self.neighbours(spec.bounds)), replace(spec, raw={}), jet,
                     t_split, self.known(), self.cfg))
                 self.plan_latency = time.perf_counter() - t0
                 self._measured(self.plan_latency, n)
@@ -383,9 +383,12 @@ class Navigator:
                 self.pending = None
             self.report.go(S.STREAMING, f"flying mission {spec.id}")
             lat = self.plan_latency or 0.0
+            delay = done.outcome.stats.get("fleet_delay")
+            waits = f"; starts {delay:g} s later to keep the separation from the other vehicles" if delay else ""
             self.report.event("accepted", f"mission {spec.id}: planned and verified in {lat * 1000:.1f} ms "
-                              f"({len(spec.waypoints)} waypoints, {done.outcome.route.t_end - done.t_split:.2f} s)",
-                              key="mission", mission=spec.id, plan_ms=round(lat * 1000, 2))
+                              f"({len(spec.waypoints)} waypoints, {done.outcome.route.t_end - done.t_split:.2f} s)"
+                              + waits, key="mission", mission=spec.id, plan_ms=round(lat * 1000, 2),
+                              **({"fleet_delay": delay} if delay else {}))
             return True
 
     async def resume(self, arrived: float) -> None:
