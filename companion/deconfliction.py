@@ -21,7 +21,7 @@ from companion import commit as cp
 from companion.config import Config
 from companion.fleet import FleetFrame
 from companion.geodesy import Placement
-from companion.traffic import Claim, Traffic, certificate_to_fleet, other, read_claim, to_fleet
+from companion.traffic import Claim, Traffic, other, read_claim, to_fleet
 from planner_core import Bounds, Trajectory
 from planner_core.separation import Neighbours, SeparationCertificate, bound_speed
 
@@ -52,6 +52,8 @@ class Deconfliction:
         self.on_replan: Callable[[str], None] = lambda _why: None  # a higher-ranked vehicle's commit conflicts
         self.replans = 0  # deconfliction replans (a lost candidate, a conflicting commit)
         self.speed = math.inf
+        self.certificates_verified = 0  # the others' certificates against our committed trajectory
+        self.certificates_refused = 0
 
     # -- time and frame ---------------------------------------------------------------
 
@@ -115,15 +117,15 @@ class Deconfliction:
         checks = self._check(candidate)
         known = tuple(other(c, cert is None) for c, cert, _ in checks)
         self.state, acts = cp.step(self.state, cp.Ready(seq, time.monotonic(), known))
+        log.info("fleet: candidate %d for %s against %s: %s", seq, what,
+                 [(c.vehicle, c.seq, c.committed, cert is not None) for c, cert, _ in checks], acts)
         for a in acts:
             if isinstance(a, cp.Lose):
                 self.replans += 1
                 bad = [m for c, cert, m in checks if cert is None and c.vehicle == a.winner]
                 return f"{what}: {a.reason}" + (f" ({bad[0]})" if bad else "")
-        pl, tb = self.placement(), self.time_base()
-        assert pl is not None and tb is not None
-        certs = {c.vehicle: {"seq": c.seq, "certificate": certificate_to_fleet(cert, pl, tb).to_dict()}
-                 for c, cert, _ in checks if cert is not None}
+        # Traffic.check certifies in the fleet frame on the system clock: what a receiver checks
+        certs = {c.vehicle: {"seq": c.seq, "certificate": cert.to_dict()} for c, cert, _ in checks if cert is not None}
         self.pending = candidate
         loop = asyncio.get_running_loop()
         lost: asyncio.Future[str] = loop.create_future()
@@ -198,11 +200,22 @@ class Deconfliction:
         except ValueError:
             return
         claim = read_claim(body, vehicle) if isinstance(body, dict) else None
-        if claim is None or not self.traffic.heard(claim):
+        if claim is None:
             return
+        held = (self.traffic.committed if claim.committed else self.traffic.proposed).get(vehicle)
+        if held is not None and held.seq == claim.seq:
+            return  # the same trajectory published again (REPUBLISH)
+        if not self.traffic.heard(claim):
+            return
+        log.info("fleet: heard %s %s seq %d (pending %s, phase %s)", vehicle,
+                 "committed" if claim.committed else "proposed", claim.seq, self.pending is not None,
+                 self.state.phase.value)
         bad = self.traffic.verify_theirs(claim, self.ours, self.committed_seq)
         if bad is not None:
+            self.certificates_refused += 1
             self.event("fleet", f"separation certificate refused: {bad}", vehicle_other=vehicle)
+        elif self.ours is not None and self.cfg.vehicle.id in claim.certificates:
+            self.certificates_verified += 1
         if self.why_not() is not None:
             return
         if self.pending is not None and self._lost is not None and not self._lost.done():
@@ -237,5 +250,6 @@ class Deconfliction:
             return None
         now = time.time()
         return {"neighbours": self.names(), "lost": self.traffic.lost(), "replans": self.replans,
+                "certificates_verified": self.certificates_verified, "certificates_refused": self.certificates_refused,
                 "widening_m": {v: round(self.traffic.widening(v, now), 2) for v in self.traffic.lost()},
                 "separation": self.cfg.fleet.separation, "priority": self.cfg.fleet.priority}

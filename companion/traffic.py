@@ -25,7 +25,7 @@ import numpy as np
 
 from companion.commit import Other, Rank
 from companion.geodesy import Placement
-from planner_core import FloatArray, Trajectory
+from planner_core import FloatArray, Trajectory, hold
 from planner_core.separation import (
     Neighbours,
     SeparationCertificate,
@@ -33,12 +33,15 @@ from planner_core.separation import (
     speed_bound,
     verify_separation,
 )
+from planner_core.trajectory import split_at
 
 # a clock tolerance this small stands in for 0 when a lost vehicle's widening must be paid (it is
 # carried by the bound speeds: planner_core.separation.Neighbours)
 WIDEN_EPS = 1e-3
 # a lost vehicle's reservation stops growing after this long (s): it covers the whole site by then
 WIDEN_FOR = 600.0
+# how many times the commit protocol's checks may halve a common interval (planning: 4)
+CHECK_DEPTH = 6
 
 
 @dataclass(frozen=True)
@@ -69,13 +72,15 @@ def to_local(traj: Trajectory, placement: Placement, time_base: float) -> Trajec
     return Trajectory(np.asarray(traj.times, dtype=float) - time_base, cp, None, {})
 
 
-def certificate_to_fleet(cert: SeparationCertificate, placement: Placement, time_base: float) -> SeparationCertificate:
-    """A certificate made in our local frame and flight time, in the fleet frame on the system
-    clock: n . p <= c over local p = R^T (q - t) is (R n) . q <= c + (R n) . t."""
-    normals = np.asarray(cert.normals, dtype=float) @ placement.rotation.T
-    offsets = np.asarray(cert.offsets, dtype=float) + normals @ placement.offset
-    return SeparationCertificate(np.asarray(cert.times, dtype=float) + time_base, normals, offsets, cert.separation,
-                                 cert.clock_tolerance, cert.speed_a, cert.speed_b)
+def from_time(traj: Trajectory, t: float) -> Trajectory:
+    """What is left of a trajectory from t on (exact de Casteljau split; one that has ended by then
+    holds its last point). A certificate is about the future: both sides are cut where it starts."""
+    if t <= traj.times[0]:
+        return traj
+    if t >= traj.times[-1]:
+        return hold(traj.control_points[-1, -1], t)
+    cut, k = split_at(traj, t)
+    return Trajectory(cut.times[k:], cut.control_points[k:], None, {})
 
 
 def read_claim(body: dict[str, Any], vehicle: str) -> Claim | None:
@@ -176,14 +181,17 @@ class Traffic:
               only: list[Claim] | None = None) -> list[tuple[Claim, SeparationCertificate | None, str]]:
         """Certify our (local, flight-time) trajectory against each live claim (or `only` these):
         (claim, certificate in the fleet frame or None, why not)."""
-        mine = to_fleet(ours, placement, time_base)
+        mine = from_time(to_fleet(ours, placement, time_base), now)
         out: list[tuple[Claim, SeparationCertificate | None, str]] = []
         for c in (self.live(now) if only is None else only):
             w = self.widening(c.vehicle, now)
             eps = clock_tolerance if clock_tolerance > 0.0 or w == 0.0 else WIDEN_EPS
             theirs = c.bound_speed + (w / eps if eps > 0.0 else 0.0)
-            chk = certify_separation(mine, c.trajectory, separation, clock_tolerance=eps,
-                                     speeds=(our_speed, theirs) if eps > 0.0 else None)
+            # the best plane on every interval, halved deeper than planning does: a conflict here
+            # makes a vehicle lose or replan, so it must not come from a coarse partition
+            chk = certify_separation(mine, from_time(c.trajectory, now), separation, clock_tolerance=eps,
+                                     speeds=(our_speed, theirs) if eps > 0.0 else None, exact=True,
+                                     max_depth=CHECK_DEPTH)
             out.append((c, chk.certificate if chk.ok else None, "" if chk.ok else chk.message))
         return out
 
@@ -197,7 +205,10 @@ class Traffic:
             cert = SeparationCertificate.from_dict(entry["certificate"])
         except (KeyError, TypeError, ValueError):
             return f"{claim.vehicle}'s certificate against us is malformed"
-        chk = verify_separation(claim.trajectory, ours, cert)
+        if cert.times.size == 0:
+            return f"{claim.vehicle}'s certificate against us is empty"
+        start = float(cert.times[0])
+        chk = verify_separation(from_time(claim.trajectory, start), from_time(ours, start), cert)
         return None if chk.ok else f"{claim.vehicle}'s certificate against our trajectory fails: {chk.message}"
 
 
