@@ -45,13 +45,16 @@ class Deconfliction:
         self.state = cp.State(self.me, self.wait)
         self.seq = 0
         self.committed_seq = 0
-        self.certificates: dict[str, Any] = {}  # what we publish with the next committed plan
+        # the candidate that won (its number and certificates), until it is published as committed
+        self.approved: tuple[int, dict[str, Any]] | None = None
         self.pending: Trajectory | None = None  # the candidate proposed (local, flight time)
         self._lost: asyncio.Future[str] | None = None
         self.ours: Trajectory | None = None  # our committed trajectory, fleet frame
         self.on_replan: Callable[[str], None] = lambda _why: None  # a higher-ranked vehicle's commit conflicts
         self.replans = 0  # deconfliction replans (a lost candidate, a conflicting commit)
         self.speed = math.inf
+        self._mono_base: float | None = None
+        self._wall_base = 0.0
         self.certificates_verified = 0  # the others' certificates against our committed trajectory
         self.certificates_refused = 0
 
@@ -60,7 +63,11 @@ class Deconfliction:
     def time_base(self) -> float | None:
         """The system-clock time of flight time 0 (None when not flying)."""
         tb = self._t_base()
-        return None if tb is None else tb + (time.time() - time.monotonic())
+        if tb is None:
+            return None
+        if tb != self._mono_base:  # once per time base: every message of a flight says the same
+            self._mono_base, self._wall_base = tb, tb + (time.time() - time.monotonic())
+        return self._wall_base
 
     def placement(self) -> Placement | None:
         return self.frame.placement
@@ -139,8 +146,7 @@ class Deconfliction:
                 return f"{what}: {lost.result()}"
             self.state, acts = cp.step(self.state, cp.Tick(time.monotonic()))
             if any(isinstance(a, cp.Commit) and a.seq == seq for a in acts):
-                self.certificates = certs
-                self.committed_seq = seq
+                self.approved = (seq, certs)  # published as committed when swapped in (committed_section)
                 return None
             self.replans += 1
             return f"{what}: the proposal was given up"
@@ -149,6 +155,7 @@ class Deconfliction:
             self._lost = None
 
     def cancel(self) -> None:
+        self.approved = None
         self.state, _ = cp.step(self.state, cp.Cancel())
 
     # -- what we publish ------------------------------------------------------------------
@@ -172,16 +179,16 @@ class Deconfliction:
         next sequence number and none."""
         if not self.enabled or self.why_not() is not None:
             return None
-        if self.committed_seq != self.seq or not self.certificates:
+        approved, self.approved = self.approved, None
+        if approved is not None and approved[0] == self.seq:
+            self.committed_seq, certs = approved
+        else:  # a hold, a stop, a takeoff: not through the protocol (docs/fleet.md)
             self.seq += 1
-            self.committed_seq = self.seq
-            self.certificates = {}
+            self.committed_seq, certs = self.seq, {}
         pl, tb = self.placement(), self.time_base()
         assert pl is not None and tb is not None
         self.ours = to_fleet(traj, pl, tb)
-        out = self.section("committed", self.committed_seq, self.certificates)
-        self.certificates = {}  # used once
-        return out
+        return self.section("committed", self.committed_seq, certs)
 
     @staticmethod
     def _encode(traj: Trajectory, fleet: dict[str, Any]) -> bytes:

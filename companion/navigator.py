@@ -57,6 +57,7 @@ PLAN_OVERHEAD = 0.05  # s: a plan's fixed cost in the service (process hop, corr
 LATE_MARGIN = 1.5  # the split is this many expected planning times ahead
 RETRY_MARGIN = 2.0  # after a late plan: this many times the time it took (a loaded computer varies)
 MAX_AHEAD = 30.0  # s: never further ahead (the old, verified plan flies on meanwhile)
+FLEET_TRIES = 8  # candidates that lost to other vehicles before a plan is given up (docs/fleet.md)
 
 
 @dataclass(frozen=True)
@@ -269,8 +270,8 @@ class Navigator:
                 if why is not None:
                     lost += 1
                     reason = why
-                    say(why + ("; planning again against it" if lost < 3 else ""))
-                    if lost >= 3:
+                    say(why + ("; planning again against it" if lost < FLEET_TRIES else ""))
+                    if lost >= FLEET_TRIES:
                         break
                     self.report.event("fleet", f"deconfliction: {why}; planning again against it", what=what)
                     continue
