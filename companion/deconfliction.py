@@ -13,6 +13,7 @@ import asyncio
 import json
 import logging
 import math
+import re
 import time
 from collections.abc import Callable
 from typing import Any
@@ -23,7 +24,7 @@ from companion.fleet import FleetFrame
 from companion.geodesy import Placement
 from companion.traffic import Claim, Traffic, other, read_claim, to_fleet
 from planner_core import Bounds, Trajectory
-from planner_core.separation import Neighbours, SeparationCertificate, bound_speed
+from planner_core.separation import Neighbours, SeparationCertificate, bound_speed, speed_bound
 
 log = logging.getLogger("companion")
 
@@ -54,6 +55,7 @@ class Deconfliction:
         self.replans = 0  # deconfliction replans (a lost candidate, a conflicting commit)
         self.speed = math.inf
         self._mono_base: float | None = None
+        self.order: list[str] = []  # the vehicles of the last Neighbours handed out, in order
         self._wall_base = 0.0
         self.certificates_verified = 0  # the others' certificates against our committed trajectory
         self.certificates_refused = 0
@@ -95,9 +97,18 @@ class Deconfliction:
         got = self.traffic.neighbours(pl, tb, self.cfg.fleet.separation, self.cfg.fleet.clock_tolerance, time.time())
         if got is None:
             return None
-        nb, _ = got
+        nb, claims = got
+        self.order = [c.vehicle for c in claims]  # planner_core's "neighbour k" is self.order[k]
         return nb if math.isinf(self.speed) else Neighbours(nb.trajectories, nb.separation, nb.clock_tolerance,
                                                              speed=self.speed, speeds=nb.speeds, reach=nb.reach)
+
+    def named(self, text: str) -> str:
+        """planner_core's "neighbour k" in a message as the vehicle it is."""
+        def name(m: re.Match[str]) -> str:
+            k = int(m.group(1))
+            return self.order[k] if 0 <= k < len(self.order) else m.group(0)
+
+        return re.sub(r"neighbour (\d+)", name, text)
 
     def names(self) -> list[str]:
         return sorted({c.vehicle for c in self.traffic.live(time.time())})
@@ -105,7 +116,8 @@ class Deconfliction:
     def _check(self, ours: Trajectory, only: list[Claim] | None = None) -> list[tuple[Claim, SeparationCertificate | None, str]]:
         pl, tb = self.placement(), self.time_base()
         assert pl is not None and tb is not None
-        speed = self.speed if math.isfinite(self.speed) else 0.0
+        # the bound speed we state: the bounds', and never below the trajectory's own (a takeoff, a stop)
+        speed = max(self.speed if math.isfinite(self.speed) else 0.0, speed_bound(ours))
         return self.traffic.check(ours, pl, tb, self.cfg.fleet.separation, self.cfg.fleet.clock_tolerance, speed,
                                   time.time(), only)
 
@@ -182,9 +194,17 @@ class Deconfliction:
         approved, self.approved = self.approved, None
         if approved is not None and approved[0] == self.seq:
             self.committed_seq, certs = approved
-        else:  # a hold, a stop, a takeoff: not through the protocol (docs/fleet.md)
+        else:  # a hold, a stop, a takeoff: not through the protocol (docs/fleet.md); certified when it can be
             self.seq += 1
             self.committed_seq, certs = self.seq, {}
+            if self.traffic.committed or self.traffic.proposed:
+                checks = self._check(traj)
+                certs = {c.vehicle: {"seq": c.seq, "certificate": cert.to_dict()} for c, cert, _ in checks
+                         if cert is not None}
+                bad = [f"{c.vehicle} ({m})" for c, cert, m in checks if cert is None]
+                if bad:
+                    self.event("fleet", "the trajectory flown now (a hold, a stop or a takeoff, which do not wait for "
+                               f"the protocol) is not certified separated from {'; '.join(bad)}")
         pl, tb = self.placement(), self.time_base()
         assert pl is not None and tb is not None
         self.ours = to_fleet(traj, pl, tb)

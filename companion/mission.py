@@ -108,6 +108,7 @@ def start_mission(mission: MissionSpec, initial: FloatArray, t_start: float, kno
 # s: how long a vehicle at rest may wait for the others before it starts a mission no separated
 # plan can fly at once (two crossing vehicles timed to meet: the later one starts a little later)
 FLEET_DELAYS = (0.5, 1.0, 2.0, 3.0, 4.0, 6.0, 8.0)
+FLEET_DELAY_BUDGET = 2.0  # s of planning spent on later starts at most (an untimed mission plans slowly)
 
 
 @answered
@@ -116,12 +117,27 @@ def start_separated(mission: MissionSpec, initial: FloatArray, t_start: float, k
     """start_mission against the other vehicles' trajectories; when no plan keeps the separation
     and the vehicle is at rest, the same mission started later (FLEET_DELAYS: it holds where it
     is meanwhile; stats `fleet_delay`). A timed mission keeps its durations."""
+    if neighbours is not None and neighbours.trajectories and len(mission.waypoints):
+        # both hold their last points for ever: a last waypoint too near another vehicle's final
+        # hold can never be separated, however the mission is planned or delayed
+        nb = neighbours.for_bounds(mission.bounds)
+        last = np.asarray(mission.waypoints[-1], dtype=float)
+        for k, tr in enumerate(nb.trajectories):
+            gap = float(np.linalg.norm(last - tr.control_points[-1, -1]))
+            if gap < nb.required(k):
+                return Outcome(False, message=f"separation: the mission's last waypoint is {gap:.2f} m from the "
+                               f"final hold of neighbour {k}, which stays reserved ({nb.required(k):.2f} m required)",
+                               field=f"waypoints[{len(mission.waypoints) - 1}]")
+    t0 = time.perf_counter()
     out = start_mission(mission, initial, t_start, known, cfg, neighbours)
     if out.ok or neighbours is None or not neighbours.trajectories or "separation" not in out.message:
         return out
     if float(np.max(np.abs(np.asarray(initial, dtype=float)[1:]))) > 1e-3:
         return out
     for delay in FLEET_DELAYS:
+        if time.perf_counter() - t0 > FLEET_DELAY_BUDGET:
+            return replace(out, message=out.message + f" (and starting up to {delay:g} s later; gave up after "
+                           f"{FLEET_DELAY_BUDGET:g} s of planning)")
         later = start_mission(mission, initial, t_start + delay, known, cfg, neighbours)
         if later.ok:
             later.stats["fleet_delay"] = delay

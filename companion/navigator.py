@@ -374,7 +374,10 @@ class Navigator:
             done = await self._swap_at_split(f"mission {spec.id}", arrived, plan_at, ahead=self.split_ahead_for(n))
             if not done.ok:
                 if done.outcome is not None:
-                    self._reject_outcome(spec, replace(done.outcome, message=done.outcome.message + self.fleet_note()))
+                    why = done.outcome.message
+                    if self.fleet_on():
+                        why = self.fleet.named(why) + self.fleet_note()
+                    self._reject_outcome(spec, replace(done.outcome, message=why))
                 else:
                     self.report.reject("mission", "", f"mission {spec.id}: {done.reason}", mission=spec.id)
                 return False
