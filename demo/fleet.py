@@ -34,6 +34,7 @@ REPO = Path(__file__).resolve().parent.parent
 ORIGIN = (47.397742, 8.545594, 488.0)
 R = 10.0
 SEPARATION = 3.0
+POPUP_AFTER = 3.0  # s after the missions: a pop-up obstacle on drone1's last leg
 
 
 def _port(kind: int = socket.SOCK_STREAM) -> int:
@@ -194,6 +195,15 @@ def run(n: int, out: Path, plots: bool = True) -> int:
             u = rig.unit[v]
             rig.put(v, "mission", {"id": f"cross-{v}", "origin": "fleet", "durations": [5.0, 3.0],
                                    "waypoints": [(k * R * u + [0, 0, z]).round(3).tolist() for k in (0.5, -0.5, -1.0)]})
+        # a pop-up obstacle on drone1's last leg, once the crossing is under way: a local replan
+        # against the obstacle and the other vehicles' committed trajectories at once
+        time.sleep(POPUP_AFTER)
+        u = rig.unit[rig.names[0]]
+        centre = -0.75 * R * u + [0, 0, z]
+        corners = [np.add(centre, [dn, de, dd]).round(3).tolist() for dn in (-0.5, 0.5) for de in (-0.5, 0.5)
+                   for dd in (-2.0, 2.0)]
+        popup_since = len(rig.events)
+        rig.put(rig.names[0], "obstacles", {"origin": "fleet", "add": [{"id": "popup", "vertices": corners}]})
         rig.wait(lambda s: s.get("state") == "HOLDING" and s.get("mission"), 90, "crossings complete")
         time.sleep(0.5)
         with rig.lock:
@@ -206,6 +216,9 @@ def run(n: int, out: Path, plots: bool = True) -> int:
     accepted = {e["vehicle"]: e for e in events if e.get("type") == "accepted" and e.get("key") == "mission"}
     complete = {e["vehicle"] for e in events if e.get("type") == "mission_complete"}
     lost = [e for e in events if e.get("type") == "fleet" and "deconfliction" in e.get("message", "")]
+    with rig.lock:
+        popup = [e for e in rig.events[popup_since:] if e["vehicle"] == rig.names[0]
+                 and e.get("type") in ("replanned", "braking", "obstacles_clear")]
     print("\nvehicle  mission  plan_ms  committed_after_ms  start_delay_s  deconfliction_replans")
     committed_after: dict[str, float | None] = {}
     for v in rig.names:
@@ -236,6 +249,10 @@ def run(n: int, out: Path, plots: bool = True) -> int:
             worst_flown = min(worst_flown, flown)
             pairs.append((va, vb, planned, flown))
             print(f"{va + '-' + vb:16} {planned:13.2f}  {flown:11.2f}")
+    for e in popup[:2]:
+        print(f"\npop-up obstacle on {rig.names[0]}'s path: {e['type']}: {e['message'][:200]}")
+    if not popup:
+        print(f"\npop-up obstacle on {rig.names[0]}'s path: no replan seen")
     print(f"\ndeconfliction events: {len(lost)}")
     for e in lost:
         print(f"  {e['vehicle']}: {e['message'][:160]}")
