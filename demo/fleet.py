@@ -175,6 +175,8 @@ def _min_planned(a: Claim, b: Claim, t0: float) -> float:
 def run(n: int, out: Path, plots: bool = True) -> int:
     print(f"bezier-companion fleet demo: one Zenoh router, {n} mock autopilots, {n} companions; logs in {out}/")
     rig = FleetRig(n, out)
+    popup_centre: np.ndarray | None = None
+    popup_since = 0
     try:
         rig.start()
         rig.wait(lambda s: s.get("link") and (s.get("fleet") or {}).get("placed"), 60, "companions linked and placed")
@@ -199,12 +201,16 @@ def run(n: int, out: Path, plots: bool = True) -> int:
         # against the obstacle and the other vehicles' committed trajectories at once
         time.sleep(POPUP_AFTER)
         u = rig.unit[rig.names[0]]
-        centre = -0.75 * R * u + [0, 0, z]
+        centre = popup_centre = -0.75 * R * u + [0, 0, z]
         corners = [np.add(centre, [dn, de, dd]).round(3).tolist() for dn in (-0.5, 0.5) for de in (-0.5, 0.5)
                    for dd in (-2.0, 2.0)]
         popup_since = len(rig.events)
         rig.put(rig.names[0], "obstacles", {"origin": "fleet", "add": [{"id": "popup", "vertices": corners}]})
-        rig.wait(lambda s: s.get("state") == "HOLDING" and s.get("mission"), 90, "crossings complete")
+        # until no vehicle flies a plan any more (each completed, stopped or refused), 90 s at most:
+        # the table below says how each ended
+        time.sleep(1.0)
+        with contextlib.suppress(RuntimeError):
+            rig.wait(lambda s: s.get("state") not in ("STREAMING", "BRAKING"), 90, "crossings over")
         time.sleep(0.5)
         with rig.lock:
             events = rig.events[since:]
@@ -215,6 +221,8 @@ def run(n: int, out: Path, plots: bool = True) -> int:
         rig.stop()
     accepted = {e["vehicle"]: e for e in events if e.get("type") == "accepted" and e.get("key") == "mission"}
     complete = {e["vehicle"] for e in events if e.get("type") == "mission_complete"}
+    why_not = {e["vehicle"]: f"{e.get('type')}: {e.get('message', '')[:140]}" for e in events
+               if e.get("type") in ("rejected", "braking", "stalled") and e["vehicle"] not in complete}
     lost = [e for e in events if e.get("type") == "fleet" and "deconfliction" in e.get("message", "")]
     with rig.lock:
         popup = [e for e in rig.events[popup_since:] if e["vehicle"] == rig.names[0]
@@ -253,11 +261,13 @@ def run(n: int, out: Path, plots: bool = True) -> int:
         print(f"\npop-up obstacle on {rig.names[0]}'s path: {e['type']}: {e['message'][:200]}")
     if not popup:
         print(f"\npop-up obstacle on {rig.names[0]}'s path: no replan seen")
+    for v, why in sorted(why_not.items()):
+        print(f"\n{v} did not complete its crossing: {why}")
     print(f"\ndeconfliction events: {len(lost)}")
     for e in lost:
         print(f"  {e['vehicle']}: {e['message'][:160]}")
     if plots:
-        png = _plot(rig, tracks, latest, t0, out / "fleet_top.png")
+        png = _plot(rig, tracks, latest, t0, out / "fleet_top.png", popup_centre)
         print(f"\nfigure: {png}")
     ok = complete == set(rig.names) and worst_flown >= SEPARATION - allowance
     (out / "fleet_summary.json").write_text(json.dumps({
@@ -270,11 +280,12 @@ def run(n: int, out: Path, plots: bool = True) -> int:
 
 
 def _plot(rig: FleetRig, tracks: dict[str, list[tuple[float, np.ndarray]]], latest: dict[str, Claim], t0: float,
-          path: Path) -> Path:
+          path: Path, popup: np.ndarray | None = None) -> Path:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.patches import Rectangle
 
     fig, ax = plt.subplots(figsize=(6, 6))
     for v in rig.names:
@@ -288,6 +299,9 @@ def _plot(rig: FleetRig, tracks: dict[str, list[tuple[float, np.ndarray]]], late
                     label=f"{v} committed")
         home = R * rig.unit[v]
         ax.plot(home[1], home[0], "o", color="k", ms=4)
+    if popup is not None:  # the pop-up obstacle, 1 m square
+        ax.add_patch(Rectangle((popup[1] - 0.5, popup[0] - 0.5), 1.0, 1.0, color="0.3", alpha=0.6,
+                                   label="pop-up obstacle"))
     ax.set_xlabel("east (m, fleet frame)")
     ax.set_ylabel("north (m, fleet frame)")
     ax.set_aspect("equal")
