@@ -276,6 +276,8 @@ class Navigator:
                     self.report.event("fleet", f"deconfliction: {why}; planning again against it", what=what)
                     continue
             if self.control.active is not base or self.route is not route:
+                if self.fleet_on():
+                    self.fleet.cancel()
                 changed += 1
                 reason = "the flown plan changed while planning (a stop or another change came first)"
                 say(reason + "; planning again")
@@ -284,6 +286,8 @@ class Navigator:
                 self.route = outcome.route
                 self.interrupted = None
                 return Swapped(outcome, t_split)
+            if self.fleet_on():
+                self.fleet.cancel()  # the candidate that won is not flown: its number is not published
             if self.control.refusal != SWAP_LATE:
                 reason = self.control.refusal  # an internal check: planning again would not help
                 say(reason)
