@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: setup demo test lint typecheck pytest bench clean
+.PHONY: setup demo demo-fleet test lint typecheck pytest bench clean
 
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -20,6 +20,9 @@ setup: $(STAMP)
 
 demo: $(STAMP)
 	$(PY) -m demo
+
+demo-fleet: $(STAMP)
+	$(PY) -m demo --fleet 3
 
 lint: $(STAMP)
 	$(PY) -m ruff check planner_core companion sitl_mock demo tests benchmarks examples

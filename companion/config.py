@@ -313,6 +313,16 @@ class FleetConfig:
     # How far apart (s) the vehicles' system clocks may be (NTP, chrony, PTP): times between
     # vehicles are absolute, and this much is paid for in the separation between their plans.
     clock_tolerance: float = 0.05
+    # Separation between vehicles (issue 24.3, docs/fleet.md), with [fleet] origin set: every plan
+    # keeps this distance (m, centre to centre; plus clock_tolerance x the two bound speeds) from
+    # every other vehicle's committed trajectory; 0 = no deconfliction (the frame only).
+    separation: float = 3.0
+    # The bound on a message's delay between two vehicles through the router (s): a new plan is
+    # proposed, then committed (flown) 2 x max_delay later if no conflicting plan won meanwhile.
+    max_delay: float = 0.1
+    # The tie-break between two vehicles planning at once: the higher priority wins, then the
+    # smaller vehicle id.
+    priority: int = 0
 
 
 @dataclass(frozen=True)
@@ -393,7 +403,7 @@ _POSITIVE = {
 }
 
 
-_NON_NEGATIVE = {"fleet.clock_tolerance", "planner.fallback_delay", "planner.reserve", "autopilot_limits.retries", "planner.tracking_allowance",
+_NON_NEGATIVE = {"fleet.clock_tolerance", "fleet.separation", "fleet.max_delay", "planner.fallback_delay", "planner.reserve", "autopilot_limits.retries", "planner.tracking_allowance",
                  "setpoints.lead_initial", "safety.tracking_brake"}
 
 # Keys that were replaced: what to set instead (a safety option must not be dropped silently).

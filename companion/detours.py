@@ -38,6 +38,7 @@ def plan_with_detours(
     cfg: Config,
     *,
     allocate: bool = False,
+    neighbours: Any = None,
 ) -> Outcome:
     """plan_route, inserting detour points around obstacles that block straight legs
     (`allocate`: as plan_route's, for every attempt).
@@ -49,7 +50,8 @@ def plan_with_detours(
     index into `obstacles`, and its message says why each way around it failed.
     """
     known = as_known(obstacles)
-    outcome = plan_route(mission, points, times, labels, initial, known, cfg, allocate=allocate)
+    outcome = plan_route(mission, points, times, labels, initial, known, cfg, allocate=allocate,
+                         neighbours=neighbours)
     detours: list[Any] = []
     around: list[int] = []
     for _ in range(MAX_DETOURS):
@@ -57,7 +59,8 @@ def plan_with_detours(
             break
         notes: list[str] = []
         detoured = detour(mission, points, times, labels, initial, known, cfg,
-                          outcome.blocked_segment, outcome.obstacle, notes=notes, allocate=allocate)
+                          outcome.blocked_segment, outcome.obstacle, notes=notes, allocate=allocate,
+                          neighbours=neighbours)
         if detoured is None:
             why = "; ".join(notes) or "no way around it inside the map"
             outcome = replace(outcome, message=f"{outcome.message}; no detour around {known.name(outcome.obstacle)} "
@@ -153,6 +156,7 @@ def detour(
     obstacle: int,
     notes: list[str] | None = None,
     allocate: bool = False,
+    neighbours: Any = None,
 ) -> tuple[Outcome, FloatArray, FloatArray, FloatArray] | None:
     """Insert synthetic waypoints around the obstacle that blocks `segment` and re-plan.
 
@@ -187,7 +191,8 @@ def detour(
             if seg is not None and seg > segment + k and best is None:
                 # this obstacle is cleared; another one blocks a later leg
                 tms = _detour_times(mission, points, times, pts, segment, k, initial, None)
-                outcome = plan_route(mission, pts, tms, lab, initial, known, cfg, allocate=allocate)
+                outcome = plan_route(mission, pts, tms, lab, initial, known, cfg, allocate=allocate,
+                                     neighbours=neighbours)
                 outcome.stats["detour"] = [c.round(3).tolist() for c in cs]
                 best = (outcome, pts, tms, lab)
             else:
@@ -197,7 +202,8 @@ def detour(
             notes.append(f"{name}: corridor construction failed: {exc!r}")
             continue
         tms = _detour_times(mission, points, times, pts, segment, k, initial, corridors[0])
-        outcome = plan_route(mission, pts, tms, lab, initial, known, cfg, allocate=allocate)
+        outcome = plan_route(mission, pts, tms, lab, initial, known, cfg, allocate=allocate,
+                                     neighbours=neighbours)
         if outcome.ok:
             outcome.stats["detour"] = [c.round(3).tolist() for c in cs]
             return outcome, pts, tms, lab

@@ -31,6 +31,7 @@ from planner_core import (
     ChangeSet,
     Environment,
     FloatArray,
+    Neighbours,
     Polytope,
     Problem,
     ReplanOptions,
@@ -62,7 +63,7 @@ def answered(fn: F) -> F:
 
 @answered
 def start_mission(mission: MissionSpec, initial: FloatArray, t_start: float, known: Known | Sequence[Polytope],
-                  cfg: Config) -> Outcome:
+                  cfg: Config, neighbours: Neighbours | None = None) -> Outcome:
     """Plan a fresh mission from the jet `initial` at `t_start`."""
     wps = mission.waypoints
     labels = mission.first_index + np.arange(len(wps), dtype=float)
@@ -101,7 +102,47 @@ def start_mission(mission: MissionSpec, initial: FloatArray, t_start: float, kno
     # allocation above then only gives t0 and the detour points' first guess).
     fastest = mission.durations is None and cfg.planner.timing == "fastest"
     return plan_with_detours(mission, points, times, lab, jet, as_known(known) + Known.of(mission.obstacles), cfg,
-                             allocate=fastest)
+                             allocate=fastest, neighbours=neighbours)
+
+
+# s: how long a vehicle at rest may wait for the others before it starts a mission no separated
+# plan can fly at once (two crossing vehicles timed to meet: the later one starts a little later)
+FLEET_DELAYS = (0.5, 1.0, 2.0, 3.0, 4.0, 6.0, 8.0)
+FLEET_DELAY_BUDGET = 2.0  # s of planning spent on later starts at most (an untimed mission plans slowly)
+
+
+@answered
+def start_separated(mission: MissionSpec, initial: FloatArray, t_start: float, known: Known | Sequence[Polytope],
+                    cfg: Config, neighbours: Neighbours | None = None) -> Outcome:
+    """start_mission against the other vehicles' trajectories; when no plan keeps the separation
+    and the vehicle is at rest, the same mission started later (FLEET_DELAYS: it holds where it
+    is meanwhile; stats `fleet_delay`). A timed mission keeps its durations."""
+    if neighbours is not None and neighbours.trajectories and len(mission.waypoints):
+        # both hold their last points for ever: a last waypoint too near another vehicle's final
+        # hold can never be separated, however the mission is planned or delayed
+        nb = neighbours.for_bounds(mission.bounds)
+        last = np.asarray(mission.waypoints[-1], dtype=float)
+        for k, tr in enumerate(nb.trajectories):
+            gap = float(np.linalg.norm(last - tr.control_points[-1, -1]))
+            if gap < nb.required(k):
+                return Outcome(False, message=f"separation: the mission's last waypoint is {gap:.2f} m from the "
+                               f"final hold of neighbour {k}, which stays reserved ({nb.required(k):.2f} m required)",
+                               field=f"waypoints[{len(mission.waypoints) - 1}]")
+    t0 = time.perf_counter()
+    out = start_mission(mission, initial, t_start, known, cfg, neighbours)
+    if out.ok or neighbours is None or not neighbours.trajectories or "separation" not in out.message:
+        return out
+    if float(np.max(np.abs(np.asarray(initial, dtype=float)[1:]))) > 1e-3:
+        return out
+    for delay in FLEET_DELAYS:
+        if time.perf_counter() - t0 > FLEET_DELAY_BUDGET:
+            return replace(out, message=out.message + f" (and starting up to {delay:g} s later; gave up after "
+                           f"{FLEET_DELAY_BUDGET:g} s of planning)")
+        later = start_mission(mission, initial, t_start + delay, known, cfg, neighbours)
+        if later.ok:
+            later.stats["fleet_delay"] = delay
+            return later
+    return replace(out, message=out.message + f" (and starting up to {FLEET_DELAYS[-1]:g} s later)")
 
 
 @answered
@@ -114,7 +155,8 @@ def check_mission(mission: MissionSpec, initial: FloatArray, t_start: float, kno
 @answered
 def replan_remainder(route: Route, active: Trajectory, t_split: float, known: Known | Sequence[Polytope], cfg: Config,
                      waypoints: FloatArray | None = None, times: FloatArray | None = None,
-                     labels: FloatArray | None = None, *, allocate: bool = False) -> Outcome:
+                     labels: FloatArray | None = None, *, allocate: bool = False,
+                     neighbours: Neighbours | None = None) -> Outcome:
     """Re-plan everything after t_split from the jet of `active` at t_split.
 
     `waypoints/times/labels` (defaults: the route's) may carry an edit; only the entries
@@ -139,7 +181,8 @@ def replan_remainder(route: Route, active: Trajectory, t_split: float, known: Kn
     if new_times[1] - new_times[0] < min_first:
         new_times[1:] += min_first - (new_times[1] - new_times[0])
     return plan_with_detours(route.mission, points, new_times, new_labels, jet,
-                             as_known(known) + Known.of(route.mission.obstacles), cfg, allocate=allocate)
+                             as_known(known) + Known.of(route.mission.obstacles), cfg, allocate=allocate,
+                             neighbours=neighbours)
 
 
 def remaining(route: Route, t: float) -> MissionSpec | None:
@@ -172,7 +215,7 @@ def trim(route: Route, t: float) -> Route:
 
 
 def local_replan(route: Route, t_split: float, edit: LocalEdit, known: Known | Sequence[Polytope],
-                 cfg: Config) -> Outcome:
+                 cfg: Config, neighbours: Neighbours | None = None) -> Outcome:
     """planner_core.replan with from_time = t_split: only the touched jets are re-solved.
 
     `route` is the trimmed route the edit was resolved against (edits.resolve), so the
@@ -188,7 +231,7 @@ def local_replan(route: Route, t_split: float, edit: LocalEdit, known: Known | S
     env = Environment(before.polytopes, r.mission.corridor_map, r.mission.radius)
     try:
         result = replan(r.problem, r.trajectory, ChangeSet(edit.edits, from_time=t_split),
-                        options=ReplanOptions(environment=env))
+                        options=ReplanOptions(environment=env, neighbours=neighbours))
     except ChangeError as exc:
         return Outcome(False, message=str(exc), stats={"plan_seconds": time.perf_counter() - t0})
     except Exception as exc:  # a planner bug must degrade to the next fallback, not crash the service

@@ -30,7 +30,7 @@ from companion.mission import (
     local_replan,
     remaining,
     replan_remainder,
-    start_mission,
+    start_separated,
     trim,
 )
 from companion.obstacles import Known, ObstacleStore
@@ -57,6 +57,7 @@ PLAN_OVERHEAD = 0.05  # s: a plan's fixed cost in the service (process hop, corr
 LATE_MARGIN = 1.5  # the split is this many expected planning times ahead
 RETRY_MARGIN = 2.0  # after a late plan: this many times the time it took (a loaded computer varies)
 MAX_AHEAD = 30.0  # s: never further ahead (the old, verified plan flies on meanwhile)
+FLEET_TRIES = 8  # candidates that lost to other vehicles before a plan is given up (docs/fleet.md)
 
 
 @dataclass(frozen=True)
@@ -96,6 +97,24 @@ class Navigator:
         self.plan_per_waypoint = 0.004
         self.brakes = Brakes(cfg, control, runtime, report, self.stop_context, position, self._stopped)
         self.limits: Any = None  # companion.limits_watch.LimitsWatch (set by the service): bounds flown
+        # companion.deconfliction.Deconfliction (set by the service): the other vehicles' trajectories
+        # and the commit protocol; None or disabled without [fleet] separation
+        self.fleet: Any = None
+
+    def fleet_on(self) -> bool:
+        return self.fleet is not None and bool(self.fleet.enabled)
+
+    def neighbours(self, bounds: Bounds) -> Any:
+        """The other vehicles' live trajectories for a plan in flight (None without a fleet)."""
+        return self.fleet.neighbours(bounds) if self.fleet_on() else None
+
+    def fleet_note(self) -> str:
+        """What a refusal in a fleet adds: the vehicles planned against."""
+        if not self.fleet_on():
+            return ""
+        names = self.fleet.names()
+        return (f" (no plan keeps [fleet] separation {self.cfg.fleet.separation:g} m from "
+                f"{', '.join(names)})" if names else "")
 
     # -- what is known --------------------------------------------------------------------
 
@@ -227,7 +246,9 @@ class Navigator:
                 messages.append(text)
 
         ahead = self.cfg.planner.split_ahead if ahead is None else ahead
-        late = changed = 0
+        if self.fleet_on():  # a plan is proposed, then committed 2 x max_delay later (companion.commit)
+            ahead += self.fleet.wait
+        late = changed = lost = 0
         reason = ""
         while late < 2 and changed < 2:
             if not self.control.flying or not self.flight.flying_ours:
@@ -244,7 +265,19 @@ class Navigator:
             took = time.monotonic() - t0
             if not outcome.ok or outcome.route is None:
                 return Swapped(outcome, t_split, outcome.message)
+            if self.fleet_on() and self.control.active is base:
+                why = await self.fleet.commit(splice(base, outcome.route.trajectory), what)
+                if why is not None:
+                    lost += 1
+                    reason = why
+                    say(why + ("; planning again against it" if lost < FLEET_TRIES else ""))
+                    if lost >= FLEET_TRIES:
+                        break
+                    self.report.event("fleet", f"deconfliction: {why}; planning again against it", what=what)
+                    continue
             if self.control.active is not base or self.route is not route:
+                if self.fleet_on():
+                    self.fleet.cancel()
                 changed += 1
                 reason = "the flown plan changed while planning (a stop or another change came first)"
                 say(reason + "; planning again")
@@ -253,6 +286,8 @@ class Navigator:
                 self.route = outcome.route
                 self.interrupted = None
                 return Swapped(outcome, t_split)
+            if self.fleet_on():
+                self.fleet.cancel()  # the candidate that won is not flown: its number is not published
             if self.control.refusal != SWAP_LATE:
                 reason = self.control.refusal  # an internal check: planning again would not help
                 say(reason)
@@ -333,8 +368,9 @@ class Navigator:
             async def plan_at(base: Trajectory, t_split: float) -> Outcome:
                 jet = self.control.jet(t_split)
                 t0 = time.perf_counter()
-                out: Outcome = self.logged(await self.runtime.plan(start_mission, replace(spec, raw={}), jet, t_split,
-                                                                   self.known(), self.cfg))
+                out: Outcome = self.logged(await self.runtime.plan(
+                    partial(start_separated, neighbours=self.neighbours(spec.bounds)), replace(spec, raw={}), jet,
+                    t_split, self.known(), self.cfg))
                 self.plan_latency = time.perf_counter() - t0
                 self._measured(self.plan_latency, n)
                 return out
@@ -342,7 +378,10 @@ class Navigator:
             done = await self._swap_at_split(f"mission {spec.id}", arrived, plan_at, ahead=self.split_ahead_for(n))
             if not done.ok:
                 if done.outcome is not None:
-                    self._reject_outcome(spec, done.outcome)
+                    why = done.outcome.message
+                    if self.fleet_on():
+                        why = self.fleet.named(why) + self.fleet_note()
+                    self._reject_outcome(spec, replace(done.outcome, message=why))
                 else:
                     self.report.reject("mission", "", f"mission {spec.id}: {done.reason}", mission=spec.id)
                 return False
@@ -352,9 +391,12 @@ class Navigator:
                 self.pending = None
             self.report.go(S.STREAMING, f"flying mission {spec.id}")
             lat = self.plan_latency or 0.0
+            delay = done.outcome.stats.get("fleet_delay")
+            waits = f"; starts {delay:g} s later to keep the separation from the other vehicles" if delay else ""
             self.report.event("accepted", f"mission {spec.id}: planned and verified in {lat * 1000:.1f} ms "
-                              f"({len(spec.waypoints)} waypoints, {done.outcome.route.t_end - done.t_split:.2f} s)",
-                              key="mission", mission=spec.id, plan_ms=round(lat * 1000, 2))
+                              f"({len(spec.waypoints)} waypoints, {done.outcome.route.t_end - done.t_split:.2f} s)"
+                              + waits, key="mission", mission=spec.id, plan_ms=round(lat * 1000, 2),
+                              **({"fleet_delay": delay} if delay else {}))
             return True
 
     async def resume(self, arrived: float) -> None:
@@ -428,7 +470,8 @@ class Navigator:
         messages = notes if notes is not None else []
         if local is not None:
             out: Outcome = self.logged(await self.runtime.run(self.runtime.replan_pool, local_replan, r, t_split,
-                                                              local, self.known(), self.cfg))
+                                                              local, self.known(), self.cfg,
+                                                              self.neighbours(r.mission.bounds)))
             if out.ok:
                 out.stats.setdefault("method", "local")
                 return out
@@ -438,8 +481,9 @@ class Navigator:
         extra = () if remainder is None else remainder
         if allocate is None:
             allocate = self.allocates(r)
-        out = self.logged(await self.runtime.plan(partial(replan_remainder, allocate=allocate), r, base, t_split,
-                                                  self.known(), self.cfg, *extra, urgent=True))
+        out = self.logged(await self.runtime.plan(partial(replan_remainder, allocate=allocate,
+                                                          neighbours=self.neighbours(r.mission.bounds)),
+                                                  r, base, t_split, self.known(), self.cfg, *extra, urgent=True))
         if self.cfg.planner.fallback_delay > 0:
             await asyncio.sleep(self.cfg.planner.fallback_delay)
         out.stats["method"] = "detour" if out.stats.get("detour") else "remainder"
@@ -555,3 +599,28 @@ class Navigator:
         guard.deadline = brake_deadline(base, now, hit, bounds)
         announce()
         await self.brakes.race(guard, task, notes, arrived, what)
+
+    # -- the fleet -----------------------------------------------------------------------------------
+
+    def fleet_replan(self, reason: str) -> None:
+        """A vehicle that outranks us committed a trajectory conflicting with ours (the protocol was
+        broken: a delay over [fleet] max_delay, a restart): replan what is left against it, or brake."""
+        if self.flight.state is not S.STREAMING or self.route is None or not self.control.flying:
+            self.report.event("fleet", f"deconfliction: {reason}; not flying a mission: nothing to replan")
+            return
+        asyncio.get_running_loop().create_task(self._fleet_replan(reason))
+
+    async def _fleet_replan(self, reason: str) -> None:
+        arrived = time.monotonic()
+        async with self.lock:
+            if self.flight.state is not S.STREAMING or self.route is None or not self.control.flying:
+                return
+
+            async def plan_at(base: Trajectory, t_split: float) -> Outcome:
+                assert self.route is not None
+                r = trim(self.route, self.control.now())
+                return await self._replan_outcome(r, base, t_split, None, None)
+
+            done = await self._replan_swapped(f"fleet ({reason})", arrived, plan_at)
+            if not done.ok:
+                await self.brakes.brake(f"deconfliction: {reason}; no separated replan ({done.reason})", arrived)

@@ -127,6 +127,7 @@ def plan_route(
     cfg: Config,
     *,
     allocate: bool = False,
+    neighbours: Any = None,
 ) -> Outcome:
     """Corridors, plan, verify. `initial` is the jet at waypoints[0] (time times[0]).
 
@@ -150,6 +151,8 @@ def plan_route(
         return Outcome(False, message=f"corridor construction failed: {exc!r}",
                        stats={"plan_seconds": time.perf_counter() - t0})
     opts: dict[str, Any] = {"window": cfg.planner.window} if cfg.planner.method == "iterative" else {}
+    if neighbours is not None:  # other vehicles' committed trajectories (companion.traffic)
+        opts["neighbours"] = neighbours
     given = None if allocate else np.diff(times)
     # plan_mission verifies the plan once more itself: never fly on one check alone being trusted
     # the reserve is what a replan may spend: a pop-up's swerve from a fast start jet may need it

@@ -31,6 +31,7 @@ from companion.braking import warm_up_brake
 from companion.commands import Commands
 from companion.config import Config
 from companion.control import Control
+from companion.deconfliction import REPUBLISH, Deconfliction
 from companion.fleet import FleetFrame
 from companion.flight import Flight
 from companion.limits_watch import LimitsWatch
@@ -112,6 +113,11 @@ class Service:
         self.link.on_message = self._on_mavlink
         # where the autopilot's local frame sits in the fleet frame ([fleet] origin; companion.fleet)
         self.fleet = FleetFrame(cfg.fleet)
+        # the other vehicles' trajectories and the commit protocol ([fleet] separation; companion.deconfliction)
+        self.deconfliction = Deconfliction(cfg, self.fleet, lambda: self.control.t_base, self._publish_proposal,
+                                           self.report.event)
+        self.navigator.fleet = self.deconfliction
+        self.deconfliction.on_replan = self.navigator.fleet_replan
         # the autopilot's own limits: read at link-up and after a reconnect, planned within
         self.limits = LimitsWatch(cfg, self.link, self.report)
         self.watch.on_link_up = self.limits.read
@@ -183,7 +189,8 @@ class Service:
         self._traj_seq += 1
         seq = self._traj_seq
         self.tap.flown(traj, self.control.t_base, time.monotonic())
-        fut = self.loop.run_in_executor(self.runtime.io_pool, enc.encode_trajectory, traj)
+        fleet = self.deconfliction.committed_section(traj)
+        fut = self.loop.run_in_executor(self.runtime.io_pool, enc.encode_trajectory, traj, fleet)
 
         def done(f: asyncio.Future[bytes]) -> None:
             if f.cancelled() or f.exception() is not None or seq < self._traj_published:
@@ -194,6 +201,19 @@ class Service:
                 self.zio.publish_bytes("trajectory", self._traj_bytes)
 
         fut.add_done_callback(done)
+
+    def _publish_proposal(self, payload: bytes) -> None:
+        if self.zio is not None:
+            self.zio.publish_bytes("trajectory", payload)
+
+    async def fleet_loop(self) -> None:
+        """Our committed trajectory again every REPUBLISH s: a vehicle that joins late, or lost a
+        put, learns what we fly (only with [fleet] separation)."""
+        while not self.stop.is_set():
+            await asyncio.sleep(REPUBLISH)
+            await self.after_tick()
+            if self.zio is not None and self._traj_bytes is not None and self.control.active is not None:
+                self.zio.publish_bytes("trajectory", self._traj_bytes)
 
     def query_plan(self) -> bytes | None:
         return None if self.control.active is None else self._traj_bytes
@@ -329,8 +349,13 @@ class Service:
             "setpoints_stalled": self.setpoints_stalled,
             **self.tap.status_fields(),
             "mavlink_ignored": dict(self.link.gate.ignored) if self.link.gate is not None else {},
-            "fleet": self.fleet.status(),
+            "fleet": self._fleet_status(),
         }
+
+    def _fleet_status(self) -> dict[str, Any] | None:
+        st = self.fleet.status()
+        sep = self.deconfliction.status()
+        return st if st is None or sep is None else {**st, "deconfliction": sep}
 
     def _limits_status(self) -> dict[str, Any]:
         """The autopilot's limits (each with its source) and the bounds flown because of them."""
@@ -614,6 +639,8 @@ class Service:
         self.tap.open()
         self.zio.on_wrong_key = self._wrong_key
         self.zio.open({"plan": self.query_plan, "status": self.query_status})
+        if self.deconfliction.enabled:
+            self.zio.watch_fleet(self.deconfliction.on_trajectory, self.deconfliction.on_alive)
         self.link.open(self.loop)
         await self._warm_up()
         self.gc.start(time.monotonic())
@@ -626,6 +653,8 @@ class Service:
                  self.cfg.setpoints.rate_hz, self.sender.scheduling)
         periodic = [asyncio.create_task(c) for c in (self.heartbeat_loop(), self.telemetry_loop(), self.status_loop(),
                                                        self.setpoint_watchdog(), self.loop_liveness())]
+        if self.deconfliction.enabled:
+            periodic.append(asyncio.create_task(self.fleet_loop()))
         inbound = [asyncio.create_task(c) for c in (self.inbox_loop(), self.ordered_loop())]
         sender = asyncio.ensure_future(self._sender_failure)
         runners: list[asyncio.Future[Any]] = [*periodic, *inbound, sender]

@@ -587,6 +587,8 @@ def build_parser(prog: str = "python -m demo") -> argparse.ArgumentParser:
     p.add_argument("--autopilot", choices=["px4", "ardupilot"], default="px4")
     p.add_argument("--out", type=Path, default=Path("out/demo"))
     p.add_argument("--quick", action="store_true", help="one short mission only (smoke test)")
+    p.add_argument("--fleet", type=int, metavar="N", default=0,
+                   help="the fleet demo instead: one router, N mocks and companions, crossing missions (demo.fleet)")
     p.add_argument("--timeout", type=float, default=120.0, help="per mission, seconds")
     p.add_argument("--no-plots", action="store_true")
     p.add_argument("--no-limits", action="store_true",
@@ -607,6 +609,18 @@ def _lead(text: str) -> float | str:
 def main(argv: list[str] | None = None, prog: str = "python -m demo") -> int:
     args = build_parser(prog).parse_args(argv)
     out: Path = args.out
+    if args.fleet:
+        from demo.fleet import run as run_fleet
+
+        if args.fleet < 2:
+            print("--fleet: at least 2 vehicles", file=sys.stderr)
+            return 2
+        try:
+            return run_fleet(args.fleet, out.parent / "fleet" if out == Path("out/demo") else out,
+                             plots=not args.no_plots)
+        except (RuntimeError, OSError) as exc:
+            print(f"fleet demo failed: {exc}", file=sys.stderr)
+            return 1
     progress = Progress()
     results: list[rep.MissionResult] = []
     pngs: list[Path] = []

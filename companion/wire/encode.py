@@ -34,9 +34,12 @@ def event_body(kind: str, state: str, message: str, **extra: Any) -> dict[str, A
     return {"type": kind, "time": round(time.time(), 3), "state": state, "message": message, **extra}
 
 
-def encode_trajectory(traj: Trajectory) -> bytes:
-    """Trajectory JSON, one segment per json.dumps call so other threads get the GIL between."""
+def encode_trajectory(traj: Trajectory, fleet: dict[str, Any] | None = None) -> bytes:
+    """Trajectory JSON, one segment per json.dumps call so other threads get the GIL between.
+    `fleet`: the fleet object (companion.deconfliction; only with [fleet] separation)."""
     head = trajectory_to_dict(Trajectory(traj.times[:2], traj.control_points[:1], None, traj.stats), "ned")
+    if fleet is not None:
+        head["fleet"] = fleet
     head["segments"] = []
     parts = []
     corridors = traj.corridors or (None,) * traj.n_segments

@@ -169,6 +169,27 @@ class ZenohIO:
             self._decls.append(self.session.declare_queryable(self.cfg.key(kind), self._queried(kind)))
         self._decls.append(self.session.liveliness().declare_token(self.cfg.key(ALIVE)))
 
+    def watch_fleet(self, on_trajectory: Callable[[str, bytes], None], on_alive: Callable[[str, bool], None]) -> None:
+        """The other vehicles' trajectories (`<prefix>/*/trajectory`) and liveliness (`<prefix>/*/alive`),
+        each handed to the loop with the vehicle id from the key (docs/fleet.md)."""
+        prefix = self.cfg.zenoh.prefix
+
+        def vehicle(key: Any) -> str:
+            parts = str(key).split("/")
+            return parts[-2] if len(parts) >= 2 else ""
+
+        def trajectory(sample: Any) -> None:
+            if len(sample.payload) > self.cfg.limits.max_message_bytes:
+                return
+            self.loop.call_soon_threadsafe(on_trajectory, vehicle(sample.key_expr), sample.payload.to_bytes())
+
+        def alive(sample: Any) -> None:
+            present = sample.kind != zenoh.SampleKind.DELETE
+            self.loop.call_soon_threadsafe(on_alive, vehicle(sample.key_expr), present)
+
+        self._decls.append(self.session.declare_subscriber(f"{prefix}/*/trajectory", trajectory))
+        self._decls.append(self.session.liveliness().declare_subscriber(f"{prefix}/*/{ALIVE}", alive, history=True))
+
     def _inbound(self, kind: str) -> Callable[[Any], None]:
         limit = self.cfg.limits.max_message_bytes
         exact = self.cfg.key(kind)
