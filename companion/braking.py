@@ -19,7 +19,7 @@ import numpy as np
 
 from companion.config import Config
 from companion.control import Control
-from companion.flight import HOLDING_CONTROL, State
+from companion.flight import HOLDING_CONTROL, Flight, State
 from companion.report import Reporter
 from companion.route import build_corridors
 from companion.runtime import Runtime
@@ -252,19 +252,18 @@ class Brakes:
     """Stops on the loop: now (`brake`), or racing a replan against the braking deadline (`race`).
 
     `context()` says what a stop is planned against; `position()` is the measured position
-    (for a hold when no stop can be planned); `on_stop(t)` is told the trajectory time at
-    which the vehicle starts stopping (the mission is interrupted there)."""
+    (for a hold when no stop can be planned). A stop swapped in (or a hold) interrupts the
+    mission flown at its start: `Control` keeps what is left of it for `resume`."""
 
-    def __init__(self, cfg: Config, control: Control, runtime: Runtime, report: Reporter,
-                 context: Callable[[], StopContext], position: Callable[[], FloatArray],
-                 on_stop: Callable[[float], None]) -> None:
+    def __init__(self, cfg: Config, flight: Flight, control: Control, runtime: Runtime, report: Reporter,
+                 context: Callable[[], StopContext], position: Callable[[], FloatArray]) -> None:
         self.cfg = cfg
+        self.flight = flight
         self.control = control
         self.runtime = runtime
         self.report = report
         self.context = context
         self.position = position
-        self.on_stop = on_stop
         self.race_guard: StopGuard | None = None  # the replan racing a braking deadline, if any
 
     def guard(self, base: Trajectory, hit: float) -> StopGuard:
@@ -282,10 +281,7 @@ class Brakes:
     def _commit(self, base: Trajectory, plan: StopPlan | None, arrived: float | None) -> bool:
         if plan is None or plan.trajectory is None or self.control.active is not base:
             return False
-        if not self.control.swap(splice(base, plan.trajectory), plan.start, arrived, "braking"):
-            return False
-        self.on_stop(plan.start)
-        return True
+        return self.control.swap(splice(base, plan.trajectory), plan.start, arrived, "braking")
 
     async def brake(self, reason: str, arrived: float | None, blocked: int | None = None,
                     prepared: StopPlan | None = None) -> None:
@@ -308,7 +304,6 @@ class Brakes:
         if not swapped:
             if not self.control.flying:
                 return
-            self.on_stop(self.control.now())
             self.control.hold_here(self.position())
             why = f"no verified braking trajectory ({why}); holding at the measured position"
         self.report.go(State.BRAKING, reason)
@@ -330,7 +325,7 @@ class Brakes:
         # Swap with a few periods to spare: the loop may be late, and swap() refuses a split
         # less than half a period ahead.
         spare = 2.0 / self.cfg.setpoints.rate_hz
-        flight = self.report.flight
+        flight = self.flight
         while not replan.done():
             if flight.state not in HOLDING_CONTROL:  # e.g. a pilot took over meanwhile
                 replan.cancel()

@@ -87,7 +87,6 @@ class Commands:
 
     def release_control(self) -> None:
         """Stop commanding at once; what is left of the mission waits for `start`."""
-        self.nav.release()
         self.control.release()
         self.cancel_sequence()
 
@@ -152,7 +151,6 @@ class Commands:
             reason = str(exc) if exc.by == "companion" else f"failed: {exc}"
             self.report.refuse(name, reason, by=exc.by, **exc.fields())
             if self.flight.state in (S.ARMING, S.TAKEOFF):
-                self.nav.release()
                 self.control.release()
                 self.report.go(S.IDLE if not self.link.state.armed else S.FAILSAFE, f"{name} failed: {exc}")
         except asyncio.CancelledError:
@@ -312,7 +310,7 @@ class Commands:
         be in the air: our modes, a pilot's, a failsafe's, or after a restart."""
         self.cancel_sequence()
         self.flight.exit_requested = True
-        self.nav.forget()
+        self.control.forget()
         self.control.release()
         was = self.flight.state
         self.report.go(S.LANDING, f"land command ({was.value}): the autopilot lands")
@@ -341,7 +339,7 @@ class Commands:
         if state in HOLDING_CONTROL or (state is S.TAKEOFF and self.control.streaming):
             await self.nav.abort(arrived)
         else:
-            self.nav.forget()
+            self.control.forget()
             if state in (S.ARMING, S.TAKEOFF):
                 self.control.release()
                 self.report.go(S.IDLE if not self.link.state.armed else S.FAILSAFE, "abort command")
@@ -558,7 +556,6 @@ class Commands:
                 self.report.event("error", f"{reason}: hand-over to {mode} failed: {exc}", mode=st.mode)
                 why = f"after the hand-over to {mode} failed"
                 continue
-            self.nav.release()
             self.control.release()
             to = S.LANDING if mode == "LAND" else S.PILOT
             self.report.go(to, f"{reason}: handed over to the autopilot ({st.mode})")

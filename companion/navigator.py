@@ -1,7 +1,7 @@
 """Missions in flight, on the loop: load, fly, change, avoid pop-ups, stop, resume.
 
-The one owner of which mission is flown (`route`), which is loaded and waits for `start`
-(`pending`) and which was interrupted by a stop and waits for `resume` (`interrupted`).
+Which mission is flown (`route`), loaded (`pending`) or interrupted (`interrupted`) is held by
+`Control`, the one owner of what is flown, and changed only with the trajectory (read here).
 Planning runs in workers (companion.mission, pure); every new plan is swapped in through
 `Control.swap` at a split a little ahead of now, by the one retry loop `_swap_at_split`.
 """
@@ -28,7 +28,6 @@ from companion.limits import clips_text
 from companion.mission import (
     check_mission,
     local_replan,
-    remaining,
     replan_remainder,
     start_mission,
     trim,
@@ -82,9 +81,6 @@ class Navigator:
         self.report = report
         self.position = position  # the measured position (NED)
         self.obstacles = ObstacleStore(cfg.limits.max_obstacles_held)
-        self.route: Route | None = None  # the mission being flown (its plan is in control)
-        self.pending: MissionSpec | None = None  # loaded, waits for `start`
-        self.interrupted: MissionSpec | None = None  # what a stop left of the mission, for `resume`
         # a change gave the flown mission times (a set duration, appended durations): from then on
         # its replans keep times, as a mission that gave durations (a new mission clears it)
         self.user_timed = False
@@ -94,8 +90,25 @@ class Navigator:
         # seconds of planning per mission waypoint measured in this service (running estimate;
         # from the first plans, and after warm-up: a guess on the slow side of an idle computer)
         self.plan_per_waypoint = 0.004
-        self.brakes = Brakes(cfg, control, runtime, report, self.stop_context, position, self._stopped)
+        self.brakes = Brakes(cfg, flight, control, runtime, report, self.stop_context, position)
         self.limits: Any = None  # companion.limits_watch.LimitsWatch (set by the service): bounds flown
+
+    # -- the missions, as Control holds them (read-only here) ------------------------------
+
+    @property
+    def route(self) -> Route | None:
+        """The mission being flown (its plan is in control)."""
+        return self.control.route
+
+    @property
+    def pending(self) -> MissionSpec | None:
+        """Loaded (or what a release left): waits for `start`."""
+        return self.control.pending
+
+    @property
+    def interrupted(self) -> MissionSpec | None:
+        """What a stop left of the mission: waits for `resume`."""
+        return self.control.interrupted
 
     # -- what is known --------------------------------------------------------------------
 
@@ -151,29 +164,6 @@ class Navigator:
             if m is not None:
                 return m.id
         return None
-
-    # -- handing control over ---------------------------------------------------------------
-
-    def _stopped(self, t: float) -> None:
-        """A stop starts at trajectory time t: what is left of the mission waits for `resume`."""
-        if self.route is not None:
-            self.interrupted = remaining(self.route, t)
-            self.route = None
-
-    def release(self) -> None:
-        """Control ends (a pilot, a failsafe): keep what is left of the mission for `start`."""
-        if self.route is not None and self.control.flying:
-            left = remaining(self.route, self.control.now())
-            if left is not None:
-                self.pending = left
-        elif self.interrupted is not None:
-            self.pending = self.interrupted
-        self.route = None
-        self.interrupted = None
-
-    def forget(self) -> None:
-        """Abort or land: no mission is flown, loaded or interrupted any more."""
-        self.route = self.pending = self.interrupted = None
 
     # -- progress -----------------------------------------------------------------------------
 
@@ -232,7 +222,7 @@ class Navigator:
         while late < 2 and changed < 2:
             if not self.control.flying or not self.flight.flying_ours:
                 return Swapped(None, reason=f"no longer in control ({self.flight.state.value})")
-            base, route = self.control.active, self.route
+            base, route = self.control.active, self.control.route
             assert base is not None
             t_split = self.control.committed() + ahead  # setpoints up to now + lead are sent
             if hit is not None and t_split >= hit:
@@ -244,14 +234,12 @@ class Navigator:
             took = time.monotonic() - t0
             if not outcome.ok or outcome.route is None:
                 return Swapped(outcome, t_split, outcome.message)
-            if self.control.active is not base or self.route is not route:
+            if self.control.active is not base or self.control.route is not route:
                 changed += 1
                 reason = "the flown plan changed while planning (a stop or another change came first)"
                 say(reason + "; planning again")
                 continue
-            if self.control.swap(splice(base, outcome.route.trajectory), t_split, arrived, what):
-                self.route = outcome.route
-                self.interrupted = None
+            if self.control.swap(splice(base, outcome.route.trajectory), t_split, arrived, what, outcome.route):
                 return Swapped(outcome, t_split)
             if self.control.refusal != SWAP_LATE:
                 reason = self.control.refusal  # an internal check: planning again would not help
@@ -299,7 +287,7 @@ class Navigator:
             if not outcome.ok:
                 self._reject_outcome(spec, outcome)
                 return
-        self.pending = spec
+        self.control.load(spec)
         where = "on the ground" if not self.flight.airborne else f"in {self.flight.state.value}"
         self.report.event("accepted", f"mission {spec.id} loaded ({len(spec.waypoints)} waypoints, vehicle {where}); "
                           "send 'start' to fly it", key="mission", mission=spec.id, plan_ms=plan_ms, pending=True)
@@ -348,8 +336,7 @@ class Navigator:
                 return False
             assert done.outcome is not None and done.outcome.route is not None
             self.user_timed = False
-            if self.pending is given:
-                self.pending = None
+            self.control.unload(given)
             self.report.go(S.STREAMING, f"flying mission {spec.id}")
             lat = self.plan_latency or 0.0
             self.report.event("accepted", f"mission {spec.id}: planned and verified in {lat * 1000:.1f} ms "
@@ -375,7 +362,7 @@ class Navigator:
             await self.brakes.brake(reason, arrived)
 
     async def abort(self, arrived: float | None) -> None:
-        self.forget()
+        self.control.forget()
         async with self.lock:
             if self.flight.flying_ours or (self.flight.state is S.TAKEOFF and self.control.streaming):
                 await self.brakes.brake("abort command", arrived)

@@ -6,8 +6,10 @@ the setpoint thread -> MAVLink out. Telemetry comes back over MAVLink and goes o
 
 The parts, each the one owner of what it holds:
 - `Flight` (flight.py): the state and every flag about the vehicle's situation;
-- `Control` (control.py): what the setpoint thread flies and its time base;
-- `Navigator` (navigator.py): which mission is flown, loaded or interrupted; the obstacles;
+- `Control` (control.py): what is flown: the mission's route, the trajectory the setpoint
+  thread flies and its time base, changed together; what is left of a mission (loaded,
+  interrupted);
+- `Navigator` (navigator.py): planning missions, changes and pop-ups in flight; the obstacles;
 - `Commands` (commands.py): the command sequences; `AutopilotWatch` (autopilot.py): reports;
 - `Runtime` (runtime.py): executors; `Reporter` (report.py): events.
 """
