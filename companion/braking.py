@@ -198,22 +198,32 @@ class Replanned:
 
 
 class StopGuard:
-    """A verified stop, planned (once started) for the braking deadline in the brake thread."""
+    """A verified stop, planned (once started) for the braking deadline in the brake thread.
 
-    def __init__(self, brakes: Brakes, base: Trajectory, deadline: float, hit: float) -> None:
+    The deadline starts at the hit (no stop may start later) and is only brought forward, by
+    `bring_forward`, its one writer."""
+
+    def __init__(self, brakes: Brakes, base: Trajectory, hit: float) -> None:
         self.brakes = brakes
         self.base = base
-        self.deadline = deadline
+        self._deadline = hit
         self.hit = hit
         self.notes: list[str] = []
         self.future: asyncio.Future[StopPlan] | None = None
 
-    def tighten(self, deadline: float, hit: float, why: str) -> None:
-        """Another obstacle, nearer, arrived during the race: brake for it in time."""
-        if deadline >= self.deadline:
+    @property
+    def deadline(self) -> float:
+        """The latest trajectory time at which the stop may start."""
+        return self._deadline
+
+    def bring_forward(self, deadline: float, hit: float, why: str = "") -> None:
+        """The braking deadline for an obstacle hit at `hit` (the first one's, or another,
+        nearer obstacle's that arrived during the race, `why` says so): brake for it in time."""
+        if deadline >= self._deadline:
             return
-        self.deadline, self.hit = deadline, min(self.hit, hit)
-        self.notes.append(why)
+        self._deadline, self.hit = deadline, min(self.hit, hit)
+        if why:
+            self.notes.append(why)
         plan = self.ready()
         if self.future is not None and (plan is None or plan.trajectory is None or plan.start > deadline):
             self.future.cancel()  # planned for the later deadline (or still planning for it)
@@ -267,7 +277,7 @@ class Brakes:
         self.race_guard: StopGuard | None = None  # the replan racing a braking deadline, if any
 
     def guard(self, base: Trajectory, hit: float) -> StopGuard:
-        return StopGuard(self, base, hit, hit)
+        return StopGuard(self, base, hit)
 
     def stop_future(self, base: Trajectory, starts: list[float]) -> asyncio.Future[StopPlan]:
         """Plan a verified stop off `base` in the brake thread (see plan_stop)."""
@@ -313,7 +323,7 @@ class Brakes:
     async def race(self, guard: StopGuard, replan: asyncio.Task[Replanned], notes: list[str],
                    arrived: float, what: str) -> None:
         """Wait for the replan until the stop's start (a few periods to spare); brake if it is
-        late or fails. The caller set guard.deadline."""
+        late or fails. The caller brought guard's deadline forward from the hit."""
         self.race_guard = guard
         try:
             await self._race(guard, replan, notes, arrived, what)

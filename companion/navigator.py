@@ -488,7 +488,7 @@ class Navigator:
             now = self.control.now()
             hit = first_hit(race.base, now, new, self.route.mission.radius)
             if hit is not None:
-                race.tighten(brake_deadline(race.base, now, hit, self.route.mission.bounds), hit,
+                race.bring_forward(brake_deadline(race.base, now, hit, self.route.mission.bounds), hit,
                              f"deadline brought forward by obstacles {names} (hit at t={hit:.2f} s)")
         async with self.lock:
             if self.flight.state is not S.STREAMING or self.route is None or not self.control.flying:
@@ -539,6 +539,6 @@ class Navigator:
 
         task = asyncio.create_task(replan())
         await asyncio.sleep(0)  # the replan is handed to its thread first; the rest overlaps it
-        guard.deadline = brake_deadline(base, now, hit, bounds)
+        guard.bring_forward(brake_deadline(base, now, hit, bounds), hit)
         announce()
         await self.brakes.race(guard, task, notes, arrived, what)
