@@ -24,6 +24,7 @@ from companion.flight import HOLDING_CONTROL, Flight, State
 from companion.lag import LagEstimator
 from companion.navigator import MAX_AHEAD, RETRY_MARGIN, Navigator
 from companion.report import Reporter
+from companion.runtime import Runtime
 from companion.wire.mavlink import APM_MODES, PX4_MODES, CommandFailed, MavlinkLink
 from companion.wire.messages import Command
 from planner_core import Problem, allocate_times, plan, splice, takeoff_duration
@@ -53,13 +54,14 @@ def at_rest(velocity: np.ndarray, threshold: float) -> bool:
 
 class Commands:
     def __init__(self, cfg: Config, flight: Flight, control: Control, link: MavlinkLink, navigator: Navigator,
-                 report: Reporter) -> None:
+                 report: Reporter, runtime: Runtime | None = None) -> None:
         self.cfg = cfg
         self.flight = flight
         self.control = control
         self.link = link
         self.nav = navigator
         self.report = report
+        self.runtime = runtime  # the planner's workers (the takeoff climb)
         self.task: asyncio.Task[None] | None = None  # the running arm/takeoff/start sequence
         # tracking: measured position against the setpoint of the measurement's time
         self.tracking_error: float | None = None
@@ -73,7 +75,7 @@ class Commands:
         self.lag = LagEstimator(cap=cfg.setpoints.lead_max)
         self._leads: collections.deque[tuple[float, float]] = collections.deque()  # (t, lead) sampled
         self._lead_set_at: float | None = None
-        self.lead_target: Any = None  # the setpoint thread (its `lead` is set here)
+        self.lead_target: Any = None  # the setpoint thread (its `lead` is set here only: steer_lead)
         self._stall_task: asyncio.Task[None] | None = None  # what a stall of the companion set off
 
     def cancel_sequence(self) -> None:
@@ -263,7 +265,8 @@ class Commands:
                 durations = np.diff(allocate_times(points, bounds, t0=t_split))
             problem = Problem.from_waypoints(points, durations, bounds, initial=jet, t0=t_split)
             t0 = time.monotonic()
-            result = await self.nav.runtime.plan(plan, problem)
+            assert self.runtime is not None
+            result = await self.runtime.plan(plan, problem)
             took = time.monotonic() - t0
             if not result.ok or result.trajectory is None:
                 raise CommandFailed(f"no verified climb: {result.message}", by="companion")
@@ -447,8 +450,19 @@ class Commands:
             last = self._lead_set_at if self._lead_set_at is not None else measured_at
             step = LEAD_SLEW * max(0.0, measured_at - last)
             want = min(est, self.cfg.setpoints.lead_max)
-            self.lead_target.lead = lead_now + max(-step, min(step, want - lead_now))
+            self._set_lead(lead_now + max(-step, min(step, want - lead_now)))
         self._lead_set_at = measured_at
+
+    def steer_lead(self, target: Any) -> None:
+        """Set the lead of `target` (the setpoint thread or process), from now on only here: the
+        configured one, or with `setpoints.lead = "auto"` the initial one, then the estimate."""
+        sp = self.cfg.setpoints
+        self.lead_target = target
+        self._set_lead(min(sp.lead_initial, sp.lead_max) if sp.lead == "auto" else float(sp.lead))
+
+    def _set_lead(self, lead: float) -> None:
+        """The one writer of the setpoints' lead."""
+        self.lead_target.lead = lead
 
     # -- the hand-over on exit -------------------------------------------------------------
 
