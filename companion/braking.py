@@ -19,7 +19,7 @@ import numpy as np
 
 from companion.config import Config
 from companion.control import Control
-from companion.flight import HOLDING_CONTROL, State
+from companion.flight import HOLDING_CONTROL, Flight, State
 from companion.report import Reporter
 from companion.route import build_corridors
 from companion.runtime import Runtime
@@ -198,22 +198,32 @@ class Replanned:
 
 
 class StopGuard:
-    """A verified stop, planned (once started) for the braking deadline in the brake thread."""
+    """A verified stop, planned (once started) for the braking deadline in the brake thread.
 
-    def __init__(self, brakes: Brakes, base: Trajectory, deadline: float, hit: float) -> None:
+    The deadline starts at the hit (no stop may start later) and is only brought forward, by
+    `bring_forward`, its one writer."""
+
+    def __init__(self, brakes: Brakes, base: Trajectory, hit: float) -> None:
         self.brakes = brakes
         self.base = base
-        self.deadline = deadline
+        self._deadline = hit
         self.hit = hit
         self.notes: list[str] = []
         self.future: asyncio.Future[StopPlan] | None = None
 
-    def tighten(self, deadline: float, hit: float, why: str) -> None:
-        """Another obstacle, nearer, arrived during the race: brake for it in time."""
-        if deadline >= self.deadline:
+    @property
+    def deadline(self) -> float:
+        """The latest trajectory time at which the stop may start."""
+        return self._deadline
+
+    def bring_forward(self, deadline: float, hit: float, why: str = "") -> None:
+        """The braking deadline for an obstacle hit at `hit` (the first one's, or another,
+        nearer obstacle's that arrived during the race, `why` says so): brake for it in time."""
+        if deadline >= self._deadline:
             return
-        self.deadline, self.hit = deadline, min(self.hit, hit)
-        self.notes.append(why)
+        self._deadline, self.hit = deadline, min(self.hit, hit)
+        if why:
+            self.notes.append(why)
         plan = self.ready()
         if self.future is not None and (plan is None or plan.trajectory is None or plan.start > deadline):
             self.future.cancel()  # planned for the later deadline (or still planning for it)
@@ -252,23 +262,22 @@ class Brakes:
     """Stops on the loop: now (`brake`), or racing a replan against the braking deadline (`race`).
 
     `context()` says what a stop is planned against; `position()` is the measured position
-    (for a hold when no stop can be planned); `on_stop(t)` is told the trajectory time at
-    which the vehicle starts stopping (the mission is interrupted there)."""
+    (for a hold when no stop can be planned). A stop swapped in (or a hold) interrupts the
+    mission flown at its start: `Control` keeps what is left of it for `resume`."""
 
-    def __init__(self, cfg: Config, control: Control, runtime: Runtime, report: Reporter,
-                 context: Callable[[], StopContext], position: Callable[[], FloatArray],
-                 on_stop: Callable[[float], None]) -> None:
+    def __init__(self, cfg: Config, flight: Flight, control: Control, runtime: Runtime, report: Reporter,
+                 context: Callable[[], StopContext], position: Callable[[], FloatArray]) -> None:
         self.cfg = cfg
+        self.flight = flight
         self.control = control
         self.runtime = runtime
         self.report = report
         self.context = context
         self.position = position
-        self.on_stop = on_stop
         self.race_guard: StopGuard | None = None  # the replan racing a braking deadline, if any
 
     def guard(self, base: Trajectory, hit: float) -> StopGuard:
-        return StopGuard(self, base, hit, hit)
+        return StopGuard(self, base, hit)
 
     def stop_future(self, base: Trajectory, starts: list[float]) -> asyncio.Future[StopPlan]:
         """Plan a verified stop off `base` in the brake thread (see plan_stop)."""
@@ -282,10 +291,7 @@ class Brakes:
     def _commit(self, base: Trajectory, plan: StopPlan | None, arrived: float | None) -> bool:
         if plan is None or plan.trajectory is None or self.control.active is not base:
             return False
-        if not self.control.swap(splice(base, plan.trajectory), plan.start, arrived, "braking"):
-            return False
-        self.on_stop(plan.start)
-        return True
+        return self.control.swap(splice(base, plan.trajectory), plan.start, arrived, "braking")
 
     async def brake(self, reason: str, arrived: float | None, blocked: int | None = None,
                     prepared: StopPlan | None = None) -> None:
@@ -308,7 +314,6 @@ class Brakes:
         if not swapped:
             if not self.control.flying:
                 return
-            self.on_stop(self.control.now())
             self.control.hold_here(self.position())
             why = f"no verified braking trajectory ({why}); holding at the measured position"
         self.report.go(State.BRAKING, reason)
@@ -318,7 +323,7 @@ class Brakes:
     async def race(self, guard: StopGuard, replan: asyncio.Task[Replanned], notes: list[str],
                    arrived: float, what: str) -> None:
         """Wait for the replan until the stop's start (a few periods to spare); brake if it is
-        late or fails. The caller set guard.deadline."""
+        late or fails. The caller brought guard's deadline forward from the hit."""
         self.race_guard = guard
         try:
             await self._race(guard, replan, notes, arrived, what)
@@ -330,7 +335,7 @@ class Brakes:
         # Swap with a few periods to spare: the loop may be late, and swap() refuses a split
         # less than half a period ahead.
         spare = 2.0 / self.cfg.setpoints.rate_hz
-        flight = self.report.flight
+        flight = self.flight
         while not replan.done():
             if flight.state not in HOLDING_CONTROL:  # e.g. a pilot took over meanwhile
                 replan.cancel()

@@ -24,6 +24,7 @@ from companion.flight import HOLDING_CONTROL, Flight, State
 from companion.lag import LagEstimator
 from companion.navigator import MAX_AHEAD, RETRY_MARGIN, Navigator
 from companion.report import Reporter
+from companion.runtime import Runtime
 from companion.wire.mavlink import APM_MODES, PX4_MODES, CommandFailed, MavlinkLink
 from companion.wire.messages import Command
 from planner_core import Problem, allocate_times, plan, splice, takeoff_duration
@@ -53,13 +54,14 @@ def at_rest(velocity: np.ndarray, threshold: float) -> bool:
 
 class Commands:
     def __init__(self, cfg: Config, flight: Flight, control: Control, link: MavlinkLink, navigator: Navigator,
-                 report: Reporter) -> None:
+                 report: Reporter, runtime: Runtime | None = None) -> None:
         self.cfg = cfg
         self.flight = flight
         self.control = control
         self.link = link
         self.nav = navigator
         self.report = report
+        self.runtime = runtime  # the planner's workers (the takeoff climb)
         self.task: asyncio.Task[None] | None = None  # the running arm/takeoff/start sequence
         # tracking: measured position against the setpoint of the measurement's time
         self.tracking_error: float | None = None
@@ -73,7 +75,7 @@ class Commands:
         self.lag = LagEstimator(cap=cfg.setpoints.lead_max)
         self._leads: collections.deque[tuple[float, float]] = collections.deque()  # (t, lead) sampled
         self._lead_set_at: float | None = None
-        self.lead_target: Any = None  # the setpoint thread (its `lead` is set here)
+        self.lead_target: Any = None  # the setpoint thread (its `lead` is set here only: steer_lead)
         self._stall_task: asyncio.Task[None] | None = None  # what a stall of the companion set off
 
     def cancel_sequence(self) -> None:
@@ -87,7 +89,6 @@ class Commands:
 
     def release_control(self) -> None:
         """Stop commanding at once; what is left of the mission waits for `start`."""
-        self.nav.release()
         self.control.release()
         self.cancel_sequence()
 
@@ -152,7 +153,6 @@ class Commands:
             reason = str(exc) if exc.by == "companion" else f"failed: {exc}"
             self.report.refuse(name, reason, by=exc.by, **exc.fields())
             if self.flight.state in (S.ARMING, S.TAKEOFF):
-                self.nav.release()
                 self.control.release()
                 self.report.go(S.IDLE if not self.link.state.armed else S.FAILSAFE, f"{name} failed: {exc}")
         except asyncio.CancelledError:
@@ -265,7 +265,8 @@ class Commands:
                 durations = np.diff(allocate_times(points, bounds, t0=t_split))
             problem = Problem.from_waypoints(points, durations, bounds, initial=jet, t0=t_split)
             t0 = time.monotonic()
-            result = await self.nav.runtime.plan(plan, problem)
+            assert self.runtime is not None
+            result = await self.runtime.plan(plan, problem)
             took = time.monotonic() - t0
             if not result.ok or result.trajectory is None:
                 raise CommandFailed(f"no verified climb: {result.message}", by="companion")
@@ -312,7 +313,7 @@ class Commands:
         be in the air: our modes, a pilot's, a failsafe's, or after a restart."""
         self.cancel_sequence()
         self.flight.exit_requested = True
-        self.nav.forget()
+        self.control.forget()
         self.control.release()
         was = self.flight.state
         self.report.go(S.LANDING, f"land command ({was.value}): the autopilot lands")
@@ -341,7 +342,7 @@ class Commands:
         if state in HOLDING_CONTROL or (state is S.TAKEOFF and self.control.streaming):
             await self.nav.abort(arrived)
         else:
-            self.nav.forget()
+            self.control.forget()
             if state in (S.ARMING, S.TAKEOFF):
                 self.control.release()
                 self.report.go(S.IDLE if not self.link.state.armed else S.FAILSAFE, "abort command")
@@ -449,8 +450,19 @@ class Commands:
             last = self._lead_set_at if self._lead_set_at is not None else measured_at
             step = LEAD_SLEW * max(0.0, measured_at - last)
             want = min(est, self.cfg.setpoints.lead_max)
-            self.lead_target.lead = lead_now + max(-step, min(step, want - lead_now))
+            self._set_lead(lead_now + max(-step, min(step, want - lead_now)))
         self._lead_set_at = measured_at
+
+    def steer_lead(self, target: Any) -> None:
+        """Set the lead of `target` (the setpoint thread or process), from now on only here: the
+        configured one, or with `setpoints.lead = "auto"` the initial one, then the estimate."""
+        sp = self.cfg.setpoints
+        self.lead_target = target
+        self._set_lead(min(sp.lead_initial, sp.lead_max) if sp.lead == "auto" else float(sp.lead))
+
+    def _set_lead(self, lead: float) -> None:
+        """The one writer of the setpoints' lead."""
+        self.lead_target.lead = lead
 
     # -- the hand-over on exit -------------------------------------------------------------
 
@@ -558,7 +570,6 @@ class Commands:
                 self.report.event("error", f"{reason}: hand-over to {mode} failed: {exc}", mode=st.mode)
                 why = f"after the hand-over to {mode} failed"
                 continue
-            self.nav.release()
             self.control.release()
             to = S.LANDING if mode == "LAND" else S.PILOT
             self.report.go(to, f"{reason}: handed over to the autopilot ({st.mode})")

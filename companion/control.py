@@ -1,10 +1,17 @@
-"""The one owner of what is flown: the active trajectory, its time base and whether it streams.
+"""The one owner of what is flown: the mission's route, the active trajectory, its time base
+and whether it streams; and what is left of a mission no longer flown.
 
-Every change of what the setpoint thread flies goes through `Control`: `take` (a hold at a
-measured position on a fresh time base), `swap` (checked: the new plan equals the flown
-one up to the split), `hold_here` and `release`. The thread reads one immutable `Feed`
-snapshot replaced in one assignment, so it never samples one trajectory on another's time
-base. Trajectory time is `time.monotonic() - t_base`, fixed while we keep control.
+Every change of what the setpoint thread flies goes through `Control`, one method per change,
+each changing the route together with the trajectory: `take` (a hold at a measured position on
+a fresh time base; no route), `swap` (checked: the new plan equals the flown one up to the
+split; with the mission's route, or a stop that interrupts it), `hold_here` (interrupts it),
+`pause` (stops streaming, keeps both) and `release` (neither; what is left of the mission
+waits for `start`). So the route is never flown on a trajectory it was not swapped in with,
+and a release never leaves one without the other. What a stop left of the mission waits for
+`resume` (`interrupted`); a loaded mission (or what a release left) waits for `start`
+(`pending`). The thread reads one immutable `Feed` snapshot replaced in one assignment, so it
+never samples one trajectory on another's time base. Trajectory time is
+`time.monotonic() - t_base`, fixed while we keep control.
 
 Also here, because they are measured against what is flown: the setpoint stream's period
 statistics and the message-to-first-setpoint latency of a new plan.
@@ -20,7 +27,10 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from companion.mission import remaining
+from companion.route import Route
 from companion.setpoints import Feed, Setpoint, Tick, YawPolicy, sample
+from companion.wire.messages import MissionSpec
 from planner_core import FloatArray, Trajectory, hold, sampler, trim_before
 
 log = logging.getLogger("companion")
@@ -52,6 +62,11 @@ class Control:
         self._streaming = False
         self._t_base: float | None = None
         self._active: Trajectory | None = None
+        # the mission flown: its route, and the trajectory it was swapped in with (the active one)
+        self._route: Route | None = None
+        self._route_with: Trajectory | None = None
+        self._interrupted: MissionSpec | None = None  # what a stop left of the mission, for `resume`
+        self._pending: MissionSpec | None = None  # loaded (or left by a release), for `start`
         self._latency_mark: tuple[float, Trajectory, str] | None = None
         self.refusal = ""  # why the last swap was refused ("" after one that was not)
         # the stream, as sent
@@ -74,6 +89,26 @@ class Control:
     @property
     def active(self) -> Trajectory | None:
         return self._active
+
+    @property
+    def route(self) -> Route | None:
+        """The mission being flown (its plan is the active trajectory), if any."""
+        return self._route
+
+    @property
+    def interrupted(self) -> MissionSpec | None:
+        return self._interrupted
+
+    @property
+    def pending(self) -> MissionSpec | None:
+        return self._pending
+
+    def agrees(self) -> bool:
+        """The invariant: a route is flown only on the trajectory it was swapped in with, and
+        released means neither a route nor a trajectory nor a time base."""
+        if self._route is not None and (self._active is not self._route_with or self._t_base is None):
+            return False
+        return self._active is not None or (self._route is None and self._t_base is None and not self._streaming)
 
     @property
     def flying(self) -> bool:
@@ -140,15 +175,19 @@ class Control:
 
     def take(self, position: FloatArray, measured_yaw: float, reason: str) -> None:
         """Start streaming a hold at a measured position, on a fresh time base."""
+        self._end_route(self.now() if self.flying else None, interrupted=False)
         self._set(self._active, self._t_base, False)  # no tick may pair the old plan with the new base
         self.yaw.reset(measured_yaw)
         self._set(hold(position, 0.0), time.monotonic(), True)
         self.on_new_plan(self._active)  # type: ignore[arg-type]
         log.info("taking control: %s", reason)
 
-    def swap(self, new: Trajectory, t_split: float, arrived: float | None, what: str) -> bool:
+    def swap(self, new: Trajectory, t_split: float, arrived: float | None, what: str,
+             route: Route | None = None) -> bool:
         """Replace the flown plan by `new`, which must equal it before t_split (checked). When
-        not, `refusal` says why (one of the SWAP_* texts: each cause its own)."""
+        not, `refusal` says why (one of the SWAP_* texts: each cause its own). `route`: the
+        mission `new` flies from t_split (the interrupted one is then flown again); None (a stop,
+        a climb): the mission flown so far is interrupted at t_split."""
         old = self._active
         if old is None or self._t_base is None:
             self.refusal = SWAP_NOTHING
@@ -171,6 +210,10 @@ class Control:
             return False
         self.refusal = ""
         self._set(trim_before(new, now - 1.0), self._t_base, self._streaming)
+        if route is not None:
+            self._route, self._route_with, self._interrupted = route, self._active, None
+        else:
+            self._end_route(t_split, interrupted=True)
         if arrived is not None:
             self._latency_mark = (arrived, self._active, what)  # type: ignore[assignment]
         self.send_now()
@@ -178,14 +221,51 @@ class Control:
         return True
 
     def hold_here(self, position: FloatArray) -> None:
-        """Hold at the measured position (verified by construction: it does not move)."""
-        self._set(hold(position, self.now()), self._t_base, self._streaming)
+        """Hold at the measured position (verified by construction: it does not move); the
+        mission flown is interrupted now."""
+        now = self.now()
+        self._end_route(now, interrupted=True)
+        self._set(hold(position, now), self._t_base, self._streaming)
         self.send_now()
         self.on_new_plan(self._active)  # type: ignore[arg-type]
 
     def release(self) -> None:
-        """Stop commanding at once and forget the plan and its time base."""
+        """Stop commanding at once and forget the route, the plan and its time base (a pilot, a
+        failsafe, the exit): what is left of the mission, flown or interrupted, waits for
+        `start`."""
+        if self._route is not None:
+            self._end_route(self.now(), interrupted=False)
+        elif self._interrupted is not None:
+            self._pending = self._interrupted
+        self._interrupted = None
         self._set(None, None, False)
+
+    def forget(self) -> None:
+        """Abort or land: no mission is flown, loaded or interrupted any more (the trajectory
+        flies on until it is changed: a stop, a release)."""
+        self._route = self._route_with = self._pending = self._interrupted = None
+
+    def load(self, spec: MissionSpec) -> None:
+        """A mission loaded: it waits for `start`."""
+        self._pending = spec
+
+    def unload(self, spec: MissionSpec) -> None:
+        """`spec` is flown now: it no longer waits for `start` (if it was the one waiting)."""
+        if self._pending is spec:
+            self._pending = None
+
+    def _end_route(self, t: float | None, *, interrupted: bool) -> None:
+        """The mission stops being flown at trajectory time t: what is left of it waits for
+        `resume` (`interrupted`: a stop) or for `start` (a release, a fresh hold)."""
+        route = self._route
+        self._route = self._route_with = None
+        if route is None:
+            return
+        left = None if t is None else remaining(route, t)
+        if interrupted:
+            self._interrupted = left
+        elif left is not None:
+            self._pending = left
 
     def pause(self) -> None:
         """Stop streaming, keeping the plan (a hand-over to the autopilot's own takeoff)."""

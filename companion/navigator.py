@@ -1,7 +1,7 @@
 """Missions in flight, on the loop: load, fly, change, avoid pop-ups, stop, resume.
 
-The one owner of which mission is flown (`route`), which is loaded and waits for `start`
-(`pending`) and which was interrupted by a stop and waits for `resume` (`interrupted`).
+Which mission is flown (`route`), loaded (`pending`) or interrupted (`interrupted`) is held by
+`Control`, the one owner of what is flown, and changed only with the trajectory (read here).
 Planning runs in workers (companion.mission, pure); every new plan is swapped in through
 `Control.swap` at a split a little ahead of now, by the one retry loop `_swap_at_split`.
 """
@@ -28,7 +28,6 @@ from companion.limits import clips_text
 from companion.mission import (
     check_mission,
     local_replan,
-    remaining,
     replan_remainder,
     start_separated,
     trim,
@@ -83,9 +82,6 @@ class Navigator:
         self.report = report
         self.position = position  # the measured position (NED)
         self.obstacles = ObstacleStore(cfg.limits.max_obstacles_held)
-        self.route: Route | None = None  # the mission being flown (its plan is in control)
-        self.pending: MissionSpec | None = None  # loaded, waits for `start`
-        self.interrupted: MissionSpec | None = None  # what a stop left of the mission, for `resume`
         # a change gave the flown mission times (a set duration, appended durations): from then on
         # its replans keep times, as a mission that gave durations (a new mission clears it)
         self.user_timed = False
@@ -95,7 +91,7 @@ class Navigator:
         # seconds of planning per mission waypoint measured in this service (running estimate;
         # from the first plans, and after warm-up: a guess on the slow side of an idle computer)
         self.plan_per_waypoint = 0.004
-        self.brakes = Brakes(cfg, control, runtime, report, self.stop_context, position, self._stopped)
+        self.brakes = Brakes(cfg, flight, control, runtime, report, self.stop_context, position)
         self.limits: Any = None  # companion.limits_watch.LimitsWatch (set by the service): bounds flown
         # companion.deconfliction.Deconfliction (set by the service): the other vehicles' trajectories
         # and the commit protocol; None or disabled without [fleet] separation
@@ -115,6 +111,23 @@ class Navigator:
         names = self.fleet.names()
         return (f" (no plan keeps [fleet] separation {self.cfg.fleet.separation:g} m from "
                 f"{', '.join(names)})" if names else "")
+
+    # -- the missions, as Control holds them (read-only here) ------------------------------
+
+    @property
+    def route(self) -> Route | None:
+        """The mission being flown (its plan is in control)."""
+        return self.control.route
+
+    @property
+    def pending(self) -> MissionSpec | None:
+        """Loaded (or what a release left): waits for `start`."""
+        return self.control.pending
+
+    @property
+    def interrupted(self) -> MissionSpec | None:
+        """What a stop left of the mission: waits for `resume`."""
+        return self.control.interrupted
 
     # -- what is known --------------------------------------------------------------------
 
@@ -170,29 +183,6 @@ class Navigator:
             if m is not None:
                 return m.id
         return None
-
-    # -- handing control over ---------------------------------------------------------------
-
-    def _stopped(self, t: float) -> None:
-        """A stop starts at trajectory time t: what is left of the mission waits for `resume`."""
-        if self.route is not None:
-            self.interrupted = remaining(self.route, t)
-            self.route = None
-
-    def release(self) -> None:
-        """Control ends (a pilot, a failsafe): keep what is left of the mission for `start`."""
-        if self.route is not None and self.control.flying:
-            left = remaining(self.route, self.control.now())
-            if left is not None:
-                self.pending = left
-        elif self.interrupted is not None:
-            self.pending = self.interrupted
-        self.route = None
-        self.interrupted = None
-
-    def forget(self) -> None:
-        """Abort or land: no mission is flown, loaded or interrupted any more."""
-        self.route = self.pending = self.interrupted = None
 
     # -- progress -----------------------------------------------------------------------------
 
@@ -253,7 +243,7 @@ class Navigator:
         while late < 2 and changed < 2:
             if not self.control.flying or not self.flight.flying_ours:
                 return Swapped(None, reason=f"no longer in control ({self.flight.state.value})")
-            base, route = self.control.active, self.route
+            base, route = self.control.active, self.control.route
             assert base is not None
             t_split = self.control.committed() + ahead  # setpoints up to now + lead are sent
             if hit is not None and t_split >= hit:
@@ -275,16 +265,14 @@ class Navigator:
                         break
                     self.report.event("fleet", f"deconfliction: {why}; planning again against it", what=what)
                     continue
-            if self.control.active is not base or self.route is not route:
+            if self.control.active is not base or self.control.route is not route:
                 if self.fleet_on():
                     self.fleet.cancel()
                 changed += 1
                 reason = "the flown plan changed while planning (a stop or another change came first)"
                 say(reason + "; planning again")
                 continue
-            if self.control.swap(splice(base, outcome.route.trajectory), t_split, arrived, what):
-                self.route = outcome.route
-                self.interrupted = None
+            if self.control.swap(splice(base, outcome.route.trajectory), t_split, arrived, what, outcome.route):
                 return Swapped(outcome, t_split)
             if self.fleet_on():
                 self.fleet.cancel()  # the candidate that won is not flown: its number is not published
@@ -334,7 +322,7 @@ class Navigator:
             if not outcome.ok:
                 self._reject_outcome(spec, outcome)
                 return
-        self.pending = spec
+        self.control.load(spec)
         where = "on the ground" if not self.flight.airborne else f"in {self.flight.state.value}"
         self.report.event("accepted", f"mission {spec.id} loaded ({len(spec.waypoints)} waypoints, vehicle {where}); "
                           "send 'start' to fly it", key="mission", mission=spec.id, plan_ms=plan_ms, pending=True)
@@ -387,8 +375,7 @@ class Navigator:
                 return False
             assert done.outcome is not None and done.outcome.route is not None
             self.user_timed = False
-            if self.pending is given:
-                self.pending = None
+            self.control.unload(given)
             self.report.go(S.STREAMING, f"flying mission {spec.id}")
             lat = self.plan_latency or 0.0
             delay = done.outcome.stats.get("fleet_delay")
@@ -417,7 +404,7 @@ class Navigator:
             await self.brakes.brake(reason, arrived)
 
     async def abort(self, arrived: float | None) -> None:
-        self.forget()
+        self.control.forget()
         async with self.lock:
             if self.flight.flying_ours or (self.flight.state is S.TAKEOFF and self.control.streaming):
                 await self.brakes.brake("abort command", arrived)
@@ -545,7 +532,7 @@ class Navigator:
             now = self.control.now()
             hit = first_hit(race.base, now, new, self.route.mission.radius)
             if hit is not None:
-                race.tighten(brake_deadline(race.base, now, hit, self.route.mission.bounds), hit,
+                race.bring_forward(brake_deadline(race.base, now, hit, self.route.mission.bounds), hit,
                              f"deadline brought forward by obstacles {names} (hit at t={hit:.2f} s)")
         async with self.lock:
             if self.flight.state is not S.STREAMING or self.route is None or not self.control.flying:
@@ -596,7 +583,7 @@ class Navigator:
 
         task = asyncio.create_task(replan())
         await asyncio.sleep(0)  # the replan is handed to its thread first; the rest overlaps it
-        guard.deadline = brake_deadline(base, now, hit, bounds)
+        guard.bring_forward(brake_deadline(base, now, hit, bounds), hit)
         announce()
         await self.brakes.race(guard, task, notes, arrived, what)
 

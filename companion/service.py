@@ -6,8 +6,10 @@ the setpoint thread -> MAVLink out. Telemetry comes back over MAVLink and goes o
 
 The parts, each the one owner of what it holds:
 - `Flight` (flight.py): the state and every flag about the vehicle's situation;
-- `Control` (control.py): what the setpoint thread flies and its time base;
-- `Navigator` (navigator.py): which mission is flown, loaded or interrupted; the obstacles;
+- `Control` (control.py): what is flown: the mission's route, the trajectory the setpoint
+  thread flies and its time base, changed together; what is left of a mission (loaded,
+  interrupted);
+- `Navigator` (navigator.py): planning missions, changes and pop-ups in flight; the obstacles;
 - `Commands` (commands.py): the command sequences; `AutopilotWatch` (autopilot.py): reports;
 - `Runtime` (runtime.py): executors; `Reporter` (report.py): events.
 """
@@ -105,7 +107,7 @@ class Service:
         self.control = Control(self.sender, self.link.send_setpoint, self.yaw, cfg.setpoints.rate_hz,
                                on_new_plan=self.publish_trajectory, on_latency=self._latency_event)
         self.navigator = Navigator(cfg, self.flight, self.control, self.runtime, self.report, self._position)
-        self.commands = Commands(cfg, self.flight, self.control, self.link, self.navigator, self.report)
+        self.commands = Commands(cfg, self.flight, self.control, self.link, self.navigator, self.report, self.runtime)
         self.liveness = Liveness(cfg.setpoints.loop_stall_limit)
         self.sender.liveness = self.liveness
         self.watch = AutopilotWatch(cfg, self.flight, self.link, self.report, self.commands.release_control,
@@ -124,9 +126,7 @@ class Service:
         self.navigator.limits = self.limits
         self.link.on_ignored = self._mavlink_ignored
         # lag compensation: a fixed lead, or "auto" (set by Commands from its estimate)
-        self.commands.lead_target = self.sender
-        self.sender.lead = (min(cfg.setpoints.lead_initial, cfg.setpoints.lead_max) if cfg.setpoints.lead == "auto"
-                            else float(cfg.setpoints.lead))
+        self.commands.steer_lead(self.sender)
         self.zio: ZenohIO | None = None
         self.notifier = Notifier()
         self.gc = GcPacer()

@@ -113,6 +113,7 @@ class _Control:
     def __init__(self, refusals: list[str]) -> None:
         self.refusals = refusals
         self.active: Any = object()
+        self.route: Any = None  # the mission flown (Control holds it)
         self.flying = True
         self.refusal = ""
         self.t = 0.0
@@ -133,8 +134,6 @@ def _navigator(refusals: list[str]) -> Navigator:
     nav.cfg = Config()
     nav.control = _Control(refusals)  # type: ignore[assignment]
     nav.flight = SimpleNamespace(flying_ours=True, state=SimpleNamespace(value="STREAMING"))  # type: ignore[assignment]
-    nav.route = None
-    nav.interrupted = None
     nav.plan_per_waypoint = 0.004
     return nav
 
