@@ -30,13 +30,18 @@ lint: $(STAMP)
 typecheck: $(STAMP)
 	$(PY) -m mypy planner_core companion sitl_mock demo
 
-# Two passes: everything but the timing/memory measurements two files at a time (a file's tests
-# keep their order on one worker: some flights go on from where the last one left the
-# vehicle), then those measurements alone.
+# Three passes, each file's tests in order on one worker (some flights go on from where the last
+# one left the vehicle): the CPU-bound maths and unit tests two files at a time; the flights two
+# files at a time (they mostly wait on the simulated clock; a CPU-bound file beside a flight
+# would starve its planning); then the timing/memory measurements alone (tests/conftest.py SERIAL).
+# Every pass runs even when one fails, so that CI shows all.
+UNIT := tests/planner tests/companion tests/test_systemd.py
+FLIGHTS := tests/mock tests/e2e
 pytest: $(STAMP)
-	$(PY) -m pytest -q -n 2 --dist loadfile -m "not serial"; a=$$?; \
-	$(PY) -m pytest -q -m serial; b=$$?; \
-	test $$a = 0 && test $$b = 0
+	$(PY) -m pytest -q -n 2 --dist loadfile $(UNIT); a=$$?; \
+	$(PY) -m pytest -q -n 2 --dist loadfile -m "not serial" $(FLIGHTS); b=$$?; \
+	$(PY) -m pytest -q -m serial $(FLIGHTS); c=$$?; \
+	test $$a = 0 && test $$b = 0 && test $$c = 0
 
 test: lint typecheck pytest
 

@@ -48,7 +48,7 @@ class Deconfliction:
         self.committed_seq = 0
         # the candidate that won (its number and certificates), until it is published as committed
         self.approved: tuple[int, dict[str, Any]] | None = None
-        self.pending: Trajectory | None = None  # the candidate proposed (local, flight time)
+        self.proposed: Trajectory | None = None  # the candidate proposed (local, flight time)
         self._lost: asyncio.Future[str] | None = None
         self.ours: Trajectory | None = None  # our committed trajectory, fleet frame
         self.on_replan: Callable[[str], None] = lambda _why: None  # a higher-ranked vehicle's commit conflicts
@@ -145,7 +145,7 @@ class Deconfliction:
                 return f"{what}: {a.reason}" + (f" ({bad[0]})" if bad else "")
         # Traffic.check certifies in the fleet frame on the system clock: what a receiver checks
         certs = {c.vehicle: {"seq": c.seq, "certificate": cert.to_dict()} for c, cert, _ in checks if cert is not None}
-        self.pending = candidate
+        self.proposed = candidate
         loop = asyncio.get_running_loop()
         lost: asyncio.Future[str] = loop.create_future()
         self._lost = lost
@@ -163,7 +163,7 @@ class Deconfliction:
             self.replans += 1
             return f"{what}: the proposal was given up"
         finally:
-            self.pending = None
+            self.proposed = None
             self._lost = None
 
     def cancel(self) -> None:
@@ -235,7 +235,7 @@ class Deconfliction:
         if not self.traffic.heard(claim):
             return
         log.info("fleet: heard %s %s seq %d (pending %s, phase %s)", vehicle,
-                 "committed" if claim.committed else "proposed", claim.seq, self.pending is not None,
+                 "committed" if claim.committed else "proposed", claim.seq, self.proposed is not None,
                  self.state.phase.value)
         bad = self.traffic.verify_theirs(claim, self.ours, self.committed_seq)
         if bad is not None:
@@ -245,8 +245,8 @@ class Deconfliction:
             self.certificates_verified += 1
         if self.why_not() is not None:
             return
-        if self.pending is not None and self._lost is not None and not self._lost.done():
-            (_, cert, msg), = self._check(self.pending, [claim])
+        if self.proposed is not None and self._lost is not None and not self._lost.done():
+            (_, cert, msg), = self._check(self.proposed, [claim])
             self.state, acts = cp.step(self.state, cp.Heard(time.monotonic(), other(claim, cert is None)))
             for a in acts:
                 if isinstance(a, cp.Lose):

@@ -29,6 +29,7 @@ from companion.mission import (
     check_mission,
     local_replan,
     replan_remainder,
+    start_mission,
     start_separated,
     trim,
 )
@@ -356,9 +357,11 @@ class Navigator:
             async def plan_at(base: Trajectory, t_split: float) -> Outcome:
                 jet = self.control.jet(t_split)
                 t0 = time.perf_counter()
-                out: Outcome = self.logged(await self.runtime.plan(
-                    partial(start_separated, neighbours=self.neighbours(spec.bounds)), replace(spec, raw={}), jet,
-                    t_split, self.known(), self.cfg))
+                # without a fleet the call is start_mission's own (what a recording names and replays)
+                fn: Any = (partial(start_separated, neighbours=self.neighbours(spec.bounds)) if self.fleet_on()
+                           else start_mission)
+                out: Outcome = self.logged(await self.runtime.plan(fn, replace(spec, raw={}), jet, t_split,
+                                                                   self.known(), self.cfg))
                 self.plan_latency = time.perf_counter() - t0
                 self._measured(self.plan_latency, n)
                 return out

@@ -135,6 +135,7 @@ def _navigator(refusals: list[str]) -> Navigator:
     nav.control = _Control(refusals)  # type: ignore[assignment]
     nav.flight = SimpleNamespace(flying_ours=True, state=SimpleNamespace(value="STREAMING"))  # type: ignore[assignment]
     nav.plan_per_waypoint = 0.004
+    nav.fleet = None  # no [fleet]: no commit wait in the replan loop
     return nav
 
 
