@@ -38,9 +38,9 @@ typecheck: $(STAMP)
 UNIT := tests/planner tests/companion tests/test_systemd.py
 FLIGHTS := tests/mock tests/e2e
 pytest: $(STAMP)
-	$(PY) -m pytest -q -n 2 --dist loadfile $(UNIT); a=$$?; \
+	$(PY) -m pytest -q -n 2 --dist loadfile -m "not serial" $(UNIT); a=$$?; \
 	$(PY) -m pytest -q -n 2 --dist loadfile -m "not serial" $(FLIGHTS); b=$$?; \
-	$(PY) -m pytest -q -m serial $(FLIGHTS); c=$$?; \
+	$(PY) -m pytest -q -m serial tests; c=$$?; \
 	test $$a = 0 && test $$b = 0 && test $$c = 0
 
 test: lint typecheck pytest

@@ -66,6 +66,7 @@ SERIAL = {
     "test_lead",  # tracking error with and without the auto lead
     "test_setpoint_process",  # setpoint gaps while the loop holds the GIL
     "test_inbound_burst",  # admitted rate of a 5,000-message burst
+    "test_live",  # the Foxglove view's deliveries within their timeouts
 }
 
 
