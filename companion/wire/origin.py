@@ -14,6 +14,7 @@ the local frame by where the autopilot's frame sits in it (companion.fleet), bel
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -50,26 +51,34 @@ def scenario_from_home(obj: dict[str, Any], home: FloatArray) -> dict[str, Any]:
     return out
 
 
-def obstacles_from_home(obj: dict[str, Any], home: FloatArray) -> dict[str, Any]:
-    """A NED `obstacles` message with home-relative regions, in the local frame."""
+# One walk of each message's positions, whatever the frame they are given in (home or fleet).
+def _map_obstacles(obj: dict[str, Any], region: Callable[[dict[str, Any]], dict[str, Any]]) -> dict[str, Any]:
     out = dict(obj)
     if "add" in obj:
-        out["add"] = [_region(r, home) for r in obj["add"]]
+        out["add"] = [region(r) for r in obj["add"]]
     return out
 
 
-def change_from_home(obj: dict[str, Any], home: FloatArray) -> dict[str, Any]:
-    """A NED `change` message with home-relative positions, in the local frame."""
+def _map_change(obj: dict[str, Any], points: Callable[[Any], list[list[float]]]) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for kind, body in obj.items():
         if isinstance(body, dict):
             body = dict(body)
-            if "position" in body:
-                body["position"] = _points(body["position"], home)
-            if "waypoints" in body:
-                body["waypoints"] = _points(body["waypoints"], home)
+            for key in ("position", "waypoints"):
+                if key in body:
+                    body[key] = points(body[key])
         out[kind] = body
     return out
+
+
+def obstacles_from_home(obj: dict[str, Any], home: FloatArray) -> dict[str, Any]:
+    """A NED `obstacles` message with home-relative regions, in the local frame."""
+    return _map_obstacles(obj, lambda r: _region(r, home))
+
+
+def change_from_home(obj: dict[str, Any], home: FloatArray) -> dict[str, Any]:
+    """A NED `change` message with home-relative positions, in the local frame."""
+    return _map_change(obj, lambda p: _points(p, home))
 
 
 # -- "origin": "fleet": positions in the fleet frame ([fleet] origin; companion.fleet) ------------
@@ -111,21 +120,9 @@ def scenario_from_fleet(obj: dict[str, Any], pl: Placement) -> dict[str, Any]:
 
 def obstacles_from_fleet(obj: dict[str, Any], pl: Placement) -> dict[str, Any]:
     """A NED `obstacles` message with fleet-frame regions, in the local frame."""
-    out = dict(obj)
-    if "add" in obj:
-        out["add"] = [_fleet_region(r, pl) for r in obj["add"]]
-    return out
+    return _map_obstacles(obj, lambda r: _fleet_region(r, pl))
 
 
 def change_from_fleet(obj: dict[str, Any], pl: Placement) -> dict[str, Any]:
     """A NED `change` message with fleet-frame positions, in the local frame."""
-    out: dict[str, Any] = {}
-    for kind, body in obj.items():
-        if isinstance(body, dict):
-            body = dict(body)
-            if "position" in body:
-                body["position"] = _fleet_points(body["position"], pl)
-            if "waypoints" in body:
-                body["waypoints"] = _fleet_points(body["waypoints"], pl)
-        out[kind] = body
-    return out
+    return _map_change(obj, lambda p: _fleet_points(p, pl))
