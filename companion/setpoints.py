@@ -160,13 +160,9 @@ class Liveness:
 
     @property
     def withheld(self) -> tuple[float, str, float] | None:
-        """(since, "loop" | "thread", stall s) while setpoints are withheld. Read without the
-        lock: the loop reads it every period, and a reader that held the process-shared lock
-        while its thread waited for the GIL (a flood of Zenoh callbacks) kept the sender's
-        `check` waiting with it: a 100 ms setpoint gap. The sender writes the flag last, so a
-        reader sees it set only with its fields written (their text may be a tick old on a
-        weakly ordered CPU: the flag itself is what decides)."""
-        return self._held()
+        """(since, "loop" | "thread", stall s) while setpoints are withheld."""
+        with self._lock:
+            return self._held()
 
     def _held(self) -> tuple[float, str, float] | None:
         v = self._v
