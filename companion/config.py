@@ -137,6 +137,12 @@ class PlannerConfig:
     # How far ahead of "now" an in-flight replan splits the trajectory: the
     # planning latency budget plus a margin, so the piece flown never changes.
     split_ahead: float = 0.15
+    # In flight, how long (s) the search for the fastest durations of a new mission may take
+    # before the plan is swapped in: the service sizes the search (its number of candidate
+    # plans) from the planning speed it measured, so a busy computer still answers within about
+    # this, with a plan that flies a little slower (event `accepted` says so). The default
+    # allocation is always planned; a mission loaded on the ground is searched to the end.
+    search_time: float = 0.3
     # "process": plan in a separate process (no GIL shared with the setpoint thread; a
     # planner thread preempted while holding the GIL would stall setpoints on a busy
     # computer). "thread": plan in a thread of the service process (less memory).
@@ -366,6 +372,7 @@ _POSITIVE = {
     "planner.bounds.jerk",
     "planner.bounds.snap",
     "planner.split_ahead",
+    "planner.search_time",
     "planner.window",
     "planner.workers",
     "limits.max_message_bytes",

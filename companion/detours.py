@@ -39,9 +39,10 @@ def plan_with_detours(
     *,
     allocate: bool = False,
     neighbours: Any = None,
+    candidates: int | None = None,
 ) -> Outcome:
     """plan_route, inserting detour points around obstacles that block straight legs
-    (`allocate`: as plan_route's, for every attempt).
+    (`allocate`, `candidates`: as plan_route's, for every attempt).
 
     Up to MAX_DETOURS obstacles are detoured, one after the other. A detoured plan is
     verified like any other (plan_route); its stats carry "detour" (the points) and
@@ -50,7 +51,7 @@ def plan_with_detours(
     index into `obstacles`, and its message says why each way around it failed.
     """
     known = as_known(obstacles)
-    outcome = plan_route(mission, points, times, labels, initial, known, cfg, allocate=allocate,
+    outcome = plan_route(mission, points, times, labels, initial, known, cfg, allocate=allocate, candidates=candidates,
                          neighbours=neighbours)
     detours: list[Any] = []
     around: list[int] = []
@@ -59,7 +60,7 @@ def plan_with_detours(
             break
         notes: list[str] = []
         detoured = detour(mission, points, times, labels, initial, known, cfg,
-                          outcome.blocked_segment, outcome.obstacle, notes=notes, allocate=allocate,
+                          outcome.blocked_segment, outcome.obstacle, notes=notes, allocate=allocate, candidates=candidates,
                           neighbours=neighbours)
         if detoured is None:
             why = "; ".join(notes) or "no way around it inside the map"
@@ -157,6 +158,7 @@ def detour(
     notes: list[str] | None = None,
     allocate: bool = False,
     neighbours: Any = None,
+    candidates: int | None = None,
 ) -> tuple[Outcome, FloatArray, FloatArray, FloatArray] | None:
     """Insert synthetic waypoints around the obstacle that blocks `segment` and re-plan.
 
@@ -191,7 +193,7 @@ def detour(
             if seg is not None and seg > segment + k and best is None:
                 # this obstacle is cleared; another one blocks a later leg
                 tms = _detour_times(mission, points, times, pts, segment, k, initial, None)
-                outcome = plan_route(mission, pts, tms, lab, initial, known, cfg, allocate=allocate,
+                outcome = plan_route(mission, pts, tms, lab, initial, known, cfg, allocate=allocate, candidates=candidates,
                                      neighbours=neighbours)
                 outcome.stats["detour"] = [c.round(3).tolist() for c in cs]
                 best = (outcome, pts, tms, lab)
@@ -202,7 +204,7 @@ def detour(
             notes.append(f"{name}: corridor construction failed: {exc!r}")
             continue
         tms = _detour_times(mission, points, times, pts, segment, k, initial, corridors[0])
-        outcome = plan_route(mission, pts, tms, lab, initial, known, cfg, allocate=allocate,
+        outcome = plan_route(mission, pts, tms, lab, initial, known, cfg, allocate=allocate, candidates=candidates,
                                      neighbours=neighbours)
         if outcome.ok:
             outcome.stats["detour"] = [c.round(3).tolist() for c in cs]

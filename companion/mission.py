@@ -63,8 +63,8 @@ def answered(fn: F) -> F:
 
 @answered
 def start_mission(mission: MissionSpec, initial: FloatArray, t_start: float, known: Known | Sequence[Polytope],
-                  cfg: Config, neighbours: Neighbours | None = None) -> Outcome:
-    """Plan a fresh mission from the jet `initial` at `t_start`."""
+                  cfg: Config, neighbours: Neighbours | None = None, candidates: int | None = None) -> Outcome:
+    """Plan a fresh mission from the jet `initial` at `t_start`; `candidates`: plan_route's cap."""
     wps = mission.waypoints
     labels = mission.first_index + np.arange(len(wps), dtype=float)
     jet = np.array(initial, dtype=float)
@@ -102,7 +102,7 @@ def start_mission(mission: MissionSpec, initial: FloatArray, t_start: float, kno
     # allocation above then only gives t0 and the detour points' first guess).
     fastest = mission.durations is None and cfg.planner.timing == "fastest"
     return plan_with_detours(mission, points, times, lab, jet, as_known(known) + Known.of(mission.obstacles), cfg,
-                             allocate=fastest, neighbours=neighbours)
+                             allocate=fastest, neighbours=neighbours, candidates=candidates)
 
 
 # s: how long a vehicle at rest may wait for the others before it starts a mission no separated
@@ -113,7 +113,7 @@ FLEET_DELAY_BUDGET = 2.0  # s of planning spent on later starts at most (an unti
 
 @answered
 def start_separated(mission: MissionSpec, initial: FloatArray, t_start: float, known: Known | Sequence[Polytope],
-                    cfg: Config, neighbours: Neighbours | None = None) -> Outcome:
+                    cfg: Config, neighbours: Neighbours | None = None, candidates: int | None = None) -> Outcome:
     """start_mission against the other vehicles' trajectories; when no plan keeps the separation
     and the vehicle is at rest, the same mission started later (FLEET_DELAYS: it holds where it
     is meanwhile; stats `fleet_delay`). A timed mission keeps its durations."""
@@ -129,7 +129,7 @@ def start_separated(mission: MissionSpec, initial: FloatArray, t_start: float, k
                                f"final hold of neighbour {k}, which stays reserved ({nb.required(k):.2f} m required)",
                                field=f"waypoints[{len(mission.waypoints) - 1}]")
     t0 = time.perf_counter()
-    out = start_mission(mission, initial, t_start, known, cfg, neighbours)
+    out = start_mission(mission, initial, t_start, known, cfg, neighbours, candidates)
     if out.ok or neighbours is None or not neighbours.trajectories or "separation" not in out.message:
         return out
     if float(np.max(np.abs(np.asarray(initial, dtype=float)[1:]))) > 1e-3:
@@ -138,7 +138,7 @@ def start_separated(mission: MissionSpec, initial: FloatArray, t_start: float, k
         if time.perf_counter() - t0 > FLEET_DELAY_BUDGET:
             return replace(out, message=out.message + f" (and starting up to {delay:g} s later; gave up after "
                            f"{FLEET_DELAY_BUDGET:g} s of planning)")
-        later = start_mission(mission, initial, t_start + delay, known, cfg, neighbours)
+        later = start_mission(mission, initial, t_start + delay, known, cfg, neighbours, candidates)
         if later.ok:
             later.stats["fleet_delay"] = delay
             return later

@@ -53,10 +53,12 @@ from planner_core import (
 log = logging.getLogger("companion")
 S = State
 
-PLAN_OVERHEAD = 0.05  # s: a plan's fixed cost in the service (process hop, corridors, verify)
+FIXED_WAYPOINTS = 3  # a candidate plan's fixed cost (process hop, corridors, set-up), in waypoints' worth
 LATE_MARGIN = 1.5  # the split is this many expected planning times ahead
 RETRY_MARGIN = 2.0  # after a late plan: this many times the time it took (a loaded computer varies)
 MAX_AHEAD = 30.0  # s: never further ahead (the old, verified plan flies on meanwhile)
+FULL_SEARCH = 40  # candidates: a cap this large is no cap (a small mission's whole search plans ~30)
+MIN_CANDIDATES = 2  # the default allocation and one more (a long mission's local pass)
 FLEET_TRIES = 8  # candidates that lost to other vehicles before a plan is given up (docs/fleet.md)
 
 
@@ -89,8 +91,8 @@ class Navigator:
         self.lock = asyncio.Lock()  # one plan change at a time
         self.plan_latency: float | None = None
         self.replan_latency: float | None = None
-        # seconds of planning per mission waypoint measured in this service (running estimate;
-        # from the first plans, and after warm-up: a guess on the slow side of an idle computer)
+        # seconds per candidate plan per waypoint (FIXED_WAYPOINTS more) measured in this service: a
+        # running estimate, up fast and down slowly; until warm-up, a guess on the slow side
         self.plan_per_waypoint = 0.004
         self.brakes = Brakes(cfg, flight, control, runtime, report, self.stop_context, position)
         self.limits: Any = None  # companion.limits_watch.LimitsWatch (set by the service): bounds flown
@@ -291,16 +293,32 @@ class Navigator:
                 say(reason)
         return Swapped(None, reason=reason or "too close")
 
-    def split_ahead_for(self, n_waypoints: int) -> float:
-        """How far ahead of now a mission of n waypoints is split: the planning time expected from
-        the ones measured in this service (a running estimate per waypoint, with a margin), never
-        less than [planner] split_ahead nor more than MAX_AHEAD."""
-        expect = PLAN_OVERHEAD + self.plan_per_waypoint * max(n_waypoints, 1)
+    def candidate_seconds(self, n_waypoints: int) -> float:
+        """Expected wall time of one candidate plan of n waypoints in this service."""
+        return self.plan_per_waypoint * (max(n_waypoints, 1) + FIXED_WAYPOINTS)
+
+    def split_ahead_for(self, n_waypoints: int, candidates: int = 1) -> float:
+        """How far ahead of now a plan of n waypoints and that many candidate plans is split: the
+        planning time expected from the ones measured in this service, with a margin, never less
+        than [planner] split_ahead nor more than MAX_AHEAD."""
+        expect = self.candidate_seconds(n_waypoints) * max(candidates, 1)
         return float(min(max(self.cfg.planner.split_ahead, LATE_MARGIN * expect + 0.05), MAX_AHEAD))
 
-    def _measured(self, seconds: float, n_waypoints: int) -> None:
-        """A mission plan's wall time (queueing included) into the running estimate."""
-        per = max(seconds - PLAN_OVERHEAD, 0.0) / max(n_waypoints, 1)
+    def candidates_within(self, n_waypoints: int, seconds: float) -> int | None:
+        """The fastest-allocation search's cap for a mission of n waypoints planned in `seconds`
+        (None: no cap; never below MIN_CANDIDATES: a long mission then splits further ahead)."""
+        k = int(max(seconds - 0.05, 0.0) / LATE_MARGIN / self.candidate_seconds(n_waypoints))
+        return None if k >= FULL_SEARCH else max(k, MIN_CANDIDATES)
+
+    def mission_ahead(self, n_waypoints: int) -> float:
+        """The first split of a mission flown now: as far ahead as a search of [planner]
+        search_time takes here (at least MIN_CANDIDATES candidates, at most FULL_SEARCH)."""
+        fit = int(self.cfg.planner.search_time / self.candidate_seconds(n_waypoints))
+        return self.split_ahead_for(n_waypoints, min(max(fit, MIN_CANDIDATES), FULL_SEARCH))
+
+    def _measured(self, seconds: float, n_waypoints: int, candidates: int = 1) -> None:
+        """A plan's wall time (queueing included) and its candidate plans into the running estimate."""
+        per = seconds / max(candidates, 1) / (max(n_waypoints, 1) + FIXED_WAYPOINTS)
         a = 0.5 if per > self.plan_per_waypoint else 0.2  # up fast, down slowly
         self.plan_per_waypoint = (1 - a) * self.plan_per_waypoint + a * per
 
@@ -357,16 +375,20 @@ class Navigator:
             async def plan_at(base: Trajectory, t_split: float) -> Outcome:
                 jet = self.control.jet(t_split)
                 t0 = time.perf_counter()
+                # the search is cut to what fits before the split (planner_core.fastest_durations:
+                # a count, so a recording replays the same plan)
+                left = t_split - self.control.now() - (self.fleet.wait if self.fleet_on() else 0.0)
+                cap = self.candidates_within(n, left)
                 # without a fleet the call is start_mission's own (what a recording names and replays)
-                fn: Any = (partial(start_separated, neighbours=self.neighbours(spec.bounds)) if self.fleet_on()
-                           else start_mission)
+                fn: Any = (partial(start_separated, neighbours=self.neighbours(spec.bounds), candidates=cap)
+                           if self.fleet_on() else partial(start_mission, candidates=cap) if cap else start_mission)
                 out: Outcome = self.logged(await self.runtime.plan(fn, replace(spec, raw={}), jet, t_split,
                                                                    self.known(), self.cfg))
                 self.plan_latency = time.perf_counter() - t0
-                self._measured(self.plan_latency, n)
+                self._measured(self.plan_latency, n, int(out.stats.get("candidates", 1)))
                 return out
 
-            done = await self._swap_at_split(f"mission {spec.id}", arrived, plan_at, ahead=self.split_ahead_for(n))
+            done = await self._swap_at_split(f"mission {spec.id}", arrived, plan_at, ahead=self.mission_ahead(n))
             if not done.ok:
                 if done.outcome is not None:
                     why = done.outcome.message
@@ -383,6 +405,9 @@ class Navigator:
             lat = self.plan_latency or 0.0
             delay = done.outcome.stats.get("fleet_delay")
             waits = f"; starts {delay:g} s later to keep the separation from the other vehicles" if delay else ""
+            if done.outcome.stats.get("capped"):
+                waits += (f"; the search for the fastest durations stopped after {done.outcome.stats['candidates']} "
+                          "candidate plans to start in time (a busy computer: it flies slower than it could)")
             self.report.event("accepted", f"mission {spec.id}: planned and verified in {lat * 1000:.1f} ms "
                               f"({len(spec.waypoints)} waypoints, {done.outcome.route.t_end - done.t_split:.2f} s)"
                               + waits, key="mission", mission=spec.id, plan_ms=round(lat * 1000, 2),

@@ -128,13 +128,15 @@ def plan_route(
     *,
     allocate: bool = False,
     neighbours: Any = None,
+    candidates: int | None = None,
 ) -> Outcome:
     """Corridors, plan, verify. `initial` is the jet at waypoints[0] (time times[0]).
 
     `allocate`: the mission gave no durations, so only times[0] counts and the planner chooses
     the fastest durations the bounds and corridors allow (`planner_core.plan_mission`); it may
     insert knots on long legs, which join the route as synthetic waypoints (label KNOT), so no
-    mission index ever counts one.
+    mission index ever counts one. `candidates`: the allocation's cap on candidate plans (in
+    flight: what fits before the split; `planner_core.fastest_durations`'s max_candidates).
     """
     t0 = time.perf_counter()
     known = as_known(obstacles)
@@ -157,12 +159,15 @@ def plan_route(
     # plan_mission verifies the plan once more itself: never fly on one check alone being trusted
     # the reserve is what a replan may spend: a pop-up's swerve from a fast start jet may need it
     reserves = (cfg.planner.reserve, 0.0) if allocate and cfg.planner.reserve > 0.0 else (0.0,)
+    planned = 0  # candidate plans, for the service's estimate of its planning speed
     for reserve in reserves:
         mp = plan_mission(waypoints, mission.bounds, corridors, given, initial=initial, t0=float(times[0]),
-                          method=cfg.planner.method, reserve=reserve, **opts)
+                          method=cfg.planner.method, reserve=reserve, max_candidates=candidates, **opts)
+        planned += int(mp.result.stats.get("allocation", {}).get("plans", 1))
         if mp.ok:
             break
-    stats: dict[str, Any] = {"plan_seconds": time.perf_counter() - t0, "timing": mp.timing}
+    stats: dict[str, Any] = {"plan_seconds": time.perf_counter() - t0, "timing": mp.timing, "candidates": planned,
+                             "capped": bool(mp.result.stats.get("allocation", {}).get("capped"))}
     if not mp.ok or mp.trajectory is None:
         diag = mp.result.diagnosis
         seg = diag.segment if diag is not None else None

@@ -65,7 +65,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from planner_core.problem import Bounds, FloatArray, Polytope, Problem
-from planner_core.result import PlanResult
+from planner_core.result import PlanResult, PlanStatus
 from planner_core.timing import (
     DEFAULT_SAFETY,
     directional_bounds,
@@ -103,6 +103,9 @@ class FastestAllocation:
     @property
     def ok(self) -> bool:
         return self.result.ok
+
+
+_NOT_PLANNED = PlanResult(PlanStatus.INFEASIBLE, None, "not planned: the candidate cap was reached")
 
 
 def _with_durations(problem: Problem, d: FloatArray) -> Problem:
@@ -193,6 +196,7 @@ def fastest_durations(
     max_plans: int = MAX_PLANS,
     search: bool | None = None,
     local_passes: int = 1,
+    max_candidates: int | None = None,
     **opts: Any,
 ) -> FastestAllocation:
     """Durations as short as the planner can fly them (module docstring). `problem.times`
@@ -200,23 +204,41 @@ def fastest_durations(
     the candidates). knots=False keeps the given waypoints only. `search`: run steps 2-3
     (None: only up to SEARCH_MAX_WAYPOINTS waypoints, or with the global method); the local
     pass (step 4) runs whenever the method is iterative, `local_passes` times (each further
-    pass starts from the last one's durations times LOCAL_SHRINK)."""
+    pass starts from the last one's durations times LOCAL_SHRINK).
+
+    `max_candidates`: an anytime cap (the companion's, in flight: it sizes it from the time left
+    to its split). Once this many candidates were planned and one of them holds, no further
+    candidate is planned and the best verified one is the answer (stats: `capped`). The steps
+    run in the order of what they gain most: the default allocation first, then the uniform
+    scale, the refinement, the knots, the local pass. A count, not a clock: the same cap gives
+    the same plan (a recording replays bit for bit)."""
     from planner_core.planning import plan
+
+    if max_candidates is not None and max_candidates < 1:
+        raise ValueError(f"max_candidates: must be >= 1 or None, got {max_candidates}")
 
     t_start = time.perf_counter()
     full = {**opts, "recover": False, "diagnose": False} if method == "iterative" else {**opts, "diagnose": False}
     quick = {**full, "fallback": False} if method == "iterative" else full
     given = problem
     plan_count = [0]
+    held = [False]  # a candidate held: from then on the cap may stop the search
+
+    def spent() -> bool:
+        return max_candidates is not None and held[0] and plan_count[0] >= max_candidates
 
     def planned(p: Problem, d: FloatArray, thorough: bool = False) -> PlanResult:
         """One verified candidate: the compiled pass alone (a quick yes/no), or with the general
-        path behind it (`thorough`, for the first candidate: the default allocation)."""
+        path behind it (`thorough`, for the first candidate: the default allocation). Past the
+        cap, a refusal without planning (the search then winds down at no cost)."""
+        if spent():
+            return _NOT_PLANNED
         plan_count[0] += 1
         res = plan(_with_durations(p, d), method, **quick)
         if not res.ok and thorough and quick is not full:
             plan_count[0] += 1
             res = plan(_with_durations(p, d), method, **full)
+        held[0] = held[0] or res.ok
         return res
 
     default = durations_from_lengths(given.waypoints, given.bounds, initial_jet=given.initial,
@@ -257,6 +279,8 @@ def fastest_durations(
     if method == "iterative":
         start = kbase
         for n in range(max(local_passes, 0)):
+            if spent() or (max_candidates is not None and options and plan_count[0] >= max_candidates):
+                break
             plan_count[0] += 1
             local = plan(_with_durations(knotted, start * (1.0 if n == 0 else LOCAL_SHRINK)), method,
                          **{**opts, "recover": True, "diagnose": False, "stretch_factor": LOCAL_STRETCH,
@@ -285,7 +309,7 @@ def fastest_durations(
         return FastestAllocation(given, fail, default, 0.0, plan_count[0], time.perf_counter() - t_start, same,
                                  strategy)
     _, p, res, d, scale, idx = min(options, key=lambda o: o[0])
-    return _done(p, res, d, scale, plan_count[0], t_start, idx, strategy)
+    return _done(p, res, d, scale, plan_count[0], t_start, idx, strategy, max_candidates)
 
 
 def _search(
@@ -354,10 +378,11 @@ def _search(
 
 
 def _done(problem: Problem, res: PlanResult, d: FloatArray, scale: float, n_plans: int, t_start: float,
-          index: IntArray, strategy: str) -> FastestAllocation:
+          index: IntArray, strategy: str, cap: int | None = None) -> FastestAllocation:
     elapsed = time.perf_counter() - t_start
     info = {"method": "fastest", "strategy": strategy, "scale": scale, "plans": n_plans, "time": elapsed,
-            "segments": int(d.size), "waypoint_index": index.tolist()}
+            "segments": int(d.size), "waypoint_index": index.tolist(),
+            "max_candidates": cap, "capped": cap is not None and n_plans >= cap}
     traj = res.trajectory
     stats = {**res.stats, "allocation": info}
     result = replace(res, stats=stats, trajectory=None if traj is None else replace(traj, stats=stats))

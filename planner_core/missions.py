@@ -104,11 +104,13 @@ def plan_mission(
     final: ArrayLike | None = None,
     t0: float = 0.0,
     method: str = "iterative",
+    max_candidates: int | None = None,
     **opts: Any,
 ) -> MissionPlan:
     """Plan and verify a mission (module docstring). `initial` / `final`: (5, 3) jets at the
     first / last waypoint (rest when None); `t0`: the time of the first waypoint; `opts` go to
-    `plan` (window, cost, backend, ...). Bad input raises `FieldError` naming the argument;
+    `plan` (window, cost, backend, ...); `max_candidates` caps the fastest allocation's search
+    (`fastest_durations`; the other timings plan once). Bad input raises `FieldError` naming the argument;
     an infeasible mission is a result (`ok` False, `message`, `result.diagnosis`)."""
     if timing not in TIMINGS:
         raise FieldError("timing", f"expected one of {', '.join(TIMINGS)}, got {timing!r}")
@@ -156,7 +158,7 @@ def plan_mission(
         alloc = weighted_durations(seed, time_weight, method, **opts)
         mode = "time-weight"
     else:
-        alloc = fastest_durations(seed, method, **opts)
+        alloc = fastest_durations(seed, method, max_candidates=max_candidates, **opts)
         mode = "fastest"
     return _full(_checked(MissionPlan(alloc.result, alloc.problem, alloc.waypoint_index, mode)), bounds)
 

@@ -21,7 +21,7 @@ from companionkit import Events, service_for, serving, until
 
 from companion.config import Config
 from companion.control import SWAP_DIFFERS, SWAP_LATE
-from companion.navigator import MAX_AHEAD, Navigator
+from companion.navigator import FULL_SEARCH, LATE_MARGIN, MAX_AHEAD, MIN_CANDIDATES, Navigator
 from companion.route import Outcome
 from companion.wire.messages import read
 from sitl_mock import MockAutopilot, MockConfig
@@ -181,3 +181,26 @@ def test_the_split_follows_the_measured_planning_time() -> None:
     for _ in range(40):
         nav._measured(0.03, 5)
     assert nav.split_ahead_for(5) < 0.3 and math.isfinite(nav.plan_per_waypoint)
+
+
+def test_the_search_is_cut_to_what_fits_before_the_split() -> None:
+    """Issue 25 / 21: on a quiet computer a small mission's search runs whole; on a loaded one
+    (1 s measured for one candidate of 5 waypoints) it is cut to what fits in the split the
+    navigator chose, so a mission in flight is answered instead of refused as too late; a long
+    mission keeps at least the default allocation and its local pass, and splits further ahead."""
+    nav = _navigator([])
+    for _ in range(20):
+        nav._measured(0.05, 5, 8)  # ~6 ms a candidate: a quiet 2-core machine, numpy path
+    ahead = nav.mission_ahead(5)
+    assert nav.candidates_within(5, ahead) is None and ahead < 1.0
+    for _ in range(5):
+        nav._measured(1.0, 5, 1)  # a busy one
+    ahead = nav.mission_ahead(5)
+    cap = nav.candidates_within(5, ahead)
+    assert cap is not None and MIN_CANDIDATES <= cap < FULL_SEARCH
+    assert cap * nav.candidate_seconds(5) * LATE_MARGIN <= ahead  # the search fits before the split
+    assert ahead <= LATE_MARGIN * max(nav.cfg.planner.search_time, MIN_CANDIDATES * nav.candidate_seconds(5)) + 0.1
+    assert nav.candidates_within(1000, nav.mission_ahead(1000)) == MIN_CANDIDATES
+    # less time, fewer candidates; never fewer than MIN_CANDIDATES
+    caps = [nav.candidates_within(5, s) or FULL_SEARCH for s in (0.1, 1.0, 5.0, 20.0, 60.0)]
+    assert caps == sorted(caps) and caps[0] == MIN_CANDIDATES
