@@ -523,6 +523,104 @@ def run_loaded(out: Path, every: float, duration: float, soak: int, hog: bool) -
     return result
 
 
+def sized_mission(mid: str, n: int, rng: np.random.Generator) -> dict[str, Any]:
+    """A valid n-waypoint mission (ENU, 2.5-4 m up) starting near the flown rectangle: a random walk
+    of 1.5 m steps kept inside a 60 m square, new each time."""
+    steps = rng.normal(size=(n - 1, 3)) * [1.5, 1.5, 0.2]
+    wps = np.cumsum(np.vstack([[4.0, 3.0, 3.2], steps]), axis=0)
+    wps[:, :2] = np.clip(wps[:, :2], -30.0, 30.0)
+    wps[:, 2] = np.clip(wps[:, 2], 2.5, 4.0)
+    return {"id": mid, "frame": "enu", "waypoints": wps.round(2).tolist()}
+
+
+PUT_TARGETS = {"put_5_median_ms": 30.0, "put_100_median_ms": 60.0, "put_1000_median_ms": 200.0}
+
+
+def run_put(out: Path, sizes: list[int], each: int, hog: bool, search_time: float | None = None) -> dict[str, Any]:
+    """Issue 25.1: while the vehicle flies, missions of each size (no durations: the fastest
+    allocation, as the companion plans by default), one after the other, each replacing the one
+    flying: from our put to the relay's arrival stamp of the first setpoint of the new plan (the
+    one the `latency` event announces), and the flight time each was planned for."""
+    from demo.rig import rig
+
+    out.mkdir(parents=True, exist_ok=True)
+    mock_port, relay_port = _free_udp(), _free_udp()
+    stamps_path = out / "setpoint_stamps.json"
+    relay_proc = subprocess.Popen([sys.executable, __file__, "--relay", str(relay_port), str(mock_port),
+                                   str(stamps_path)])
+    hog_proc = _hog() if hog else None
+    rng = np.random.default_rng(11)
+    samples: list[dict[str, Any]] = []
+    try:
+        with rig(out, "px4", mav_port=mock_port, companion_mav_port=relay_port, search_time=search_time) as r:
+            events = _EventLog(r.peer)
+            t_put = r.peer.put("mission", flight_mission(laps=40))
+            events.wait(lambda e: e.get("type") == "accepted" and e.get("key") == "mission", t_put, 30.0)
+            r.peer.put("command", {"command": "start"})
+            if events.wait(lambda e: e.get("type") == "state" and e.get("to") == "STREAMING", t_put, 90.0) is None:
+                raise RuntimeError("the companion never started streaming\n" + r.companion.tail())
+            time.sleep(2.0)
+            for n in sizes:
+                for k in range(each):
+                    mid = f"put-{n}-{k}"
+                    put = r.peer.put("mission", sized_mission(mid, n, rng))
+                    done = events.wait(lambda e, mid=mid: e.get("mission") == mid and e.get("key") == "mission"
+                                       and e.get("type") in ("accepted", "rejected"), put, 120.0)
+                    what = f"mission {mid}"
+                    events.wait(lambda e, what=what: e.get("type") == "latency" and e.get("what") == what, put, 2.0)
+                    with events._lock:
+                        evs = [ev for m, ev in events.items if m >= put]
+                    answer = next((e for e in evs if e.get("mission") == mid and e.get("key") == "mission"
+                                   and e.get("type") in ("accepted", "rejected")), None)
+                    lat = next((e for e in evs if e.get("type") == "latency" and e.get("what") == what), None)
+                    samples.append({"n": n, "put": put, "answered": done is not None,
+                                    "accepted": answer is not None and answer["type"] == "accepted",
+                                    "message": None if answer is None else str(answer.get("message", ""))[:200],
+                                    "sent_mono": None if lat is None else lat.get("sent_mono"),
+                                    "companion_ms": None if lat is None else lat.get("latency_ms"),
+                                    "plan_ms": None if answer is None else answer.get("plan_ms")})
+                    time.sleep(1.0)
+    finally:
+        for proc in (relay_proc, hog_proc):
+            if proc is not None:
+                proc.send_signal(signal.SIGTERM)
+                proc.wait(10)
+    stamps = np.asarray(json.loads(stamps_path.read_text()))
+    result: dict[str, Any] = {"hog": hog, "each": each, "search_time": search_time, "samples": samples}
+    for n in sizes:
+        rows = [x for x in samples if x["n"] == n]
+        put_ms = []
+        for x in rows:
+            if x["sent_mono"] is None:
+                continue
+            k = off_grid(stamps, [float(x["sent_mono"])])
+            if k:
+                put_ms.append((float(stamps[k[0]]) - x["put"]) * 1e3)
+        comp = [float(x["companion_ms"]) for x in rows if x["companion_ms"] is not None]
+        capped = [x for x in rows if x["message"] and "stopped after" in x["message"]]
+        result.update({f"put_{n}_median_ms": float(np.median(put_ms)) if put_ms else float("nan"),
+                       f"put_{n}_max_ms": float(np.max(put_ms)) if put_ms else float("nan"),
+                       f"companion_{n}_median_ms": float(np.median(comp)) if comp else float("nan"),
+                       f"accepted_{n}": sum(1 for x in rows if x["accepted"]), f"sent_{n}": len(rows),
+                       f"capped_{n}": len(capped)})
+    return result
+
+
+def format_put(results: list[dict[str, Any]], sizes: list[int]) -> str:
+    head = ["", *["CPU hog" if r["hog"] else "quiet" for r in results]]
+    body = []
+    for n in sizes:
+        target = PUT_TARGETS.get(f"put_{n}_median_ms")
+        body += [[f"{n} waypoints: put -> first setpoint of the new plan, median [ms]"
+                  + (f" (<= {target:g})" if target else ""), *[f"{r[f'put_{n}_median_ms']:.1f}" for r in results]],
+                 ["  max [ms]", *[f"{r[f'put_{n}_max_ms']:.1f}" for r in results]],
+                 ["  companion's own clock (arrival -> send), median [ms]",
+                  *[f"{r[f'companion_{n}_median_ms']:.1f}" for r in results]],
+                 ["  accepted / sent; search cut to fit", *[f"{r[f'accepted_{n}']} / {r[f'sent_{n}']}; {r[f'capped_{n}']}"
+                                                             for r in results]]]
+    return grid(head, body)
+
+
 LOADED_TARGETS = {"gap_max_ms": 60.0, "missions_flown_percent": 100.0, "rss_regrowth_mb": 10.0}
 
 
@@ -784,6 +882,12 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--duration", type=float, default=20.0)
     p.add_argument("--soak", type=int, default=6)
     p.add_argument("--no-hog", action="store_true")
+    p.add_argument("--put", action="store_true",
+                   help="only mission put -> first setpoint of the new plan in flight (issue 25.1), for "
+                   "--sizes waypoints, --each missions of each size, quiet and beside a CPU hog (--no-hog: quiet only)")
+    p.add_argument("--sizes", type=int, nargs="+", default=[5, 100, 1000])
+    p.add_argument("--each", type=int, default=5)
+    p.add_argument("--search-time", type=float, default=None, help="the companion's [planner] search_time (s)")
     p.add_argument("--relay", nargs=3, metavar=("LISTEN", "TARGET", "OUT"), help=argparse.SUPPRESS)
     p.add_argument("--floor", nargs=4, metavar=("RATE", "PRIO", "NICE", "OUT"), help=argparse.SUPPRESS)
     args = p.parse_args(argv)
@@ -791,6 +895,14 @@ def main(argv: list[str] | None = None) -> int:
         return relay(int(args.relay[0]), int(args.relay[1]), args.relay[2])
     if args.floor:
         return floor(float(args.floor[0]), int(args.floor[1]), int(args.floor[2]), args.floor[3])
+    if args.put:
+        put_runs = [run_put(args.out / ("put-hog" if hog else "put"), args.sizes, args.each, hog, args.search_time)
+                    for hog in ([False] if args.no_hog else [False, True])]
+        print(format_put(put_runs, args.sizes))
+        if args.json:
+            args.json.parent.mkdir(parents=True, exist_ok=True)
+            args.json.write_text(json.dumps({"targets": PUT_TARGETS, "put": put_runs}, indent=2))
+        return 0
     if args.loaded:
         res = run_loaded(args.out / "loaded", args.every, args.duration, args.soak, not args.no_hog)
         print(format_loaded(res))

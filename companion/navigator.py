@@ -407,7 +407,8 @@ class Navigator:
             waits = f"; starts {delay:g} s later to keep the separation from the other vehicles" if delay else ""
             if done.outcome.stats.get("capped"):
                 waits += (f"; the search for the fastest durations stopped after {done.outcome.stats['candidates']} "
-                          "candidate plans to start in time (a busy computer: it flies slower than it could)")
+                          f"candidate plans, what fits in [planner] search_time {self.cfg.planner.search_time:g} s "
+                          "at the planning speed measured here (it may fly a little slower than a full search)")
             self.report.event("accepted", f"mission {spec.id}: planned and verified in {lat * 1000:.1f} ms "
                               f"({len(spec.waypoints)} waypoints, {done.outcome.route.t_end - done.t_split:.2f} s)"
                               + waits, key="mission", mission=spec.id, plan_ms=round(lat * 1000, 2),

@@ -194,7 +194,8 @@ class Rig:
 
 
 def demo_config(zenoh_port: int, mav_port: int, rate_hz: float = 50.0, workers: int | None = None,
-                lead: float | str = "auto", recording: Path | None = None, read_limits: bool = True) -> Config:
+                lead: float | str = "auto", recording: Path | None = None, read_limits: bool = True,
+                search_time: float | None = None) -> Config:
     from companion.config import (
         AutopilotLimitsConfig,
         PlannerConfig,
@@ -208,6 +209,8 @@ def demo_config(zenoh_port: int, mav_port: int, rate_hz: float = 50.0, workers: 
     planner = PlannerConfig(tracking_allowance=0.2)
     if workers is not None:
         planner = dataclasses.replace(planner, workers=workers)
+    if search_time is not None:
+        planner = dataclasses.replace(planner, search_time=search_time)
     return Config(
         planner=planner,
         vehicle=VehicleConfig(id=VEHICLE),
@@ -227,14 +230,15 @@ def demo_config(zenoh_port: int, mav_port: int, rate_hz: float = 50.0, workers: 
 def rig(out: Path, autopilot: str, rate_hz: float = 50.0, mock_args: tuple[str, ...] = (),
         mav_port: int | None = None, companion_mav_port: int | None = None,
         workers: int | None = None, lead: float | str = "auto", recording: Path | None = None,
-        read_limits: bool = True) -> Iterator[Rig]:
+        read_limits: bool = True, search_time: float | None = None) -> Iterator[Rig]:
     """Mock + companion + our peer. `companion_mav_port` lets a relay sit between the two;
     `recording`: the companion's [recording] path (its MCAP file is complete once the rig closes)."""
     out.mkdir(parents=True, exist_ok=True)
     mav_port = mav_port or free_port(socket.SOCK_DGRAM)
     control_port, zenoh_port = free_port(), free_port()
     flight_log = out / "flight.jsonl"
-    cfg = demo_config(zenoh_port, companion_mav_port or mav_port, rate_hz, workers, lead, recording, read_limits)
+    cfg = demo_config(zenoh_port, companion_mav_port or mav_port, rate_hz, workers, lead, recording, read_limits,
+                      search_time)
     cfg_path = out / "companion.toml"
     cfg_path.write_text(config_to_toml(cfg))
     py = sys.executable

@@ -5,6 +5,8 @@ default allocation, and a larger cap never flies slower."""
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -45,7 +47,7 @@ def test_a_capped_search_is_verified_deterministic_and_no_slower_with_more(make:
         again = fastest_durations(problem, max_candidates=cap)
         assert np.array_equal(again.result.trajectory.control_points, a.result.trajectory.control_points)
     caps = sorted(flight)
-    for lo, hi in zip(caps, caps[1:], strict=False):
+    for lo, hi in itertools.pairwise(caps):
         assert flight[hi] <= flight[lo] + 1e-9, flight
     assert float(full.durations.sum()) <= flight[8] + 1e-9
     # 8 candidates already find most of what the whole search (~30) finds: within 10 %
