@@ -139,3 +139,23 @@ def test_boundary_jet_violation(planned: tuple[Trajectory, Problem]) -> None:
     assert not rep.ok
     assert rep.boundary_error.value == pytest.approx(0.5)
     assert rep.boundary_error.order == 1
+
+
+@pytest.mark.parametrize("offset", [30.0, 300.0, 3000.0, 30000.0])
+@pytest.mark.parametrize("last", [0.2, 0.4])
+def test_a_plan_far_from_the_origin_ending_on_a_short_segment_verifies(offset: float, last: float) -> None:
+    """The final snap of a plan is a 4th difference of stored control points over d^4: far from
+    the origin it carries rounding that an absolute tolerance refused (a 1000-waypoint mission in
+    the service, 30 m out, last segment 0.45 s: boundary error 6e-7 in snap, refused). The check
+    is net of that floor, as the junctions' is; a real boundary error is still caught."""
+    bounds = Bounds.symmetric(10.0, 30.0, 500.0, 1e5)
+    wps = np.array([[0.0, 0.0, 0.0], [1.0, 0.5, 0.0], [1.05, 0.52, 0.01]]) + offset
+    problem = Problem.from_waypoints(wps, [1.5, last], bounds)
+    res = plan(problem, recover=False)
+    assert res.ok and res.trajectory is not None, res.message
+    rep = verify(res.trajectory, problem)
+    assert rep.ok, rep.summary()
+    ctrl = res.trajectory.control_points.copy()
+    ctrl[-1, -2, 0] += 1e-6 * (1.0 + offset * 1e-3)  # the last jet's velocity .. snap moved
+    bad = verify(replace(res.trajectory, control_points=ctrl), problem)
+    assert not bad.ok and bad.boundary_error.segment == problem.m - 2, bad.summary()
