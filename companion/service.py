@@ -145,6 +145,8 @@ class Service:
         self.setpoints_stalled = False
         self._ticked = asyncio.Event()
         self._log_listener: Any = None
+        self._handed_over = False  # the last run's hand-over (said in the `stopped` event)
+        self._runners: list[asyncio.Future[Any]] = []  # the running tasks, cancelled at the end
         self._heap_return: asyncio.TimerHandle | None = None
 
     def _position(self) -> FloatArray:
@@ -625,28 +627,82 @@ class Service:
 
     async def run(self) -> bool:
         """Run until asked to stop; returns True when the vehicle was handed over (or there
-        was nothing to hand over); raises what failed inside, after the hand-over."""
+        was nothing to hand over); raises what failed inside, after the hand-over.
+
+        Four phases: set up (logging, Zenoh, the recorder, MAVLink, the warm-up), start (paced
+        GC, the setpoint sender, the tasks), run (until a stop is asked or a task fails), stop
+        (hand the vehicle over). Each step that takes a resource registers its undoing as it
+        takes it, and they are undone in reverse, whichever phase failed: a failed warm-up
+        leaves no socket, session, thread or pool behind (issue 22.5)."""
         self.loop = asyncio.get_running_loop()
         self.runtime.loop = self.loop
+        self._handed_over = False
+        failure: BaseException | None = None
+        async with contextlib.AsyncExitStack() as undo:
+            await self._set_up(undo)
+            runners, inbound, sender = self._start(undo)
+            try:
+                stopper: asyncio.Future[Any] = asyncio.create_task(self.requested.wait())
+                done, _ = await asyncio.wait([stopper, *runners], return_when=asyncio.FIRST_COMPLETED)
+                stopper.cancel()
+                for t in done:
+                    if t is not stopper and not t.cancelled() and t.exception() is not None:
+                        failure = t.exception()
+                self.notifier.stopping()
+                # No new message is taken from now on; what was being handled is cancelled.
+                for t in [*inbound, *self.tasks]:
+                    t.cancel()
+                await asyncio.gather(*inbound, *self.tasks, return_exceptions=True)
+                why = "stop requested" if failure is None else f"internal failure ({failure})"
+                if failure is not None:
+                    log.critical("%s: handing the vehicle over to the autopilot", why)
+                self._handed_over = await self._hand_over(why, can_brake=failure is None or sender not in done)
+            finally:
+                self.notifier.stopping()
+                self.stop.set()
+        if failure is not None:
+            raise failure
+        return self._handed_over
+
+    async def _set_up(self, undo: contextlib.AsyncExitStack) -> None:
+        """Logging off the loop, Zenoh, the recorder, the MAVLink link, the warm-up; each undone in reverse."""
+        assert self.loop is not None
         # Log output (a file or journald on a busy disk) is written by a thread of its own.
         self._log_listener = log_off_loop()
+        undo.callback(restore_logging, self._log_listener)
+        undo.callback(self.gc.stop)  # a no-op until it starts
+        undo.callback(self.runtime.shutdown)
         # The loop and the helper threads hold the GIL in pure-Python stretches; a short
         # switch interval bounds how long the setpoint thread can wait for it.
         sys.setswitchinterval(0.0005)
         self.zio = ZenohIO(self.cfg, self.loop)
         self.zio.on_refused = self._refused
         self.zio.tap = self.tap
+        undo.callback(self.tap.close)
         self.tap.open()
         self.zio.on_wrong_key = self._wrong_key
+        undo.callback(self.zio.close)
         self.zio.open({"plan": self.query_plan, "status": self.query_status})
         if self.deconfliction.enabled:
             self.zio.watch_fleet(self.deconfliction.on_trajectory, self.deconfliction.on_alive)
+        undo.callback(self.link.close)
         self.link.open(self.loop)
+        undo.callback(self._report_stopped)  # said while Zenoh is still open
+        self._runners = []
+        undo.push_async_callback(self._cancel)  # after the sender stopped (below: undone first)
         await self._warm_up()
+
+    def _start(self, undo: contextlib.AsyncExitStack) -> tuple[list[asyncio.Future[Any]], list[asyncio.Task[Any]],
+                                                               asyncio.Future[Any]]:
+        """Paced GC, the setpoint sender, the periodic and inbound tasks; returns (every runner,
+        the inbound tasks, the sender's failure future)."""
+        assert self.loop is not None
         self.gc.start(time.monotonic())
         self._sender_failure = self.loop.create_future()
         self.liveness.beat()  # the warm-up above is not a stall
+        undo.callback(self.sender.stop)
         self.sender.start(rtsched.starter())
+        undo.callback(self.control.release)  # nothing is streamed once the sender stops
         if isinstance(self.sender, SetpointProcess):
             self.link.use_writer(self.sender)
         log.info("setpoint %s: %.0f Hz, %s scheduling", "process" if self.cfg.setpoints.process else "thread",
@@ -658,46 +714,21 @@ class Service:
         inbound = [asyncio.create_task(c) for c in (self.inbox_loop(), self.ordered_loop())]
         sender = asyncio.ensure_future(self._sender_failure)
         runners: list[asyncio.Future[Any]] = [*periodic, *inbound, sender]
+        self._runners = runners
         self.notifier.ready(f"vehicle {self.cfg.vehicle.id}: zenoh and mavlink up")
         self.report.event("started", f"companion for {self.cfg.vehicle.id} started", mavlink=self.cfg.mavlink.url)
-        failure: BaseException | None = None
-        handed_over = False
-        try:
-            stopper: asyncio.Future[Any] = asyncio.create_task(self.requested.wait())
-            done, _ = await asyncio.wait([stopper, *runners], return_when=asyncio.FIRST_COMPLETED)
-            stopper.cancel()
-            for t in done:
-                if t is not stopper and not t.cancelled() and t.exception() is not None:
-                    failure = t.exception()
-            self.notifier.stopping()
-            # No new message is taken from now on; what was being handled is cancelled.
-            for t in [*inbound, *self.tasks]:
-                t.cancel()
-            await asyncio.gather(*inbound, *self.tasks, return_exceptions=True)
-            why = "stop requested" if failure is None else f"internal failure ({failure})"
-            if failure is not None:
-                log.critical("%s: handing the vehicle over to the autopilot", why)
-            handed_over = await self._hand_over(why, can_brake=failure is None or sender not in done)
-        finally:
-            self.notifier.stopping()
-            self.stop.set()
-            self.control.release()
-            self.sender.stop()
-            seq = self.commands.task
-            for t in [*runners, *self.tasks, *([seq] if seq else [])]:
-                t.cancel()
-            await asyncio.gather(*runners, *self.tasks, return_exceptions=True)
-            with contextlib.suppress(Exception):
-                self.report.event("stopped", "companion stopping", handed_over=handed_over)
-            self.link.close()
-            self.zio.close()
-            self.tap.close()
-            self.runtime.shutdown()
-            self.gc.stop()
-            restore_logging(self._log_listener)
-        if failure is not None:
-            raise failure
-        return handed_over
+        return runners, inbound, sender
+
+    async def _cancel(self) -> None:
+        seq = self.commands.task
+        runners = self._runners
+        for t in [*runners, *self.tasks, *([seq] if seq else [])]:
+            t.cancel()
+        await asyncio.gather(*runners, *self.tasks, return_exceptions=True)
+
+    def _report_stopped(self) -> None:
+        with contextlib.suppress(Exception):
+            self.report.event("stopped", "companion stopping", handed_over=self._handed_over)
 
     async def _hand_over(self, why: str, can_brake: bool) -> bool:
         """`Commands.hand_over`, bounded by `[safety] exit_timeout` and given up on `abandon`."""
