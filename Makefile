@@ -55,4 +55,4 @@ bench: $(STAMP)
 	$(PY) benchmarks/footprint.py --json out/bench_footprint.json
 
 clean:
-	rm -rf $(VENV) build *.egg-info .pytest_cache .mypy_cache .ruff_cache out
+	rm -rf $(VENV) build *.egg-info .pytest_cache .mypy_cache .ruff_cache out planner_core/_window_aot*.so
