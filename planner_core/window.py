@@ -55,11 +55,12 @@ _kernel_off: list[str] = []  # set by use_compiled_kernel(False): this process n
 
 
 def use_compiled_kernel(enabled: bool, reason: str = "disabled by the caller") -> str | None:
-    """Process-wide: allow the compiled pass (the default; see `kernel_build` for which build) or,
-    with `enabled=False`, plan without it and never import numba nor load the AOT build (~105 MB resident; loading it from its cache ~0.4 s):
-    the companion's processes, a one-shot CLI plan of a small problem. Per plan, the same
-    choice is `IterativeOptions.compiled`. Returns the reason it was off before (None: it was
-    on), so a caller that borrows the switch (a replay) can put it back."""
+    """Process-wide: allow the compiled pass (the default; `kernel_build`: which build) or, with
+    `enabled=False`, plan without it and never import numba (~105 MB resident; loading it from its
+    cache ~0.4 s) nor load the AOT build: the companion's processes, a one-shot CLI plan of a
+    small problem. Per plan, the same choice is `IterativeOptions.compiled`. Returns the reason it
+    was off before (None: it was on), so a caller that borrows the switch (a replay) can put it
+    back."""
     before = _kernel_off[0] if _kernel_off else None
     if enabled:
         _kernel_off.clear()
@@ -69,8 +70,9 @@ def use_compiled_kernel(enabled: bool, reason: str = "disabled by the caller") -
 
 
 BUILDS = ("auto", "aot", "jit")
-# which build of the compiled pass a process loads: `kernel_build`, or PLANNER_CORE_KERNEL
-_build: list[str] = [os.environ.get("PLANNER_CORE_KERNEL", "auto")]
+# which build of the compiled pass a process loads: `kernel_build`, or PLANNER_CORE_KERNEL (a
+# value not in BUILDS: auto)
+_build: list[str] = [b if (b := os.environ.get("PLANNER_CORE_KERNEL", "auto")) in BUILDS else "auto"]
 _aot_reason: list[str] = []  # why the AOT build is not the one loaded (when it is not)
 
 
@@ -110,7 +112,7 @@ def _load_kernel() -> ModuleType | AotKernel | str:
         if not isinstance(aot, str):
             return aot
         if build == "aot":
-            return f"AOT build: {aot} (PLANNER_CORE_KERNEL=aot)"
+            return f"AOT build: {aot} (kernel build 'aot': no JIT)"
         _aot_reason.append(aot)
     else:
         _aot_reason.append(f"not wanted (kernel build {build!r})")
