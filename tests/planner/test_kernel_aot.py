@@ -157,3 +157,12 @@ def test_arguments_are_checked_before_the_unchecked_unboxing() -> None:
     bad[4] = np.asfortranarray(store.cs)  # an input: copied, same values
     k.fill_rows(*bad)
     np.testing.assert_array_equal(store.ab, ab)
+
+
+def test_a_build_for_another_cpu_is_refused(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The build targets the CPU it was built on (as numba's JIT does): elsewhere it could stop
+    on an illegal instruction, so it is refused by its CPU digest (this machine's flags stood in
+    for by others here)."""
+    monkeypatch.setattr(kernel_aot, "cpu_digest", lambda: 12345)
+    why = kernel_aot.load()
+    assert isinstance(why, str) and "another CPU" in why and kernel_aot.BUILD_COMMAND in why
