@@ -10,9 +10,13 @@ pays off, and the companion service's total resident memory idle and while plann
    of waypoints, and the cost of loading the compiled pass (a fresh process, warm cache), which
    is what planner_core.iterative.KERNEL_MIN_WAYPOINTS is chosen from.
 3. Planner process alone: a fresh process (as a companion planner worker: numpy + daqp path, numba
-   never loaded; and on the compiled pass) plans a chain scenario with obstacles of 1000 and 2000
-   waypoints; its resident memory before the plan, its peak during it (VmHWM, reset before the plan)
-   and the peak of Python-level allocations (tracemalloc, numpy arrays included; a second plan).
+   never loaded; on the compiled pass from numba's JIT, its cache warm; on the compiled pass's AOT
+   build, `python -m planner_core.build_kernel`, no numba) plans a chain scenario with obstacles of
+   1000 and 2000 waypoints; the time to load the build (import, then a 4-waypoint warm-up plan: the
+   JIT loads its cached code at each function's first call), its resident memory after loading,
+   its peak during the first plan (VmHWM, reset before the plan) and after it, the plan's time
+   (first, and best of two more) and the peak of Python-level allocations (tracemalloc, numpy
+   arrays included; a fourth plan).
 4. Service: the real companion against the mock autopilot (demo.rig, as benchmarks/service.py),
    every process it starts summed (RSS, and PSS, which splits shared pages among the processes
    sharing them): idle = up, warmed up and linked, no mission; planning = flying the benchmark's
@@ -23,6 +27,7 @@ Targets: CLI first plan of a 10-waypoint scenario <= 0.5 s wall; service total <
 <= 300 MB planning. Timings are noisy on a shared machine.
 
     python benchmarks/footprint.py [--runs 5] [--skip-cli] [--skip-crossover] [--skip-planner] [--skip-service]
+        [--planner-sizes 1000 2000] [--planner-paths numpy jit aot]
         [--layouts default compiled-workers thread] [--json out/bench/footprint.json]
 """
 
@@ -178,20 +183,27 @@ def crossover_rows(sizes: tuple[int, ...] = (10, 100, 300, 1000, 2000)) -> tuple
 # --- 3. one planner process's memory ---------------------------------------------------------------
 
 _PLANNER_PROBE = """
-import json, sys, time, tracemalloc
+import json, os, sys, time, tracemalloc
 from pathlib import Path
-compiled = sys.argv[2] == "compiled"
+path = sys.argv[2]
+compiled = path != "numpy"
 if not compiled:
     from planner_core import use_compiled_kernel
     use_compiled_kernel(False, "footprint benchmark: numpy path")
 from planner_core.formats.io import load_scenario
 from planner_core.iterative import IterativeOptions, plan_iterative, warm_up
+from planner_core.window import aot_unavailable, kernel_kind
 def kb(key):
     for line in Path("/proc/self/status").read_text().splitlines():
         if line.startswith(key + ":"):
             return float(line.split()[1]) / 1024
 problem = load_scenario(json.loads(Path(sys.argv[1]).read_text())).problem
-warm_up()
+rss_start = kb("VmRSS")
+t_load = time.perf_counter()
+kind = kernel_kind()  # imports the build: numba's JIT (window_kernel) or the AOT module
+t_imported = time.perf_counter()
+warm_up()  # a 4-waypoint plan: the JIT loads its cached machine code at a function's first call
+t_warm = time.perf_counter()
 opts = IterativeOptions(compiled=compiled)
 before = kb("VmRSS")
 Path("/proc/self/clear_refs").write_text("5")  # VmHWM := VmRSS: the peak of what follows
@@ -199,16 +211,31 @@ t0 = time.perf_counter()
 res = plan_iterative(problem, opts)
 seconds = time.perf_counter() - t0
 hwm = kb("VmHWM")
+after = kb("VmRSS")
+again = []
+for _ in range(2):
+    t0 = time.perf_counter()
+    plan_iterative(problem, opts)
+    again.append(time.perf_counter() - t0)
 tracemalloc.start()
 plan_iterative(problem, opts)
 traced = tracemalloc.get_traced_memory()[1] / 2**20
-print(json.dumps({"ok": res.ok, "plan_s": seconds, "recoveries": len(res.stats.get("recoveries", [])),
-                  "rss_before_mb": before, "hwm_mb": hwm, "traced_peak_mb": traced,
-                  "numba": "numba" in sys.modules}))
+print(json.dumps({"ok": res.ok, "plan_s": seconds, "plan_again_s": min(again),
+                  "recoveries": len(res.stats.get("recoveries", [])),
+                  "compiled_steps": res.stats["n_compiled_steps"], "kernel": kind or "none",
+                  "aot_unavailable": aot_unavailable() if compiled else None,
+                  "kernel_import_s": t_imported - t_load, "kernel_load_s": t_warm - t_load,
+                  "rss_start_mb": rss_start, "rss_before_mb": before, "hwm_mb": hwm, "rss_after_mb": after,
+                  "traced_peak_mb": traced, "numba": "numba" in sys.modules}))
 """
 
+# planner process paths: the numpy + daqp path (use_compiled_kernel(False), as the companion's
+# planner processes), the compiled pass from numba's JIT (its on-disk cache warm) and its AOT
+# build (python -m planner_core.build_kernel); "compiled": whichever the process picks (auto)
+PLANNER_PATHS = {"numpy": "auto", "jit": "jit", "aot": "aot", "compiled": "auto"}
 
-def planner_rows(sizes: tuple[int, ...] = (1000, 2000), paths: tuple[str, ...] = ("numpy", "compiled")
+
+def planner_rows(sizes: tuple[int, ...] = (1000, 2000), paths: tuple[str, ...] = ("numpy", "jit", "aot")
                  ) -> list[dict[str, Any]]:
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -216,12 +243,14 @@ def planner_rows(sizes: tuple[int, ...] = (1000, 2000), paths: tuple[str, ...] =
             scenario = Path(tmp) / f"chain_{m}.json"
             scenario.write_text(json.dumps(chain_scenario(m)))
             for path in paths:
+                env = dict(os.environ, PLANNER_CORE_KERNEL=PLANNER_PATHS[path])
                 out = subprocess.run([sys.executable, "-c", _PLANNER_PROBE, str(scenario), path], cwd=ROOT,
-                                     capture_output=True, text=True, check=True)
+                                     capture_output=True, text=True, check=True, env=env)
                 row: dict[str, Any] = {"waypoints": m, "path": path, **json.loads(out.stdout.splitlines()[-1])}
                 row["plan_peak_mb"] = row["hwm_mb"] - row["rss_before_mb"]
                 rows.append(row)
-                print(f"  planner: m = {m}, {path}: peak {row['hwm_mb']:.0f} MB RSS "
+                print(f"  planner: m = {m}, {path} ({row['kernel']}): load {row['kernel_load_s']:.3f} s, plan "
+                      f"{row['plan_s']:.3f} s, RSS {row['rss_before_mb']:.0f} MB loaded, peak {row['hwm_mb']:.0f} MB "
                       f"(+{row['plan_peak_mb']:.1f} MB for the plan)", flush=True)
     return rows
 
@@ -365,6 +394,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--skip-cli", action="store_true")
     p.add_argument("--skip-crossover", action="store_true")
     p.add_argument("--skip-planner", action="store_true")
+    p.add_argument("--planner-sizes", type=int, nargs="+", default=[1000, 2000], help="waypoints, section 3")
+    p.add_argument("--planner-paths", nargs="+", choices=sorted(PLANNER_PATHS), default=["numpy", "jit", "aot"],
+                   help="section 3: numpy + daqp, the compiled pass's JIT build or its AOT build")
     p.add_argument("--skip-service", action="store_true")
     p.add_argument("--layouts", nargs="+", choices=sorted(LAYOUTS), default=["default", "compiled-workers"])
     p.add_argument("--plans", type=int, default=4, help="1000-waypoint missions planned per layout")
@@ -380,7 +412,7 @@ def main(argv: list[str] | None = None) -> int:
         report["crossover"], report["kernel_load_s"] = crossover_rows()
     if not args.skip_planner:
         print("planner process ...", flush=True)
-        report["planner"] = planner_rows()
+        report["planner"] = planner_rows(tuple(args.planner_sizes), tuple(args.planner_paths))
     if not args.skip_service:
         print("service ...", flush=True)
         report["service"] = [service_row(name, args.out, plans=args.plans) for name in args.layouts]
@@ -400,11 +432,16 @@ def main(argv: list[str] | None = None) -> int:
             ("waypoints", "waypoints", "{}"), ("compiled [s]", "compiled_s", "{:.4f}"),
             ("numpy [s]", "numpy_s", "{:.4f}"), ("recoveries", "recoveries", "{}")]))
     if "planner" in report:
-        print("\none planner process planning a chain scenario with obstacles (peak: VmHWM during the plan)")
+        print("\none planner process planning a chain scenario with obstacles (load: importing the build and a "
+              "4-waypoint warm-up plan; RSS loaded: after it; peak: VmHWM during the first plan)")
         print(table(report["planner"], [
-            ("waypoints", "waypoints", "{}"), ("path", "path", "{}"), ("plan [s]", "plan_s", "{:.3f}"),
-            ("recoveries", "recoveries", "{}"), ("RSS before [MB]", "rss_before_mb", "{:.1f}"),
-            ("peak RSS [MB]", "hwm_mb", "{:.1f}"), ("plan's share [MB]", "plan_peak_mb", "{:.1f}"),
+            ("waypoints", "waypoints", "{}"), ("path", "path", "{}"), ("kernel", "kernel", "{}"),
+            ("numba loaded", "numba", "{}"), ("import [s]", "kernel_import_s", "{:.3f}"),
+            ("load [s]", "kernel_load_s", "{:.3f}"), ("plan [s]", "plan_s", "{:.3f}"),
+            ("plan again [s]", "plan_again_s", "{:.3f}"), ("compiled steps", "compiled_steps", "{}"),
+            ("recoveries", "recoveries", "{}"), ("RSS start [MB]", "rss_start_mb", "{:.1f}"),
+            ("RSS loaded [MB]", "rss_before_mb", "{:.1f}"), ("peak RSS [MB]", "hwm_mb", "{:.1f}"),
+            ("RSS after [MB]", "rss_after_mb", "{:.1f}"), ("plan's share [MB]", "plan_peak_mb", "{:.1f}"),
             ("traced peak [MB]", "traced_peak_mb", "{:.1f}")]))
     if "service" in report:
         print("\ncompanion service, every process summed (<= 250 MB idle, <= 300 MB planning)")

@@ -42,7 +42,7 @@ from planner_core.jets import COSTS, ProblemCache, initial_jets, solve_jets, tra
 from planner_core.problem import Bounds, FloatArray, Polytope, Problem
 from planner_core.qp import BACKENDS
 from planner_core.result import PlanResult, PlanStatus
-from planner_core.window import WindowSolver, kernel_unavailable
+from planner_core.window import WindowSolver, kernel_kind, kernel_unavailable
 
 __all__ = ["IterativeOptions", "compiled_pays_off", "plan_iterative", "solve_jets", "warm_up"]
 
@@ -110,8 +110,10 @@ KERNEL_MIN_WAYPOINTS = 400
 def compiled_pays_off(m: int) -> bool:
     """Whether one plan of m waypoints should use the compiled pass in this process: always once
     it is loaded; before that, only for problems big enough to repay loading it (a one-shot
-    `python -m planner_core plan` of a small scenario is faster without numba)."""
-    return "planner_core.window_kernel" in sys.modules or m >= KERNEL_MIN_WAYPOINTS
+    `python -m planner_core plan` of a small scenario is faster without numba). Loaded: numba's
+    JIT build (`window_kernel`) or the AOT one (`planner_core.build_kernel`, ~ms to load)."""
+    loaded = "planner_core.window_kernel" in sys.modules or "planner_core._window_aot" in sys.modules
+    return loaded or m >= KERNEL_MIN_WAYPOINTS
 
 
 def _fast_solver(cache: ProblemCache, opts: IterativeOptions) -> WindowSolver | None:
@@ -133,7 +135,7 @@ def _compile_if_cold() -> None:
     if _compile_checked:
         return
     _compile_checked.append(True)
-    if kernel_unavailable() is not None:
+    if kernel_kind() != "jit":  # none, or the AOT build: nothing to compile (nor numba to import)
         return
     from planner_core import window_kernel
 
@@ -449,7 +451,8 @@ def plan_iterative(problem: Problem, options: IterativeOptions | None = None) ->
 
 def warm_up() -> str | None:
     """Compile the compiled pass now (or load it from numba's cache: ~20 s the first time on this
-    machine, ~0.4 s after), so that no plan pays it. Returns why it cannot run here, else None."""
+    machine, ~0.4 s after; or load its AOT build, see `window.kernel_build`: ~ms), so that no
+    plan pays it. Returns why it cannot run here, else None."""
     eye = np.eye(3)
     wps = np.array([[0.0, 0.0, 0.0], [2.0, 1.0, 0.0], [4.0, 0.0, 1.0], [6.0, 1.0, 1.0]])
     box = Polytope(np.concatenate([eye, -eye]), np.full(6, 10.0))

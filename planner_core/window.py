@@ -29,17 +29,18 @@ against the tightened rows (which implies the untightened ones).
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from functools import lru_cache
 from time import perf_counter
 from types import ModuleType
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from planner_core.constraints import INF, cost_matrices
 from planner_core.jets import CHECK_TOL, MARGIN, NV, ProblemCache, tighten
+from planner_core.kernel_aot import AotKernel
 from planner_core.qp import DaqpSolver
 
 FloatArray = NDArray[np.float64]
@@ -54,11 +55,12 @@ _kernel_off: list[str] = []  # set by use_compiled_kernel(False): this process n
 
 
 def use_compiled_kernel(enabled: bool, reason: str = "disabled by the caller") -> str | None:
-    """Process-wide: allow the compiled pass (the default) or, with `enabled=False`, plan
-    without it and never import numba (~105 MB resident; loading it from its cache ~0.4 s):
-    the companion's processes, a one-shot CLI plan of a small problem. Per plan, the same
-    choice is `IterativeOptions.compiled`. Returns the reason it was off before (None: it was
-    on), so a caller that borrows the switch (a replay) can put it back."""
+    """Process-wide: allow the compiled pass (the default; `kernel_build`: which build) or, with
+    `enabled=False`, plan without it and never import numba (~105 MB resident; loading it from its
+    cache ~0.4 s) nor load the AOT build: the companion's processes, a one-shot CLI plan of a
+    small problem. Per plan, the same choice is `IterativeOptions.compiled`. Returns the reason it
+    was off before (None: it was on), so a caller that borrows the switch (a replay) can put it
+    back."""
     before = _kernel_off[0] if _kernel_off else None
     if enabled:
         _kernel_off.clear()
@@ -67,27 +69,77 @@ def use_compiled_kernel(enabled: bool, reason: str = "disabled by the caller") -
     return before
 
 
-def _kernel_or_reason() -> ModuleType | str:
-    """`window_kernel`, or why it is not used here. numba needs memory it can make executable;
-    a W^X policy (systemd's MemoryDenyWriteExecute=yes, SELinux execmem) refuses it at import.
-    Without it every window takes the numpy + daqp path: same QPs, same checks, ~8x slower."""
+BUILDS = ("auto", "aot", "jit")
+# which build of the compiled pass a process loads: `kernel_build`, or PLANNER_CORE_KERNEL (a
+# value not in BUILDS: auto)
+_build: list[str] = [b if (b := os.environ.get("PLANNER_CORE_KERNEL", "auto")) in BUILDS else "auto"]
+_aot_reason: list[str] = []  # why the AOT build is not the one loaded (when it is not)
+
+
+def kernel_build(build: str) -> str:
+    """Process-wide: which build of the compiled pass to load. `auto` (the default): the
+    ahead-of-time build (`python -m planner_core.build_kernel`: a plain extension module, no
+    numba, ~ms to load) when it is there and built from this `window_kernel.py`, else numba's
+    JIT (`window_kernel`); `aot`: that build only (else no compiled pass, with the reason);
+    `jit`: numba's only. The environment variable PLANNER_CORE_KERNEL sets it at start-up.
+    `use_compiled_kernel(False)` still means no compiled pass at all. Returns the build before."""
+    if build not in BUILDS:
+        raise ValueError(f"kernel build {build!r}: one of {', '.join(BUILDS)}")
+    before = _build[0]
+    _build[0] = build
+    _load_kernel.cache_clear()
+    return before
+
+
+def _kernel_or_reason() -> ModuleType | AotKernel | str:
+    """The compiled pass (`window_kernel`, or its AOT build), or why it is not used here. numba
+    needs memory it can make executable; a W^X policy (systemd's MemoryDenyWriteExecute=yes,
+    SELinux execmem) refuses it at import. Without it every window takes the numpy + daqp
+    path: same QPs, same checks, ~8x slower."""
     if _kernel_off:
         return _kernel_off[0]
     return _load_kernel()
 
 
 @lru_cache(maxsize=1)
-def _load_kernel() -> ModuleType | str:
+def _load_kernel() -> ModuleType | AotKernel | str:
+    build = _build[0]
+    _aot_reason.clear()
+    if build in ("auto", "aot"):
+        from planner_core import kernel_aot
+
+        aot = kernel_aot.load()
+        if not isinstance(aot, str):
+            return aot
+        if build == "aot":
+            return f"AOT build: {aot} (kernel build 'aot': no JIT)"
+        _aot_reason.append(aot)
+    else:
+        _aot_reason.append(f"not wanted (kernel build {build!r})")
     try:
         from planner_core import window_kernel
-
-        _clock[:] = [window_kernel.clock_gettime()]
-    except (ImportError, OSError, AttributeError) as exc:  # AttributeError: a libc without clock_gettime
+    except (ImportError, OSError) as exc:
         return f"{type(exc).__name__}: {exc}"
     return window_kernel
 
 
-_clock: list[Any] = []  # libc's clock_gettime, for the compiled pass's step times
+def kernel_kind() -> str | None:
+    """`aot` or `jit`: the build of the compiled pass this process uses (loading it), None when none."""
+    k = _kernel_or_reason()
+    if isinstance(k, str):
+        return None
+    return "aot" if isinstance(k, AotKernel) else "jit"
+
+
+def aot_unavailable() -> str | None:
+    """Why the AOT build of the compiled pass is not the one this process uses (not built, built
+    from another source, not wanted, ...), None when it is. Loads the compiled pass."""
+    if _kernel_off:
+        return _kernel_off[0]
+    k = _load_kernel()
+    if isinstance(k, AotKernel):
+        return None
+    return _aot_reason[0] if _aot_reason else k if isinstance(k, str) else None
 
 
 def kernel_unavailable() -> str | None:
@@ -284,7 +336,7 @@ class WindowSolver:
                 j0, window, m, c.off, c.n1, c.n2, self.cache.hull, self.cs, c.pr, c.pd, c.bn1, c.nb,
                 c.face_off, c.pa, self.problem.waypoints, c.b6, c.f6,
                 self.k8, self.kdd, self.qpos, self.qsum, self.kba4, self.kab4, jets, guess, self.active,
-                step_times, CHECK_TOL, _clock[0], np.zeros(2, dtype=np.int64),
+                step_times, CHECK_TOL, np.zeros(2, dtype=np.int64),
             )
         )
 
@@ -409,7 +461,7 @@ class _RowStore:
 
     def fill(self, segments: NDArray[np.int64]) -> None:
         """Rows of `segments` (held: within [seg0, seg1)), and their working limits when the store
-        keeps them. Compiled (`window_kernel.fill_rows`) where numba runs, numpy otherwise."""
+        keeps them. Compiled (`window_kernel.fill_rows`, JIT or AOT) where it runs, numpy otherwise."""
         cache = self.cache
         kernel = _kernel_or_reason()
         if isinstance(kernel, str):

@@ -36,6 +36,7 @@ from typing import Any, TypeVar, cast
 
 import numpy as np
 from numba import njit as _njit
+from numba import types as _types
 
 F = TypeVar("F", bound=Callable[..., Any])
 NV = 12
@@ -264,22 +265,16 @@ def _chol_solve(ls: Any, k: int, w: Any, out: Any) -> None:
 
 
 CLOCK_MONOTONIC = 1  # Linux's id; time.perf_counter reads the same clock
-
-
-def clock_gettime() -> Any:
-    """libc's clock_gettime as a ctypes function, for `run_pass` to time its steps: numba calls it
-    directly (~50 ns). objmode around time.perf_counter took ~20 us a step, more than the step."""
-    import ctypes
-
-    fn = ctypes.CDLL(None).clock_gettime
-    fn.argtypes = [ctypes.c_int, ctypes.c_void_p]
-    fn.restype = ctypes.c_int
-    return fn
+# libc's clock_gettime, for `run_pass` to time its steps (~50 ns a call): an external symbol that
+# numba's JIT resolves in the process and the ahead-of-time build (`build_kernel`) leaves to the
+# dynamic linker, so both builds compile this same source. objmode around time.perf_counter took
+# ~20 us a step, more than the step.
+_clock_gettime: Any = _types.ExternalFunction("clock_gettime", _types.int32(_types.int32, _types.voidptr))
 
 
 @njit_inline
-def _now(clock: Any, ts: Any) -> float:
-    clock(CLOCK_MONOTONIC, ts.ctypes.data)
+def _now(ts: Any) -> float:
+    _clock_gettime(CLOCK_MONOTONIC, ts.ctypes)
     t: float = ts[0] + 1e-9 * ts[1]
     return t
 
@@ -765,7 +760,7 @@ def run_pass(
     off: Any, n1: Any, n2: Any, hull: Any, cs: Any, pr: Any, pd: Any, bn1: int, nb: int, face_off: Any,
     pa: Any, w: Any, b6: Any, f6: Any,
     k8: Any, kdd: Any, qpos: Any, qsum: Any, kba4: Any, kab4: Any, jets: Any, guess: Any, active: Any,
-    step_times: Any, check_tol: float, clock: Any, ts: Any,
+    step_times: Any, check_tol: float, ts: Any,
 ) -> int:
     """Steps j0 .. m-2; commits the jet at each j. Returns the first j it could not settle (m-1
     when it settled all). `step_times[j]`: seconds spent on step j.
@@ -776,8 +771,8 @@ def run_pass(
     horizontal norm's polygon direction, (b6[6], b6[7]) its x, y components); corridor
     faces `pa` (segment s: rows face_off[s]:face_off[s+1]); limits per bound row `b6` (8, .) and per
     face `f6` (6, .): lo_t, hi_t, lo, hi, lo_w, hi_w (see `_lim`), b6 then the direction; `off`/`n1`/`n2` the stacked row
-    offsets, for `active` (the rows active at the last solution). `clock`: libc's clock_gettime
-    (see `_now`), `ts` two int64 for its answer."""
+    offsets, for `active` (the rows active at the last solution). `ts`: two int64 for
+    libc's clock_gettime (see `_now`)."""
     hmax = window
     nxm = NV * hmax
     rmax = 0
@@ -798,7 +793,7 @@ def run_pass(
         _nonzero_runs(hull),
     )
     x = ws[3]
-    t0 = _now(clock, ts)
+    t0 = _now(ts)
     for j in range(j0, m - 1):
         f1 = min(j + window - 1, m - 2)
         half = f1 < m - 2
@@ -811,7 +806,7 @@ def run_pass(
                 guess[j + i, 1 + k // 3, k % 3] = x[NV * i + k] * cs[j + i, k]
         for k in range(NV):
             jets[j, 1 + k // 3, k % 3] = guess[j, 1 + k // 3, k % 3]
-        t1 = _now(clock, ts)
+        t1 = _now(ts)
         step_times[j] = t1 - t0
         t0 = t1
     return m - 1

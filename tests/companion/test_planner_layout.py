@@ -19,6 +19,7 @@ from companion.obstacles import Known
 from companion.runtime import Runtime, run_and_trim
 from companion.wire.messages import mission_from_message
 from planner_core import rest_jet
+from planner_core.window import kernel_kind
 
 
 def plan_probe(cfg: Config) -> dict[str, Any]:
@@ -28,7 +29,8 @@ def plan_probe(cfg: Config) -> dict[str, Any]:
     out = start_mission(spec, rest_jet(np.array([0.0, 0.0, -1.5])), 0.0, Known(), cfg)
     assert out.route is not None
     return {"ok": out.ok, "pid": os.getpid(), "thread": threading.current_thread().name,
-            "numba": "numba" in sys.modules, "compiled_steps": out.route.trajectory.stats.get("n_compiled_steps")}
+            "numba": "numba" in sys.modules, "compiled_steps": out.route.trajectory.stats.get("n_compiled_steps"),
+            "kernel": kernel_kind() if out.route.trajectory.stats.get("n_compiled_steps") else None}
 
 
 async def _both(rt: Runtime, cfg: Config) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -55,7 +57,9 @@ def test_compiled_planner_processes_on_request() -> None:
     assert isinstance(rt.urgent_pool, ProcessPoolExecutor)
     mission, urgent = asyncio.run(_both(rt, cfg))
     assert mission["ok"] and urgent["ok"] and urgent["pid"] != os.getpid()
-    assert mission["numba"] and mission["compiled_steps"] > 0
+    # the compiled pass: its AOT build where `make setup` built it (no numba), else numba's JIT
+    assert mission["compiled_steps"] > 0 and mission["kernel"] in ("aot", "jit")
+    assert mission["numba"] == (mission["kernel"] == "jit")
 
 
 def test_run_and_trim_returns_the_result_and_raises_what_failed() -> None:

@@ -12,7 +12,7 @@ import sys
 import numpy as np
 import pytest
 
-from planner_core import iterative, window_kernel
+from planner_core import iterative, window, window_kernel
 
 HEAVY = ("numba", "llvmlite", "scipy", "matplotlib", "osqp")
 
@@ -51,10 +51,13 @@ def test_compiled_pass_is_used_once_loaded() -> None:
 
 
 def test_a_cold_kernel_cache_announces_the_compile_once(monkeypatch: pytest.MonkeyPatch,
-                                                         caplog: pytest.LogCaptureFixture) -> None:
+                                                         caplog: pytest.LogCaptureFixture,
+                                                         request: pytest.FixtureRequest) -> None:
     """The compile itself is ~20 s: stood in for here by the warm-up it runs (which compiles
     for real on a cold cache); what is checked is that the user is told, before and after, once."""
     calls: list[int] = []
+    before = window.kernel_build("jit")  # the JIT's compile: the AOT build has none to announce
+    request.addfinalizer(lambda: window.kernel_build(before))
     monkeypatch.setattr(window_kernel, "cache_state", lambda: "cold")
     monkeypatch.setattr(iterative, "_compile_checked", [])
     monkeypatch.setattr(iterative, "warm_up", lambda: calls.append(1))
