@@ -3,6 +3,8 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
+AOT := $(VENV)/.kernel-built
+KERNEL_SOURCES := planner_core/window_kernel.py planner_core/kernel_aot.py planner_core/build_kernel.py
 
 .PHONY: setup demo demo-fleet test lint typecheck pytest bench clean
 
@@ -14,17 +16,21 @@ $(STAMP): pyproject.toml
 	# uses it (big CLI plans, benchmarks, tests, `[planner] compiled = true`); the service's own
 	# processes and small one-shot plans do without it (benchmarks/footprint.py)
 	PLANNER_CORE_KERNEL=jit $(PY) -c "from planner_core.iterative import warm_up; warm_up()"
-	# then its ahead-of-time build (~15-60 s): a plain extension module, no numba at run time
-	# (planner_core/build_kernel.py); where it cannot be built, plans use the numba JIT as above
-	$(PY) -m planner_core.build_kernel || echo "setup: no AOT build of the planner's kernel (reason above); plans use numba's JIT"
 	touch $(STAMP)
 
-setup: $(STAMP)
+# the kernel's ahead-of-time build (~15-60 s), again whenever its source changes: a plain
+# extension module, no numba at run time (planner_core/build_kernel.py), which the service's
+# processes plan with; where it cannot be built, they plan on the numpy path (said at start-up)
+$(AOT): $(STAMP) $(KERNEL_SOURCES)
+	$(PY) -m planner_core.build_kernel || echo "setup: no AOT build of the planner's kernel (reason above)"
+	touch $(AOT)
 
-demo: $(STAMP)
+setup: $(STAMP) $(AOT)
+
+demo: setup
 	$(PY) -m demo
 
-demo-fleet: $(STAMP)
+demo-fleet: setup
 	$(PY) -m demo --fleet 3
 
 lint: $(STAMP)
@@ -40,7 +46,7 @@ typecheck: $(STAMP)
 # Every pass runs even when one fails, so that CI shows all.
 UNIT := tests/planner tests/companion tests/test_systemd.py
 FLIGHTS := tests/mock tests/e2e
-pytest: $(STAMP)
+pytest: setup
 	$(PY) -m pytest -q -n 2 --dist loadfile -m "not serial" $(UNIT); a=$$?; \
 	$(PY) -m pytest -q -n 2 --dist loadfile -m "not serial" $(FLIGHTS); b=$$?; \
 	$(PY) -m pytest -q -m serial tests; c=$$?; \
@@ -48,7 +54,7 @@ pytest: $(STAMP)
 
 test: lint typecheck pytest
 
-bench: $(STAMP)
+bench: setup
 	$(PY) -m pip install --quiet -e '.[bench]'
 	$(PY) benchmarks/planner.py --quality --minsnap --json out/bench_planner.json
 	$(PY) benchmarks/service.py --json out/bench_service.json

@@ -515,14 +515,18 @@ def cmd_run(args: argparse.Namespace) -> int:
     # `kill -USR1 PID` dumps every thread's stack: how to see where a stuck service is.
     faulthandler.register(signal.SIGUSR1, all_threads=True)
     from companion.service import run
-    from planner_core import use_compiled_kernel
+    from planner_core.window import aot_unavailable, kernel_build
 
-    # The numpy path everywhere in this process (urgent replans, local replans, stops; missions
-    # too with executor "thread"): numba and LLVM would add ~105 MB resident for ~0.3 s of a
-    # 1000-waypoint plan (benchmarks/footprint.py). Planner processes start fresh and follow
-    # [planner] compiled. Decided here, by the process entry point, not by Service: it is
-    # process-wide.
-    use_compiled_kernel(False, "companion service process (memory): numpy path")
+    # No numba in this process (urgent replans, local replans, stops; missions too with executor
+    # "thread"): numba and LLVM would add ~105 MB resident (benchmarks/footprint.py). The
+    # compiled pass's AOT build (no numba, <1 MB) where `make setup` built it, else the numpy
+    # path. Planner processes start fresh and follow [planner] compiled. Decided here, by the
+    # process entry point, not by Service: it is process-wide.
+    kernel_build("aot")
+    why_not = aot_unavailable()
+    if why_not is not None:
+        logging.getLogger("companion").warning("planning on the numpy path (~10x slower a window step than "
+                                               "the compiled pass): %s", why_not)
 
     async def main() -> bool:
         # First SIGINT/SIGTERM: brake, hand the vehicle over to the autopilot, exit 0 once it

@@ -153,8 +153,11 @@ class PlannerConfig:
     # "thread" of the service (rare and short; no second planner process, ~65 MB less) or a
     # "process" of their own.
     urgent: str = "thread"
-    # Planner processes load the compiled pass (numba): ~105 MB more resident each, ~0.3 s
-    # less per 1000-waypoint plan (benchmarks/footprint.py). The service process never loads it.
+    # false: no process of the service loads numba; they plan with the compiled pass's
+    # ahead-of-time build (`make setup` builds it: <1 MB, the same plans), or on the numpy path
+    # where it is not built (~10x slower a window step; said at start-up). true: planner
+    # processes may also load numba's JIT build when the AOT one is missing (~105 MB more each,
+    # benchmarks/footprint.py). The service process never loads numba.
     compiled: bool = False
     # Durations of a mission that gives none: "fastest" (planner_core.plan_mission's fastest
     # allocation within the reserve below) or "default" (planner_core.allocate_times: the 3-piece

@@ -319,7 +319,9 @@ class Navigator:
     def _measured(self, seconds: float, n_waypoints: int, candidates: int = 1) -> None:
         """A plan's wall time (queueing included) and its candidate plans into the running estimate."""
         per = seconds / max(candidates, 1) / (max(n_waypoints, 1) + FIXED_WAYPOINTS)
-        a = 0.5 if per > self.plan_per_waypoint else 0.2  # up fast, down slowly
+        # up at once (a plan that came late is planned again from this estimate: CI's runner
+        # refused a mission whose retry, estimated at half the slowdown, was late again), down slowly
+        a = 1.0 if per > self.plan_per_waypoint else 0.2
         self.plan_per_waypoint = (1 - a) * self.plan_per_waypoint + a * per
 
     # -- missions ---------------------------------------------------------------------------------

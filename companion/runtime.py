@@ -7,9 +7,11 @@ thread for local replans (a few ms: pickling to a process would cost more), two 
 stops, one each for encoding and decoding.
 
 Footprint (benchmarks/footprint.py): numba and LLVM cost ~105 MB resident in each process that
-loads the compiled pass and save ~0.3 s of the QPs of a 1000-waypoint plan (a mission of 1000
-waypoints: ~1 s with it, ~1.5-3 s without, on a busy 2-core machine), so by default no process
-of the service loads them (`[planner] compiled`). A mission plan in a thread of the service (no
+loads the compiled pass's JIT build, so by default no process of the service loads them
+(`[planner] compiled`); every process uses the compiled pass's ahead-of-time build instead
+(`planner_core.build_kernel`, built by `make setup`: <1 MB, ~ms to load, the same plans), and
+the numpy path where that is not built (~10x slower a window step: a 1000-waypoint mission
+~3-5 s instead of a few hundred ms). A mission plan in a thread of the service (no
 second interpreter: ~65 MB less) holds the GIL for most of a second and stalls the setpoints
 and the pop-up replans (measured: jitter p99 8 ms, pop-up 75 ms), so missions go to a process;
 the urgent replans are rare and short, and a thread of their own spares a second process.
@@ -53,9 +55,9 @@ def background_priority(increment: int, compiled: bool = False) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     _exit_with_parent(os.getppid())
     if not compiled:
-        from planner_core import use_compiled_kernel
+        from planner_core.window import kernel_build
 
-        use_compiled_kernel(False, "companion planner process: [planner] compiled = false (memory)")
+        kernel_build("aot")  # no numba: its AOT build (ms to load, <1 MB) where built, else the numpy path
 
 
 def _exit_with_parent(parent: int, period: float = 0.5) -> None:

@@ -113,7 +113,11 @@ def compiled_pays_off(m: int) -> bool:
     `python -m planner_core plan` of a small scenario is faster without numba). Loaded: numba's
     JIT build (`window_kernel`) or the AOT one (`planner_core.build_kernel`, ~ms to load)."""
     loaded = "planner_core.window_kernel" in sys.modules or "planner_core._window_aot" in sys.modules
-    return loaded or m >= KERNEL_MIN_WAYPOINTS
+    if loaded or m >= KERNEL_MIN_WAYPOINTS:
+        return True
+    from planner_core.window import aot_ready
+
+    return aot_ready()  # milliseconds to load: it pays off at any size
 
 
 def _fast_solver(cache: ProblemCache, opts: IterativeOptions) -> WindowSolver | None:

@@ -131,6 +131,15 @@ def kernel_kind() -> str | None:
     return "aot" if isinstance(k, AotKernel) else "jit"
 
 
+def aot_ready() -> bool:
+    """Whether the AOT build loads in this process (cheap: ~ms, no numba), without loading the JIT."""
+    if _kernel_off or _build[0] == "jit":
+        return False
+    from planner_core import kernel_aot
+
+    return not isinstance(kernel_aot.load(), str)
+
+
 def aot_unavailable() -> str | None:
     """Why the AOT build of the compiled pass is not the one this process uses (not built, built
     from another source, not wanted, ...), None when it is. Loads the compiled pass."""

@@ -19,7 +19,7 @@ from companion.obstacles import Known
 from companion.runtime import Runtime, run_and_trim
 from companion.wire.messages import mission_from_message
 from planner_core import rest_jet
-from planner_core.window import kernel_kind
+from planner_core.window import aot_ready, aot_unavailable, kernel_kind
 
 
 def plan_probe(cfg: Config) -> dict[str, Any]:
@@ -47,8 +47,16 @@ def test_default_layout_one_light_planner_process_and_an_urgent_thread() -> None
     assert isinstance(rt.pool, ProcessPoolExecutor) and isinstance(rt.urgent_pool, ThreadPoolExecutor)
     mission, urgent = asyncio.run(_both(rt, cfg))
     assert mission["ok"] and urgent["ok"]
-    assert mission["pid"] != os.getpid() and not mission["numba"] and mission["compiled_steps"] == 0
+    assert mission["pid"] != os.getpid() and not mission["numba"]
+    # the compiled pass's AOT build where `make setup` built it (no numba), else the numpy path
+    assert (mission["compiled_steps"] > 0) == (aot_ready() and mission["kernel"] == "aot")
     assert urgent["pid"] == os.getpid() and urgent["thread"].startswith("urgent")
+
+
+def test_the_setup_built_the_kernel_the_service_plans_with() -> None:
+    """`make setup` (which `make test` runs) builds the AOT kernel on this machine: without it the
+    service plans ~10x slower and says so at start-up; a test run without it would not notice."""
+    assert aot_ready(), aot_unavailable()
 
 
 def test_compiled_planner_processes_on_request() -> None:

@@ -479,10 +479,13 @@ def test_braking_along_a_flown_trajectory(planned2) -> None:  # type: ignore[no-
         stop = res.trajectory
         region = traj.corridors[s + res.stats["corridor_candidate"]]
         assert region.violation(stop.control_points.reshape(-1, 3)) <= 1e-9
-        assert np.allclose(stop.jet(stop.t_end)[1:], 0.0, atol=1e-9)
+        # at rest, to the rounding of a k-th derivative of stored control points (eps |P| 9!/(9-k)!
+        # / d^k: verify's floor; 1e-8 of snap on this plan's last stop)
+        assert np.allclose(stop.jet(stop.t_end)[1:], 0.0, atol=1e-6)
         start = stop.jet(float(t))  # derivatives from control points of a short lead segment
         assert np.allclose(start[0], jet[0], atol=1e-9)
-        assert np.allclose(start[1:], jet[1:], rtol=1e-6, atol=1e-6)
+        # the same floor on a short lead segment: 2e-6 of snap (of 0.37 m/s^4) on this plan
+        assert np.allclose(start[1:], jet[1:], rtol=1e-6, atol=1e-5)
 
 
 def test_braking_infeasible_cases() -> None:
