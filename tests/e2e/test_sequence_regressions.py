@@ -85,7 +85,7 @@ def test_two_moved_waypoints_are_both_in_the_plan(rig: SeqRig, wait_between: boo
     matched = match_waypoints(plan, model)
     misses = {i: round(nearest_distance(plan, model[i]), 4) for i in range(1, 6) if matched[i] is None}
     assert not misses, (f"the plan misses waypoints (index: closest approach in m) {misses}; "
-                        f"junction times per waypoint {matched}")
+                        f"junction times per waypoint {matched}; events {tail(rig, since)}")
 
 
 # 2 ------------------------------------------------------------------------------------------
