@@ -135,6 +135,19 @@ def knot_pieces(problem: Problem, density: float = KNOT_DENSITY, max_pieces: int
     return np.asarray(np.clip(np.nan_to_num(k, nan=1.0), 1, max_pieces), dtype=np.int64)
 
 
+def _leg_pieces(problem: Problem, density: float = KNOT_DENSITY, max_pieces: int = MAX_PIECES) -> int:
+    """The pieces of the first leg by the knot rule's length alone (its ends' speeds ignored)."""
+    d = problem.waypoints[1] - problem.waypoints[0]
+    length = float(np.linalg.norm(d))
+    if length <= 1e-12:
+        return 1
+    lim = np.minimum(directional_bounds(problem.bounds, (d / length)[None, :]), 1e12)[0]
+    x = length / max(float(lim[0] ** 2 / lim[1]), 1e-12)
+    if not np.isfinite(x) or x < KNOT_MIN_RATIO_REST:
+        return 1
+    return int(np.clip(np.ceil(density * np.sqrt(x)), 1, max_pieces))
+
+
 def insert_knots(problem: Problem, pieces: IntArray) -> tuple[Problem, IntArray]:
     """Split segment j into pieces[j] equal straight pieces, each with segment j's corridor and
     its duration split evenly; returns the problem and the new index of every given waypoint."""
@@ -197,6 +210,7 @@ def fastest_durations(
     search: bool | None = None,
     local_passes: int = 1,
     max_candidates: int | None = None,
+    first_leg_knots: bool = False,
     **opts: Any,
 ) -> FastestAllocation:
     """Durations as short as the planner can fly them (module docstring). `problem.times`
@@ -211,7 +225,13 @@ def fastest_durations(
     candidate is planned and the best verified one is the answer (stats: `capped`). The steps
     run in the order of what they gain most: the default allocation first, then the uniform
     scale, the refinement, the knots, the local pass. A count, not a clock: the same cap gives
-    the same plan (a recording replays bit for bit)."""
+    the same plan (a recording replays bit for bit).
+
+    When nothing plans and the start is moving, the first leg is knotted whatever its ends
+    (`first_leg_knots`) and everything is tried once more: one degree-9 segment cannot certify a
+    long leg that starts by accelerating away from its end (10 m from 1.2 m/s^2 the other way,
+    v 2.4, a 2.4: no duration plans it; 2-4 pieces do), and the knot rule above keeps knots off
+    legs with a fast end (they never shortened a plan). A mission sent in flight failed so."""
     from planner_core.planning import plan
 
     if max_candidates is not None and max_candidates < 1:
@@ -247,6 +267,8 @@ def fastest_durations(
     base = durations_from_lengths(given.waypoints, given.bounds, safety=1.0, initial_jet=given.initial,
                                   corridors=given.corridors)
     pieces = knot_pieces(given, knot_density)
+    if first_leg_knots and given.m >= 2:
+        pieces[0] = max(int(pieces[0]), _leg_pieces(given, knot_density))
     knotted, index, kbase = given, same, base
     if knots and int(pieces.max()) > 1:
         knotted, index = insert_knots(given, pieces)
@@ -298,6 +320,16 @@ def fastest_durations(
                 break
             start = d_local
     strategy = "search" if searching else "local"
+    if not options and knots and not first_leg_knots and given.m >= 2 and np.any(given.initial[1:3] != 0.0) \
+            and _leg_pieces(given, knot_density) > int(pieces[0]):
+        again = fastest_durations(problem, method, tol=tol, refine=refine, shrink=shrink, rounds=rounds, knots=knots,
+                                  knot_density=knot_density, max_plans=max_plans, search=search,
+                                  local_passes=local_passes, max_candidates=max_candidates, first_leg_knots=True,
+                                  **opts)
+        plan_count[0] += again.plans
+        if again.ok:
+            return _done(again.problem, again.result, again.durations, again.scale, plan_count[0], t_start,
+                         again.waypoint_index, again.strategy, max_candidates)
     if not options:
         # nothing planned: the default allocation once more with the caller's options (diagnosis and
         # recovery on unless turned off), so that the failure names the binding bound in the given indices
