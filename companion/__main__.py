@@ -25,8 +25,9 @@ from pathlib import Path
 from typing import Any
 
 from companion.config import Config, ConfigError, ZenohConfig, config_to_toml, load_config
+from companion.wire.keys import INBOUND
 
-KEYS = ("mission", "obstacles", "change", "command")
+KEYS = INBOUND
 
 
 def _client_session(args: argparse.Namespace, patience: float = 0.0) -> Any:
@@ -294,7 +295,7 @@ def fleet_list(session: Any, prefix: str, timeout: float = 1.0) -> list[dict[str
     """The vehicles present (a liveliness token at `<prefix>/<vehicle>/alive`), each with the
     status its companion answers (`<prefix>/<vehicle>/status`, checked as `send` checks it: the
     exact key, one session whose id is in the body), in vehicle order."""
-    from companion.wire.zenoh import ALIVE
+    from companion.wire.keys import ALIVE
 
     present: set[str] = set()
     with contextlib.suppress(Exception):

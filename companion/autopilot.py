@@ -23,7 +23,14 @@ import numpy as np
 from companion.config import Config
 from companion.flight import IN_OUR_MODE, Flight, State, on_mode_report
 from companion.report import Reporter
-from companion.wire.mavlink import WANTED, CommandFailed, MavlinkLink
+from companion.wire.mavlink import (
+    MAV_LANDED_IN_AIR,
+    MAV_LANDED_LANDING,
+    MAV_LANDED_ON_GROUND,
+    WANTED,
+    CommandFailed,
+    MavlinkLink,
+)
 
 log = logging.getLogger("companion")
 S = State
@@ -31,10 +38,6 @@ S = State
 ESTIMATE_WORDS = re.compile(r"EKF|GPS|origin|position estimate|local_pos|estimator", re.IGNORECASE)
 TELEMETRY_CHECK = 3.0  # s after the requests: what has not arrived by then is reported
 WAITING_EVERY = 5.0  # s between "waiting for autopilot heartbeat" lines
-MAV_LANDED_ON_GROUND = 1
-MAV_LANDED_IN_AIR = 2
-MAV_LANDED_TAKEOFF = 3
-MAV_LANDED_LANDING = 4
 # Where the autopilot sends no landed state (EXTENDED_SYS_STATE), `airborne` follows the
 # height above where the vehicle stood disarmed, and the speed.
 LANDED_STATE_STALE = 3.0  # s without EXTENDED_SYS_STATE: the landed state is unknown

@@ -25,14 +25,19 @@ from companion.lag import LagEstimator
 from companion.navigator import MAX_AHEAD, RETRY_MARGIN, Navigator
 from companion.report import Reporter
 from companion.runtime import Runtime
-from companion.wire.mavlink import APM_MODES, PX4_MODES, CommandFailed, MavlinkLink
+from companion.wire.mavlink import (
+    APM_MODES,
+    MAV_LANDED_IN_AIR,
+    MAV_LANDED_ON_GROUND,
+    PX4_MODES,
+    CommandFailed,
+    MavlinkLink,
+)
 from companion.wire.messages import Command
 from planner_core import Problem, allocate_times, plan, splice, takeoff_duration
 
 log = logging.getLogger("companion")
 S = State
-MAV_LANDED_ON_GROUND = 1
-MAV_LANDED_IN_AIR = 2
 LEAD_SLEW = 0.1  # s per s: how fast the auto lead follows the lag estimate (the setpoints run 10 % fast or slow)
 # Modes that hold with no pilot input, per autopilot (docs/handover.md): never "pilot modes".
 AUTONOMOUS_HOLDS = {"px4": ("LOITER",), "ardupilot": ("GUIDED", "BRAKE")}

@@ -350,7 +350,9 @@ class Config:
     fleet: FleetConfig = field(default_factory=FleetConfig)
 
     def key(self, topic: str) -> str:
-        return f"{self.zenoh.prefix}/{self.vehicle.id}/{topic}"
+        from companion.wire.keys import key
+
+        return key(self.zenoh.prefix, self.vehicle.id, topic)
 
 
 _CHOICES: dict[str, tuple[str, ...]] = {

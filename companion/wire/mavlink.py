@@ -40,6 +40,11 @@ from companion.wire.signing import read_signing_key
 dialect.install()  # PX4 >= 1.14 says what happens in EVENT (410), which pymavlink lacks
 mavlink = mavutil.mavlink
 
+# EXTENDED_SYS_STATE landed_state (MAV_LANDED_STATE)
+MAV_LANDED_ON_GROUND = mavlink.MAV_LANDED_STATE_ON_GROUND
+MAV_LANDED_IN_AIR = mavlink.MAV_LANDED_STATE_IN_AIR
+MAV_LANDED_TAKEOFF = mavlink.MAV_LANDED_STATE_TAKEOFF
+MAV_LANDED_LANDING = mavlink.MAV_LANDED_STATE_LANDING
 # Position + velocity + acceleration + yaw: only the yaw-rate bit is set.
 TYPE_MASK = 2048
 PX4_OFFBOARD = 6

@@ -33,6 +33,7 @@ from companion.wire.frames import (
     plain,
     scenario_to_ned,
 )
+from companion.wire.keys import INBOUND
 from companion.wire.origin import (
     change_from_fleet,
     change_from_home,
@@ -52,7 +53,7 @@ from planner_core import (
     vehicle_bound,
 )
 
-KINDS = ("mission", "obstacles", "change", "command")
+KINDS = INBOUND  # companion/wire/keys.py
 
 
 MAX_QUOTE = 100  # characters of a peer's value quoted back in a reason

@@ -24,14 +24,10 @@ from companion.admission import Admission
 from companion.config import Config, ZenohConfig
 from companion.tap import NO_TAP, Tap
 from companion.wire.encode import encode
+from companion.wire.keys import ALIVE, INBOUND, OUTBOUND, QUERYABLE
 from companion.wire.messages import Oversized
 
 log = logging.getLogger("companion")
-
-INBOUND = ("mission", "obstacles", "change", "command")
-OUTBOUND = ("status", "telemetry", "trajectory", "events")
-QUERYABLE = ("plan", "status")
-ALIVE = "alive"  # the liveliness token <prefix>/<vehicle>/alive: present while the service runs
 
 
 def zenoh_config(zc: ZenohConfig, *, listen: bool = True) -> zenoh.Config:

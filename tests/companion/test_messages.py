@@ -114,3 +114,20 @@ def test_long_obstacles_pass_whole() -> None:
     msg = {"frame": "enu", "remove": ["old"],
            "add": [{"id": "p", "A": planes, "b": b}, {"id": "v", "vertices": cube}]}
     assert _decode("obstacles", msg) == msg
+
+
+def test_the_protocol_doc_lists_exactly_the_key_space() -> None:
+    """Issue 22.3: one source for the Zenoh keys (companion/wire/keys.py); the doc's table names
+    each with its direction, and no other."""
+    import re
+    from pathlib import Path
+
+    from companion.wire.keys import ALIVE, INBOUND, OUTBOUND, QUERYABLE
+
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "protocol.md").read_text()
+    section = doc[doc.index("The key names have one source"):doc.index("Only the exact key of this vehicle")]
+    table = dict(re.findall(r"^\| `(\w+)` \| ([^|]+) \|", section, re.MULTILINE))
+    assert set(table) == {*INBOUND, *OUTBOUND, *QUERYABLE, ALIVE}, table
+    assert all(table[k].startswith("in") for k in INBOUND)
+    assert all(table[k].startswith("out") for k in OUTBOUND)
+    assert all("query" in table[k] for k in QUERYABLE) and "liveliness" in table[ALIVE]
