@@ -442,11 +442,11 @@ def _hog() -> subprocess.Popen[bytes]:
     return subprocess.Popen([sys.executable, "-c", "while True: pass"])
 
 
-def run_loaded(out: Path, every: float, duration: float, soak: int, hog: bool) -> dict[str, Any]:
-    """Fly; send a valid 5-waypoint mission every `every` s for `duration` s (each replaces the
-    one flying); then `soak` 1000-waypoint missions (checked, kept pending, each replacing the
-    last) and obstacle additions and removals, then one small pending mission: the companion's
-    main and tree RSS before and after. Setpoint gaps at the relay over the mission phase."""
+@contextlib.contextmanager
+def relayed_flight(out: Path, hog: bool, laps: int, search_time: float | None = None) -> Iterator[tuple[Any, Any, Path]]:
+    """A PX4-flavour rig with the stamping relay on its MAVLink link (and a CPU hog beside it if
+    asked), flying `laps` of the rectangle: (rig, its event log, where the relay writes its
+    stamps once this closes)."""
     from demo.rig import rig
 
     out.mkdir(parents=True, exist_ok=True)
@@ -455,66 +455,74 @@ def run_loaded(out: Path, every: float, duration: float, soak: int, hog: bool) -
     relay_proc = subprocess.Popen([sys.executable, __file__, "--relay", str(relay_port), str(mock_port),
                                    str(stamps_path)])
     hog_proc = _hog() if hog else None
-    result: dict[str, Any] = {"hog": hog, "every_s": every, "duration_s": duration}
-    rng = np.random.default_rng(7)
     try:
-        with rig(out, "px4", mav_port=mock_port, companion_mav_port=relay_port) as r:
+        with rig(out, "px4", mav_port=mock_port, companion_mav_port=relay_port, search_time=search_time) as r:
             events = _EventLog(r.peer)
-            pid = r.companion.pid
-            t_put = r.peer.put("mission", flight_mission(laps=20))
+            t_put = r.peer.put("mission", flight_mission(laps=laps))
             events.wait(lambda e: e.get("type") == "accepted" and e.get("key") == "mission", t_put, 30.0)
             r.peer.put("command", {"command": "start"})
-            t_stream = events.wait(lambda e: e.get("type") == "state" and e.get("to") == "STREAMING", t_put, 90.0)
-            if t_stream is None:
+            if events.wait(lambda e: e.get("type") == "state" and e.get("to") == "STREAMING", t_put, 90.0) is None:
                 raise RuntimeError("the companion never started streaming\n" + r.companion.tail())
             time.sleep(2.0)
-            result["rss_idle_mb"] = _status_kb(pid, "VmRSS") / 1024
-            result["rss_tree_idle_mb"] = sum(_status_kb(p, "VmRSS") for p in _tree(pid)) / 1024
-            sent, answers = 0, {}
-            t0 = time.monotonic()
-            while time.monotonic() - t0 < duration:
-                m = small_mission(sent, rng)
-                put = r.peer.put("mission", m)
-                sent += 1
-                mid = m["id"]
-                answers[mid] = (put, None)
-                _sleep_until(put + every)
-            t1 = time.monotonic()
-            time.sleep(3.0)  # the last answers
-            with events._lock:
-                for _, ev in events.items:
-                    mid = ev.get("mission")
-                    if mid in answers and ev.get("key") == "mission" and ev.get("type") in ("accepted", "rejected"):
-                        answers[mid] = (answers[mid][0], ev)
-            accepted = [a for a in answers.values() if a[1] is not None and a[1]["type"] == "accepted"]
-            rejected = [a[1] for a in answers.values() if a[1] is not None and a[1]["type"] == "rejected"]
-            result.update({"missions_sent": sent, "missions_accepted": len(accepted),
-                           "missions_rejected": len(rejected),
-                           "rejections": sorted({str(e.get("reason", ""))[:120] for e in rejected}),
-                           "stalled_events": sum(1 for _, ev in list(events.items) if ev.get("type") == "stalled")})
-            window = (t0 + 0.5, t1)
-            for i in range(soak):
-                big = big_mission(1000, seed=100 + i)
-                t = r.peer.put("mission", big)
-                events.wait(lambda e: e.get("key") == "mission" and e.get("type") in ("accepted", "rejected"), t, 120.0)
-                ids = [f"soak-{i}-{k}" for k in range(50)]
-                r.peer.put("obstacles", {"add": [{"id": n, "vertices": [[-40.0 + k, -40.0 + dx, -3.0 + dz] for dx in (0, 1)
-                                                                        for dz in (0, 1) for k in (0, 1)]}
-                                                 for n in ids]})
-                time.sleep(0.5)
-                r.peer.put("obstacles", {"remove": ids})
-            last = small_mission(9999, rng) | {"autostart": False}
-            t = r.peer.put("mission", last)
-            events.wait(lambda e: e.get("key") == "mission" and e.get("type") in ("accepted", "rejected"), t, 30.0)
-            time.sleep(5.0)
-            result["rss_after_soak_mb"] = _status_kb(pid, "VmRSS") / 1024
-            result["rss_tree_after_soak_mb"] = sum(_status_kb(p, "VmRSS") for p in _tree(pid)) / 1024
-            result["soak_missions"] = soak
+            yield r, events, stamps_path
     finally:
         for proc in (relay_proc, hog_proc):
             if proc is not None:
                 proc.send_signal(signal.SIGTERM)
                 proc.wait(10)
+
+
+def run_loaded(out: Path, every: float, duration: float, soak: int, hog: bool) -> dict[str, Any]:
+    """Fly; send a valid 5-waypoint mission every `every` s for `duration` s (each replaces the
+    one flying); then `soak` 1000-waypoint missions (checked, kept pending, each replacing the
+    last) and obstacle additions and removals, then one small pending mission: the companion's
+    main and tree RSS before and after. Setpoint gaps at the relay over the mission phase."""
+    result: dict[str, Any] = {"hog": hog, "every_s": every, "duration_s": duration}
+    rng = np.random.default_rng(7)
+    with relayed_flight(out, hog, 20) as (r, events, stamps_path):
+        pid = r.companion.pid
+        result["rss_idle_mb"] = _status_kb(pid, "VmRSS") / 1024
+        result["rss_tree_idle_mb"] = sum(_status_kb(p, "VmRSS") for p in _tree(pid)) / 1024
+        sent, answers = 0, {}
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < duration:
+            m = small_mission(sent, rng)
+            put = r.peer.put("mission", m)
+            sent += 1
+            mid = m["id"]
+            answers[mid] = (put, None)
+            _sleep_until(put + every)
+        t1 = time.monotonic()
+        time.sleep(3.0)  # the last answers
+        with events._lock:
+            for _, ev in events.items:
+                mid = ev.get("mission")
+                if mid in answers and ev.get("key") == "mission" and ev.get("type") in ("accepted", "rejected"):
+                    answers[mid] = (answers[mid][0], ev)
+        accepted = [a for a in answers.values() if a[1] is not None and a[1]["type"] == "accepted"]
+        rejected = [a[1] for a in answers.values() if a[1] is not None and a[1]["type"] == "rejected"]
+        result.update({"missions_sent": sent, "missions_accepted": len(accepted),
+                       "missions_rejected": len(rejected),
+                       "rejections": sorted({str(e.get("reason", ""))[:120] for e in rejected}),
+                       "stalled_events": sum(1 for _, ev in list(events.items) if ev.get("type") == "stalled")})
+        window = (t0 + 0.5, t1)
+        for i in range(soak):
+            big = big_mission(1000, seed=100 + i)
+            t = r.peer.put("mission", big)
+            events.wait(lambda e: e.get("key") == "mission" and e.get("type") in ("accepted", "rejected"), t, 120.0)
+            ids = [f"soak-{i}-{k}" for k in range(50)]
+            r.peer.put("obstacles", {"add": [{"id": n, "vertices": [[-40.0 + k, -40.0 + dx, -3.0 + dz] for dx in (0, 1)
+                                                                    for dz in (0, 1) for k in (0, 1)]}
+                                             for n in ids]})
+            time.sleep(0.5)
+            r.peer.put("obstacles", {"remove": ids})
+        last = small_mission(9999, rng) | {"autostart": False}
+        t = r.peer.put("mission", last)
+        events.wait(lambda e: e.get("key") == "mission" and e.get("type") in ("accepted", "rejected"), t, 30.0)
+        time.sleep(5.0)
+        result["rss_after_soak_mb"] = _status_kb(pid, "VmRSS") / 1024
+        result["rss_tree_after_soak_mb"] = sum(_status_kb(p, "VmRSS") for p in _tree(pid)) / 1024
+        result["soak_missions"] = soak
     stamps = np.asarray(json.loads(stamps_path.read_text()))
     inside = stamps[(stamps >= window[0]) & (stamps <= window[1])]
     gaps = np.diff(inside) * 1e3
@@ -541,50 +549,29 @@ def run_put(out: Path, sizes: list[int], each: int, hog: bool, search_time: floa
     allocation, as the companion plans by default), one after the other, each replacing the one
     flying: from our put to the relay's arrival stamp of the first setpoint of the new plan (the
     one the `latency` event announces), and the flight time each was planned for."""
-    from demo.rig import rig
-
-    out.mkdir(parents=True, exist_ok=True)
-    mock_port, relay_port = _free_udp(), _free_udp()
-    stamps_path = out / "setpoint_stamps.json"
-    relay_proc = subprocess.Popen([sys.executable, __file__, "--relay", str(relay_port), str(mock_port),
-                                   str(stamps_path)])
-    hog_proc = _hog() if hog else None
     rng = np.random.default_rng(11)
     samples: list[dict[str, Any]] = []
-    try:
-        with rig(out, "px4", mav_port=mock_port, companion_mav_port=relay_port, search_time=search_time) as r:
-            events = _EventLog(r.peer)
-            t_put = r.peer.put("mission", flight_mission(laps=40))
-            events.wait(lambda e: e.get("type") == "accepted" and e.get("key") == "mission", t_put, 30.0)
-            r.peer.put("command", {"command": "start"})
-            if events.wait(lambda e: e.get("type") == "state" and e.get("to") == "STREAMING", t_put, 90.0) is None:
-                raise RuntimeError("the companion never started streaming\n" + r.companion.tail())
-            time.sleep(2.0)
-            for n in sizes:
-                for k in range(each):
-                    mid = f"put-{n}-{k}"
-                    put = r.peer.put("mission", sized_mission(mid, n, rng))
-                    done = events.wait(lambda e, mid=mid: e.get("mission") == mid and e.get("key") == "mission"
-                                       and e.get("type") in ("accepted", "rejected"), put, 120.0)
-                    what = f"mission {mid}"
-                    events.wait(lambda e, what=what: e.get("type") == "latency" and e.get("what") == what, put, 2.0)
-                    with events._lock:
-                        evs = [ev for m, ev in events.items if m >= put]
-                    answer = next((e for e in evs if e.get("mission") == mid and e.get("key") == "mission"
-                                   and e.get("type") in ("accepted", "rejected")), None)
-                    lat = next((e for e in evs if e.get("type") == "latency" and e.get("what") == what), None)
-                    samples.append({"n": n, "put": put, "answered": done is not None,
-                                    "accepted": answer is not None and answer["type"] == "accepted",
-                                    "message": None if answer is None else str(answer.get("message", ""))[:200],
-                                    "sent_mono": None if lat is None else lat.get("sent_mono"),
-                                    "companion_ms": None if lat is None else lat.get("latency_ms"),
-                                    "plan_ms": None if answer is None else answer.get("plan_ms")})
-                    time.sleep(1.0)
-    finally:
-        for proc in (relay_proc, hog_proc):
-            if proc is not None:
-                proc.send_signal(signal.SIGTERM)
-                proc.wait(10)
+    with relayed_flight(out, hog, 40, search_time) as (r, events, stamps_path):
+        for n in sizes:
+            for k in range(each):
+                mid = f"put-{n}-{k}"
+                put = r.peer.put("mission", sized_mission(mid, n, rng))
+                done = events.wait(lambda e, mid=mid: e.get("mission") == mid and e.get("key") == "mission"
+                                   and e.get("type") in ("accepted", "rejected"), put, 120.0)
+                what = f"mission {mid}"
+                events.wait(lambda e, what=what: e.get("type") == "latency" and e.get("what") == what, put, 2.0)
+                with events._lock:
+                    evs = [ev for m, ev in events.items if m >= put]
+                answer = next((e for e in evs if e.get("mission") == mid and e.get("key") == "mission"
+                               and e.get("type") in ("accepted", "rejected")), None)
+                lat = next((e for e in evs if e.get("type") == "latency" and e.get("what") == what), None)
+                samples.append({"n": n, "put": put, "answered": done is not None,
+                                "accepted": answer is not None and answer["type"] == "accepted",
+                                "message": None if answer is None else str(answer.get("message", ""))[:200],
+                                "sent_mono": None if lat is None else lat.get("sent_mono"),
+                                "companion_ms": None if lat is None else lat.get("latency_ms"),
+                                "plan_ms": None if answer is None else answer.get("plan_ms")})
+                time.sleep(1.0)
     stamps = np.asarray(json.loads(stamps_path.read_text()))
     result: dict[str, Any] = {"hog": hog, "each": each, "search_time": search_time, "samples": samples}
     for n in sizes:
