@@ -109,10 +109,12 @@ class SetpointConfig:
     # The most the lead (and the lag estimate) may be (s): PX4 SIH lags ~0.3 s, ArduCopter ~0.06 s.
     lead_max: float = 0.5
     # With lead = "auto": the lead until the estimate has seen enough motion (a few seconds of
-    # it): ArduCopter's measured lag (59-82 ms, autopilot-facts.md). Without it the first seconds
-    # of every flight lag by the whole response time (0.2-0.25 m at 3-4 m/s on ArduCopter, over
-    # a tight tracking allowance); PX4 SIH's ~0.33 s is reached by the estimate from there.
-    lead_initial: float = 0.06
+    # it). "autopilot": the lag measured on the autopilot found at link-up (companion.lag
+    # MEASURED_LAG, autopilot-facts.md: ArduCopter 59-82 ms, PX4 SIH 0.31-0.38 s; ArduCopter's
+    # until one is found); seconds: that. Without it the first seconds of every flight lag by
+    # the whole response time (0.2-0.25 m at 3-4 m/s on ArduCopter; on PX4 SIH, from ArduCopter's
+    # 60 ms, ~0.27 s x the speed: ~1 m on the e2e rig's first legs, which braked them).
+    lead_initial: float | str = "autopilot"
     # The event loop not running for this long (s) is a stall of the companion: the setpoint
     # thread withholds setpoints from then on (it does so too when it itself wakes 0.5 s late).
     # Awake again, the companion holds (setpoints silent under 0.5 s: the autopilot still flies
@@ -411,7 +413,7 @@ _POSITIVE = {
 
 
 _NON_NEGATIVE = {"fleet.clock_tolerance", "fleet.separation", "fleet.max_delay", "planner.fallback_delay", "planner.reserve", "autopilot_limits.retries", "planner.tracking_allowance",
-                 "setpoints.lead_initial", "safety.tracking_brake"}
+                 "safety.tracking_brake"}
 
 # Keys that were replaced: what to set instead (a safety option must not be dropped silently).
 _REPLACED = {
@@ -425,6 +427,12 @@ LEAD_MAX = 0.5  # s: [setpoints] lead_max's default (PX4 SIH lags ~0.3 s)
 
 
 def _convert(key: str, hint: Any, value: Any, default: Any) -> Any:
+    if key == "setpoints.lead_initial":
+        if value == "autopilot":
+            return value
+        if isinstance(value, bool) or not isinstance(value, int | float) or not 0.0 <= value <= 2.0:
+            raise ConfigError(key, f"expected \"autopilot\" or seconds in [0, [setpoints] lead_max], got {value!r}")
+        return float(value)
     if key == "setpoints.lead":
         if value == "auto":
             return value
