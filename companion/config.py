@@ -109,12 +109,14 @@ class SetpointConfig:
     # The most the lead (and the lag estimate) may be (s): PX4 SIH lags ~0.3 s, ArduCopter ~0.06 s.
     lead_max: float = 0.5
     # With lead = "auto": the lead until the estimate has seen enough motion (a few seconds of
-    # it). "autopilot": the lag measured on the autopilot found at link-up (companion.lag
-    # MEASURED_LAG, autopilot-facts.md: ArduCopter 59-82 ms, PX4 SIH 0.31-0.38 s; ArduCopter's
-    # until one is found); seconds: that. Without it the first seconds of every flight lag by
-    # the whole response time (0.2-0.25 m at 3-4 m/s on ArduCopter; on PX4 SIH, from ArduCopter's
-    # 60 ms, ~0.27 s x the speed: ~1 m on the e2e rig's first legs, which braked them).
-    lead_initial: float | str = "autopilot"
+    # it): seconds (default ArduCopter's measured lag, 59-82 ms, autopilot-facts.md), or
+    # "autopilot": the lag measured on the autopilot found at link-up (companion.lag MEASURED_LAG:
+    # ArduCopter 0.06 s, PX4 SIH 0.33 s; ArduCopter's until one is found). Without it the first
+    # seconds of every flight lag by the whole response time (0.2-0.25 m at 3-4 m/s on
+    # ArduCopter); on PX4 from 0.06 s, ~0.27 s x the speed (0.96 m peak on the e2e resume flight,
+    # 0.25 m from 0.33 s). "autopilot" is not the default yet: the PX4 test kits and the demo
+    # fly the mock's ArduCopter-like response on the PX4 flavour (issue 26.5), which it would over-lead.
+    lead_initial: float | str = 0.06
     # The event loop not running for this long (s) is a stall of the companion: the setpoint
     # thread withholds setpoints from then on (it does so too when it itself wakes 0.5 s late).
     # Awake again, the companion holds (setpoints silent under 0.5 s: the autopilot still flies

@@ -76,7 +76,8 @@ def test_the_lead_starts_at_the_linked_autopilots_measured_lag() -> None:
     assert initial_lead("autopilot", None, 0.5) == 0.06
     assert initial_lead("autopilot", "px4", 0.2) == 0.2
     assert initial_lead(0.1, "px4", 0.5) == 0.1
-    assert config_from_dict({}).setpoints.lead_initial == "autopilot"
+    assert config_from_dict({}).setpoints.lead_initial == 0.06
+    assert config_from_dict({"setpoints": {"lead_initial": "autopilot"}}).setpoints.lead_initial == "autopilot"
     assert config_from_dict({"setpoints": {"lead_initial": 0.08}}).setpoints.lead_initial == 0.08
     for bad in ("fast", -0.1, True):
         with pytest.raises(ConfigError):
