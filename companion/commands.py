@@ -21,7 +21,7 @@ import numpy as np
 from companion.config import Config
 from companion.control import SWAP_LATE, Control
 from companion.flight import HOLDING_CONTROL, Flight, State
-from companion.lag import LagEstimator
+from companion.lag import LagEstimator, initial_lead
 from companion.navigator import MAX_AHEAD, RETRY_MARGIN, Navigator
 from companion.report import Reporter
 from companion.runtime import Runtime
@@ -463,7 +463,22 @@ class Commands:
         configured one, or with `setpoints.lead = "auto"` the initial one, then the estimate."""
         sp = self.cfg.setpoints
         self.lead_target = target
-        self._set_lead(min(sp.lead_initial, sp.lead_max) if sp.lead == "auto" else float(sp.lead))
+        self._set_lead(self.initial_lead() if sp.lead == "auto" else float(sp.lead))
+
+    def initial_lead(self) -> float:
+        """The auto lead before the estimate has seen motion: `[setpoints] lead_initial`, by
+        default the lag measured on the autopilot linked (companion.lag.MEASURED_LAG)."""
+        sp = self.cfg.setpoints
+        return initial_lead(sp.lead_initial, self.link.state.autopilot, sp.lead_max)
+
+    def autopilot_found(self) -> None:
+        """Link-up (or a reconnect): the autopilot is known. With `lead = "auto"` and no
+        estimate yet, the lead starts at that autopilot's measured lag (PX4 SIH lags ~0.33 s,
+        ArduCopter ~0.06 s: from ArduCopter's, a PX4 vehicle's first seconds of motion trail
+        the plan by ~0.27 s x the speed). Not while streaming: the setpoints would jump."""
+        if (self.cfg.setpoints.lead == "auto" and self.lag.estimate is None and self.lead_target is not None
+                and not self.control.streaming):
+            self._set_lead(self.initial_lead())
 
     def _set_lead(self, lead: float) -> None:
         """The one writer of the setpoints' lead."""

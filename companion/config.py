@@ -109,10 +109,14 @@ class SetpointConfig:
     # The most the lead (and the lag estimate) may be (s): PX4 SIH lags ~0.3 s, ArduCopter ~0.06 s.
     lead_max: float = 0.5
     # With lead = "auto": the lead until the estimate has seen enough motion (a few seconds of
-    # it): ArduCopter's measured lag (59-82 ms, autopilot-facts.md). Without it the first seconds
-    # of every flight lag by the whole response time (0.2-0.25 m at 3-4 m/s on ArduCopter, over
-    # a tight tracking allowance); PX4 SIH's ~0.33 s is reached by the estimate from there.
-    lead_initial: float = 0.06
+    # it): seconds (default ArduCopter's measured lag, 59-82 ms, autopilot-facts.md), or
+    # "autopilot": the lag measured on the autopilot found at link-up (companion.lag MEASURED_LAG:
+    # ArduCopter 0.06 s, PX4 SIH 0.33 s; ArduCopter's until one is found). Without it the first
+    # seconds of every flight lag by the whole response time (0.2-0.25 m at 3-4 m/s on
+    # ArduCopter); on PX4 from 0.06 s, ~0.27 s x the speed (0.96 m peak on the e2e resume flight,
+    # 0.25 m from 0.33 s). "autopilot" is not the default yet: the PX4 test kits and the demo
+    # fly the mock's ArduCopter-like response on the PX4 flavour (issue 26.5), which it would over-lead.
+    lead_initial: float | str = 0.06
     # The event loop not running for this long (s) is a stall of the companion: the setpoint
     # thread withholds setpoints from then on (it does so too when it itself wakes 0.5 s late).
     # Awake again, the companion holds (setpoints silent under 0.5 s: the autopilot still flies
@@ -416,7 +420,7 @@ _POSITIVE = {
 
 
 _NON_NEGATIVE = {"fleet.clock_tolerance", "fleet.separation", "fleet.max_delay", "planner.fallback_delay", "planner.reserve", "autopilot_limits.retries", "planner.tracking_allowance",
-                 "setpoints.lead_initial", "safety.tracking_brake"}
+                 "safety.tracking_brake"}
 
 # Keys that were replaced: what to set instead (a safety option must not be dropped silently).
 _REPLACED = {
@@ -430,6 +434,12 @@ LEAD_MAX = 0.5  # s: [setpoints] lead_max's default (PX4 SIH lags ~0.3 s)
 
 
 def _convert(key: str, hint: Any, value: Any, default: Any) -> Any:
+    if key == "setpoints.lead_initial":
+        if value == "autopilot":
+            return value
+        if isinstance(value, bool) or not isinstance(value, int | float) or not 0.0 <= value <= 2.0:
+            raise ConfigError(key, f"expected \"autopilot\" or seconds in [0, [setpoints] lead_max], got {value!r}")
+        return float(value)
     if key == "setpoints.lead":
         if value == "auto":
             return value

@@ -32,6 +32,21 @@ MIN_SPAN = 2.0  # s of moving samples before the first estimate
 FORGET = 600  # samples: the running cost's memory (~20 s of motion at 30 Hz)
 STEP = 0.005  # s between candidate shifts
 OUTLIER = 0.5  # m: a residual counts at most this much (a truncated least squares)
+# s: the lag each autopilot's vehicle was measured to follow pos+vel+acc setpoints with (best
+# fit; /work/shared/autopilot-facts.md): ArduCopter SITL 59-82 ms, PX4 1.15 SIH 0.31-0.38 s. The
+# lead starts there (`[setpoints] lead_initial = "autopilot"`) until the estimate has seen motion.
+MEASURED_LAG = {"ardupilot": 0.06, "px4": 0.33}
+UNKNOWN_AUTOPILOT = "ardupilot"  # whose lag is assumed before an autopilot is found (the shorter)
+
+
+def initial_lead(setting: float | str, autopilot: str | None, cap: float) -> float:
+    """The lead before an estimate: `[setpoints] lead_initial` (seconds, or "autopilot": the
+    lag measured on that autopilot), at most `cap` ([setpoints] lead_max)."""
+    if setting == "autopilot":
+        lag = MEASURED_LAG.get(autopilot or "", MEASURED_LAG[UNKNOWN_AUTOPILOT])
+    else:
+        lag = float(setting)
+    return min(lag, cap)
 
 
 @dataclass

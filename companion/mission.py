@@ -156,13 +156,14 @@ def check_mission(mission: MissionSpec, initial: FloatArray, t_start: float, kno
 def replan_remainder(route: Route, active: Trajectory, t_split: float, known: Known | Sequence[Polytope], cfg: Config,
                      waypoints: FloatArray | None = None, times: FloatArray | None = None,
                      labels: FloatArray | None = None, *, allocate: bool = False,
-                     neighbours: Neighbours | None = None) -> Outcome:
+                     neighbours: Neighbours | None = None, candidates: int | None = None) -> Outcome:
     """Re-plan everything after t_split from the jet of `active` at t_split.
 
     `waypoints/times/labels` (defaults: the route's) may carry an edit; only the entries
     later than t_split are kept. `allocate`: the mission gave no durations, so the planner
     chooses them again from the split (`plan_route`), and places its own knots: the old ones
-    are dropped (one may now lie in an obstacle).
+    are dropped (one may now lie in an obstacle). `candidates`: plan_route's cap on the
+    fastest-allocation search (in flight: what fits before the split).
     """
     wps = route.waypoints if waypoints is None else waypoints
     tms = route.times if times is None else times
@@ -182,7 +183,7 @@ def replan_remainder(route: Route, active: Trajectory, t_split: float, known: Kn
         new_times[1:] += min_first - (new_times[1] - new_times[0])
     return plan_with_detours(route.mission, points, new_times, new_labels, jet,
                              as_known(known) + Known.of(route.mission.obstacles), cfg, allocate=allocate,
-                             neighbours=neighbours)
+                             neighbours=neighbours, candidates=candidates)
 
 
 def remaining(route: Route, t: float) -> MissionSpec | None:

@@ -499,8 +499,15 @@ class Navigator:
         extra = () if remainder is None else remainder
         if allocate is None:
             allocate = self.allocates(r)
+        # The fastest-allocation search is cut to what fits before the split, as a mission's is
+        # (fly): the swap refuses a plan ready after t_split - lead, and a whole search (~30
+        # candidate plans, each detour tried) took 0.45-0.5 s on the loaded 2-core machine for a
+        # wall across a leg: past the 0.15 s to the split, and again past the braking deadline.
+        n = len(r.waypoints) + 2  # a detour's two points
+        cap = self.candidates_within(n, t_split - self.control.committed()) if allocate else None
+        kw: dict[str, Any] = {"candidates": cap} if cap else {}
         out = self.logged(await self.runtime.plan(partial(replan_remainder, allocate=allocate,
-                                                          neighbours=self.neighbours(r.mission.bounds)),
+                                                          neighbours=self.neighbours(r.mission.bounds), **kw),
                                                   r, base, t_split, self.known(), self.cfg, *extra, urgent=True))
         if self.cfg.planner.fallback_delay > 0:
             await asyncio.sleep(self.cfg.planner.fallback_delay)

@@ -257,6 +257,11 @@ class SetpointProcess:
         self._hello.wait(30.0)
         if self._route:
             self._post(("route", self._route))
+        # the lead set before the child ran (the service sets the initial one at construction,
+        # the autopilot's at link-up) was not posted: without it the child samples at lead 0
+        # while the parent believes otherwise, and the first change of the lead makes the
+        # stream jump along the plan by the whole lead
+        self._post(("lead", self._lead))
 
     def stop(self, timeout: float = 2.0) -> None:
         if self._proc is None:

@@ -122,7 +122,7 @@ class Service:
         self.deconfliction.on_replan = self.navigator.fleet_replan
         # the autopilot's own limits: read at link-up and after a reconnect, planned within
         self.limits = LimitsWatch(cfg, self.link, self.report)
-        self.watch.on_link_up = self.limits.read
+        self.watch.on_link_up = self._link_up
         self.navigator.limits = self.limits
         self.link.on_ignored = self._mavlink_ignored
         # lag compensation: a fixed lead, or "auto" (set by Commands from its estimate)
@@ -545,6 +545,11 @@ class Service:
                                   "while streaming", silence_ms=round((now - since) * 1000, 1))
 
     # -- the companion's own liveness ------------------------------------------------------------
+
+    def _link_up(self, why: str) -> None:
+        """The autopilot found (link-up, reconnect): its limits read, the lead it starts with."""
+        self.limits.read(why)
+        self.commands.autopilot_found()
 
     def _stalled(self) -> bool:
         """The companion is stalled or just woke from a stall (see setpoints.Liveness); not

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from companion.config import config_from_dict
-from companion.lag import MIN_SPAN, LagEstimator, best_fit_lag
+from companion.config import ConfigError, config_from_dict
+from companion.lag import MEASURED_LAG, MIN_SPAN, LagEstimator, best_fit_lag, initial_lead
 from companion.mission import start_mission
 from companion.obstacles import Known
 from companion.wire.messages import read
@@ -65,3 +65,20 @@ def test_batch_fit_agrees(square: Trajectory) -> None:
     measured = np.asarray(square.evaluate(ts - 0.123, 0))
     fit = best_fit_lag(ts, measured, lambda x: np.asarray(square.evaluate(x, 0)), cap=0.5, step=0.001)
     assert fit == pytest.approx(0.123, abs=0.0015)
+
+
+def test_the_lead_starts_at_the_linked_autopilots_measured_lag() -> None:
+    """Before the estimate has seen motion the auto lead is the lag measured on the autopilot
+    (PX4 SIH ~0.33 s, ArduCopter ~0.06 s; ArduCopter's before one is found), or the seconds
+    configured; never over lead_max."""
+    assert initial_lead("autopilot", "px4", 0.5) == MEASURED_LAG["px4"] == 0.33
+    assert initial_lead("autopilot", "ardupilot", 0.5) == MEASURED_LAG["ardupilot"] == 0.06
+    assert initial_lead("autopilot", None, 0.5) == 0.06
+    assert initial_lead("autopilot", "px4", 0.2) == 0.2
+    assert initial_lead(0.1, "px4", 0.5) == 0.1
+    assert config_from_dict({}).setpoints.lead_initial == 0.06
+    assert config_from_dict({"setpoints": {"lead_initial": "autopilot"}}).setpoints.lead_initial == "autopilot"
+    assert config_from_dict({"setpoints": {"lead_initial": 0.08}}).setpoints.lead_initial == 0.08
+    for bad in ("fast", -0.1, True):
+        with pytest.raises(ConfigError):
+            config_from_dict({"setpoints": {"lead_initial": bad}})

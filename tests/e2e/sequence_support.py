@@ -257,6 +257,30 @@ class SeqRig(Rig):
                          "autopilot link after the restart")
 
 
+# The vehicle at a mission's end: within SETTLE_TOL of the last waypoint and slower than
+# SETTLE_SPEED, within SETTLE_TIME of `mission_complete` (the plan's end time). A fixed 0.5 s
+# sufficed for sitl_mock's calibrated response (ArduCopter's: it settles to ~0.01 m by then);
+# PX4's default (`px4_sih`: PX4's default gains MPC_XY_P 0.95 / MPC_XY_VEL_P_ACC 1.8, the
+# measured 0.3 s delay) carries a vehicle 0.1-0.4 m past a rest-to-rest plan's end, whatever the
+# lead (0.30-0.45 s), 0.5 s after it, and brings it back over ~2 s.
+SETTLE_TOL = 0.15  # m
+SETTLE_SPEED = 0.2  # m/s ([safety] rest_speed)
+SETTLE_TIME = 3.0  # s
+
+
+def settled_miss(rig: SeqRig, goal: list[float] | np.ndarray, timeout: float = SETTLE_TIME) -> float:
+    """The vehicle's distance from `goal` once it has settled there (SETTLE_TOL, SETTLE_SPEED), or
+    the distance it was at when `timeout` ran out."""
+    goal = np.asarray(goal, dtype=float)
+    deadline = time.monotonic() + timeout
+    while True:
+        s = rig.mock()
+        miss = float(np.linalg.norm(np.asarray(s["position"]) - goal))
+        if (miss <= SETTLE_TOL and float(np.linalg.norm(s["velocity"])) <= SETTLE_SPEED) or time.monotonic() >= deadline:
+            return miss
+        time.sleep(0.05)
+
+
 def event_brief(e: dict[str, Any]) -> str:
     return f"{e.get('type')}[{e.get('state')}]: {e.get('message')}"
 

@@ -82,7 +82,6 @@ def answered(rejected: list[dict[str, Any]]) -> int:
     return sum(int(e.get("dropped", 1)) for e in rejected)
 
 
-@pytest.mark.xfail(strict=False, reason="failed after the session-7 merges (setpoint process, split from the measured planning time, limits, lead) on the loaded development VM, not yet told apart from the load: see the closing note")
 def test_hostile_messages_while_flying(rig: Rig) -> None:
     cfg = config_from_dict(tomllib.loads(rig.config_text()))
     rnd = random.Random(14)
