@@ -379,7 +379,8 @@ class Navigator:
                 t0 = time.perf_counter()
                 # the search is cut to what fits before the split (planner_core.fastest_durations:
                 # a count, so a recording replays the same plan)
-                left = t_split - self.control.now() - (self.fleet.wait if self.fleet_on() else 0.0)
+                # the swap takes a plan ready before t_split - lead: the time after what is committed
+                left = t_split - self.control.committed() - (self.fleet.wait if self.fleet_on() else 0.0)
                 cap = self.candidates_within(n, left)
                 # without a fleet the call is start_mission's own (what a recording names and replays)
                 fn: Any = (partial(start_separated, neighbours=self.neighbours(spec.bounds), candidates=cap)
