@@ -57,6 +57,7 @@ FIXED_WAYPOINTS = 3  # a candidate plan's fixed cost (process hop, corridors, se
 LATE_MARGIN = 1.5  # the split is this many expected planning times ahead
 RETRY_MARGIN = 2.0  # after a late plan: this many times the time it took (a loaded computer varies)
 MAX_AHEAD = 30.0  # s: never further ahead (the old, verified plan flies on meanwhile)
+SPLIT_FIT = 1.0  # a mission starts where the flown acceleration and jerk are within this share of its bounds
 FULL_SEARCH = 40  # candidates: a cap this large is no cap (a small mission's whole search plans ~30)
 MIN_CANDIDATES = 2  # the default allocation and one more (a long mission's local pass)
 FLEET_TRIES = 8  # candidates that lost to other vehicles before a plan is given up (docs/fleet.md)
@@ -316,6 +317,24 @@ class Navigator:
         fit = int(self.cfg.planner.search_time / self.candidate_seconds(n_waypoints))
         return self.split_ahead_for(n_waypoints, min(max(fit, MIN_CANDIDATES), FULL_SEARCH))
 
+    def ahead_within(self, bounds: Bounds, ahead: float, step: float = 0.05) -> float:
+        """`ahead`, or further, to the first split (at most MAX_AHEAD) where the flown plan's
+        velocity, acceleration and jerk are within `bounds` (velocity: within the 0.98 that
+        start_mission clips it to): a mission with lower bounds than the flight (a = 3 sent while
+        the vehicle accelerates at 4 m/s^2, or flies at 3.7 m/s) cannot start from a jet beyond
+        them at any duration, so it starts once the flown plan is back within them; where it never
+        is, at `ahead` (and the refusal says the start is beyond the bounds)."""
+        if self.control.active is None:
+            return ahead
+        t0 = self.control.committed() + ahead
+        scale = np.array([[0.98], [SPLIT_FIT], [SPLIT_FIT]])
+        lo, hi = scale * bounds.lo[0:3] - 1e-9, scale * bounds.hi[0:3] + 1e-9
+        for k in range(int((MAX_AHEAD - ahead) / step) + 1):
+            jet = self.control.jet(t0 + k * step)
+            if np.all(jet[1:4] >= lo) and np.all(jet[1:4] <= hi):
+                return ahead + k * step
+        return ahead
+
     def _measured(self, seconds: float, n_waypoints: int, candidates: int = 1) -> None:
         """A plan's wall time (queueing included) and its candidate plans into the running estimate."""
         per = seconds / max(candidates, 1) / (max(n_waypoints, 1) + FIXED_WAYPOINTS)
@@ -391,7 +410,8 @@ class Navigator:
                 self._measured(self.plan_latency, n, int(out.stats.get("candidates", 1)))
                 return out
 
-            done = await self._swap_at_split(f"mission {spec.id}", arrived, plan_at, ahead=self.mission_ahead(n))
+            done = await self._swap_at_split(f"mission {spec.id}", arrived, plan_at,
+                                             ahead=self.ahead_within(spec.bounds, self.mission_ahead(n)))
             if not done.ok:
                 if done.outcome is not None:
                     why = done.outcome.message

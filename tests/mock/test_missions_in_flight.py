@@ -204,3 +204,40 @@ def test_the_search_is_cut_to_what_fits_before_the_split() -> None:
     # less time, fewer candidates; never fewer than MIN_CANDIDATES
     caps = [nav.candidates_within(5, s) or FULL_SEARCH for s in (0.1, 1.0, 5.0, 20.0, 60.0)]
     assert caps == sorted(caps) and caps[0] == MIN_CANDIDATES
+
+
+def test_a_mission_with_lower_bounds_starts_where_the_flight_is_within_them() -> None:
+    """A mission at a 3 m/s^2 sent while the flown plan accelerates at ~4: no plan starts from a
+    jet beyond its bounds, at any duration (benchmarks/service.py --put saw it refused so); the
+    split moves on to where the flown plan's acceleration and jerk are within the mission's."""
+    from planner_core import Bounds, Problem, fastest_durations
+
+    fast = Bounds.symmetric(4.0, 4.0, 12.0, 60.0)
+    flown = fastest_durations(Problem.from_waypoints([[0.0, 0.0, -2.0], [20.0, 0.0, -2.0]], [1.0], fast))
+    assert flown.ok and flown.result.trajectory is not None
+    traj = flown.result.trajectory
+    nav = _navigator([])
+    nav.control.active = traj  # type: ignore[attr-defined]
+    nav.control.jet = lambda t: traj.jet(min(t, traj.t_end))  # type: ignore[attr-defined]
+    nav.control.t = traj.t0  # type: ignore[attr-defined]
+    gentle = Bounds.symmetric(3.0, 3.0, 10.0, 50.0)
+    ts = np.linspace(traj.t0, traj.t_end, 400)
+    peak = max(float(np.max(np.abs(traj.jet(t)[2]))) for t in ts)
+    assert peak > 3.0  # the premise: the flight accelerates beyond the mission's bound
+    t_hot = float(ts[int(np.argmax([abs(traj.jet(t)[2][0]) for t in ts]))])
+    nav.control.t = t_hot - 0.2  # type: ignore[attr-defined]
+    ahead = nav.ahead_within(gentle, 0.15)
+    assert ahead > 0.15
+    jet = traj.jet(t_hot - 0.2 + ahead)
+    assert np.all(np.abs(jet[2]) <= 3.0 + 1e-9) and np.all(np.abs(jet[3]) <= 10.0 + 1e-9)
+    assert nav.ahead_within(fast, 0.15) == 0.15  # within its own bounds: no later split
+    # and from there the mission (the companion's default bounds: the gentle ones) plans
+    from companion.mission import start_mission
+    from companion.obstacles import Known
+    from companion.wire.messages import mission_from_message
+
+    cfg = Config()
+    spec = mission_from_message({"id": "gentle", "waypoints": [[20.0, 5.0, -2.0], [10.0, 8.0, -2.0]]}, cfg)
+    t_split = t_hot - 0.2 + ahead
+    assert start_mission(spec, traj.jet(t_split), t_split, Known(), cfg).ok
+    assert not start_mission(spec, traj.jet(t_hot), t_hot, Known(), cfg).ok  # where the flight is beyond them
