@@ -83,7 +83,7 @@ async def _fly(mock: MockAutopilot) -> dict[str, Any]:
             "events": [(e["type"], e["message"]) for e in events.all]}
 
 
-@pytest.mark.xfail(strict=False, reason="failed after the session-7 merges (setpoint process, split from the measured planning time, limits, lead) on the loaded development VM, not yet told apart from the load: see the closing note")
+@pytest.mark.xfail(strict=False, reason="PX4 flavour: the estimate settles at 341-369 ms against a true 346 ms, just outside the test's 20 ms band (session 9, after the setpoint process's lead fix); the ArduPilot case passes")
 @pytest.mark.parametrize(("autopilot", "response"), [("ardupilot", RESPONSES["calibrated"]), ("px4", PX4_LIKE)],
                          ids=["ardupilot-calibrated", "px4-0.3s"])
 def test_lag_estimate_converges_and_settles(tmp_path: Path, autopilot: str, response: Any) -> None:
