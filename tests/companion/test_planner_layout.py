@@ -72,6 +72,15 @@ def test_compiled_planner_processes_on_request() -> None:
 
 def test_run_and_trim_returns_the_result_and_raises_what_failed() -> None:
     assert run_and_trim(sum, [1, 2, 3]) == 6
+    # the heap is trimmed after the answer has gone, not before (a full collection: ~23 ms)
+    from companion import runtime
+
+    timer = runtime._trim_timer[0]
+    assert timer.is_alive()
+    timer.join(runtime.TRIM_DELAY + 2.0)
+    assert not timer.is_alive()
+    assert run_and_trim(sum, [1]) == 1 and run_and_trim(sum, [2]) == 2
+    assert len(runtime._trim_timer) == 1  # back-to-back jobs: one trim, after the last
     try:
         run_and_trim(int, "not a number")
     except ValueError:
