@@ -324,16 +324,19 @@ class Navigator:
         the vehicle accelerates at 4 m/s^2, or flies at 3.7 m/s) cannot start from a jet beyond
         them at any duration, so it starts once the flown plan is back within them; where it never
         is, at `ahead` (and the refusal says the start is beyond the bounds)."""
-        if self.control.active is None:
+        active = self.control.active
+        if active is None:
             return ahead
-        t0 = self.control.committed() + ahead
-        scale = np.array([[0.98], [SPLIT_FIT], [SPLIT_FIT]])
-        lo, hi = scale * bounds.lo[0:3] - 1e-9, scale * bounds.hi[0:3] + 1e-9
-        for k in range(int((MAX_AHEAD - ahead) / step) + 1):
-            jet = self.control.jet(t0 + k * step)
-            if np.all(jet[1:4] >= lo) and np.all(jet[1:4] <= hi):
-                return ahead + k * step
-        return ahead
+        # every candidate split at once (one at a time: ~0.2 s of the event loop over 30 s ahead)
+        ts = self.control.committed() + ahead + step * np.arange(int((MAX_AHEAD - ahead) / step) + 1)
+        inside = np.ones(ts.size, dtype=bool)
+        for order, share in ((1, 0.98), (2, SPLIT_FIT), (3, SPLIT_FIT)):
+            d = active.evaluate(np.minimum(ts, active.t_end), order)
+            d[ts >= active.t_end] = 0.0  # at rest past its end (Control.jet)
+            inside &= np.all((d >= share * bounds.lo[order - 1] - 1e-9) & (d <= share * bounds.hi[order - 1] + 1e-9),
+                             axis=1)
+        k = np.flatnonzero(inside)
+        return ahead + step * int(k[0]) if k.size else ahead
 
     def _measured(self, seconds: float, n_waypoints: int, candidates: int = 1) -> None:
         """A plan's wall time (queueing included) and its candidate plans into the running estimate."""
