@@ -560,12 +560,17 @@ def run_put(out: Path, sizes: list[int], each: int, hog: bool, search_time: floa
                                    and e.get("type") in ("accepted", "rejected"), put, 120.0)
                 what = f"mission {mid}"
                 events.wait(lambda e, what=what: e.get("type") == "latency" and e.get("what") == what, put, 2.0)
+                # the anytime start's search ([planner] anytime): the next put waits for it, as it
+                # would queue behind it in the planner process
+                events.wait(lambda e, mid=mid: e.get("type") == "improved" and e.get("mission") == mid, put, 6.0)
                 with events._lock:
                     evs = [ev for m, ev in events.items if m >= put]
                 answer = next((e for e in evs if e.get("mission") == mid and e.get("key") == "mission"
                                and e.get("type") in ("accepted", "rejected")), None)
                 lat = next((e for e in evs if e.get("type") == "latency" and e.get("what") == what), None)
+                better = next((e for e in evs if e.get("type") == "improved" and e.get("mission") == mid), None)
                 samples.append({"n": n, "put": put, "answered": done is not None,
+                                "improved_s": None if better is None else better.get("earlier_s"),
                                 "accepted": answer is not None and answer["type"] == "accepted",
                                 "message": None if answer is None else str(answer.get("message", ""))[:200],
                                 "sent_mono": None if lat is None else lat.get("sent_mono"),
@@ -589,7 +594,10 @@ def run_put(out: Path, sizes: list[int], each: int, hog: bool, search_time: floa
                        f"put_{n}_max_ms": float(np.max(put_ms)) if put_ms else float("nan"),
                        f"companion_{n}_median_ms": float(np.median(comp)) if comp else float("nan"),
                        f"accepted_{n}": sum(1 for x in rows if x["accepted"]), f"sent_{n}": len(rows),
-                       f"capped_{n}": len(capped)})
+                       f"capped_{n}": len(capped),
+                       f"improved_{n}": sum(1 for x in rows if x["improved_s"] is not None),
+                       f"improved_{n}_median_s": float(np.median([x["improved_s"] for x in rows
+                                                                  if x["improved_s"] is not None] or [np.nan]))})
     return result
 
 
@@ -604,7 +612,9 @@ def format_put(results: list[dict[str, Any]], sizes: list[int]) -> str:
                  ["  companion's own clock (arrival -> send), median [ms]",
                   *[f"{r[f'companion_{n}_median_ms']:.1f}" for r in results]],
                  ["  accepted / sent; search cut to fit", *[f"{r[f'accepted_{n}']} / {r[f'sent_{n}']}; {r[f'capped_{n}']}"
-                                                             for r in results]]]
+                                                             for r in results]],
+                 ["  the fastest durations swapped in later (anytime start); median s earlier",
+                  *[f"{r[f'improved_{n}']}; {r[f'improved_{n}_median_s']:.2f}" for r in results]]]
     return grid(head, body)
 
 

@@ -147,6 +147,10 @@ class PlannerConfig:
     # this, with a plan that flies a little slower (event `accepted` says so). The default
     # allocation is always planned; a mission loaded on the ground is searched to the end.
     search_time: float = 0.3
+    # In flight, a mission without durations first flies its default allocation (one plan: a
+    # few ms to ~0.1 s for 1000 waypoints), and the search's faster plan is swapped in from a
+    # later split when it is ready (event `improved`); false: the search's plan is awaited.
+    anytime: bool = True
     # "process": plan in a separate process (no GIL shared with the setpoint thread; a
     # planner thread preempted while holding the GIL would stall setpoints on a busy
     # computer). "thread": plan in a thread of the service process (less memory).

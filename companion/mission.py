@@ -63,8 +63,14 @@ def answered(fn: F) -> F:
 
 @answered
 def start_mission(mission: MissionSpec, initial: FloatArray, t_start: float, known: Known | Sequence[Polytope],
-                  cfg: Config, neighbours: Neighbours | None = None, candidates: int | None = None) -> Outcome:
-    """Plan a fresh mission from the jet `initial` at `t_start`; `candidates`: plan_route's cap."""
+                  cfg: Config, neighbours: Neighbours | None = None, candidates: int | None = None,
+                  quick: bool = False) -> Outcome:
+    """Plan a fresh mission from the jet `initial` at `t_start`; `candidates`: plan_route's cap.
+    `quick`: a mission without durations is planned on the default allocation alone (one plan,
+    stretched where it is infeasible, as a timed mission is) instead of the search for the
+    fastest durations: the companion's anytime start flies it at once and swaps the search's
+    plan in later (Navigator.improve); the route keeps the mission as sent (no durations), so
+    what is planned from it later chooses its durations again."""
     wps = mission.waypoints
     labels = mission.first_index + np.arange(len(wps), dtype=float)
     jet = np.array(initial, dtype=float)
@@ -100,9 +106,12 @@ def start_mission(mission: MissionSpec, initial: FloatArray, t_start: float, kno
     times = t_start + np.concatenate([[0.0], np.cumsum(durations)])
     # No durations given and [planner] timing = "fastest": the fastest the bounds allow (the
     # allocation above then only gives t0 and the detour points' first guess).
-    fastest = mission.durations is None and cfg.planner.timing == "fastest"
-    return plan_with_detours(mission, points, times, lab, jet, as_known(known) + Known.of(mission.obstacles), cfg,
-                             allocate=fastest, neighbours=neighbours, candidates=candidates)
+    fastest = mission.durations is None and cfg.planner.timing == "fastest" and not quick
+    out = plan_with_detours(mission, points, times, lab, jet, as_known(known) + Known.of(mission.obstacles), cfg,
+                            allocate=fastest, neighbours=neighbours, candidates=candidates)
+    if quick and mission.durations is None:
+        out.stats["quick"] = True
+    return out
 
 
 # s: how long a vehicle at rest may wait for the others before it starts a mission no separated

@@ -60,6 +60,7 @@ MAX_AHEAD = 30.0  # s: never further ahead (the old, verified plan flies on mean
 SPLIT_FIT = 1.0  # a mission starts where the flown acceleration and jerk are within this share of its bounds
 FULL_SEARCH = 40  # candidates: a cap this large is no cap (a small mission's whole search plans ~30)
 MIN_CANDIDATES = 2  # the default allocation and one more (a long mission's local pass)
+IMPROVE_MIN = 0.05  # s: the search's plan replaces the anytime start's only if it lands this much earlier
 FLEET_TRIES = 8  # candidates that lost to other vehicles before a plan is given up (docs/fleet.md)
 
 
@@ -91,6 +92,7 @@ class Navigator:
         self.user_timed = False
         self.lock = asyncio.Lock()  # one plan change at a time
         self.plan_latency: float | None = None
+        self._improving: asyncio.Task[None] | None = None  # the anytime start's search (improve)
         self.replan_latency: float | None = None
         # seconds per candidate plan per waypoint (FIXED_WAYPOINTS more) measured in this service: a
         # running estimate, up fast and down slowly; until warm-up, a guess on the slow side
@@ -396,6 +398,10 @@ class Navigator:
         async with self.lock:
             n = len(spec.waypoints)
 
+            # the anytime start: the default allocation at once, the search's plan later (improve)
+            quick = [self.cfg.planner.anytime and spec.durations is None and self.cfg.planner.timing == "fastest"
+                     and not self.fleet_on()]
+
             async def plan_at(base: Trajectory, t_split: float) -> Outcome:
                 jet = self.control.jet(t_split)
                 t0 = time.perf_counter()
@@ -406,15 +412,18 @@ class Navigator:
                 cap = self.candidates_within(n, left)
                 # without a fleet the call is start_mission's own (what a recording names and replays)
                 fn: Any = (partial(start_separated, neighbours=self.neighbours(spec.bounds), candidates=cap)
-                           if self.fleet_on() else partial(start_mission, candidates=cap) if cap else start_mission)
+                           if self.fleet_on() else partial(start_mission, quick=True) if quick[0]
+                           else partial(start_mission, candidates=cap) if cap else start_mission)
                 out: Outcome = self.logged(await self.runtime.plan(fn, replace(spec, raw={}), jet, t_split,
                                                                    self.known(), self.cfg))
                 self.plan_latency = time.perf_counter() - t0
                 self._measured(self.plan_latency, n, int(out.stats.get("candidates", 1)))
+                quick[0] = quick[0] and out.ok  # the default allocation failed: the search, as without anytime
                 return out
 
+            ahead = self.split_ahead_for(n) if quick[0] else self.mission_ahead(n)
             done = await self._swap_at_split(f"mission {spec.id}", arrived, plan_at,
-                                             ahead=self.ahead_within(spec.bounds, self.mission_ahead(n)))
+                                             ahead=self.ahead_within(spec.bounds, ahead))
             if not done.ok:
                 if done.outcome is not None:
                     why = done.outcome.message
@@ -435,11 +444,58 @@ class Navigator:
                 waits += (f"; the search for the fastest durations stopped after {done.outcome.stats['candidates']} "
                           f"candidate plans, what fits in [planner] search_time {self.cfg.planner.search_time:g} s "
                           "at the planning speed measured here (it may fly a little slower than a full search)")
+            if quick[0]:
+                waits += "; flying the default durations while the fastest are searched for (event `improved`)"
             self.report.event("accepted", f"mission {spec.id}: planned and verified in {lat * 1000:.1f} ms "
                               f"({len(spec.waypoints)} waypoints, {done.outcome.route.t_end - done.t_split:.2f} s)"
                               + waits, key="mission", mission=spec.id, plan_ms=round(lat * 1000, 2),
                               **({"fleet_delay": delay} if delay else {}))
+            if quick[0]:
+                self._improving = asyncio.get_running_loop().create_task(self.improve(done.outcome.route))
             return True
+
+    async def improve(self, quick: Route) -> None:
+        """The anytime start's second step: the search for the fastest durations of what is left of
+        the route flown at once on the default allocation, from a split as far ahead as the search
+        takes here, swapped in if it lands earlier. Planned without the lock (a pop-up or a new
+        mission must not wait for it); it gives way to anything that changed the flown plan or
+        holds the lock meanwhile (the check and the swap run without yielding)."""
+        n = len(quick.waypoints)
+        what = f"mission {quick.mission.id}"
+        # a search of about [planner] search_time here, split as far ahead as it takes
+        cap = min(max(int(self.cfg.planner.search_time / self.candidate_seconds(n)), MIN_CANDIDATES), FULL_SEARCH)
+
+        def superseded() -> bool:
+            return self.control.route is not quick or self.lock.locked() or not self.flight.flying_ours
+
+        async def plan_at(base: Trajectory, t_split: float) -> Outcome:
+            if superseded():
+                return Outcome(False, message="the flown plan changed first")
+            t0 = time.perf_counter()
+            fn: Any = (partial(replan_remainder, allocate=True, candidates=cap) if cap < FULL_SEARCH
+                       else partial(replan_remainder, allocate=True))
+            out: Outcome = self.logged(await self.runtime.plan(fn, quick, base, t_split, self.known(), self.cfg))
+            self._measured(time.perf_counter() - t0, n, int(out.stats.get("candidates", 1)))
+            if superseded():
+                return Outcome(False, message="the flown plan changed first")
+            if out.ok and out.route is not None and out.route.t_end > quick.t_end - IMPROVE_MIN:
+                return Outcome(False, message=f"the search's plan lands no earlier ({out.route.t_end - t_split:.2f} s "
+                               f"against {quick.t_end - t_split:.2f} s from the split)")
+            return out
+
+        t0 = time.perf_counter()
+        done = await self._swap_at_split(f"{what} (fastest durations)", None, plan_at,
+                                         ahead=self.split_ahead_for(n, cap))
+        if not done.ok or done.outcome is None or done.outcome.route is None:
+            log.info("%s: the default durations fly on: %s", what, done.reason)
+            return
+        stats = done.outcome.stats
+        self.report.event("improved", f"{what}: the fastest durations swapped in at t={done.t_split:.3f} s, planned "
+                          f"in {(time.perf_counter() - t0) * 1000:.1f} ms: lands {quick.t_end - done.outcome.route.t_end:.2f} s "
+                          f"earlier ({stats.get('candidates', 1)} candidate plans"
+                          + (", the search cut to what fits before the split)" if stats.get("capped") else ")"),
+                          mission=quick.mission.id, split_time=round(done.t_split, 4),
+                          earlier_s=round(quick.t_end - done.outcome.route.t_end, 3))
 
     async def resume(self, arrived: float) -> None:
         spec = self.interrupted
