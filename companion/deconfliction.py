@@ -19,6 +19,7 @@ from collections.abc import Callable
 from typing import Any
 
 from companion import commit as cp
+from companion.clocks import ClockCheck
 from companion.config import Config
 from companion.fleet import FleetFrame
 from companion.geodesy import Placement
@@ -59,6 +60,11 @@ class Deconfliction:
         self._wall_base = 0.0
         self.certificates_verified = 0  # the others' certificates against our committed trajectory
         self.certificates_refused = 0
+        # our system clock against the others' (companion.clocks): while it is off, nothing that
+        # depends on the others is committed, and a mission flying is stopped (on_clock_off)
+        self.clocks = ClockCheck(cfg.fleet.clock_tolerance, cfg.fleet.max_delay)
+        self.clock_off: str | None = None
+        self.on_clock_off: Callable[[str], None] = lambda _why: None
 
     # -- time and frame ---------------------------------------------------------------
 
@@ -128,7 +134,7 @@ class Deconfliction:
         caller swaps it in at once), else why it lost (replan against the winner)."""
         if not self.enabled:
             return None
-        why = self.why_not()
+        why = self.why_not() or self.clock_off
         if why is not None:
             return why
         self.seq += 1
@@ -218,8 +224,10 @@ class Deconfliction:
 
     # -- what we hear -----------------------------------------------------------------------
 
-    def on_trajectory(self, vehicle: str, payload: bytes) -> None:
-        """Another vehicle's trajectory message (on the loop)."""
+    def on_trajectory(self, vehicle: str, payload: bytes, sent: float | None = None,
+                      arrived: float | None = None) -> None:
+        """Another vehicle's trajectory message (on the loop); `sent`: its send time on its clock
+        (the put's attachment), `arrived`: ours when it arrived (system clock)."""
         if not self.enabled or vehicle == self.cfg.vehicle.id:
             return
         try:
@@ -229,6 +237,9 @@ class Deconfliction:
         claim = read_claim(body, vehicle) if isinstance(body, dict) else None
         if claim is None:
             return
+        if sent is not None and arrived is not None:  # a vehicle's trajectory (the router checked who may put it)
+            self.clocks.heard(vehicle, sent, arrived)
+            self._clock_verdict(arrived)
         held = (self.traffic.committed if claim.committed else self.traffic.proposed).get(vehicle)
         if held is not None and held.seq == claim.seq:
             return  # the same trajectory published again (REPUBLISH)
@@ -264,6 +275,19 @@ class Deconfliction:
                     self.replans += 1
                     self.on_replan(f"{a.reason} ({msg})")
 
+    def _clock_verdict(self, now: float) -> None:
+        why, was = self.clocks.ours_off(now), self.clock_off
+        self.clock_off = why
+        if (why is None) == (was is None):  # no news (the reason's figures may have moved)
+            return
+        if why is not None:
+            self.event("fleet", f"{why}: plans that depend on the other vehicles are refused until it agrees again "
+                       "(a mission flying is stopped); check NTP/chrony on this computer", clock_off=True)
+            self.on_clock_off(why)
+        else:
+            self.event("fleet", "our system clock agrees with the fleet's again: plans are made against the other "
+                       "vehicles again", clock_off=False)
+
     def on_alive(self, vehicle: str, alive: bool) -> None:
         if not self.enabled or vehicle == self.cfg.vehicle.id:
             return
@@ -279,4 +303,8 @@ class Deconfliction:
         return {"neighbours": self.names(), "lost": self.traffic.lost(), "replans": self.replans,
                 "certificates_verified": self.certificates_verified, "certificates_refused": self.certificates_refused,
                 "widening_m": {v: round(self.traffic.widening(v, now), 2) for v in self.traffic.lost()},
-                "separation": self.cfg.fleet.separation, "priority": self.cfg.fleet.priority}
+                "separation": self.cfg.fleet.separation, "priority": self.cfg.fleet.priority,
+                "clock_off": self.clock_off,
+                "clock_offsets_ms": {v: [round(o.lo * 1000, 1), round(o.hi * 1000, 1)]
+                                     for v, o in sorted(self.clocks.offsets(now).items())},
+                "clocks_disagreeing": self.clocks.others_off(now)}

@@ -263,6 +263,10 @@ class Navigator:
                 return Swapped(outcome, t_split, outcome.message)
             if self.fleet_on() and self.control.active is base:
                 why = await self.fleet.commit(splice(base, outcome.route.trajectory), what)
+                if why is not None and self.fleet.clock_off is not None:
+                    reason = why  # planning again would not help
+                    say(why)
+                    break
                 if why is not None:
                     lost += 1
                     reason = why
@@ -714,6 +718,12 @@ class Navigator:
             self.report.event("fleet", f"deconfliction: {reason}; not flying a mission: nothing to replan")
             return
         asyncio.get_running_loop().create_task(self._fleet_replan(reason))
+
+    def fleet_stop(self, reason: str) -> None:
+        """Our clock is off the fleet's (companion.clocks): the mission flying, planned against the
+        others' times, is stopped (a verified stop; a hold does not depend on the clock)."""
+        if self.flight.state is S.STREAMING and self.control.flying:
+            asyncio.get_running_loop().create_task(self.hold(f"fleet: {reason}", time.monotonic()))
 
     async def _fleet_replan(self, reason: str) -> None:
         arrived = time.monotonic()

@@ -120,6 +120,7 @@ class Service:
                                            self.report.event)
         self.navigator.fleet = self.deconfliction
         self.deconfliction.on_replan = self.navigator.fleet_replan
+        self.deconfliction.on_clock_off = self.navigator.fleet_stop
         # the autopilot's own limits: read at link-up and after a reconnect, planned within
         self.limits = LimitsWatch(cfg, self.link, self.report)
         self.watch.on_link_up = self._link_up

@@ -165,7 +165,8 @@ class ZenohIO:
             self._decls.append(self.session.declare_queryable(self.cfg.key(kind), self._queried(kind)))
         self._decls.append(self.session.liveliness().declare_token(self.cfg.key(ALIVE)))
 
-    def watch_fleet(self, on_trajectory: Callable[[str, bytes], None], on_alive: Callable[[str, bool], None]) -> None:
+    def watch_fleet(self, on_trajectory: Callable[[str, bytes, float | None, float], None],
+                    on_alive: Callable[[str, bool], None]) -> None:
         """The other vehicles' trajectories (`<prefix>/*/trajectory`) and liveliness (`<prefix>/*/alive`),
         each handed to the loop with the vehicle id from the key (docs/fleet.md)."""
         prefix = self.cfg.zenoh.prefix
@@ -175,9 +176,11 @@ class ZenohIO:
             return parts[-2] if len(parts) >= 2 else ""
 
         def trajectory(sample: Any) -> None:
+            arrived = time.time()  # here, not on the loop: its delays are not the network's
             if len(sample.payload) > self.cfg.limits.max_message_bytes:
                 return
-            self.loop.call_soon_threadsafe(on_trajectory, vehicle(sample.key_expr), sample.payload.to_bytes())
+            self.loop.call_soon_threadsafe(on_trajectory, vehicle(sample.key_expr), sample.payload.to_bytes(),
+                                           sent_time(sample.attachment), arrived)
 
         def alive(sample: Any) -> None:
             present = sample.kind != zenoh.SampleKind.DELETE
@@ -259,7 +262,10 @@ class ZenohIO:
     def publish_bytes(self, kind: str, payload: bytes) -> None:
         pub = self._pubs.get(kind)
         if pub is not None:
-            pub.put(payload)
+            if kind == "trajectory":  # its send time on our clock: the others measure theirs against it
+                pub.put(payload, attachment=json.dumps({"sent": time.time()}).encode())
+            else:
+                pub.put(payload)
             self.tap.outbound(kind, payload, time.monotonic())
 
     def close(self) -> None:
@@ -272,3 +278,18 @@ class ZenohIO:
         if self.session is not None:
             self.session.close()
             self.session = None
+
+
+def sent_time(attachment: Any) -> float | None:
+    """The send time a trajectory put carries (`{"sent": unix seconds}`), None if absent or bad."""
+    if attachment is None:
+        return None
+    try:
+        raw = attachment.to_bytes()
+        if len(raw) > 200:
+            return None
+        sent = json.loads(raw).get("sent")
+    except (ValueError, AttributeError, TypeError):
+        return None
+    return float(sent) if isinstance(sent, int | float) and not isinstance(sent, bool) and math.isfinite(sent) \
+        else None
