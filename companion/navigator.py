@@ -453,6 +453,7 @@ class Navigator:
             self.report.event("accepted", f"mission {spec.id}: planned and verified in {lat * 1000:.1f} ms "
                               f"({len(spec.waypoints)} waypoints, {done.outcome.route.t_end - done.t_split:.2f} s)"
                               + waits, key="mission", mission=spec.id, plan_ms=round(lat * 1000, 2),
+                              compute_ms=num(float(done.outcome.stats.get("plan_seconds", math.nan)) * 1000, 2),
                               **({"fleet_delay": delay} if delay else {}))
             if quick[0]:
                 self._improving = asyncio.get_running_loop().create_task(self.improve(done.outcome.route))
