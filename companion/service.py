@@ -53,18 +53,15 @@ from companion.setpoints import (
     sleep_until,
 )
 from companion.wire import encode as enc
+from companion.wire.errors import InternalError, MessageError, Oversized, quote
 from companion.wire.mavlink import MavlinkLink
 from companion.wire.messages import (
     Change,
     Command,
-    InternalError,
     Message,
-    MessageError,
     MissionSpec,
     ObstacleUpdate,
-    Oversized,
     fence_at_home,
-    quote,
     read,
     warm_validators,
 )

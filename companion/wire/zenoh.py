@@ -24,8 +24,8 @@ from companion.admission import Admission
 from companion.config import Config, ZenohConfig
 from companion.tap import NO_TAP, Tap
 from companion.wire.encode import encode
+from companion.wire.errors import Oversized
 from companion.wire.keys import ALIVE, INBOUND, OUTBOUND, QUERYABLE
-from companion.wire.messages import Oversized
 
 log = logging.getLogger("companion")
 

@@ -17,7 +17,7 @@ from recorder_support import Wire, config, plan_call
 
 from companion.recorder import McapSink, Recorder
 from companion.setpoints import Feed, SetpointSender, YawPolicy
-from companion.wire.messages import Oversized
+from companion.wire.errors import Oversized
 from planner_core import hold
 
 
