@@ -19,10 +19,11 @@ import numpy as np
 
 from companion.config import Config
 from companion.control import Control
-from companion.flight import HOLDING_CONTROL, Flight, State
+from companion.flight import HOLDING_CONTROL
 from companion.report import Reporter
 from companion.route import build_corridors
 from companion.runtime import Runtime
+from companion.supervisor import Braking, Supervisor
 from companion.wire.encode import vec
 from companion.wire.messages import MissionSpec
 from planner_core import (
@@ -265,7 +266,7 @@ class Brakes:
     (for a hold when no stop can be planned). A stop swapped in (or a hold) interrupts the
     mission flown at its start: `Control` keeps what is left of it for `resume`."""
 
-    def __init__(self, cfg: Config, flight: Flight, control: Control, runtime: Runtime, report: Reporter,
+    def __init__(self, cfg: Config, flight: Supervisor, control: Control, runtime: Runtime, report: Reporter,
                  context: Callable[[], StopContext], position: Callable[[], FloatArray]) -> None:
         self.cfg = cfg
         self.flight = flight
@@ -316,7 +317,7 @@ class Brakes:
                 return
             self.control.hold_here(self.position())
             why = f"no verified braking trajectory ({why}); holding at the measured position"
-        self.report.go(State.BRAKING, reason)
+        self.flight.handle(Braking(reason))
         self.report.event("braking", f"{reason}; braking to a stop and holding", reason=reason,
                           blocked_waypoint=blocked, detail=why, **stop_fields(plan if swapped else None))
 
@@ -384,7 +385,7 @@ class Brakes:
                              + ("none planned" if plan is None else plan.message), arrived)
             return
         assert plan is not None
-        self.report.go(State.BRAKING, reason)
+        self.flight.handle(Braking(reason))
         self.report.event("braking", f"{reason}; braking to a stop and holding", reason=reason, blocked_waypoint=None,
                           detail=plan.message, deadline=round(guard.deadline, 4), hit_time=round(guard.hit, 4),
                           swap_time=round(swap_time, 4), **stop_fields(plan))
