@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.braking import Brakes, Replanned, StopContext, brake_deadline
+from companion.braking import Brakes, Replanned, StopContext, StopGuard, brake_deadline
 from companion.config import Config
 from companion.control import SWAP_LATE, Control
 from companion.edits import LocalEdit, Refused, resolve_planned
@@ -631,7 +631,7 @@ class Navigator:
         swapped in at its start unless a verified replan was swapped in first."""
         assert self.route is not None and self.control.active is not None
         base, bounds, now = self.control.active, self.route.mission.bounds, self.control.now()
-        guard = self.brakes.guard(base, hit)
+        guard = StopGuard(base, hit)
         notes: list[str] = []
         edit = LocalEdit((AddObstacles(tuple(new)),), f"avoid obstacles {names}")
         what = f"obstacles {names}"
@@ -639,7 +639,7 @@ class Navigator:
         async def plan_at(base_now: Trajectory, t_split: float) -> Outcome:
             assert self.route is not None
             r = trim(self.route, self.control.now())
-            return await self._replan_outcome(r, base_now, t_split, edit, None, notes, on_fallback=guard.start)
+            return await self._replan_outcome(r, base_now, t_split, edit, None, notes, on_fallback=guard.prepare)
 
         async def replan() -> Replanned:
             done = await self._replan_swapped(what, arrived, plan_at, hit=hit, notes=notes)
