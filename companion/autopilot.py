@@ -1,10 +1,11 @@
 """What the autopilot reports, and how the vehicle's situation follows it.
 
-Heartbeats (armed first, then mode), the landed state, EVENT/STATUSTEXT and link loss update
-`Flight`; a mode we did not ask for is a pilot takeover and a disarm we did not ask for a
-failsafe: control is released at once and never retaken without a new `start`. While the
-companion itself is stalled (or just woke from a stall), what the autopilot did meanwhile is
-put down to that stall, not to a pilot or to the link.
+Heartbeats (armed first, then mode), the landed state, EVENT/STATUSTEXT and link loss are
+submitted to the supervisor as events; it decides (companion/supervisor.py): a mode we did not
+ask for is a pilot takeover and a disarm we did not ask for a failsafe: control is released at
+once and never retaken without a new `start`. While the companion itself is stalled (or just
+woke from a stall), what the autopilot did meanwhile is put down to that stall, not to a pilot
+or to the link.
 """
 
 from __future__ import annotations
@@ -21,8 +22,18 @@ from typing import Any
 import numpy as np
 
 from companion.config import Config
-from companion.flight import IN_OUR_MODE, Flight, State, on_mode_report
+from companion.flight import State
 from companion.report import Reporter
+from companion.supervisor import (
+    Disarmed,
+    GroundLearnt,
+    Heartbeat,
+    HeightReport,
+    LandedStateReport,
+    LinkLost,
+    ModeReport,
+    Supervisor,
+)
 from companion.wire.mavlink import (
     MAV_LANDED_IN_AIR,
     MAV_LANDED_LANDING,
@@ -33,7 +44,6 @@ from companion.wire.mavlink import (
 )
 
 log = logging.getLogger("companion")
-S = State
 # What an autopilot says while it has no position estimate (ArduPilot PreArm texts, PX4 events).
 ESTIMATE_WORDS = re.compile(r"EKF|GPS|origin|position estimate|local_pos|estimator", re.IGNORECASE)
 TELEMETRY_CHECK = 3.0  # s after the requests: what has not arrived by then is reported
@@ -69,8 +79,7 @@ def waiting_hint(url: str) -> str:
 
 
 class AutopilotWatch:
-    def __init__(self, cfg: Config, flight: Flight, link: MavlinkLink, report: Reporter,
-                 release_control: Callable[[], None],
+    def __init__(self, cfg: Config, flight: Supervisor, link: MavlinkLink, report: Reporter,
                  on_position: Callable[[float], None] | None = None,
                  stalled: Callable[[], bool] = lambda: False) -> None:
         self.cfg = cfg
@@ -83,7 +92,6 @@ class AutopilotWatch:
         self.flight = flight
         self.link = link
         self.report = report
-        self.release_control = release_control
         self.on_position_sample = on_position  # each LOCAL_POSITION_NED, with its arrival time
         self._on_ground_since = math.inf
         self._telemetry_task: asyncio.Task[None] | None = None
@@ -239,11 +247,10 @@ class AutopilotWatch:
 
     def on_landed_state(self, landed: int) -> None:
         fl = self.flight
-        if landed in (MAV_LANDED_IN_AIR, MAV_LANDED_LANDING):
-            fl.airborne = True
-        elif landed == MAV_LANDED_ON_GROUND and fl.state is not S.TAKEOFF and fl.airborne:
-            # Our own takeoff sets `airborne` when it completes; otherwise the autopilot knows.
-            fl.landed()
+        was = fl.airborne
+        fl.handle(LandedStateReport(in_air=landed in (MAV_LANDED_IN_AIR, MAV_LANDED_LANDING),
+                                    on_ground=landed == MAV_LANDED_ON_GROUND))
+        if was and not fl.airborne:
             self.report.dirty = True
 
     def on_position(self, now: float) -> None:
@@ -253,39 +260,39 @@ class AutopilotWatch:
             return
         z = float(st.position[2])
         if not st.armed:
-            fl.ground_z = z
+            fl.handle(GroundLearnt(z))
             self._on_ground_since = math.inf
             return
         if now - st.last_landed_state < LANDED_STATE_STALE or fl.ground_z is None:
             return
-        if fl.state in (S.ARMING, S.TAKEOFF):
+        if fl.state in (State.ARMING, State.TAKEOFF):
             return  # our own takeoff decides when it is complete
         height = fl.ground_z - z
         if height > AIR_HEIGHT:
             self._on_ground_since = math.inf
             if not fl.airborne:
-                fl.airborne = True
+                fl.handle(HeightReport(airborne=True))
                 self.report.dirty = True
             return
         if height < GROUND_HEIGHT and float(np.linalg.norm(st.velocity)) < GROUND_SPEED:
             self._on_ground_since = min(self._on_ground_since, now)
             if fl.airborne and now - self._on_ground_since >= GROUND_FOR:
-                fl.landed()
+                fl.handle(HeightReport(airborne=False))
                 self.report.dirty = True
         else:
             self._on_ground_since = math.inf
 
     def on_heartbeat(self) -> None:
         st, fl = self.link.state, self.flight
-        if not fl.seen_link:
-            fl.seen_link = True
+        first, restored = not fl.seen_link, fl.link_lost
+        fl.handle(Heartbeat())
+        if first:
             self.report.event("link", f"autopilot found: {st.autopilot} in {st.mode}", autopilot=st.autopilot,
                               mode=st.mode)
             self.ask_telemetry("link up")
             if self.on_link_up is not None:
                 self.on_link_up("link up")
-        if fl.link_lost:
-            fl.link_lost = False
+        if restored:
             self.ask_telemetry("link restored (the autopilot may have rebooted)")
             if self.on_link_up is not None:
                 self.on_link_up("link restored")
@@ -294,40 +301,13 @@ class AutopilotWatch:
                               f"autopilot (cause: the link): autopilot in {st.mode}, "
                               f"{'armed' if st.armed else 'disarmed'}; send 'start' to take control again",
                               mode=st.mode, armed=st.armed, cause="link", silence_s=round(lost_s, 1))
-        state = fl.state
         self.report.dirty = True
-        # Armed state first: a disarmed vehicle flies nothing, whatever mode it reports (PX4
-        # reports OFFBOARD while disarmed after an offboard landing).
+        # Armed state first: a disarmed vehicle flies nothing, whatever mode it reports (the
+        # supervisor decides what each means).
         if not st.armed:
-            stalled = " after the companion stalled" if self.stalled() else ""
-            if state in IN_OUR_MODE and not fl.disarm_requested:
-                self.release_control()
-                fl.landed()
-                self.report.go(S.IDLE, f"the autopilot disarmed the vehicle{stalled}")
-                self.report.event("failsafe", f"the autopilot disarmed the vehicle{stalled} (mode {st.mode})",
-                                  mode=st.mode, cause="companion" if stalled else "autopilot")
-            elif state in (S.LANDING, S.PILOT, S.FAILSAFE):
-                fl.landed()
-                self.report.go(S.IDLE, "landed and disarmed" if state is S.LANDING
-                               else f"the vehicle disarmed ({state.value} before): following the autopilot")
-            elif state is S.IDLE:
-                fl.landed()
+            fl.handle(Disarmed(st.mode, self.stalled()))
             return
-        reaction = on_mode_report(state, st.in_follow_mode(), fl.exit_requested)
-        if reaction is None:
-            return
-        self.release_control()
-        if self.stalled():
-            # the autopilot's offboard-loss failsafe, set off by our own silence
-            self.report.go(S.FAILSAFE, f"the autopilot left OFFBOARD/GUIDED for {st.mode} while the companion "
-                           "was stalled (no setpoints)")
-            self.report.event("failsafe", f"the autopilot switched to {st.mode} while the companion was stalled: "
-                              "stopped commanding; send 'start' to take control again", mode=st.mode,
-                              cause="companion")
-            return
-        self.report.go(reaction[0], f"{reaction[1]} (mode {st.mode})")
-        self.report.event("pilot_takeover", f"autopilot switched to {st.mode}: stopped commanding; "
-                          "send 'start' to take control again", mode=st.mode)
+        fl.handle(ModeReport(st.in_follow_mode(), st.mode, self.stalled()))
 
     def check_link(self) -> None:
         fl = self.flight
@@ -348,12 +328,5 @@ class AutopilotWatch:
             # Silence seen by a loop that did not run says nothing about the link: what the
             # autopilot sent meanwhile waits in the socket and is read first.
             return
-        fl.link_lost = True
         self._lost_at = time.monotonic()
-        was = fl.state
-        if fl.controlling:
-            self.release_control()
-            self.report.go(S.FAILSAFE, "MAVLink link lost: no autopilot heartbeat")
-        self.report.event("link_lost", f"MAVLink link lost (nothing from the autopilot for {self.cfg.mavlink.link_timeout} s) "
-                          f"while {was.value}; stopped commanding (cause: the link; the companion ran)",
-                          previous_state=was.value, cause="link")
+        fl.handle(LinkLost(self.cfg.mavlink.link_timeout))

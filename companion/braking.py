@@ -19,10 +19,11 @@ import numpy as np
 
 from companion.config import Config
 from companion.control import Control
-from companion.flight import HOLDING_CONTROL, Flight, State
+from companion.flight import HOLDING_CONTROL
 from companion.report import Reporter
 from companion.route import build_corridors
 from companion.runtime import Runtime
+from companion.supervisor import Braking, Supervisor
 from companion.wire.encode import vec
 from companion.wire.messages import MissionSpec
 from planner_core import (
@@ -198,18 +199,22 @@ class Replanned:
 
 
 class StopGuard:
-    """A verified stop, planned (once started) for the braking deadline in the brake thread.
+    """What one race knows: the flown plan it guards, the braking deadline, and the verified
+    stop for that deadline once `Brakes` plans it (in the brake thread).
 
-    The deadline starts at the hit (no stop may start later) and is only brought forward, by
-    `bring_forward`, its one writer."""
+    It knows nothing of who plans or flies the stop: `Brakes`, which runs the race, starts the
+    planning (at the deadline less BRAKE_PREPARE, or at once when asked with `prepare`) and
+    swaps the stop in; the guard never calls back into it. The deadline starts at the hit (no
+    stop may start later) and is only brought forward, by `bring_forward`, its one writer."""
 
-    def __init__(self, brakes: Brakes, base: Trajectory, hit: float) -> None:
-        self.brakes = brakes
+    def __init__(self, base: Trajectory, hit: float) -> None:
         self.base = base
         self._deadline = hit
         self.hit = hit
         self.notes: list[str] = []
         self.future: asyncio.Future[StopPlan] | None = None
+        # set by `prepare`: the race wakes on it and starts the stop at once (created on the loop)
+        self._asked: asyncio.Future[None] | None = None
 
     @property
     def deadline(self) -> float:
@@ -229,9 +234,23 @@ class StopGuard:
             self.future.cancel()  # planned for the later deadline (or still planning for it)
             self.future = None
 
-    def start(self) -> None:
-        if self.future is None:
-            self.future = self.brakes.stop_future(self.base, [self.deadline])
+    def prepare(self) -> None:
+        """Have the stop planned now rather than just before the deadline (the local replan
+        failed or runs late): the race starts it on its next turn."""
+        asked = self.asked()
+        if not asked.done():
+            asked.set_result(None)
+
+    def asked(self) -> asyncio.Future[None]:
+        """Done once `prepare` was called and the planning has not started since."""
+        if self._asked is None:
+            self._asked = asyncio.get_running_loop().create_future()
+        return self._asked
+
+    def planning(self, future: asyncio.Future[StopPlan]) -> None:
+        """The stop for the deadline is being planned (by `Brakes`): a request is answered."""
+        self.future = future
+        self._asked = None
 
     def ready(self) -> StopPlan | None:
         f = self.future
@@ -243,15 +262,6 @@ class StopGuard:
         """When the stop starts: planned, or the deadline while it is not known yet."""
         plan = self.ready()
         return self.deadline if plan is None or plan.trajectory is None else plan.start
-
-    async def result(self) -> StopPlan | None:
-        self.start()
-        assert self.future is not None
-        try:
-            return await self.future
-        except Exception as exc:  # a planner bug: the caller falls back to a fresh stop
-            log.exception("stop planning failed: %r", exc)
-            return None
 
     def cancel(self) -> None:
         if self.future is not None:
@@ -265,7 +275,7 @@ class Brakes:
     (for a hold when no stop can be planned). A stop swapped in (or a hold) interrupts the
     mission flown at its start: `Control` keeps what is left of it for `resume`."""
 
-    def __init__(self, cfg: Config, flight: Flight, control: Control, runtime: Runtime, report: Reporter,
+    def __init__(self, cfg: Config, flight: Supervisor, control: Control, runtime: Runtime, report: Reporter,
                  context: Callable[[], StopContext], position: Callable[[], FloatArray]) -> None:
         self.cfg = cfg
         self.flight = flight
@@ -276,8 +286,20 @@ class Brakes:
         self.position = position
         self.race_guard: StopGuard | None = None  # the replan racing a braking deadline, if any
 
-    def guard(self, base: Trajectory, hit: float) -> StopGuard:
-        return StopGuard(self, base, hit)
+    def _prepare(self, guard: StopGuard) -> None:
+        """Plan the stop for the guard's deadline, unless it is planned (or planning) already."""
+        if guard.future is None:
+            guard.planning(self.stop_future(guard.base, [guard.deadline]))
+
+    async def _prepared(self, guard: StopGuard) -> StopPlan | None:
+        """The stop for the deadline (planned now if it was not), None if its planning failed."""
+        self._prepare(guard)
+        assert guard.future is not None
+        try:
+            return await guard.future
+        except Exception as exc:  # a planner bug: the caller falls back to a fresh stop
+            log.exception("stop planning failed: %r", exc)
+            return None
 
     def stop_future(self, base: Trajectory, starts: list[float]) -> asyncio.Future[StopPlan]:
         """Plan a verified stop off `base` in the brake thread (see plan_stop)."""
@@ -316,7 +338,7 @@ class Brakes:
                 return
             self.control.hold_here(self.position())
             why = f"no verified braking trajectory ({why}); holding at the measured position"
-        self.report.go(State.BRAKING, reason)
+        self.flight.handle(Braking(reason))
         self.report.event("braking", f"{reason}; braking to a stop and holding", reason=reason,
                           blocked_waypoint=blocked, detail=why, **stop_fields(plan if swapped else None))
 
@@ -341,17 +363,21 @@ class Brakes:
                 replan.cancel()
                 guard.cancel()
                 return
+            if guard.future is None and guard.asked().done():
+                self._prepare(guard)
             wake = guard.start_time() - spare
             if guard.future is None:
                 wake = min(wake, guard.deadline - BRAKE_PREPARE)
             delay = wake - self.control.committed()  # a stop starts after the setpoints already sent
             if delay <= 0:
                 if guard.future is None:
-                    guard.start()
+                    self._prepare(guard)
                     continue
                 break
             waiting: set[asyncio.Future[Any]] = {replan}
-            if guard.future is not None and not guard.future.done():
+            if guard.future is None:
+                waiting.add(guard.asked())  # wake as soon as the stop is asked for
+            elif not guard.future.done():
                 waiting.add(guard.future)
             # at most a tick at a time: another pop-up may bring the deadline forward
             await asyncio.wait(waiting, timeout=min(delay, spare / 2), return_when=asyncio.FIRST_COMPLETED)
@@ -377,14 +403,14 @@ class Brakes:
 
     async def _brake_at_deadline(self, guard: StopGuard, arrived: float, reason: str) -> None:
         """The replan is late: swap in the prepared stop (planned for the deadline)."""
-        plan = await guard.result()
+        plan = await self._prepared(guard)
         swap_time = self.control.now()
         if not self._commit(guard.base, plan, arrived):
             await self.brake(reason + "; the prepared stop was not usable: "
                              + ("none planned" if plan is None else plan.message), arrived)
             return
         assert plan is not None
-        self.report.go(State.BRAKING, reason)
+        self.flight.handle(Braking(reason))
         self.report.event("braking", f"{reason}; braking to a stop and holding", reason=reason, blocked_waypoint=None,
                           detail=plan.message, deadline=round(guard.deadline, 4), hit_time=round(guard.hit, 4),
                           swap_time=round(swap_time, 4), **stop_fields(plan))

@@ -1,6 +1,6 @@
 """Operator commands as explicit sequences: arm, takeoff, start, hold, resume, land, abort, disarm.
 
-Which command is accepted in which state is `Flight.refuse` (the table is in the README);
+Which command is accepted in which state is `FlightState.refuse` (the table is in the README);
 the sequences here talk to the autopilot through the MAVLink adapter, hand control to and
 from `Control`, and missions to `Navigator`. A sequence that fails says why (`refused`,
 with the autopilot's answer) and leaves the vehicle in a state it can be commanded from.
@@ -20,11 +20,32 @@ import numpy as np
 
 from companion.config import Config
 from companion.control import SWAP_LATE, Control
-from companion.flight import HOLDING_CONTROL, Flight, State
+from companion.flight import HOLDING_CONTROL, State
 from companion.lag import LagEstimator, initial_lead
 from companion.navigator import MAX_AHEAD, RETRY_MARGIN, Navigator
 from companion.report import Reporter
 from companion.runtime import Runtime
+from companion.supervisor import (
+    Armed,
+    ArmRequested,
+    ControlTaken,
+    ControlTakenBack,
+    DisarmedOnCommand,
+    DisarmRequested,
+    ExitBegan,
+    ExitRequested,
+    HandedOver,
+    LandRequested,
+    SequenceAborted,
+    Stalled,
+    StartBegan,
+    StartEnded,
+    Supervisor,
+    TakeoffBegan,
+    TakeoffInterrupted,
+    TakingControl,
+    TookOff,
+)
 from companion.wire.mavlink import (
     APM_MODES,
     MAV_LANDED_IN_AIR,
@@ -58,7 +79,7 @@ def at_rest(velocity: np.ndarray, threshold: float) -> bool:
 
 
 class Commands:
-    def __init__(self, cfg: Config, flight: Flight, control: Control, link: MavlinkLink, navigator: Navigator,
+    def __init__(self, cfg: Config, flight: Supervisor, control: Control, link: MavlinkLink, navigator: Navigator,
                  report: Reporter, runtime: Runtime | None = None) -> None:
         self.cfg = cfg
         self.flight = flight
@@ -90,7 +111,7 @@ class Commands:
     def take_control(self, reason: str) -> None:
         st = self.link.state
         self.control.take(st.position, float(st.attitude[2]), reason)
-        self.flight.exit_requested = False
+        self.flight.handle(ControlTaken())
 
     def release_control(self) -> None:
         """Stop commanding at once; what is left of the mission waits for `start`."""
@@ -157,9 +178,7 @@ class Commands:
             # the companion's own checks say why; the autopilot's refusals say what failed
             reason = str(exc) if exc.by == "companion" else f"failed: {exc}"
             self.report.refuse(name, reason, by=exc.by, **exc.fields())
-            if self.flight.state in (S.ARMING, S.TAKEOFF):
-                self.control.release()
-                self.report.go(S.IDLE if not self.link.state.armed else S.FAILSAFE, f"{name} failed: {exc}")
+            self.flight.handle(SequenceAborted(f"{name} failed: {exc}", armed=self.link.state.armed))
         except asyncio.CancelledError:
             self.report.refuse(name, "cancelled before it completed", by="companion")
         else:
@@ -170,7 +189,7 @@ class Commands:
     async def _take_follow_mode(self, reason: str) -> None:
         """Stream a hold at the measured position, then ask for OFFBOARD/GUIDED."""
         st = self.link.state
-        self.report.go(S.ARMING, reason)
+        self.flight.handle(TakingControl(reason))
         if st.autopilot == "px4":
             sent = self.link.sent_setpoints
             self.take_control(reason)
@@ -190,7 +209,7 @@ class Commands:
         st = self.link.state
         before = (st.base_mode, st.custom_mode, st.mode)
         await self._take_follow_mode("arm command")
-        self.flight.disarm_requested = False
+        self.flight.handle(ArmRequested())
         try:
             await self.link.arm(True)
             await self.link.wait_for(lambda s: s.armed, 3.0, "the autopilot to report armed")
@@ -204,8 +223,7 @@ class Commands:
             except CommandFailed as again:
                 raise exc.chained(f"{exc}; and the previous mode {before[2]} was not restored: {again}") from exc
             raise exc.chained(f"{exc}; the autopilot is back in {before[2]}") from exc
-        where = "in the air" if self.flight.airborne else "on the ground"
-        self.report.go(S.READY, f"armed in {self.link.state.mode} ({where}): holding")
+        self.flight.handle(Armed(self.link.state.mode))
 
     def takeoff_target(self, altitude: float, origin: str = "ground") -> tuple[np.ndarray, str]:
         """Where a takeoff to `altitude` ends (NED, local frame), and what it is above.
@@ -229,7 +247,7 @@ class Commands:
         elif self.flight.state not in (S.READY, S.HOLDING):
             await self._take_follow_mode("takeoff command")
         target, above = self.takeoff_target(altitude, origin)
-        self.report.go(S.TAKEOFF, f"taking off to {altitude:.2f} m above {above} (local z {target[2]:.2f} m NED)")
+        self.flight.handle(TakeoffBegan(f"taking off to {altitude:.2f} m above {above} (local z {target[2]:.2f} m NED)"))
         tol = self.cfg.safety.arrival_tolerance
         if st.autopilot == "px4":
             await self._px4_climb(target)
@@ -242,8 +260,7 @@ class Commands:
             await self.link.wait_for(lambda s: abs(s.position[2] - target[2]) <= tol and at_rest(s.velocity, rest),
                                      10.0 + altitude / 0.3, f"altitude {altitude:.2f} m, at rest")
             self.take_control("takeoff complete")
-        self.flight.airborne = True
-        self.report.go(S.READY, f"airborne at {altitude:.2f} m above {above}: holding")
+        self.flight.handle(TookOff(f"airborne at {altitude:.2f} m above {above}: holding"))
         pending = self.nav.pending
         if pending is not None and pending.autostart and not self.flight.starting:
             await self.nav.fly(pending, None)
@@ -290,11 +307,11 @@ class Commands:
             and at_rest(s.velocity, rest), end - self.control.now() + 10.0, "the climb to finish, at rest")
 
     async def start(self, arrived: float) -> None:
-        self.flight.starting = True
+        self.flight.handle(StartBegan())
         try:
             await self._start(arrived)
         finally:
-            self.flight.starting = False
+            self.flight.handle(StartEnded())
 
     async def _start(self, arrived: float) -> None:
         st = self.link.state
@@ -304,7 +321,7 @@ class Commands:
             if not self.flight.airborne and st.landed_state != MAV_LANDED_IN_AIR and st.autopilot != "px4":
                 raise CommandFailed("vehicle is on the ground: send 'takeoff' first", by="companion")
             await self._take_follow_mode("start command: taking control")
-            self.report.go(S.READY, f"in control ({self.link.state.mode}): holding")
+            self.flight.handle(ControlTakenBack(self.link.state.mode))
         if self.flight.state is S.READY and not self.flight.airborne:
             await self.takeoff(self.cfg.safety.takeoff_altitude)
         nav = self.nav
@@ -317,11 +334,9 @@ class Commands:
         """The autopilot lands (NAV_LAND / LAND mode), from any state in which the vehicle may
         be in the air: our modes, a pilot's, a failsafe's, or after a restart."""
         self.cancel_sequence()
-        self.flight.exit_requested = True
         self.control.forget()
         self.control.release()
-        was = self.flight.state
-        self.report.go(S.LANDING, f"land command ({was.value}): the autopilot lands")
+        self.flight.handle(LandRequested())
         try:
             await self.link.land()
         except CommandFailed as exc:
@@ -348,9 +363,7 @@ class Commands:
             await self.nav.abort(arrived)
         else:
             self.control.forget()
-            if state in (S.ARMING, S.TAKEOFF):
-                self.control.release()
-                self.report.go(S.IDLE if not self.link.state.armed else S.FAILSAFE, "abort command")
+            self.flight.handle(SequenceAborted("abort command", armed=self.link.state.armed))
         self.report.event("aborted", "mission and pending commands cancelled")
 
     # -- tracking -------------------------------------------------------------------------
@@ -500,16 +513,14 @@ class Commands:
         vehicle moved."""
         fl, st = self.flight, self.link.state
         self.cancel_sequence()
-        if fl.state is S.ARMING and fl.airborne and self.control.flying:
-            self.report.go(S.READY, f"{reason}: taking control back interrupted")
+        fl.handle(ExitBegan(reason, flying=self.control.flying))
         if not fl.controlling or not st.armed or fl.link_lost:
             self.control.release()
-            if fl.state in (S.ARMING, S.TAKEOFF):
-                self.report.go(S.IDLE if not st.armed else S.FAILSAFE, f"{reason}: sequence interrupted")
+            fl.handle(SequenceAborted(f"{reason}: sequence interrupted", armed=st.armed))
             return not (fl.link_lost and fl.controlling)
         airborne = fl.airborne or st.landed_state == MAV_LANDED_IN_AIR or fl.state is S.TAKEOFF
         if not airborne:
-            self.flight.disarm_requested = True
+            fl.handle(DisarmRequested())
             try:
                 await self.link.arm(False)
                 await self.link.wait_for(lambda s: not s.armed, 3.0, "the autopilot to report disarmed")
@@ -517,11 +528,9 @@ class Commands:
                 self.report.event("error", f"{reason}: disarm on the ground failed ({exc}); handing over instead")
             else:
                 self.control.release()
-                fl.landed()
-                self.report.go(S.IDLE, f"{reason}: disarmed on the ground")
+                fl.handle(DisarmedOnCommand(f"{reason}: disarmed on the ground"))
                 return True
-        if fl.state is S.TAKEOFF:
-            self.report.go(S.READY, f"{reason}: takeoff interrupted")
+        fl.handle(TakeoffInterrupted(f"{reason}: takeoff interrupted"))
         braked = False
         if can_brake and self.control.streaming and fl.state in HOLDING_CONTROL:
             braked = await self._brake_for_exit(reason)
@@ -572,7 +581,7 @@ class Commands:
     async def _request_exit_mode(self, reason: str, stream_works: bool = False) -> bool:
         st = self.link.state
         wanted, why = self.exit_plan(stream_works)
-        self.flight.exit_requested = True  # our mode changes: not a pilot takeover
+        self.flight.handle(ExitRequested())  # our mode changes: not a pilot takeover
         fallbacks = [wanted] + ([] if wanted in ("LAND", "BRAKE") or st.autopilot == "px4" else ["BRAKE"])
         fallbacks += [] if wanted == "LAND" else ["LAND"]
         for mode in fallbacks:
@@ -591,8 +600,7 @@ class Commands:
                 why = f"after the hand-over to {mode} failed"
                 continue
             self.control.release()
-            to = S.LANDING if mode == "LAND" else S.PILOT
-            self.report.go(to, f"{reason}: handed over to the autopilot ({st.mode})")
+            self.flight.handle(HandedOver(reason, st.mode, landing=mode == "LAND"))
             if mode in ("LAND", "RTL"):
                 self.report.event("handover", f"{reason}: the autopilot {'lands' if mode == 'LAND' else 'returns'} "
                                   f"in {st.mode} ({why})", mode=st.mode, reason=reason, held=None)
@@ -646,15 +654,14 @@ class Commands:
         return True
 
     async def disarm(self) -> bool:
-        self.flight.disarm_requested = True
+        self.flight.handle(DisarmRequested())
         self.release_control()
         try:
             await self.link.arm(False)
         except CommandFailed as exc:
             self.report.refuse("disarm", f"failed: {exc}", by="autopilot", **exc.fields())
             return False
-        self.flight.landed()
-        self.report.go(S.IDLE, "disarmed on command")
+        self.flight.handle(DisarmedOnCommand("disarmed on command"))
         return True
 
     # -- after a stall of the companion ------------------------------------------------------
@@ -671,9 +678,7 @@ class Commands:
         was = fl.state
         in_air = fl.airborne or st.landed_state == MAV_LANDED_IN_AIR or was is S.TAKEOFF
         ours = st.armed and st.in_follow_mode()
-        self.release_control()
-        self.report.go(S.FAILSAFE, f"{reason}: stopped commanding ({was.value} before); send 'start' to take "
-                       "control again")
+        fl.handle(Stalled(reason))
         if not (ours and in_air):
             return None
         self._stall_task = asyncio.get_running_loop().create_task(self._hold_after_stall(reason))

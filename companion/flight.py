@@ -1,8 +1,9 @@
 """The flight state machine: the vehicle's situation as the companion sees it, in one place.
 
-Pure logic, no sockets, no clock. `Flight` owns the state and every flag about the
+Pure logic, no sockets, no clock. `FlightState` holds the state and every flag about the
 vehicle's situation (airborne, link lost/seen, an exit or a disarm we asked for, a `start`
-in progress); the rest of the service asks it and tells it, never keeps a copy.
+in progress) as one frozen value; `companion/supervisor.py` is the only place that makes a
+new one, from events; the rest of the service reads it and submits events, never keeps a copy.
 
 States (README, "State machine"):
 IDLE -> ARMING -> TAKEOFF -> READY -> STREAMING -> HOLDING, plus
@@ -12,13 +13,13 @@ LANDING (the autopilot lands at our request).
 
 READY means "in our mode and holding": on the ground (armed, not yet taken off) or in
 the air; `airborne` says which. Every transition is returned as an event dict with its
-reason; an illegal transition raises, so a bug shows as an error instead of a silent jump.
+reason (`go`); an illegal transition raises, so a bug shows as an error instead of a silent jump.
 """
 
 from __future__ import annotations
 
 import enum
-from dataclasses import dataclass, field
+from dataclasses import dataclass, replace
 from typing import Any
 
 
@@ -63,8 +64,11 @@ class IllegalTransition(RuntimeError):
     pass
 
 
-@dataclass
-class Flight:
+@dataclass(frozen=True)
+class FlightState:
+    """The vehicle's situation as the companion sees it: one immutable value, replaced only by
+    the supervisor (companion/supervisor.py), so no module can change part of it behind another's back."""
+
     state: State = S.IDLE
     airborne: bool = False  # the vehicle is (or may be) in the air
     seen_link: bool = False  # an autopilot heartbeat has arrived since start
@@ -73,21 +77,9 @@ class Flight:
     disarm_requested: bool = False  # we asked for the disarm (it is not a failsafe)
     starting: bool = False  # a `start` sequence is running (its takeoff must not fly the pending mission)
     ground_z: float | None = None  # NED z (local frame) where the vehicle last stood disarmed
-    history: list[dict[str, Any]] = field(default_factory=list)
 
     def can(self, to: State) -> bool:
         return to == self.state or to in ALLOWED[self.state]
-
-    def go(self, to: State, reason: str) -> dict[str, Any] | None:
-        """Move to `to`; returns the transition event, None when already there."""
-        if to == self.state:
-            return None
-        if to not in ALLOWED[self.state]:
-            raise IllegalTransition(f"{self.state.value} -> {to.value} ({reason})")
-        event = {"type": "state", "from": self.state.value, "to": to.value, "message": reason}
-        self.state = to
-        self.history.append(event)
-        return event
 
     @property
     def controlling(self) -> bool:
@@ -98,16 +90,23 @@ class Flight:
         """In the air, in our mode, holding or flying a plan: a mission or a change may fly."""
         return self.state in HOLDING_CONTROL and self.airborne
 
-    def landed(self) -> None:
-        """The vehicle is on the ground (disarmed, or the autopilot says so)."""
-        self.airborne = False
-
     def refuse(self, command: str, *, armed: bool, auto_arm: bool, has_mission: bool,
                reported_in_air: bool = False) -> str | None:
         """Why `command` is refused now (None: accepted). `reported_in_air`: the autopilot's
         landed state says "in air"."""
         return refuse_command(self.state, command, armed=armed, auto_arm=auto_arm, has_mission=has_mission,
                               airborne=self.airborne or reported_in_air, reported_in_air=reported_in_air)
+
+
+def go(fs: FlightState, to: State, reason: str) -> tuple[FlightState, dict[str, Any] | None]:
+    """`fs` moved to `to`, and the transition event (None when already there). An illegal
+    transition raises: a bug shows as an error instead of a silent jump."""
+    if to == fs.state:
+        return fs, None
+    if to not in ALLOWED[fs.state]:
+        raise IllegalTransition(f"{fs.state.value} -> {to.value} ({reason})")
+    event = {"type": "state", "from": fs.state.value, "to": to.value, "message": reason}
+    return replace(fs, state=to), event
 
 
 def refuse_command(state: State, command: str, *, armed: bool, auto_arm: bool, has_mission: bool,

@@ -19,11 +19,11 @@ from typing import Any
 
 import numpy as np
 
-from companion.braking import Brakes, Replanned, StopContext, brake_deadline
+from companion.braking import Brakes, Replanned, StopContext, StopGuard, brake_deadline
 from companion.config import Config
 from companion.control import SWAP_LATE, Control
 from companion.edits import LocalEdit, Refused, resolve_planned
-from companion.flight import Flight, State
+from companion.flight import State
 from companion.limits import clips_text
 from companion.mission import (
     check_mission,
@@ -37,6 +37,13 @@ from companion.obstacles import Known, ObstacleStore
 from companion.report import Reporter
 from companion.route import Outcome, OutcomeStatus, Route
 from companion.runtime import Runtime
+from companion.supervisor import (
+    MissionComplete,
+    MissionStarted,
+    ReplanFlown,
+    StoppedAfterBraking,
+    Supervisor,
+)
 from companion.wire.encode import num
 from companion.wire.messages import Change, MissionSpec, ObstacleUpdate, bounds_from
 from planner_core import (
@@ -78,7 +85,7 @@ class Swapped:
 
 
 class Navigator:
-    def __init__(self, cfg: Config, flight: Flight, control: Control, runtime: Runtime, report: Reporter,
+    def __init__(self, cfg: Config, flight: Supervisor, control: Control, runtime: Runtime, report: Reporter,
                  position: Callable[[], FloatArray]) -> None:
         self.cfg = cfg
         self.flight = flight
@@ -197,10 +204,10 @@ class Navigator:
         st = self.flight.state
         if st is S.STREAMING and self.route is not None and t >= self.route.t_end:
             mid = self.route.mission.id
-            self.report.go(S.HOLDING, f"mission {mid} complete: holding at the last waypoint")
+            self.flight.handle(MissionComplete(mid))
             self.report.event("mission_complete", f"mission {mid} complete", mission=mid)
         elif st is S.BRAKING and self.control.active is not None and t >= self.control.active.t_end:
-            self.report.go(S.HOLDING, "stopped after braking: holding position")
+            self.flight.handle(StoppedAfterBraking())
 
     def status_fields(self) -> dict[str, Any]:
         seg = progress = time_to_go = None
@@ -440,7 +447,7 @@ class Navigator:
             assert done.outcome is not None and done.outcome.route is not None
             self.user_timed = False
             self.control.unload(given)
-            self.report.go(S.STREAMING, f"flying mission {spec.id}")
+            self.flight.handle(MissionStarted(spec.id))
             lat = self.plan_latency or 0.0
             delay = done.outcome.stats.get("fleet_delay")
             waits = f"; starts {delay:g} s later to keep the separation from the other vehicles" if delay else ""
@@ -616,7 +623,7 @@ class Navigator:
             assert done.outcome is not None
             stats = done.outcome.stats
             if self.flight.state is not S.STREAMING:
-                self.report.go(S.STREAMING, f"replanned: {what}")
+                self.flight.handle(ReplanFlown(what))
             self.report.event("replanned", f"{what}: {stats.get('method', 'local')} replan verified in "
                               f"{self.replan_latency * 1000:.1f} ms, split at t={done.t_split:.3f} s",
                               method=stats.get("method", "local"), split_time=round(done.t_split, 4),
@@ -685,7 +692,7 @@ class Navigator:
         swapped in at its start unless a verified replan was swapped in first."""
         assert self.route is not None and self.control.active is not None
         base, bounds, now = self.control.active, self.route.mission.bounds, self.control.now()
-        guard = self.brakes.guard(base, hit)
+        guard = StopGuard(base, hit)
         notes: list[str] = []
         edit = LocalEdit((AddObstacles(tuple(new)),), f"avoid obstacles {names}")
         what = f"obstacles {names}"
@@ -693,7 +700,7 @@ class Navigator:
         async def plan_at(base_now: Trajectory, t_split: float) -> Outcome:
             assert self.route is not None
             r = trim(self.route, self.control.now())
-            return await self._replan_outcome(r, base_now, t_split, edit, None, notes, on_fallback=guard.start)
+            return await self._replan_outcome(r, base_now, t_split, edit, None, notes, on_fallback=guard.prepare)
 
         async def replan() -> Replanned:
             done = await self._replan_swapped(what, arrived, plan_at, hit=hit, notes=notes)

@@ -6,7 +6,7 @@ import logging
 from collections.abc import Callable
 from typing import Any
 
-from companion.flight import Flight, State
+from companion.supervisor import Announce, Say, Supervisor
 from companion.wire.encode import event_body
 
 log = logging.getLogger("companion")
@@ -19,12 +19,14 @@ def clip(text: str, n: int = MAX_TEXT) -> str:
 
 
 class Reporter:
-    """Publishes events through `publish(key, body)` (None: log only) and marks the status dirty."""
+    """Publishes events through `publish(key, body)` (None: log only) and marks the status dirty.
+    It is where the supervisor's transitions and policy events are said: it connects itself."""
 
-    def __init__(self, flight: Flight, publish: Callable[[str, dict[str, Any]], None] | None = None) -> None:
+    def __init__(self, flight: Supervisor, publish: Callable[[str, dict[str, Any]], None] | None = None) -> None:
         self.flight = flight
         self.publish = publish
         self.dirty = True  # the status has news
+        flight.connect(announce=self._announce, say=self._say)
 
     def event(self, kind: str, message: str, **extra: Any) -> None:
         body = event_body(kind, self.flight.state.value, clip(message), **extra)
@@ -36,10 +38,11 @@ class Reporter:
                 log.warning("event publish failed: %s", exc)
         self.dirty = True
 
-    def go(self, to: State, reason: str) -> None:
-        ev = self.flight.go(to, reason)
-        if ev is not None:
-            self.event("state", reason, **{"from": ev["from"], "to": ev["to"]})
+    def _announce(self, a: Announce) -> None:
+        self.event("state", a.reason, **{"from": a.src.value, "to": a.dst.value})
+
+    def _say(self, a: Say) -> None:
+        self.event(a.kind, a.message, **a.fields)
 
     def reject(self, key: str, field: str, reason: str, **extra: Any) -> None:
         """A message that was not taken (its content was wrong or cannot be done now)."""

@@ -5,7 +5,8 @@ handler per kind -> planning in workers -> a verified trajectory swapped in by `
 the setpoint thread -> MAVLink out. Telemetry comes back over MAVLink and goes out on Zenoh.
 
 The parts, each the one owner of what it holds:
-- `Flight` (flight.py): the state and every flag about the vehicle's situation;
+- `Supervisor` (supervisor.py): the state and every flag about the vehicle's situation
+  (flight.py), changed only by the events the other parts submit to it;
 - `Control` (control.py): what is flown: the mission's route, the trajectory the setpoint
   thread flies and its time base, changed together; what is left of a mission (loaded,
   interrupted);
@@ -35,7 +36,6 @@ from companion.config import Config
 from companion.control import Control
 from companion.deconfliction import REPUBLISH, Deconfliction
 from companion.fleet import FleetFrame
-from companion.flight import Flight
 from companion.limits_watch import LimitsWatch
 from companion.mission import warm_up, warm_up_replan
 from companion.navigator import Navigator
@@ -52,6 +52,7 @@ from companion.setpoints import (
     YawPolicy,
     sleep_until,
 )
+from companion.supervisor import Supervisor
 from companion.wire import encode as enc
 from companion.wire.errors import InternalError, MessageError, Oversized, quote
 from companion.wire.mavlink import MavlinkLink
@@ -85,7 +86,7 @@ class Service:
         self.requested = stop or asyncio.Event()
         self.abandon = abandon or asyncio.Event()
         self.stop = asyncio.Event()
-        self.flight = Flight()
+        self.flight = Supervisor()
         self.report = Reporter(self.flight, self._publish)
         self.runtime = Runtime(cfg, on_planner_died=lambda: self.report.event(
             "error", "the planner process died; restarted it (this request failed)"))
@@ -107,7 +108,9 @@ class Service:
         self.commands = Commands(cfg, self.flight, self.control, self.link, self.navigator, self.report, self.runtime)
         self.liveness = Liveness(cfg.setpoints.loop_stall_limit)
         self.sender.liveness = self.liveness
-        self.watch = AutopilotWatch(cfg, self.flight, self.link, self.report, self.commands.release_control,
+        # what the supervisor decides to stop is stopped here: the stream, and any command sequence
+        self.flight.connect(release=self.commands.release_control, stop_stream=self.control.release)
+        self.watch = AutopilotWatch(cfg, self.flight, self.link, self.report,
                                     on_position=self.commands.check_tracking, stalled=self._stalled)
         self.link.on_message = self._on_mavlink
         # where the autopilot's local frame sits in the fleet frame ([fleet] origin; companion.fleet)

@@ -6,8 +6,9 @@ import numpy as np
 
 from companion.autopilot import GROUND_FOR, AutopilotWatch
 from companion.config import Config
-from companion.flight import Flight, State
+from companion.flight import FlightState, State
 from companion.report import Reporter
+from companion.supervisor import Supervisor
 from companion.wire.mavlink import VehicleState
 
 
@@ -16,9 +17,10 @@ class Link:
         self.state = VehicleState(autopilot="ardupilot")
 
 
-def watch() -> tuple[AutopilotWatch, Flight, VehicleState]:
-    fl, link = Flight(), Link()
-    w = AutopilotWatch(Config(), fl, link, Reporter(fl), lambda: None)  # type: ignore[arg-type]
+def watch(state: State = State.IDLE, airborne: bool = False) -> tuple[AutopilotWatch, Supervisor, VehicleState]:
+    """The state is set from the start: learning the ground while disarmed does not read it."""
+    fl, link = Supervisor(FlightState(state, airborne)), Link()
+    w = AutopilotWatch(Config(), fl, link, Reporter(fl))  # type: ignore[arg-type]
     return w, fl, link.state
 
 
@@ -29,10 +31,9 @@ def at(st: VehicleState, z: float, v: float = 0.0, armed: bool = True) -> None:
 
 
 def test_without_a_landed_state_height_sets_and_rest_on_the_ground_clears_airborne() -> None:
-    w, fl, st = watch()
+    w, fl, st = watch(State.PILOT)  # a pilot flies it
     at(st, 0.02, armed=False)
     w.on_position(0.0)  # the ground, learnt while disarmed
-    fl.state = State.PILOT  # a pilot flies it
     at(st, -2.0, 0.5)
     w.on_position(1.0)
     assert fl.airborne
@@ -48,10 +49,9 @@ def test_without_a_landed_state_height_sets_and_rest_on_the_ground_clears_airbor
 
 
 def test_a_fresh_landed_state_is_what_counts() -> None:
-    w, fl, st = watch()
+    w, fl, st = watch(State.PILOT, airborne=True)
     at(st, 0.0, armed=False)
     w.on_position(0.0)
-    fl.state, fl.airborne = State.PILOT, True
     st.last_landed_state = 10.0  # EXTENDED_SYS_STATE just arrived (in air, say)
     at(st, 0.0, 0.0)
     for t in (10.1, 10.5, 12.0):
@@ -62,10 +62,9 @@ def test_a_fresh_landed_state_is_what_counts() -> None:
 
 
 def test_our_takeoff_decides_itself() -> None:
-    w, fl, st = watch()
+    w, fl, st = watch(State.TAKEOFF)
     at(st, 0.0, armed=False)
     w.on_position(0.0)
-    fl.state = State.TAKEOFF
     at(st, -0.8, -0.8)
     w.on_position(1.0)
     assert not fl.airborne

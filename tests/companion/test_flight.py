@@ -5,9 +5,10 @@ import pytest
 from companion.flight import (
     ALLOWED,
     CONTROLLING,
-    Flight,
+    FlightState,
     IllegalTransition,
     State,
+    go,
     on_link,
     on_mode_report,
     refuse_command,
@@ -17,21 +18,23 @@ S = State
 
 
 def test_nominal_sequence_emits_events_with_reasons() -> None:
-    f = Flight()
+    f = FlightState()
+    history = []
     path = [S.ARMING, S.TAKEOFF, S.READY, S.STREAMING, S.HOLDING, S.STREAMING, S.BRAKING, S.HOLDING, S.LANDING, S.IDLE]
     for to in path:
-        ev = f.go(to, f"to {to.value}")
+        f, ev = go(f, to, f"to {to.value}")
         assert ev is not None and ev["to"] == to.value and ev["message"] == f"to {to.value}"
-    assert [e["to"] for e in f.history] == [s.value for s in path]
-    assert f.go(S.IDLE, "again") is None
+        history.append(ev)
+    assert [e["to"] for e in history] == [s.value for s in path]
+    assert go(f, S.IDLE, "again") == (f, None)
 
 
 @pytest.mark.parametrize(("src", "dst"), [(S.IDLE, S.STREAMING), (S.PILOT, S.STREAMING), (S.LANDING, S.STREAMING),
                                           (S.IDLE, S.READY), (S.FAILSAFE, S.HOLDING)])
 def test_illegal_transitions_raise(src: State, dst: State) -> None:
-    f = Flight(src)
+    f = FlightState(src)
     with pytest.raises(IllegalTransition):
-        f.go(dst, "no")
+        go(f, dst, "no")
     assert f.state is src
 
 

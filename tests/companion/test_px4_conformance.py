@@ -15,9 +15,10 @@ import pytest
 from companion.autopilot import AutopilotWatch
 from companion.commands import Commands
 from companion.config import Config
-from companion.flight import Flight, State
+from companion.flight import FlightState, State
 from companion.report import Reporter
 from companion.setpoints import Feed, Liveness, SetpointSender, Tick, YawPolicy
+from companion.supervisor import GroundLearnt, HeightReport, LandRequested, Supervisor
 from companion.wire.mavlink import VehicleState, decode_mode
 from companion.wire.messages import Command, MessageError, MissionSpec, ObstacleUpdate, read
 from planner_core import hold
@@ -106,18 +107,19 @@ class _Link:
         return time.monotonic() - self.state.last_heartbeat <= CFG.mavlink.link_timeout
 
 
-def _commands(st: VehicleState, fl: Flight) -> Commands:
+def _commands(st: VehicleState, fl: Supervisor) -> Commands:
     return Commands(CFG, fl, None, _Link(st), None, Reporter(fl))  # type: ignore[arg-type]
 
 
 def test_takeoff_altitude_is_above_the_ground_where_the_vehicle_stands() -> None:
-    st, fl = VehicleState(autopilot="px4", home=HOME.copy()), Flight()
+    st, fl = VehicleState(autopilot="px4", home=HOME.copy()), Supervisor()
     st.position = np.array([0.5, -1.0, 1.6])  # on the ground, PX4's local z +1.6
     cmds = _commands(st, fl)
     target, above = cmds.takeoff_target(3.0)
     assert above == "the ground" and target[2] == pytest.approx(1.6 - 3.0)  # 3 m up, not z = -3
     # in the air (a second takeoff from READY): above the ground it stood on, not above here
-    fl.airborne, fl.ground_z = True, 1.6
+    fl.handle(GroundLearnt(1.6))
+    fl.handle(HeightReport(airborne=True))
     st.position = np.array([0.5, -1.0, -0.4])
     assert cmds.takeoff_target(3.0)[0][2] == pytest.approx(-1.4)
     # above home: home's z, wherever the vehicle is
@@ -137,13 +139,12 @@ PX4_OFFBOARD = 6 << 16
 PX4_LAND = (4 << 16) | (6 << 24)
 
 
-def _watch(stalled: bool = False) -> tuple[AutopilotWatch, Flight, VehicleState, list[dict[str, Any]]]:
-    fl, st = Flight(seen_link=True), VehicleState()
+def _watch(stalled: bool = False, state: State = S.IDLE, airborne: bool = False,
+           ) -> tuple[AutopilotWatch, Supervisor, VehicleState, list[dict[str, Any]]]:
+    fl, st = Supervisor(FlightState(state, airborne, seen_link=True)), VehicleState()
     events: list[dict[str, Any]] = []
     rep = Reporter(fl, lambda _k, body: events.append(body))
-    released: list[bool] = []
-    w = AutopilotWatch(CFG, fl, _Link(st), rep, lambda: released.append(True),  # type: ignore[arg-type]
-                       stalled=lambda: stalled)
+    w = AutopilotWatch(CFG, fl, _Link(st), rep, stalled=lambda: stalled)  # type: ignore[arg-type]
     return w, fl, st, events
 
 
@@ -154,7 +155,9 @@ def test_px4_modes_as_reported_boot_loiter_and_offboard_while_disarmed() -> None
     w.on_heartbeat()
     assert fl.state is S.IDLE and not events
     # a landing and auto-disarm in OFFBOARD: PX4 reports OFFBOARD while disarmed
-    fl.state, fl.airborne = S.LANDING, True
+    fl.handle(LandRequested())
+    fl.handle(HeightReport(airborne=True))
+    assert fl.state is S.LANDING and fl.airborne
     _hb(st, PX4_OFFBOARD, armed=False)
     w.on_heartbeat()
     assert fl.state is S.IDLE and not fl.airborne
@@ -163,8 +166,7 @@ def test_px4_modes_as_reported_boot_loiter_and_offboard_while_disarmed() -> None
 
 
 def test_armed_state_first_a_disarm_with_a_mode_change_is_not_a_pilot_takeover() -> None:
-    w, fl, st, events = _watch()
-    fl.state, fl.airborne = S.STREAMING, True
+    w, fl, st, events = _watch(state=S.STREAMING, airborne=True)
     _hb(st, PX4_LAND, armed=False)  # PX4's fallback landed and disarmed (one heartbeat shows both)
     w.on_heartbeat()
     assert fl.state is S.IDLE
@@ -174,8 +176,7 @@ def test_armed_state_first_a_disarm_with_a_mode_change_is_not_a_pilot_takeover()
 
 @pytest.mark.parametrize("stalled", [False, True])
 def test_leaving_offboard_is_put_down_to_the_companion_when_it_stalled(stalled: bool) -> None:
-    w, fl, st, events = _watch(stalled)
-    fl.state, fl.airborne = S.STREAMING, True
+    w, fl, st, events = _watch(stalled, S.STREAMING, airborne=True)
     _hb(st, PX4_LAND, armed=True)
     w.on_heartbeat()
     if stalled:
