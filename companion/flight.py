@@ -95,7 +95,8 @@ class FlightState:
         """Why `command` is refused now (None: accepted). `reported_in_air`: the autopilot's
         landed state says "in air"."""
         return refuse_command(self.state, command, armed=armed, auto_arm=auto_arm, has_mission=has_mission,
-                              airborne=self.airborne or reported_in_air, reported_in_air=reported_in_air)
+                              airborne=self.airborne or reported_in_air, reported_in_air=reported_in_air,
+                              link_lost=self.link_lost)
 
 
 def go(fs: FlightState, to: State, reason: str) -> tuple[FlightState, dict[str, Any] | None]:
@@ -109,9 +110,18 @@ def go(fs: FlightState, to: State, reason: str) -> tuple[FlightState, dict[str, 
     return replace(fs, state=to), event
 
 
+# Commands that take control: never begun without a link (the autopilot would not hear them, and
+# a stale picture of the vehicle is no base to command it from). hold, land, abort and disarm
+# are still tried: they stop or hand over, and the link may come back.
+NEED_LINK = frozenset({"arm", "takeoff", "start", "resume"})
+
+
 def refuse_command(state: State, command: str, *, armed: bool, auto_arm: bool, has_mission: bool,
-                   airborne: bool = False, reported_in_air: bool = False) -> str | None:
+                   airborne: bool = False, reported_in_air: bool = False, link_lost: bool = False) -> str | None:
     """Why `command` is refused in `state` (None: accepted). The table is in the README."""
+    if link_lost and command in NEED_LINK:
+        return ("the MAVLink link to the autopilot is lost (no heartbeat within [mavlink] link_timeout): nothing "
+                "takes control until it is back")
     if command == "arm":
         if armed and state in CONTROLLING:
             return "already armed and in control"

@@ -4,6 +4,7 @@ the invariants of the flight state checked after each one."""
 from __future__ import annotations
 
 import dataclasses
+from dataclasses import replace
 from typing import Any
 
 import pytest
@@ -97,13 +98,13 @@ class FlightMachine(RuleBasedStateMachine):
     def __init__(self) -> None:
         super().__init__()
         self.fs = FlightState()
-        # a command sequence began (TakingControl) since the link was lost: only that may
-        # bring the state back into control while the link is still lost
-        self.commanded_since_loss = False
 
     @rule(event=events)
     def submit(self, event: Event) -> None:
         before = self.fs
+        if isinstance(event, TakingControl) and before.refuse("arm", armed=False, auto_arm=True,
+                                                              has_mission=True) is not None:
+            return  # a command the companion refuses never begins (Commands checks first)
         try:
             after, actions = transition(before, event)
         except IllegalTransition:
@@ -111,10 +112,6 @@ class FlightMachine(RuleBasedStateMachine):
             return
         self.check_step(before, event, after, actions)
         self.fs = after
-        if isinstance(event, LinkLost):
-            self.commanded_since_loss = False
-        elif isinstance(event, TakingControl):
-            self.commanded_since_loss = True
 
     def check_step(self, before: FlightState, event: Event, after: FlightState, actions: tuple[Any, ...]) -> None:
         announced = [a for a in actions if isinstance(a, Announce)]
@@ -145,9 +142,10 @@ class FlightMachine(RuleBasedStateMachine):
             assert after.state is S.FAILSAFE and Release() in actions
 
     @invariant()
-    def never_in_control_with_the_link_lost_unless_commanded_since(self) -> None:
-        if self.fs.link_lost:
-            assert not self.fs.controlling or self.commanded_since_loss
+    def never_in_control_with_the_link_lost(self) -> None:
+        # neither a report (check_step) nor a command (refused while the link is lost) brings
+        # the state into control before a heartbeat comes back
+        assert not (self.fs.link_lost and self.fs.controlling)
 
 
 
@@ -199,3 +197,18 @@ def test_only_our_takeoff_decides_airborne_during_it() -> None:
     assert transition(fs, LandedStateReport(in_air=True, on_ground=False))[0].airborne
     after, _ = transition(fs, TookOff("airborne at 2 m"))
     assert after.state is S.READY and after.airborne
+
+
+@pytest.mark.parametrize("command", ["arm", "takeoff", "start", "resume"])
+def test_commands_that_take_control_are_refused_while_the_link_is_lost(command: str) -> None:
+    lost = FlightState(S.FAILSAFE, airborne=True, seen_link=True, link_lost=True)
+    why = lost.refuse(command, armed=True, auto_arm=True, has_mission=True)
+    assert why is not None and "link" in why
+    assert replace(lost, link_lost=False).refuse(command, armed=True, auto_arm=True, has_mission=True) != why
+
+
+@pytest.mark.parametrize("command", ["hold", "land", "abort", "disarm"])
+def test_commands_that_stop_are_still_tried_while_the_link_is_lost(command: str) -> None:
+    lost = FlightState(S.STREAMING, airborne=True, seen_link=True, link_lost=True)
+    why = lost.refuse(command, armed=True, auto_arm=True, has_mission=True)
+    assert why is None or "link" not in why
