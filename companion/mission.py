@@ -61,6 +61,11 @@ def answered(fn: F) -> F:
     return wrapper  # type: ignore[return-value]
 
 
+# m/s, m/s^2: how far the flown velocity and acceleration at waypoint 0 may be from a
+# 'first_waypoint' mission's `initial` (its default: at rest; a hover's wobble stays well inside)
+INITIAL_TOLERANCE = (0.3, 1.0)
+
+
 @answered
 def start_mission(mission: MissionSpec, initial: FloatArray, t_start: float, known: Known | Sequence[Polytope],
                   cfg: Config, neighbours: Neighbours | None = None, candidates: int | None = None,
@@ -80,23 +85,31 @@ def start_mission(mission: MissionSpec, initial: FloatArray, t_start: float, kno
             return Outcome(False, message=f"start 'first_waypoint': vehicle is {gap:.2f} m from waypoint 0 "
                            f"(tolerance {cfg.safety.arrival_tolerance} m: [safety] arrival_tolerance); fly there "
                            "first, or send start 'current'", field="start")
+        # The flown state stands for waypoint 0, as for a mission that starts where the vehicle
+        # is: a plan from waypoint 0 itself (a few cm off: home moves ~1 cm when ArduCopter arms,
+        # and waypoints given from home move with it) or from another `initial` jet could not be
+        # spliced onto what is flown. `initial` says what the vehicle's motion there must be.
         assert mission.initial is not None
-        jet = mission.initial.copy()
-        jet[0] = wps[0]
-        points, lab = wps, labels
-    else:
-        jet[1] = clip_velocity(jet[1], mission.bounds)
-        points = np.vstack([jet[0], wps])
-        lab = np.concatenate([[-1.0], labels])
+        dv = float(np.linalg.norm(mission.initial[1] - jet[1]))
+        da = float(np.linalg.norm(mission.initial[2] - jet[2]))
+        if dv > INITIAL_TOLERANCE[0] or da > INITIAL_TOLERANCE[1]:
+            return Outcome(False, message=f"start 'first_waypoint': the vehicle's velocity {np.round(jet[1], 2).tolist()} "
+                           f"m/s and acceleration {np.round(jet[2], 2).tolist()} m/s^2 at waypoint 0 are not the "
+                           f"mission's initial ones ({np.round(mission.initial[1], 2).tolist()}, "
+                           f"{np.round(mission.initial[2], 2).tolist()}; default: at rest): send start 'current', or "
+                           "an initial that matches", field="initial")
+    jet[1] = clip_velocity(jet[1], mission.bounds)
+    points = np.vstack([jet[0], wps])
+    lab = np.concatenate([[-1.0], labels])
     # Already at waypoint 0 (a mission that starts where the vehicle is): the vehicle's position
     # stands for it. A lead segment of (nearly) zero length has a duration that its end jets
     # cannot fill without huge snap, and its plan fails verification at the start.
-    at_first = mission.start != "first_waypoint" and len(wps) >= 2 and (
-        float(np.linalg.norm(jet[0] - wps[0])) <= cfg.safety.arrival_tolerance)
+    at_first = len(wps) >= 2 and (
+        mission.start == "first_waypoint" or float(np.linalg.norm(jet[0] - wps[0])) <= cfg.safety.arrival_tolerance)
     if at_first:
         points = np.vstack([jet[0], wps[1:]])
         lab = labels
-    if mission.durations is not None and mission.start != "first_waypoint" and not at_first:
+    if mission.durations is not None and not at_first:
         lead = allocate_durations(points[:2], mission.bounds, jet[1])
         durations = np.concatenate([lead, mission.durations])
     elif mission.durations is not None:

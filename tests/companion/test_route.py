@@ -81,6 +81,29 @@ def test_start_first_waypoint_requires_being_there() -> None:
     assert near.route.labels[near.route.labels >= 0].tolist() == [0, 1]  # knots between are not counted
 
 
+def test_start_first_waypoint_flies_on_from_the_flown_state() -> None:
+    """Issue 20, real ArduCopter: home moves ~1 cm at arming, so a 'first_waypoint' mission sent
+    from home lies a little off the hover it follows. The plan starts from the flown state (its
+    position stands for waypoint 0), so it can be spliced on; a flown motion that is not the
+    mission's `initial` is refused on field `initial`, not as an internal check."""
+    spec = mission_from_message({"id": "m", "start": "first_waypoint", "waypoints": [[0, 0, -2], [4, 0, -2]]}, CFG)
+    hover = rest_jet(np.array([0.012, -0.008, -1.99]))
+    out = start_mission(spec, hover, 5.0, [], CFG)
+    assert out.ok and out.route is not None, out.message
+    assert np.array_equal(out.route.trajectory.evaluate(5.0), hover[0])  # exactly where the flight is
+    assert np.allclose(out.route.trajectory.evaluate(5.0, 1), 0.0)
+    assert out.route.labels[0] == 0 and verify(out.route.trajectory, out.route.problem).ok
+    moving = hover.copy()
+    moving[1] = [1.5, 0.0, 0.0]
+    bad = start_mission(spec, moving, 5.0, [], CFG)
+    assert not bad.ok and bad.field == "initial" and "start 'current'" in bad.message
+    given = mission_from_message({"id": "m", "start": "first_waypoint", "waypoints": [[0, 0, -2], [4, 0, -2]],
+                                  "initial": {"velocity": [1.5, 0.0, 0.0]}}, CFG)
+    ok = start_mission(given, moving, 5.0, [], CFG)
+    assert ok.ok and ok.route is not None, ok.message
+    assert np.allclose(ok.route.trajectory.evaluate(5.0, 1), [1.5, 0.0, 0.0])
+
+
 def test_splice_keeps_the_flown_piece_and_fills_waits_with_a_hold() -> None:
     hold = hold_trajectory(np.array([0.0, 0, -1.5]), 0.0)
     r = fly([[3, 0, -1.5]], [0, 0, -1.5], t0=2.5)  # starts after the hold's span ended
