@@ -410,11 +410,15 @@ def _cell(v: Any, column: str) -> str:
 def status_reached(status: dict[str, Any], wanted: str) -> bool:
     """`--wait-for`: a state name (IDLE, READY, HOLDING, ...), or `link` (the autopilot is heard),
     or `home` (it reported a valid home: PX4 does once its estimator is ready, ArduPilot once its
-    EKF origin is set; before, missions are refused as "not ready")."""
+    EKF origin is set; before, missions are refused as "not ready"), or `ready` (home and a
+    position estimate: real ArduCopter reports home ~22 s before its first LOCAL_POSITION_NED,
+    and `start` is refused without one)."""
     if wanted == "link":
         return status.get("link") is True
     if wanted == "home":
         return isinstance(status.get("home"), list)
+    if wanted == "ready":
+        return isinstance(status.get("home"), list) and status.get("position_ok") is True
     return bool(status.get("state") == wanted)
 
 

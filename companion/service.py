@@ -333,6 +333,8 @@ class Service:
             "armed": st.armed,
             "origin": "local",
             "home": enc.vec(st.home) if st.home is not None else None,
+            # a usable LOCAL_POSITION_NED: real ArduCopter reports home ~22 s before its first one
+            "position_ok": st.position_problem() is None,
             "geofence": self._geofence(),
             "ground_z": enc.num(self.flight.ground_z),
             "link": self.link.link_ok() if self.flight.seen_link else False,

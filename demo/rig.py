@@ -174,12 +174,13 @@ class Rig:
 
     def wait_home(self, timeout: float = 90.0) -> np.ndarray:
         """Until the companion reports a valid home (it asks the autopilot at link-up; PX4 reports
-        one only once its estimator is ready, ~40 s after boot on a real PX4)."""
+        one only once its estimator is ready, ~40 s after boot on a real PX4) and a position
+        estimate (real ArduCopter reports home ~22 s before its first LOCAL_POSITION_NED)."""
         deadline = time.monotonic() + timeout
         while True:
             status = self.peer.query("status", timeout=1.0) or {}
             home = status.get("home")
-            if isinstance(home, list) and len(home) == 3:
+            if isinstance(home, list) and len(home) == 3 and status.get("position_ok") is True:
                 self.home = np.asarray(home, dtype=float)
                 return self.home
             if time.monotonic() > deadline:

@@ -212,3 +212,4 @@ def test_commands_that_stop_are_still_tried_while_the_link_is_lost(command: str)
     lost = FlightState(S.STREAMING, airborne=True, seen_link=True, link_lost=True)
     why = lost.refuse(command, armed=True, auto_arm=True, has_mission=True)
     assert why is None or "link" not in why
+
