@@ -204,10 +204,11 @@ def demo_config(zenoh_port: int, mav_port: int, rate_hz: float = 50.0, workers: 
         SetpointConfig,
     )
 
-    # the paper's scenario 2 passes a 1 m gap: with the scenario's 0.3 m vehicle radius that
-    # leaves 0.2 m of tracking allowance each side (the default 0.4 m closes it); the tracking
-    # brake fires at it too (docs/autopilot-limits.md)
-    planner = PlannerConfig(tracking_allowance=0.2)
+    # the paper's scenario 2 passes a 1 m gap: with the scenario's 0.3 m vehicle radius, 0.2 m
+    # of tracking allowance each side closes it exactly (2 x 0.5 m: no corridor, so its full
+    # replan after the pop-up found no plan and every demo braked); 0.15 m leaves a 0.1 m wide
+    # corridor (the default 0.4 m closes it twice over)
+    planner = PlannerConfig(tracking_allowance=0.15)
     if workers is not None:
         planner = dataclasses.replace(planner, workers=workers)
     if search_time is not None:
@@ -219,7 +220,7 @@ def demo_config(zenoh_port: int, mav_port: int, rate_hz: float = 50.0, workers: 
         mavlink=MavlinkConfig(url=f"udpout:127.0.0.1:{mav_port}"),
         setpoints=SetpointConfig(rate_hz=rate_hz, lead=lead),
         geofence=GeofenceConfig(min=(-60.0, -60.0, -20.0), max=(60.0, 60.0, 0.5)),
-        # the 0.2 m allowance is what scenario 2's gap leaves; the mock's responses peak ~0.25 m
+        # the 0.15 m allowance is what scenario 2's gap leaves; the mock's responses peak ~0.25 m
         # from the plan on the transit legs: brake only well beyond (docs/autopilot-limits.md)
         safety=SafetyConfig(auto_arm=True, takeoff_altitude=TAKEOFF_ALTITUDE, tracking_brake=0.5),
         recording=RecordingConfig(path=str(recording) if recording is not None else ""),

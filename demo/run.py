@@ -103,16 +103,20 @@ def transit(mission: dict[str, Any], here: np.ndarray | None, altitude: float = 
     return out
 
 
-def clear_of_route(popup: dict[str, Any], mission: dict[str, Any], margin: float = 0.2) -> dict[str, Any]:
+def clear_of_route(popup: dict[str, Any], mission: dict[str, Any], allowance: float = 0.0,
+                   margin: float = 0.2) -> dict[str, Any]:
     """The pop-up obstacle moved east until the leg from waypoint 1 (x = const) clears it.
 
     examples/scenario2_popup.json centres the box on x = 15, the line both waypoint 1 and the
     moved waypoint 2 lie on: inflated by the vehicle radius it contains the original waypoint 2
     and cuts the leg to the moved one, so no convex corridor exists and the companion (rightly)
     brakes. The paper's intent is an obstacle that invalidates the flown curve, which bulges east
-    of that line, so the demo keeps the box's size and moves it east just enough.
+    of that line, so the demo keeps the box's size and moves it east just enough. The companion
+    inflates obstacles by the radius plus its tracking allowance (`allowance`, [planner]
+    tracking_allowance): moved by the radius alone, the inflated box still cut the leg and every
+    run braked ("no safe plan": seen on real ArduCopter and on the mock).
     """
-    radius = float(mission.get("vehicle_radius", 0.3))
+    radius = float(mission.get("vehicle_radius", 0.3)) + allowance
     x_line = float(mission["waypoints"][1][0])
     out: dict[str, Any] = json.loads(json.dumps(popup))
     for ob in out["obstacles"]:
@@ -641,7 +645,8 @@ def main(argv: list[str] | None = None, prog: str = "python -m demo") -> int:
             else:
                 s1 = lifted_mission(load_example("scenario1.json"), "scenario1")
                 s2 = lifted_mission(load_example("scenario2.json"), "scenario2")
-                popup = lifted_obstacles(clear_of_route(load_example("scenario2_popup.json"), s2))
+                popup = lifted_obstacles(clear_of_route(load_example("scenario2_popup.json"), s2,
+                                                        r.config.planner.tracking_allowance))
                 change = lifted_change(load_example("scenario2_move.json"))
                 acts = [Action(after(1.5), "change", change, "waypoint move"),
                         Action(after(3.0), "obstacles", popup, "pop-up obstacle")]

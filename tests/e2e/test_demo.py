@@ -71,7 +71,12 @@ def test_demo_scenarios_are_flyable_after_lifting_and_moving() -> None:
 
     raw = demo.load_example("scenario2.json")
     mission = demo.lifted_mission(raw, "s2")
-    popup = demo.lifted_obstacles(demo.clear_of_route(demo.load_example("scenario2_popup.json"), mission))
+    from demo.rig import demo_config
+
+    # the companion inflates obstacles by the radius plus its tracking allowance
+    allowance = demo_config(7447, 14540).planner.tracking_allowance
+    assert allowance > 0.0
+    popup = demo.lifted_obstacles(demo.clear_of_route(demo.load_example("scenario2_popup.json"), mission, allowance))
     original = demo.lifted_obstacles(demo.load_example("scenario2_popup.json"))
     change = demo.lifted_change(demo.load_example("scenario2_move.json"))
 
@@ -89,7 +94,7 @@ def test_demo_scenarios_are_flyable_after_lifting_and_moving() -> None:
     box = (np.asarray(mission["map"]["min"], float), np.asarray(mission["map"]["max"], float))
     moved = wps.copy()
     moved[change["move_waypoint"]["index"]] = change["move_waypoint"]["position"]
-    radius = float(mission["vehicle_radius"])
+    radius = float(mission["vehicle_radius"]) + allowance
     with pytest.raises(CorridorError):  # the example's own box makes the route unflyable
         build_corridors(moved, [*obstacles, *polys(original["add"])], box, radius)
     corridors = build_corridors(moved, [*obstacles, *polys(popup["add"])], box, radius)
