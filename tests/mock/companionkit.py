@@ -4,14 +4,28 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import json
 import socket
 import time
 from collections.abc import AsyncIterator, Callable
 from typing import Any
 
+import zenoh
+
 from companion.config import config_from_dict
 from companion.service import Service
 from sitl_mock import MockAutopilot
+
+
+def zenoh_client(svc: Service | int) -> Any:
+    """A Zenoh client session on loopback to the in-process service's listen endpoint (or a
+    port), scouting off: an operator, or another vehicle."""
+    port = svc if isinstance(svc, int) else int(svc.cfg.zenoh.listen[0].rsplit(":", 1)[1])
+    c = zenoh.Config()
+    c.insert_json5("mode", '"client"')
+    c.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    c.insert_json5("scouting/multicast/enabled", "false")
+    return zenoh.open(c)
 
 
 def free_tcp() -> int:

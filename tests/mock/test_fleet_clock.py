@@ -16,8 +16,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-import zenoh
-from companionkit import Events, service_for, serving, until
+from companionkit import Events, service_for, serving, until, zenoh_client
 
 import companion.clocks as clocks
 from companion.wire.encode import encode_trajectory
@@ -26,14 +25,6 @@ from planner_core import hold
 from sitl_mock import MockAutopilot, MockConfig
 
 HOME = (47.397742, 8.545594, 488.0)  # the mock's default home: the fleet origin here
-
-
-def _client(port: int) -> Any:
-    c = zenoh.Config()
-    c.insert_json5("mode", '"client"')
-    c.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
-    c.insert_json5("scouting/multicast/enabled", "false")
-    return zenoh.open(c)
 
 
 class Ghosts:
@@ -79,7 +70,7 @@ def _fly(tmp_path: Path, skew: dict[str, float], then: Any) -> None:
         async with serving(svc):
             await until(lambda: svc.link.state.position_problem() is None, 15, "position")
             await until(lambda: svc.deconfliction.placement() is not None, 15, "the fleet frame placed")
-            client = _client(int(svc.cfg.zenoh.listen[0].rsplit(":", 1)[1]))
+            client = zenoh_client(svc)
             ghosts = None
             try:
                 await svc.commands.takeoff(1.5)

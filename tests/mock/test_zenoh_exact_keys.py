@@ -12,18 +12,10 @@ from pathlib import Path
 from typing import Any
 
 import zenoh
-from companionkit import Events, service_for, serving, until
+from companionkit import Events, service_for, serving, until, zenoh_client
 
 from companion.__main__ import Origin
 from sitl_mock import MockAutopilot, MockConfig
-
-
-def _client(port: int) -> Any:
-    c = zenoh.Config()
-    c.insert_json5("mode", '"client"')
-    c.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
-    c.insert_json5("scouting/multicast/enabled", "false")
-    return zenoh.open(c)
 
 
 def _port(svc: Any) -> int:
@@ -47,7 +39,7 @@ def test_wildcard_puts_are_refused_and_never_acted_on(tmp_path: Path) -> None:
         svc.commands.on_command = recording  # type: ignore[method-assign]
         async with serving(svc):
             await until(lambda: svc.link.state.position_problem() is None, 15, "position")
-            client = _client(_port(svc))
+            client = zenoh_client(_port(svc))
             try:
                 await asyncio.sleep(0.5)
                 arm = b'{"command": "arm"}'
@@ -82,7 +74,7 @@ def test_clients_take_status_and_events_only_from_the_companion_they_addressed(t
         svc = service_for(mock)
         async with serving(svc):
             port = _port(svc)
-            operator, faker = _client(port), _client(port)
+            operator, faker = zenoh_client(port), zenoh_client(port)
             try:
                 await asyncio.sleep(0.5)
                 origin = await asyncio.to_thread(Origin, operator, "bezier/inproc")
