@@ -8,7 +8,7 @@ import signal
 import sys
 from types import FrameType
 
-from .faults import _seconds, parse_faults
+from .faults import parse_faults, parse_seconds
 from .server import MockAutopilot, MockConfig
 from .signing import read_signing_key
 from .transport import PX4_SITL_ENDPOINT
@@ -19,7 +19,7 @@ def _takeover(text: str) -> tuple[float, str]:
     at, sep, mode = text.partition(":")
     if not sep or not mode:
         raise argparse.ArgumentTypeError(f"--takeover-at: expected SECONDS:MODE, got {text!r}")
-    return _seconds(at, "takeover-at"), mode
+    return parse_seconds(at, "takeover-at"), mode
 
 
 def _triple(text: str) -> tuple[float, float, float]:

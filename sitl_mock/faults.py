@@ -21,7 +21,7 @@ class FaultSpec:
     reject_arming: bool = False
 
 
-def _seconds(text: str, field_name: str) -> float:
+def parse_seconds(text: str, field_name: str) -> float:
     m = re.fullmatch(r"\s*([0-9]*\.?[0-9]+)\s*(ms|s)?\s*", text)
     if not m:
         raise ValueError(f"--fault {field_name}: cannot read duration {text!r} (e.g. 50ms, 0.05s, 3)")
@@ -43,14 +43,14 @@ def parse_faults(items: list[str]) -> FaultSpec:
             if not 0.0 <= spec.drop <= 1.0:
                 raise ValueError(f"--fault drop: fraction must be in [0, 1], got {spec.drop}")
         elif key == "latency":
-            spec.latency_s = _seconds(value, "latency")
+            spec.latency_s = parse_seconds(value, "latency")
         elif key == "pause":
             at, sep, dur = value.partition(":")
             if not sep:
                 raise ValueError(f"--fault pause: expected AT:SECONDS, got {value!r}")
-            spec.pauses.append((_seconds(at, "pause"), _seconds(dur, "pause")))
+            spec.pauses.append((parse_seconds(at, "pause"), parse_seconds(dur, "pause")))
         elif key == "reboot":
-            spec.reboots.append(_seconds(value, "reboot"))
+            spec.reboots.append(parse_seconds(value, "reboot"))
         elif key in ("reject-arming", "reject_arming"):
             spec.reject_arming = value.strip().lower() not in ("0", "false", "no")
         else:

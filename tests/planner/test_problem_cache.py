@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from planner_core import Bounds, Polytope, Problem, jets
+from planner_core import Bounds, Polytope, Problem, jets_cache
 from planner_core.constraints import hull_maps
 from planner_core.jets import ProblemCache
 
@@ -37,7 +37,7 @@ def test_per_segment_maps_equal_the_whole_problems() -> None:
 
 
 def test_row_blocks_kept_are_bounded_and_rebuilt_the_same(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(jets, "BLOCKS_KEPT", 5)
+    monkeypatch.setattr(jets_cache, "BLOCKS_KEPT", 5)
     problem = _problem(2, 40)
     cache = ProblemCache(problem)
     first = cache.blocks(3)

@@ -16,7 +16,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from planner_core import certificate, localqp
+from planner_core import certificate, localqp_structure
 from planner_core.certificate import certify_rebuilt, hull_violation
 from planner_core.changes import ChangeSet, MoveWaypoint, SetCorridor, box
 from planner_core.constraints import certified_points
@@ -128,8 +128,9 @@ def test_cold_caches_give_the_same_trajectory(planned) -> None:  # type: ignore[
     j = 4
     move = MoveWaypoint(j, problem.waypoints[j] + OFFSET)
     warm = _ok(replan(problem, traj, move))
-    for module, name in ((certificate, "_cert_map"), (certificate, "_ctrl_map"), (localqp, "_segment_mats"),
-                         (localqp, "_structure"), (localqp, "_pattern"), (localqp, "_bound_limits")):
+    for module, name in ((certificate, "_cert_map"), (certificate, "_ctrl_map"), (localqp_structure, "segment_mats"),
+                         (localqp_structure, "qp_structure"), (localqp_structure, "qp_pattern"),
+                         (localqp_structure, "bound_limits")):
         getattr(module, name).cache_clear()
     cold = _ok(replan(problem, traj, move))
     assert np.array_equal(cold.control_points, warm.control_points)
