@@ -113,6 +113,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--ekf-origin-delay", type=float, default=40.0, metavar="SECONDS",
                    help="ArduPilot: seconds after boot until the EKF origin is set; before it no LOCAL_POSITION_NED, "
                    "GPS_GLOBAL_ORIGIN, HOME_POSITION and no arming in GUIDED (default 40; SITL measured 43)")
+    p.add_argument("--position-after-origin", type=float, default=22.0, metavar="SECONDS",
+                   help="ArduPilot: seconds from the EKF origin (and home) to the first LOCAL_POSITION_NED "
+                   "(default 22: stock ArduCopter 4.6 SITL, measured)")
     p.add_argument("--spool-up", type=float, default=3.0, metavar="SECONDS",
                    help="ArduPilot: no climb for this long after arming (default 3.0, as measured on SITL)")
     p.add_argument("--no-shaping", dest="shaping", action="store_false",
@@ -140,6 +143,7 @@ def main(argv: list[str] | None = None) -> int:
             signing_key=read_signing_key(args.signing_key) if args.signing_key else None,
             ground_z=args.ground_z, px4_statustext=args.px4_statustext, px4_ready_s=args.px4_ready_s,
             rc_throttle=args.rc_throttle, ekf_origin_delay_s=args.ekf_origin_delay, spool_up_s=args.spool_up,
+            position_after_origin_s=args.position_after_origin,
             shaping=args.shaping,
         )
         mock = MockAutopilot(config)

@@ -11,7 +11,9 @@
   action; GUIDED continues only with FS_OPTIONS bit 2.
 - No position estimate until the EKF origin is set: no LOCAL_POSITION_NED, GPS_GLOBAL_ORIGIN
   or HOME_POSITION (``GCS_Common.cpp`` send_local_position / send_gps_global_origin /
-  send_home_position return when the origin or home is unset), and arming in a mode that
+  send_home_position return when the origin or home is unset); and LOCAL_POSITION_NED only
+  ``position_after_origin_s`` after the origin (measured on stock SITL: home and origin ~22 s
+  before the first one; ``send_local_position`` also needs the EKF's position), and arming in a mode that
   requires a position refused with "PreArm: Need Position Estimate"
   (``ArduCopter/AP_Arming.cpp`` mandatory_gps_checks).
 - Home is set where the vehicle arms and sent at once (AP_Arming_Copter::arm,
@@ -96,10 +98,11 @@ class ArduPilotRules:
     """The ArduPilot flavour's state beyond the common mock: RC, EKF origin, the shaped path."""
 
     def __init__(self, rc_throttle: int | None, ekf_origin_delay_s: float, spool_up_s: float,
-                 shaping: bool) -> None:
+                 shaping: bool, position_after_origin_s: float = 0.0) -> None:
         self.rc_throttle = rc_throttle  # pwm the autopilot receives now; None: no RC frames
         self.rc_seen = rc_throttle is not None
         self.ekf_origin_delay_s = ekf_origin_delay_s
+        self.position_after_origin_s = position_after_origin_s
         self.spool_up_s = spool_up_s
         self.shaping = shaping
         self.rc_last = 0.0
@@ -108,6 +111,8 @@ class ArduPilotRules:
     def reset(self) -> None:
         """Boot (and reboot): no origin, no failsafe, no path."""
         self.origin_set = False
+        self.origin_t = math.inf  # mock time the origin was set
+        self.position_known = False  # LOCAL_POSITION_NED is sent (position_after_origin_s after the origin)
         self.radio_failsafe = False
         self.path: ApPath | None = None
         self._cached: tuple[float, Target | None] | None = None
@@ -123,8 +128,13 @@ class ArduPilotRules:
 
     def tick(self, mock: MockAutopilot) -> None:
         """Called every simulation step: EKF origin, RC frames, RC failsafe."""
+        if self.origin_set and not self.position_known and mock.t - self.origin_t >= self.position_after_origin_s:
+            self.position_known = True
+            mock.log.write("event", mock.t, event="position_estimate", since_origin=mock.t - self.origin_t)
         if not self.origin_set and mock.t - mock.boot_t >= self.ekf_origin_delay_s:
             self.origin_set = True
+            self.origin_t = mock.t
+            self.position_known = self.position_after_origin_s <= 0.0
             # Copter sets home from the EKF once it has an origin (update_home_from_EKF).
             mock.home_ned = mock.vehicle.state.pos.copy()
             mock.log.write("event", mock.t, event="ekf_origin_set", since_boot=mock.t - mock.boot_t)
@@ -178,7 +188,10 @@ class ArduPilotRules:
     # ------------------------------------------------------------------ telemetry, arming, home
 
     def sends(self, msg_id: int) -> bool:
-        """Messages ArduPilot leaves out while it has no EKF origin (and so no home)."""
+        """Messages ArduPilot leaves out while it has no EKF origin (and so no home), and
+        LOCAL_POSITION_NED until its position estimate follows the origin."""
+        if msg_id == mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED:
+            return self.position_known
         if self.origin_set:
             return True
         return msg_id not in (mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED, mav.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN,

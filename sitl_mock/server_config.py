@@ -89,6 +89,9 @@ class MockConfig:
     rc_throttle: int | None = 1000
     # ArduPilot: seconds after boot until the EKF origin is set (stock SITL: 43 s after its start).
     ekf_origin_delay_s: float = 40.0
+    # ArduPilot: seconds from the EKF origin (and home) to the first LOCAL_POSITION_NED (stock
+    # ArduCopter 4.6 SITL, measured 2026-12-02: home and origin ~22 s before the first one).
+    position_after_origin_s: float = 22.0
     # ArduPilot: seconds after arming before any climb (stock SITL: 3.0 s).
     spool_up_s: float = 3.0
     # Shape targets with the autopilot's own limits (ArduCopter GUIDED: WPNAV_*; PX4: MPC_*).
@@ -116,7 +119,7 @@ class MockConfig:
             raise ValueError(f"ground_z: must be a finite z in [-1000, 1000] m, got {self.ground_z}")
         if self.rc_throttle is not None and not 800 <= self.rc_throttle <= 2200:
             raise ValueError(f"rc_throttle: must be a pwm in 800..2200 or None (no RC), got {self.rc_throttle}")
-        for name in ("ekf_origin_delay_s", "spool_up_s"):
+        for name in ("ekf_origin_delay_s", "spool_up_s", "position_after_origin_s"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0.0):
                 raise ValueError(f"{name}: must be a finite number of seconds >= 0, got {v}")

@@ -22,11 +22,14 @@ def _ardupilot_mock_origin_at_boot(monkeypatch: pytest.MonkeyPatch) -> None:
     test_mock_ardupilot_strict.py, which sets its delays, not of every test that flies."""
     from sitl_mock import server
 
-    stock = server.MockConfig().ekf_origin_delay_s
+    stock = server.MockConfig()
     rules = server.ArduPilotRules
 
-    def fast(rc_throttle: int | None, ekf_origin_delay_s: float, *rest: object) -> object:
-        return rules(rc_throttle, 0.0 if ekf_origin_delay_s == stock else ekf_origin_delay_s, *rest)  # type: ignore[arg-type]
+    def fast(rc_throttle: int | None, ekf_origin_delay_s: float, spool_up_s: float, shaping: bool,
+             position_after_origin_s: float = 0.0) -> object:
+        origin = 0.0 if ekf_origin_delay_s == stock.ekf_origin_delay_s else ekf_origin_delay_s
+        position = 0.0 if position_after_origin_s == stock.position_after_origin_s else position_after_origin_s
+        return rules(rc_throttle, origin, spool_up_s, shaping, position)
 
     monkeypatch.setattr(server, "ArduPilotRules", fast)
 

@@ -48,6 +48,7 @@ def test_defaults_are_stock_sitl() -> None:
     # SITL without a transmitter sends throttle 1000 (AP_RCProtocol_UDP); origin ~43 s after
     # SITL's start (measured), spool-up 3.0 s (measured); shaping on.
     assert (cfg.rc_throttle, cfg.ekf_origin_delay_s, cfg.spool_up_s, cfg.shaping) == (1000, 40.0, 3.0, True)
+    assert cfg.position_after_origin_s == 22.0
     with pytest.raises(ValueError, match="rc_throttle"):
         MockConfig(autopilot="ardupilot", rc_throttle=3000).validate()
     with pytest.raises(ValueError, match="spool_up_s"):
@@ -153,6 +154,24 @@ def test_no_position_before_the_ekf_origin(make_mock) -> None:  # type: ignore[n
     assert c.wait("GPS_GLOBAL_ORIGIN", 2) is not None
     assert c.command(176, CUSTOM, GUIDED) == ACCEPTED
     assert c.command(400, 1) == ACCEPTED
+
+
+def test_home_comes_before_the_position(make_mock) -> None:  # type: ignore[no-untyped-def]
+    """Stock ArduCopter 4.6 SITL, measured 2026-12-02: HOME_POSITION and GPS_GLOBAL_ORIGIN ~22 s
+    before the first LOCAL_POSITION_NED (a client that waits for home alone starts too early)."""
+    mock, c = make_mock("ardupilot", speed=3.0, ekf_origin_delay_s=2.0, position_after_origin_s=4.0)
+    assert c.command(mav.MAV_CMD_SET_MESSAGE_INTERVAL, mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED, 50_000) == ACCEPTED
+    assert c.command(mav.MAV_CMD_SET_MESSAGE_INTERVAL, mav.MAVLINK_MSG_ID_HOME_POSITION, 200_000) == ACCEPTED
+    seen = c.collect(10.0, until=lambda m: m.get_type() == "HOME_POSITION")
+    assert seen and seen[-1].get_type() == "HOME_POSITION"
+    t_home = mock.snapshot()["t"]
+    assert "LOCAL_POSITION_NED" not in {m.get_type() for m in seen}
+    seen = c.collect(10.0, until=lambda m: m.get_type() == "LOCAL_POSITION_NED")
+    assert seen and seen[-1].get_type() == "LOCAL_POSITION_NED"
+    t_pos = mock.snapshot()["t"]
+    assert t_pos - t_home == pytest.approx(4.0, abs=0.6)
+    first = next(r for r in records(mock, "event") if r["event"] == "position_estimate")
+    assert first["since_origin"] == pytest.approx(4.0, abs=0.05)
 
 
 def test_home_moves_to_where_it_arms_and_is_sent(make_mock) -> None:  # type: ignore[no-untyped-def]
