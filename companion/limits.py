@@ -180,6 +180,16 @@ def clip_bounds(bounds: Bounds, lim: AutopilotLimits | None, headroom: float) ->
     return Bounds(lo, hi, horizontal=horizontal, sides=bounds.sides), clips
 
 
+def refusal_note(clips: list[Clip], headroom: float) -> str:
+    """What a refusal for no plan within the bounds adds when the autopilot's limits lowered
+    them: the parameters, each once, short enough to survive the event's bounded reason
+    (the values are in the 'limits' event and status)."""
+    if not clips:
+        return ""
+    params = list(dict.fromkeys(c.param for c in clips))
+    return f" (planned within the autopilot's limits x headroom {headroom:g}, lowered by {', '.join(params)})"
+
+
 def clips_text(clips: list[Clip]) -> str:
     """One line for an event: each clipped bound once (x and y together when they match)."""
     parts: list[str] = []

@@ -84,7 +84,7 @@ def start_mission(mission: MissionSpec, initial: FloatArray, t_start: float, kno
         if gap > cfg.safety.arrival_tolerance:
             return Outcome(False, message=f"start 'first_waypoint': vehicle is {gap:.2f} m from waypoint 0 "
                            f"(tolerance {cfg.safety.arrival_tolerance} m: [safety] arrival_tolerance); fly there "
-                           "first, or send start 'current'", field="start")
+                           "first, or send start 'current'", field="start", mismatch=True)
         # The flown state stands for waypoint 0, as for a mission that starts where the vehicle
         # is: a plan from waypoint 0 itself (a few cm off: home moves ~1 cm when ArduCopter arms,
         # and waypoints given from home move with it) or from another `initial` jet could not be
@@ -97,7 +97,7 @@ def start_mission(mission: MissionSpec, initial: FloatArray, t_start: float, kno
                            f"m/s and acceleration {np.round(jet[2], 2).tolist()} m/s^2 at waypoint 0 are not the "
                            f"mission's initial ones ({np.round(mission.initial[1], 2).tolist()}, "
                            f"{np.round(mission.initial[2], 2).tolist()}; default: at rest): send start 'current', or "
-                           "an initial that matches", field="initial")
+                           "an initial that matches", field="initial", mismatch=True)
     jet[1] = clip_velocity(jet[1], mission.bounds)
     points = np.vstack([jet[0], wps])
     lab = np.concatenate([[-1.0], labels])

@@ -24,7 +24,7 @@ from companion.config import Config
 from companion.control import SWAP_LATE, Control
 from companion.edits import LocalEdit, Refused, resolve_planned
 from companion.flight import State
-from companion.limits import clips_text
+from companion.limits import clips_text, refusal_note
 from companion.mission import (
     check_mission,
     local_replan,
@@ -158,8 +158,8 @@ class Navigator:
         """The configured bounds, within the autopilot's limits when they are known."""
         return bounds_from(None, self.cfg) if self.limits is None else self.limits.default_bounds()
 
-    def _clipped_text(self, spec: MissionSpec) -> str:
-        """What the autopilot's limits clipped of the mission's bounds as given (its own, or
+    def _clipped_note(self, spec: MissionSpec) -> str:
+        """What the autopilot's limits lowered of the mission's bounds as given (its own, or
         the configured ones), for a refusal's reason ("" when nothing)."""
         if self.limits is None:
             return ""
@@ -167,7 +167,7 @@ class Navigator:
             given = bounds_from(spec.raw.get("bounds"), self.cfg)
         except Exception:  # checked when the message was read; never fail a refusal on it
             return ""
-        return clips_text(self.limits.clip(given)[1])
+        return refusal_note(self.limits.clip(given)[1], self.limits.headroom)
 
     def within_limits(self, spec: MissionSpec, tell: bool) -> tuple[MissionSpec, str]:
         """`spec` with its bounds clipped to the autopilot's limits x headroom; `tell`: say so
@@ -387,10 +387,8 @@ class Navigator:
         field = "" if outcome.blocked_waypoint is None else f"waypoints[{outcome.blocked_waypoint - spec.first_index}]"
         field = outcome.field or field
         why = outcome.message
-        clipped = self._clipped_text(spec)
-        if clipped and outcome.status is OutcomeStatus.INFEASIBLE:
-            why += (f" (planned within the autopilot's limits x headroom {self.limits.headroom:g}, which clipped "
-                    f"the bounds: {clipped})")
+        if outcome.status is OutcomeStatus.INFEASIBLE:  # not a mismatch, which no bound would fix
+            why += self._clipped_note(spec)
         self.report.reject("mission", field, f"mission {spec.id}: {why}", mission=spec.id)
 
     @staticmethod

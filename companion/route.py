@@ -83,11 +83,14 @@ class Outcome:
     blocked_segment: int | None = None  # route segment whose straight path crosses an obstacle
     obstacle: int | None = None  # index of that obstacle in the list given to the planner
     field: str | None = None  # the sender's field at fault (`durations[2]`, `start`), when one is
+    mismatch: bool = False  # refused because the request does not fit how the vehicle is (start, initial)
 
     @property
     def status(self) -> OutcomeStatus:
         if self.ok:
             return OutcomeStatus.OK
+        if self.mismatch:
+            return OutcomeStatus.MISMATCH
         if self.blocked_waypoint is not None or self.blocked_segment is not None:
             return OutcomeStatus.BLOCKED
         return OutcomeStatus.INFEASIBLE
@@ -97,6 +100,7 @@ class OutcomeStatus(enum.Enum):
     OK = "ok"  # planned and verified
     BLOCKED = "blocked"  # an obstacle blocks a waypoint or a leg (and no detour was found)
     INFEASIBLE = "infeasible"  # no plan within the bounds (or not verified)
+    MISMATCH = "mismatch"  # the mission does not fit where or how the vehicle is: no bound would help
 
 
 def outside_map_text(mission: MissionSpec, waypoints: FloatArray, labels: FloatArray, wp: int | None) -> str | None:

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from companion.config import ConfigError, config_from_dict
-from companion.limits import clip_bounds, clips_text, limit_box, limits_from_params
+from companion.limits import clip_bounds, clips_text, limit_box, limits_from_params, refusal_note
+from companion.report import MAX_TEXT
 from companion.wire.limits_params import names_to_read
 from companion.wire.mavlink import mavlink, param_value
 from companion.wire.messages import bounds_from, read
@@ -85,6 +86,21 @@ def test_clipping_says_which_bound_to_what_and_why() -> None:
     again, none = clip_bounds(flown, lim, 0.9)
     assert not none and np.array_equal(again.hi, flown.hi) and np.array_equal(again.horizontal, flown.horizontal)
     assert clip_bounds(configured, None, 0.9) == (configured, [])
+
+
+def test_a_refusal_names_every_limit_that_lowered_the_bounds_within_the_bounded_reason() -> None:
+    # PX4's stock limits lower nearly every bound of v 9 / a 4 per axis: the event once cut the
+    # list (and the parameter that bound) at its 600 characters
+    lim = limits_from_params("px4", {})
+    assert lim is not None
+    _, clips = clip_bounds(Bounds.symmetric(9.0, 4.0, 10.0, 50.0), lim, 0.9)
+    params = {c.param for c in clips}
+    assert {"MPC_XY_VEL_MAX", "MPC_ACC_HOR_MAX", "MPC_Z_VEL_MAX_DN", "MPC_ACC_UP_MAX"} <= params
+    note = refusal_note(clips, 0.9)
+    reason = "no plan within the bounds: segment 3 (waypoints[2] -> waypoints[3]) " + "x" * 300 + note
+    assert len(reason) <= MAX_TEXT, len(reason)
+    assert all(note.count(p) == 1 for p in params) and "x headroom 0.9" in note
+    assert refusal_note([], 0.9) == ""
 
 
 def test_px4_integer_parameters_come_bytewise() -> None:
