@@ -11,6 +11,7 @@ or to the link.
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
 import logging
 import math
@@ -41,11 +42,13 @@ from companion.wire.mavlink import (
     WANTED,
     CommandFailed,
     MavlinkLink,
+    Note,
 )
 
 log = logging.getLogger("companion")
 # What an autopilot says while it has no position estimate (ArduPilot PreArm texts, PX4 events).
 ESTIMATE_WORDS = re.compile(r"EKF|GPS|origin|position estimate|local_pos|estimator", re.IGNORECASE)
+EVENTS_KEPT = 128  # PX4 EVENTs kept: a whole arming-check report (~10) with room to spare
 TELEMETRY_CHECK = 3.0  # s after the requests: what has not arrived by then is reported
 WAITING_EVERY = 5.0  # s between "waiting for autopilot heartbeat" lines
 # Where the autopilot sends no landed state (EXTENDED_SYS_STATE), `airborne` follows the
@@ -88,6 +91,8 @@ class AutopilotWatch:
         # meanwhile is a consequence of that stall, not a pilot's action nor a lost link.
         self.stalled = stalled
         self._event_seq: int | None = None
+        # PX4's EVENTs, for the last arming-check report (companion.wire.px4_events.arming_report)
+        self.events_heard: collections.deque[Note] = collections.deque(maxlen=EVENTS_KEPT)
         self._lost_at = -math.inf
         self.flight = flight
         self.link = link
@@ -239,6 +244,7 @@ class AutopilotWatch:
         if seq == self._event_seq:  # a resent event
             return
         self._event_seq = seq
+        self.events_heard.append(note)  # PX4's arming-check report outlives the link's last 16 notes
         # In words from the autopilot's events metadata (companion.wire.px4_events); without it,
         # the number and why there are no words.
         self.report.event("autopilot", f"autopilot event: {note.text} ({note.level})", source="event",

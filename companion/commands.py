@@ -14,6 +14,7 @@ import functools
 import logging
 import math
 import time
+from collections.abc import Iterable
 from typing import Any
 
 import numpy as np
@@ -53,8 +54,10 @@ from companion.wire.mavlink import (
     PX4_MODES,
     CommandFailed,
     MavlinkLink,
+    Note,
 )
 from companion.wire.messages import Command
+from companion.wire.px4_events import arming_report
 from planner_core import Problem, allocate_times, plan, splice, takeoff_duration
 
 log = logging.getLogger("companion")
@@ -90,6 +93,8 @@ class Commands:
         self.runtime = runtime  # the planner's workers (the takeoff climb)
         self.task: asyncio.Task[None] | None = None  # the running arm/takeoff/start sequence
         self._settle_by: float | None = None  # loop time: the hand-over's vehicle settled by then
+        # PX4's EVENTs heard (the service shares AutopilotWatch's): the last arming-check report
+        self.events_heard: Iterable[Note] = link.state.notes
         # tracking: measured position against the setpoint of the measurement's time
         self.tracking_error: float | None = None
         self.tracking_error_max = 0.0  # since the service started
@@ -178,7 +183,15 @@ class Commands:
         except CommandFailed as exc:
             # the companion's own checks say why; the autopilot's refusals say what failed
             reason = str(exc) if exc.by == "companion" else f"failed: {exc}"
-            self.report.refuse(name, reason, by=exc.by, **exc.fields())
+            extra: dict[str, Any] = {}
+            if exc.by == "autopilot" and exc.result is not None and name in ("arm", "takeoff", "start"):
+                checks = arming_report(self.events_heard, time.monotonic())
+                if checks is not None and checks[1]:
+                    age, said = checks
+                    reason += f"; PX4's arming checks ({age:.1f} s before): {'; '.join(said)}"
+                    exc.reasons = tuple(dict.fromkeys((*exc.reasons, *said)))
+                    extra["arming_checks"] = {"age_s": round(age, 2), "reasons": list(said)}
+            self.report.refuse(name, reason, by=exc.by, **exc.fields(), **extra)
             self.flight.handle(SequenceAborted(f"{name} failed: {exc}", armed=self.link.state.armed))
         except asyncio.CancelledError:
             self.report.refuse(name, "cancelled before it completed", by="companion")

@@ -123,6 +123,7 @@ class Service:
         self.deconfliction.on_clock_off = self.navigator.fleet_stop
         # the autopilot's own limits: read at link-up and after a reconnect, planned within
         self.limits = LimitsWatch(cfg, self.link, self.report)
+        self.commands.events_heard = self.watch.events_heard  # the arming-check report, for refusals
         self.watch.on_link_up = self._link_up
         self.navigator.limits = self.limits
         self.link.on_ignored = self._mavlink_ignored
