@@ -398,7 +398,11 @@ class Commands:
         st, ctl, fl = self.link.state, self.control, self.flight
         err = ctl.tracking_error(st.position, measured_at) if fl.controlling else None
         self.tracking_error = err
-        if err is None:
+        # Judged only in the air, flying or holding a plan of ours after the takeoff's climb
+        # (`flying_ours`: READY, STREAMING, HOLDING, BRAKING and airborne): on the ground and
+        # while arming, an estimate not yet settled (PX4 before ready: z wandering by up to 2 m)
+        # is no tracking error, and the climb is PX4's to shape (it trails by up to 2.5 m).
+        if err is None or not fl.flying_ours:
             self._over = 0
             self._recent_errors.clear()
             self._nearing_said = False
