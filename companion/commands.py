@@ -433,7 +433,7 @@ class Commands:
                           setpoint=None if ref is None else [round(float(x), 3) for x in ref])
         if flying:
             self._tracking_stop = asyncio.get_running_loop().create_task(
-                self.nav.hold(f"tracking error {err:.2f} m > tracking allowance {limit:.2f} m", None))
+                self.nav.hold(f"tracking error {err:.2f} m > {self._brake_name()} {limit:.2f} m", None))
 
     def _check_nearing(self, err: float, limit: float) -> None:
         if not self.flight.flying_ours:
@@ -446,11 +446,19 @@ class Commands:
         if rms < TRACKING_RMS_SHARE * limit and worst < TRACKING_MAX_SHARE * limit:
             return
         self._nearing_said = True
-        self.report.event("tracking_margin", f"tracking measured near the allowance: RMS {rms:.2f} m, max {worst:.2f} m over "
-                          f"the last {len(e)} samples, [planner] tracking_allowance {limit:.2f} m (warned at "
-                          f"{TRACKING_RMS_SHARE:.0%} RMS / {TRACKING_MAX_SHARE:.0%} max): raise the allowance or "
-                          "lower the bounds", rms=round(rms, 3), max=round(worst, 3), limit=limit,
-                          samples=len(e))
+        allowance = self.cfg.planner.tracking_allowance
+        if self.cfg.safety.tracking_brake:  # the brake is set apart from the allowance: name both
+            near = "the brake"
+            advice = (f"[planner] tracking_allowance {allowance:.2f} m is what the obstacles are inflated by, "
+                      "the track beyond it is outside what was certified: lower the bounds, or raise the "
+                      "allowance")
+        else:
+            near, advice = "the allowance", "raise the allowance or lower the bounds"
+        self.report.event("tracking_margin", f"tracking measured near {near}: RMS {rms:.2f} m, max {worst:.2f} m over "
+                          f"the last {len(e)} samples, {self._brake_name()} {limit:.2f} m (warned at "
+                          f"{TRACKING_RMS_SHARE:.0%} RMS / {TRACKING_MAX_SHARE:.0%} max): {advice}",
+                          rms=round(rms, 3), max=round(worst, 3), limit=limit, limit_name=self._brake_name(),
+                          tracking_allowance=allowance, samples=len(e))
 
     def _estimate_lag(self, measured_at: float) -> None:
         """The vehicle's lag behind its setpoints (companion.lag: a least-squares fit over a
