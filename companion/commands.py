@@ -659,10 +659,11 @@ class Commands:
         worst_dz, worst_v = 0.0, 0.0
         start = loop.time()
         settle_by = self._settle_by if self._settle_by is not None else start + pr.settle
-        deadline = max(start + pr.confirm, min(settle_by, start + pr.settle) + 1.0)
+        # `confirm` s, longer only while the vehicle has not settled (then up to 1 s past the settle time)
+        done_by, latest = start + pr.confirm, max(start + pr.confirm, min(settle_by, start + pr.settle) + 1.0)
         settled = False
         problem = None
-        while loop.time() < deadline:
+        while loop.time() < latest and not (settled and loop.time() >= done_by):
             await asyncio.sleep(0.05)
             dz = float(st.position[2]) - z0
             speed = float(np.linalg.norm(st.velocity))

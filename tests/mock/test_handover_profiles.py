@@ -132,3 +132,17 @@ def test_safety_keys_override_the_profile() -> None:
     assert p.altitude_tolerance == HOLD_PROFILES["px4"].altitude_tolerance
     assert hold_profile(cfg.safety, "ardupilot").confirm == HOLD_PROFILES["ardupilot"].confirm
     assert hold_profile(config_from_dict({}).safety, None) == HOLD_PROFILES["ardupilot"]
+
+
+def _nothing(mock: MockAutopilot, mode: str, stop: threading.Event) -> None:
+    return None
+
+
+def test_a_short_hold_confirm_is_kept_once_the_vehicle_is_at_rest(tmp_path: Path) -> None:
+    """`[safety] hold_confirm = 0.5` (the fleet demo's): the settle time does not lengthen the
+    watch of a vehicle already at rest (ArduCopter: GUIDED holding the stop point)."""
+    handed_over, events, took = _run(tmp_path, "ardupilot", _nothing, "GUIDED", hold_confirm=0.5, exit_timeout=4.0)
+    last = events.of("handover")[-1]
+    assert handed_over is True and last["held"] is True and last["mode"] == "GUIDED", last
+    assert last["watched_s"] < 1.0, last
+    assert took < 4.0
