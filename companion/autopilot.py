@@ -11,6 +11,7 @@ or to the link.
 from __future__ import annotations
 
 import asyncio
+import collections
 import contextlib
 import logging
 import math
@@ -41,11 +42,16 @@ from companion.wire.mavlink import (
     WANTED,
     CommandFailed,
     MavlinkLink,
+    Note,
 )
 
 log = logging.getLogger("companion")
 # What an autopilot says while it has no position estimate (ArduPilot PreArm texts, PX4 events).
-ESTIMATE_WORDS = re.compile(r"EKF|GPS|origin|position estimate|local_pos|estimator", re.IGNORECASE)
+ESTIMATE_WORDS = re.compile(r"EKF|GPS|origin|position estimate|attitude estimate|local_pos|estimator|"
+                            r"check_modes_attitude|check_estimator", re.IGNORECASE)
+# What PX4 sends only once its estimator is ready, whatever the interval requests say.
+PX4_ESTIMATED = ("ATTITUDE", "LOCAL_POSITION_NED")
+EVENTS_KEPT = 128  # PX4 EVENTs kept: a whole arming-check report (~10) with room to spare
 TELEMETRY_CHECK = 3.0  # s after the requests: what has not arrived by then is reported
 WAITING_EVERY = 5.0  # s between "waiting for autopilot heartbeat" lines
 # Where the autopilot sends no landed state (EXTENDED_SYS_STATE), `airborne` follows the
@@ -88,6 +94,8 @@ class AutopilotWatch:
         # meanwhile is a consequence of that stall, not a pilot's action nor a lost link.
         self.stalled = stalled
         self._event_seq: int | None = None
+        # PX4's EVENTs, for the last arming-check report (companion.wire.px4_events.arming_report)
+        self.events_heard: collections.deque[Note] = collections.deque(maxlen=EVENTS_KEPT)
         self._lost_at = -math.inf
         self.flight = flight
         self.link = link
@@ -146,9 +154,19 @@ class AutopilotWatch:
             self.report.event("telemetry", f"telemetry arriving ({why}): {', '.join(WANTED)}", missing=[],
                               requested={k: v for k, v in WANTED.items()})
             return
-        no_estimate = self.no_position_estimate(missing, answers, since)
-        ignored = [m for m in missing if not (m == "LOCAL_POSITION_NED" and no_estimate is not None)]
+        not_ready = self.px4_not_ready(missing, answers, since)
+        waiting = not_ready[0] if not_ready is not None else []
+        no_estimate = None if "LOCAL_POSITION_NED" in waiting else self.no_position_estimate(missing, answers, since)
+        ignored = [m for m in missing
+                   if m not in waiting and not (m == "LOCAL_POSITION_NED" and no_estimate is not None)]
         parts = []
+        if not_ready is not None:
+            said = (f"PX4 has no estimate yet for {', '.join(waiting)} ({not_ready[1]}): it sends "
+                    f"{'them' if len(waiting) > 1 else 'it'} once its estimator is ready (PX4 SIH 1.15: ~37 s "
+                    "after boot; \"Ready for takeoff!\", its arming checks pass); nothing to configure")
+            if "LOCAL_POSITION_NED" in waiting:
+                st.position_advice = said
+            parts.append(said)
         if no_estimate is not None:
             st.position_advice = (f"the autopilot has no position estimate yet ({no_estimate}): wait for its EKF "
                                   "origin (a GPS fix, or SET_GPS_GLOBAL_ORIGIN without GPS)")
@@ -196,6 +214,37 @@ class AutopilotWatch:
             signs.append(f"it said {said[-1]!r}")
         return ", ".join(signs) if len(signs) > 1 else None
 
+    def px4_not_ready(self, missing: list[str], answers: dict[str, str],
+                      since: float) -> tuple[list[str], str] | None:
+        """PX4 sends ATTITUDE and LOCAL_POSITION_NED only once its estimator is ready (real PX4
+        SIH 1.15: ATTITUDE 29 s after the link, ~37 s after boot), whatever the interval
+        requests say: (the missing ones it explains, the signs), None when nothing says it is
+        not ready (home not reported or still at the local origin, where PX4 keeps it until
+        ready; its arming checks naming the estimate) or the requests were not accepted."""
+        st = self.link.state
+        if st.autopilot != "px4":
+            return None
+        waiting = [m for m in missing if m in PX4_ESTIMATED and m not in answers]
+        if not waiting:
+            return None
+        signs = []
+        if st.home_pending:
+            signs.append("HOME_POSITION still at the local origin")
+        elif st.home is None:
+            signs.append("no HOME_POSITION yet")
+        said = [n.text for n in (*st.notes, *self.events_heard)
+                if ESTIMATE_WORDS.search(n.text) or ESTIMATE_WORDS.search(n.name or "")]
+        if said:
+            signs.append(f"its arming checks say {said[-1]!r}")
+        if not signs:
+            return None
+        if st.gps_origin is None:
+            signs.append("no GPS_GLOBAL_ORIGIN yet")
+        head = [f"the interval request{'s were' if len(waiting) > 1 else ' was'} accepted"]
+        if any(st.received.get(m, -math.inf) >= since for m in WANTED if m not in waiting):
+            head.append("the other requested messages arrive")
+        return waiting, ", ".join(head + signs)
+
     async def _ask_home(self) -> None:
         """HOME_POSITION (origin 'home' messages need it); a refusal is said, not fatal."""
         try:
@@ -239,6 +288,7 @@ class AutopilotWatch:
         if seq == self._event_seq:  # a resent event
             return
         self._event_seq = seq
+        self.events_heard.append(note)  # PX4's arming-check report outlives the link's last 16 notes
         # In words from the autopilot's events metadata (companion.wire.px4_events); without it,
         # the number and why there are no words.
         self.report.event("autopilot", f"autopilot event: {note.text} ({note.level})", source="event",

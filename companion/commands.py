@@ -14,11 +14,12 @@ import functools
 import logging
 import math
 import time
+from collections.abc import Iterable
 from typing import Any
 
 import numpy as np
 
-from companion.config import Config
+from companion.config import Config, HoldProfile, hold_profile
 from companion.control import SWAP_LATE, Control
 from companion.flight import HOLDING_CONTROL, State
 from companion.lag import LagEstimator, initial_lead
@@ -53,8 +54,10 @@ from companion.wire.mavlink import (
     PX4_MODES,
     CommandFailed,
     MavlinkLink,
+    Note,
 )
 from companion.wire.messages import Command
+from companion.wire.px4_events import arming_report
 from planner_core import Problem, allocate_times, plan, splice, takeoff_duration
 
 log = logging.getLogger("companion")
@@ -89,6 +92,9 @@ class Commands:
         self.report = report
         self.runtime = runtime  # the planner's workers (the takeoff climb)
         self.task: asyncio.Task[None] | None = None  # the running arm/takeoff/start sequence
+        self._settle_by: float | None = None  # loop time: the hand-over's vehicle settled by then
+        # PX4's EVENTs heard (the service shares AutopilotWatch's): the last arming-check report
+        self.events_heard: Iterable[Note] = link.state.notes
         # tracking: measured position against the setpoint of the measurement's time
         self.tracking_error: float | None = None
         self.tracking_error_max = 0.0  # since the service started
@@ -177,7 +183,15 @@ class Commands:
         except CommandFailed as exc:
             # the companion's own checks say why; the autopilot's refusals say what failed
             reason = str(exc) if exc.by == "companion" else f"failed: {exc}"
-            self.report.refuse(name, reason, by=exc.by, **exc.fields())
+            extra: dict[str, Any] = {}
+            if exc.by == "autopilot" and exc.result is not None and name in ("arm", "takeoff", "start"):
+                checks = arming_report(self.events_heard, time.monotonic())
+                if checks is not None and checks[1]:
+                    age, said = checks
+                    reason += f"; PX4's arming checks ({age:.1f} s before): {'; '.join(said)}"
+                    exc.reasons = tuple(dict.fromkeys((*exc.reasons, *said)))
+                    extra["arming_checks"] = {"age_s": round(age, 2), "reasons": list(said)}
+            self.report.refuse(name, reason, by=exc.by, **exc.fields(), **extra)
             self.flight.handle(SequenceAborted(f"{name} failed: {exc}", armed=self.link.state.armed))
         except asyncio.CancelledError:
             self.report.refuse(name, "cancelled before it completed", by="companion")
@@ -384,7 +398,11 @@ class Commands:
         st, ctl, fl = self.link.state, self.control, self.flight
         err = ctl.tracking_error(st.position, measured_at) if fl.controlling else None
         self.tracking_error = err
-        if err is None:
+        # Judged only in the air, flying or holding a plan of ours after the takeoff's climb
+        # (`flying_ours`: READY, STREAMING, HOLDING, BRAKING and airborne): on the ground and
+        # while arming, an estimate not yet settled (PX4 before ready: z wandering by up to 2 m)
+        # is no tracking error, and the climb is PX4's to shape (it trails by up to 2.5 m).
+        if err is None or not fl.flying_ours:
             self._over = 0
             self._recent_errors.clear()
             self._nearing_said = False
@@ -415,7 +433,7 @@ class Commands:
                           setpoint=None if ref is None else [round(float(x), 3) for x in ref])
         if flying:
             self._tracking_stop = asyncio.get_running_loop().create_task(
-                self.nav.hold(f"tracking error {err:.2f} m > tracking allowance {limit:.2f} m", None))
+                self.nav.hold(f"tracking error {err:.2f} m > {self._brake_name()} {limit:.2f} m", None))
 
     def _check_nearing(self, err: float, limit: float) -> None:
         if not self.flight.flying_ours:
@@ -428,11 +446,19 @@ class Commands:
         if rms < TRACKING_RMS_SHARE * limit and worst < TRACKING_MAX_SHARE * limit:
             return
         self._nearing_said = True
-        self.report.event("tracking_margin", f"tracking measured near the allowance: RMS {rms:.2f} m, max {worst:.2f} m over "
-                          f"the last {len(e)} samples, [planner] tracking_allowance {limit:.2f} m (warned at "
-                          f"{TRACKING_RMS_SHARE:.0%} RMS / {TRACKING_MAX_SHARE:.0%} max): raise the allowance or "
-                          "lower the bounds", rms=round(rms, 3), max=round(worst, 3), limit=limit,
-                          samples=len(e))
+        allowance = self.cfg.planner.tracking_allowance
+        if self.cfg.safety.tracking_brake:  # the brake is set apart from the allowance: name both
+            near = "the brake"
+            advice = (f"[planner] tracking_allowance {allowance:.2f} m is what the obstacles are inflated by, "
+                      "the track beyond it is outside what was certified: lower the bounds, or raise the "
+                      "allowance")
+        else:
+            near, advice = "the allowance", "raise the allowance or lower the bounds"
+        self.report.event("tracking_margin", f"tracking measured near {near}: RMS {rms:.2f} m, max {worst:.2f} m over "
+                          f"the last {len(e)} samples, {self._brake_name()} {limit:.2f} m (warned at "
+                          f"{TRACKING_RMS_SHARE:.0%} RMS / {TRACKING_MAX_SHARE:.0%} max): {advice}",
+                          rms=round(rms, 3), max=round(worst, 3), limit=limit, limit_name=self._brake_name(),
+                          tracking_allowance=allowance, samples=len(e))
 
     def _estimate_lag(self, measured_at: float) -> None:
         """The vehicle's lag behind its setpoints (companion.lag: a least-squares fit over a
@@ -532,9 +558,14 @@ class Commands:
                 return True
         fl.handle(TakeoffInterrupted(f"{reason}: takeoff interrupted"))
         braked = False
+        self._settle_by = None
         if can_brake and self.control.streaming and fl.state in HOLDING_CONTROL:
             braked = await self._brake_for_exit(reason)
         return await self._request_exit_mode(reason, stream_works=can_brake and self.control.streaming and braked)
+
+    def hold_profile(self) -> HoldProfile:
+        """The hand-over's thresholds for this autopilot, `[safety]` keys overriding them."""
+        return hold_profile(self.cfg.safety, self.link.state.autopilot)
 
     async def _brake_for_exit(self, reason: str) -> bool:
         """A verified stop, flown to rest; True when the vehicle is at rest at its end."""
@@ -546,10 +577,13 @@ class Commands:
                 self.control.hold_here(self.link.state.position)
         ctl, rest = self.control, self.cfg.safety.rest_speed
         end = ctl.active.t_end if ctl.active is not None else 0.0
+        left = max(0.0, end - (ctl.now() if ctl.flying else 0.0))
+        # the autopilot's own braking trails the stop (PX4 ~0.3 s late): `settle` s are allowed
+        self._settle_by = asyncio.get_running_loop().time() + left + self.hold_profile().settle
         try:
             await self.link.wait_for(
                 lambda s: not ctl.flying or (ctl.now() >= end and at_rest(s.velocity, rest)),
-                max(0.0, end - (ctl.now() if ctl.flying else 0.0)) + 3.0, "the vehicle to stop")
+                left + self.hold_profile().settle, "the vehicle to stop")
         except CommandFailed:
             return False
         return ctl.flying
@@ -614,43 +648,55 @@ class Commands:
         return float(sp.yaw) if sp is not None else float(self.link.state.attitude[2])
 
     async def _confirm_hold(self, reason: str, mode: str, why: str) -> bool:
-        """Watch the vehicle for `[safety] hold_confirm` s: the hold is confirmed only if the
-        mode stays, the vehicle stays armed, its altitude within `hold_altitude_tolerance` of
-        where the hold began and its speed under `hold_speed_tolerance`."""
-        st, sc = self.link.state, self.cfg.safety
+        """Watch the vehicle for the profile's `confirm` s (`hold_profile`: PX4 and ArduPilot
+        differ, docs/handover.md): the hold is confirmed only if the mode stays, the vehicle
+        stays armed, its altitude within `altitude_tolerance` of where the hold began and, once
+        settled (its speed once under the tolerance, or `settle` s after the verified stop's
+        end), its speed under `speed_tolerance`."""
+        st, pr = self.link.state, self.hold_profile()
+        loop = asyncio.get_running_loop()
         z0, mode_now = float(st.position[2]), st.mode
         worst_dz, worst_v = 0.0, 0.0
-        deadline = asyncio.get_running_loop().time() + sc.hold_confirm
+        start = loop.time()
+        settle_by = self._settle_by if self._settle_by is not None else start + pr.settle
+        # `confirm` s, longer only while the vehicle has not settled (then up to 1 s past the settle time)
+        done_by, latest = start + pr.confirm, max(start + pr.confirm, min(settle_by, start + pr.settle) + 1.0)
+        settled = False
         problem = None
-        while asyncio.get_running_loop().time() < deadline:
+        while loop.time() < latest and not (settled and loop.time() >= done_by):
             await asyncio.sleep(0.05)
             dz = float(st.position[2]) - z0
             speed = float(np.linalg.norm(st.velocity))
             worst_dz = dz if abs(dz) > abs(worst_dz) else worst_dz
             worst_v = max(worst_v, speed)
+            settled = settled or speed <= pr.speed_tolerance or loop.time() >= settle_by
             if not st.armed:
                 problem = "the vehicle disarmed"
             elif st.mode != mode_now:
                 problem = f"the autopilot left {mode_now} for {st.mode}"
-            elif abs(dz) > sc.hold_altitude_tolerance:
+            elif abs(dz) > pr.altitude_tolerance:
                 problem = f"the vehicle {'descends' if dz > 0 else 'climbs'}: {abs(dz):.2f} m from where the hold began"
-            elif speed > sc.hold_speed_tolerance:
+            elif settled and speed > pr.speed_tolerance:
                 vz = float(st.velocity[2])
                 how = f" ({'descending' if vz > 0 else 'climbing'} at {abs(vz):.2f} m/s)" if abs(vz) >= 0.5 * speed else ""
                 problem = f"the vehicle moves at {speed:.2f} m/s{how}"
             if problem is not None:
                 break
+        watched = round(loop.time() - start, 2)
         fields = {"mode": st.mode, "reason": reason, "altitude_change": round(worst_dz, 3),
-                  "speed_max": round(worst_v, 3), "watched_s": sc.hold_confirm}
+                  "speed_max": round(worst_v, 3), "watched_s": watched,
+                  "limits": {"altitude": pr.altitude_tolerance, "speed": pr.speed_tolerance,
+                             "settle_s": pr.settle, "confirm_s": pr.confirm}}
         if problem is not None:
             msg = (f"{reason}: the hand-over to {mode_now} does not hold: {problem} (limits "
-                   f"{sc.hold_altitude_tolerance} m, {sc.hold_speed_tolerance} m/s over {sc.hold_confirm} s)")
+                   f"{pr.altitude_tolerance:g} m, {pr.speed_tolerance:g} m/s after {pr.settle:g} s to settle, "
+                   f"over {pr.confirm:g} s; [safety] hold_* keys)")
             log.error("%s", msg)
             self.report.event("handover", msg, held=False, **fields)
             return False
         self.report.event("handover", f"{reason}: the autopilot holds the vehicle in {mode_now} ({why}): "
                           f"altitude within {abs(worst_dz):.2f} m, speed under {worst_v:.2f} m/s for "
-                          f"{sc.hold_confirm:g} s", held=True, **fields)
+                          f"{watched:g} s", held=True, **fields)
         return True
 
     async def disarm(self) -> bool:

@@ -279,7 +279,7 @@ class SafetyConfig:
     # or "rtl", confirm it by watching the vehicle, and exit (at most `exit_timeout` s in
     # all). Keep it below systemd's TimeoutStopSec.
     on_exit: str = "hold"
-    exit_timeout: float = 8.0
+    exit_timeout: float = 0.0
     # A pilot mode to hand over to instead of the autonomous hold (ArduPilot LOITER, ALT_HOLD,
     # POSHOLD; PX4 POSCTL, ALTCTL): used only when a pilot is known present (`pilot_present`,
     # or RC_CHANNELS from a live transmitter with the throttle stick centred); otherwise the
@@ -289,10 +289,49 @@ class SafetyConfig:
     pilot_present: bool = False
     # The hand-over is confirmed by watching the vehicle, not only its mode: for `hold_confirm`
     # s its altitude stays within `hold_altitude_tolerance` m of where the hold began and its
-    # speed below `hold_speed_tolerance` m/s; otherwise it is reported as failed (exit 1).
-    hold_confirm: float = 3.0
-    hold_altitude_tolerance: float = 0.5
-    hold_speed_tolerance: float = 0.5
+    # speed below `hold_speed_tolerance` m/s once `hold_settle` s have passed since the
+    # verified stop's end (the autopilot's own braking); otherwise it is reported as failed
+    # (exit 1). 0 (the default) for any of these and `exit_timeout`: the autopilot's profile
+    # (HOLD_PROFILES, docs/handover.md: PX4 and ArduPilot differ); a value set here overrides it.
+    hold_confirm: float = 0.0
+    hold_altitude_tolerance: float = 0.0
+    hold_speed_tolerance: float = 0.0
+    hold_settle: float = 0.0
+
+
+@dataclass(frozen=True)
+class HoldProfile:
+    """How the hand-over's hold is confirmed on one autopilot (docs/handover.md)."""
+    settle: float  # s after the verified stop's end (the hold's start without one) before the speed is judged
+    speed_tolerance: float  # m/s, once settled
+    altitude_tolerance: float  # m from where the hold began, judged throughout
+    confirm: float  # s watched after the hold began (at least until settled)
+    exit_timeout: float  # s for the whole hand-over (keep it below systemd's TimeoutStopSec, 10 s)
+
+
+# Measured on the real simulators (2026-12-02, /work/sitl/measure/out, docs/handover.md):
+# PX4 SIH 1.15 (px4_1..5): under 0.3 m/s 3.5-5.8 s after SIGTERM at 3.3 m/s (the estimate),
+# AUTO.LOITER's estimate drifting at up to 0.50-0.65 m/s while holding (|vz| <= 0.31 m/s), the
+# estimated altitude within 0.41 m for 10 s (truth: 0.17 m, <= 0.31 m/s). ArduCopter 4.6 (ap_1..4):
+# under 0.3 m/s within 2.2-2.6 s, altitude within 0.04 m, speed <= 0.19 m/s. Both catch a
+# pilot-mode descent (2.5 m/s) within 0.4 s on the altitude alone.
+HOLD_PROFILES: dict[str, HoldProfile] = {
+    "px4": HoldProfile(settle=2.0, speed_tolerance=1.0, altitude_tolerance=1.0, confirm=3.0, exit_timeout=9.5),
+    "ardupilot": HoldProfile(settle=3.0, speed_tolerance=0.5, altitude_tolerance=0.5, confirm=3.0, exit_timeout=8.0),
+}
+
+
+def hold_profile(safety: SafetyConfig, autopilot: str | None) -> HoldProfile:
+    """The autopilot's hold profile (ArduPilot's when the autopilot is not known), with every
+    `[safety]` key that is set (non-zero) overriding its default."""
+    base = HOLD_PROFILES["px4" if autopilot == "px4" else "ardupilot"]
+    return HoldProfile(
+        settle=safety.hold_settle or base.settle,
+        speed_tolerance=safety.hold_speed_tolerance or base.speed_tolerance,
+        altitude_tolerance=safety.hold_altitude_tolerance or base.altitude_tolerance,
+        confirm=safety.hold_confirm or base.confirm,
+        exit_timeout=safety.exit_timeout or base.exit_timeout,
+    )
 
 
 @dataclass(frozen=True)
@@ -413,18 +452,15 @@ _POSITIVE = {
     "autopilot_limits.headroom",
     "autopilot_limits.timeout",
     "safety.rest_speed",
-    "safety.exit_timeout",
     "recording.max_bytes",
     "recording.keep_bytes",
     "recording.queue",
-    "safety.hold_confirm",
-    "safety.hold_altitude_tolerance",
-    "safety.hold_speed_tolerance",
 }
 
 
 _NON_NEGATIVE = {"fleet.clock_tolerance", "fleet.separation", "fleet.max_delay", "planner.fallback_delay", "planner.reserve", "autopilot_limits.retries", "planner.tracking_allowance",
-                 "safety.tracking_brake"}
+                 "safety.tracking_brake", "safety.exit_timeout", "safety.hold_confirm",
+                 "safety.hold_altitude_tolerance", "safety.hold_speed_tolerance", "safety.hold_settle"}
 
 # Keys that were replaced: what to set instead (a safety option must not be dropped silently).
 _REPLACED = {

@@ -123,6 +123,7 @@ class Service:
         self.deconfliction.on_clock_off = self.navigator.fleet_stop
         # the autopilot's own limits: read at link-up and after a reconnect, planned within
         self.limits = LimitsWatch(cfg, self.link, self.report)
+        self.commands.events_heard = self.watch.events_heard  # the arming-check report, for refusals
         self.watch.on_link_up = self._link_up
         self.navigator.limits = self.limits
         self.link.on_ignored = self._mavlink_ignored
@@ -742,7 +743,8 @@ class Service:
         """`Commands.hand_over`, bounded by `[safety] exit_timeout` and given up on `abandon`."""
         job = asyncio.create_task(self.commands.hand_over(why, can_brake=can_brake))
         quit_now = asyncio.create_task(self.abandon.wait())
-        done, _ = await asyncio.wait([job, quit_now], timeout=self.cfg.safety.exit_timeout,
+        timeout = self.commands.hold_profile().exit_timeout  # per autopilot; [safety] exit_timeout overrides
+        done, _ = await asyncio.wait([job, quit_now], timeout=timeout,
                                      return_when=asyncio.FIRST_COMPLETED)
         quit_now.cancel()
         if job in done:
@@ -752,7 +754,7 @@ class Service:
             return False
         job.cancel()
         await asyncio.gather(job, return_exceptions=True)
-        what = "a second signal" if self.abandon.is_set() else f"[safety] exit_timeout ({self.cfg.safety.exit_timeout} s)"
+        what = "a second signal" if self.abandon.is_set() else f"[safety] exit_timeout ({timeout:g} s)"
         with contextlib.suppress(Exception):
             self.report.event("error", f"hand-over to the autopilot given up on {what}; mode {self.link.state.mode}")
         return False

@@ -31,7 +31,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from companion.wire.mavlink import MavlinkLink
+    from collections.abc import Iterable
+
+    from companion.wire.mavlink import MavlinkLink, Note
 
 log = logging.getLogger("companion")
 
@@ -82,6 +84,9 @@ class EventsMetadata:
         for cid, comp in components.items():
             namespace = str(comp.get("namespace", ""))
             for name, enum in (comp.get("enums") or {}).items():
+                # PX4's all_events.json names an argument's enum "px4::arm_disarm_reason_t" (1.15),
+                # or bare within its component ("navigation_mode_group_t")
+                self.enums[f"{namespace}::{name}"] = enum
                 self.enums[f"{namespace}::enums::{name}"] = enum
                 self.enums.setdefault(name, enum)
             for group, body in (comp.get("event_groups") or {}).items():
@@ -109,7 +114,7 @@ class EventsMetadata:
         raw = bytes(arguments).ljust(40, b"\0")
         for spec in specs:
             type_ = str(spec.get("type", "uint8_t"))
-            enum = self.enums.get(type_)
+            enum = self.enums.get(type_) or (self.enums.get(type_.rsplit("::", 1)[-1]) if "::" in type_ else None)
             base = str(enum.get("type", "uint8_t")) if enum else type_
             fmt, size = _TYPES.get(base, ("B", 1))
             if at + size > len(raw):
@@ -143,6 +148,37 @@ class EventsMetadata:
             rendered = f"{value:.{digits}f}" if math.isfinite(value) else str(value)
         unit = m.group(3).removesuffix("_v").strip()
         return f"{rendered} {unit}" if unit else rendered
+
+
+# PX4's arming-check report (Report::report, src/modules/commander/HealthAndArmingChecks): the
+# summary event, then each failing check and health event, then the health summary, in one
+# burst, sent when the checks change (on PX4 SIH 1.15: 3.7 s before an `arm` it refused, then not
+# again for 28 s). Its events, not the ones around the refusing COMMAND_ACK, say why arming fails.
+ARMING_REPORT_START = "commander_arming_check_summary"
+ARMING_REPORT_SUMMARIES = ("commander_arming_check_summary", "commander_health_summary")
+ARMING_REPORT_BURST = 1.0  # s: the report's events follow its summary within this
+ARMING_REPORT_MAX_AGE = 30.0  # s: an older report is not taken as the current reason
+_SERIOUS = ("EMERGENCY", "ALERT", "CRITICAL", "ERROR", "WARNING")
+
+
+def arming_report(notes: Iterable[Note], now: float,
+                  max_age: float = ARMING_REPORT_MAX_AGE) -> tuple[float, tuple[str, ...]] | None:
+    """The latest arming-check report within `max_age` s of `now`: (its age in s, the failing
+    checks in words: its events of level WARNING or worse, each once). None: no report."""
+    notes = list(notes)
+    starts = [i for i, n in enumerate(notes)
+              if n.source == "event" and n.name == ARMING_REPORT_START and now - max_age <= n.at <= now]
+    if not starts:
+        return None
+    first = notes[starts[-1]]
+    out: list[str] = []
+    for n in notes[starts[-1] + 1:]:
+        if n.at > first.at + ARMING_REPORT_BURST or n.name == ARMING_REPORT_START:
+            break
+        if (n.source == "event" and n.name not in ARMING_REPORT_SUMMARIES and n.level in _SERIOUS
+                and n.text not in out):
+            out.append(n.text)
+    return now - first.at, tuple(out)
 
 
 def ftp_path(uri: str) -> str:

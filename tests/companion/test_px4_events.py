@@ -85,3 +85,55 @@ def test_cache_dir_follows_systemd_then_xdg(monkeypatch: pytest.MonkeyPatch, tmp
     monkeypatch.delenv("CACHE_DIRECTORY")
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
     assert default_cache_dir() == tmp_path / "bezier-companion"
+
+
+def test_enum_arguments_as_real_px4_names_them() -> None:
+    """PX4 1.15's all_events.json names an argument's enum `px4::arm_disarm_reason_t` (no
+    `enums::`), or bare within its component: the field saw "Armed by 4"."""
+    real = {"version": 2, "components": {"1": {
+        "namespace": "px4",
+        "enums": META["components"]["1"]["enums"],  # type: ignore[index]
+        "event_groups": {"default": {"events": {
+            "9489139": {"name": "commander_armed_by", "message": "Armed by {1}",
+                        "arguments": [{"name": "arg0", "type": "px4::arm_disarm_reason_t"}]},
+            "10450063": {"name": "check_modes_attitude", "message": "No valid attitude estimate in {1}",
+                         "arguments": [{"name": "modes", "type": "navigation_mode_group_t"}]},
+        }}},
+    }}}
+    meta = EventsMetadata(real)
+    armed = meta.describe((1 << 24) | 9489139, bytes([4]))
+    assert armed is not None and armed.text == "Armed by external command"
+    att = meta.describe((1 << 24) | 10450063, struct.pack("<I", 16))
+    assert att is not None and att.text == "No valid attitude estimate in Hold"
+
+
+def _note(at: float, name: str, text: str, level: str = "ERROR") -> Note:
+    return Note(at, "event", text, level, 1, name, words=True)
+
+
+def test_the_last_arming_check_report_is_the_reason_whenever_it_came() -> None:
+    """Real PX4 SIH 1.15 (px4_1): the report 3.7 s before the `arm`, the refusal alone after it."""
+    from companion.wire.px4_events import arming_report
+
+    notes = [
+        _note(90.0, "commander_arming_check_summary", "Arming check summary event", "PROTOCOL"),
+        _note(90.01, "check_modes_attitude", "No valid attitude estimate", "ERROR"),  # an older report
+        _note(100.0, "commander_arming_check_summary", "Arming check summary event", "PROTOCOL"),
+        _note(100.003, "check_modes_attitude", "No valid attitude estimate", "CRITICAL"),
+        _note(100.003, "check_modes_local_pos", "No valid local position estimate", "ERROR"),
+        _note(100.004, "check_modes_mission", "No valid mission available", "INFO"),  # not a reason
+        _note(100.004, "check_modes_local_pos", "No valid local position estimate", "ERROR"),  # once
+        _note(100.004, "commander_health_summary", "Health report summary event", "PROTOCOL"),
+        _note(105.2, "commander_arm_denied_resolve_failures", "Arming denied: Resolve system health failures first",
+              "CRITICAL"),
+    ]
+    found = arming_report(notes, 105.3)
+    assert found is not None
+    age, said = found
+    assert abs(age - 5.3) < 1e-6
+    assert said == ("No valid attitude estimate", "No valid local position estimate")
+    assert arming_report(notes, 100.0 + 31.0) is None  # too old to be the current state
+    assert arming_report(notes[-1:], 105.3) is None  # no report heard
+    ready = [_note(200.0, "commander_arming_check_summary", "Arming check summary event", "PROTOCOL"),
+             _note(200.001, "commander_health_summary", "Health report summary event", "PROTOCOL")]
+    assert arming_report(notes + ready, 201.0) == (1.0, ())  # the latest report: nothing fails

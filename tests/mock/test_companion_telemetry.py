@@ -147,3 +147,59 @@ def test_waiting_for_a_heartbeat_is_said() -> None:
             assert await asyncio.wait_for(task, 30)  # nothing to hand over
 
     asyncio.run(go())
+
+
+def _px4_without_attitude(tmp_path: Path, ready_s: float) -> tuple[MockAutopilot, Any]:
+    """The PX4 mock, ATTITUDE held back until the returned event is set: real PX4 (SIH 1.15)
+    sends no ATTITUDE before its estimator is ready (it came 29 s after the link in the field)."""
+    import threading
+
+    from pymavlink.dialects.v20 import common as mav
+
+    mock = MockAutopilot(MockConfig(autopilot="px4", endpoints=["udpin:127.0.0.1:0"], px4_ready_s=ready_s,
+                                    ground_z=1.6, log_path=str(tmp_path / "f.jsonl"))).start()
+    released = threading.Event()
+    send_stream = mock._send_stream
+
+    def no_attitude_yet(mid: int, target: Any) -> None:
+        if mid == mav.MAVLINK_MSG_ID_ATTITUDE and not released.is_set():
+            return
+        send_stream(mid, target)
+
+    mock._send_stream = no_attitude_yet  # type: ignore[method-assign]
+    return mock, released
+
+
+def test_px4_not_ready_is_told_apart_from_requests_ignored(tmp_path: Path) -> None:
+    """The field (PX4 SIH 1.15): the companion said PX4 "ignores the requests for ATTITUDE ...
+    check MAV_n_MODE" while PX4's estimator was not ready (HOME_POSITION at the local origin,
+    arming checks failing); it is said as that, and withdrawn when ATTITUDE comes."""
+    mock, released = _px4_without_attitude(tmp_path, 600.0)
+
+    async def check(svc: Any, events: Events) -> None:
+        ev = events.of("telemetry")[-1]
+        assert ev["missing"] == ["ATTITUDE"] and ev["cause"] == "no_position_estimate", ev
+        assert "no estimate yet" in ev["message"] and "estimator is ready" in ev["message"], ev["message"]
+        assert "HOME_POSITION still at the local origin" in ev["message"], ev["message"]
+        assert "ignores" not in ev["message"] and "MAV_n_MODE" not in ev["message"], ev["message"]
+        released.set()
+        await until(lambda: events.of("telemetry")[-1].get("resolved"), 10, "the telemetry resolved")
+
+    try:
+        asyncio.run(_run(mock, check))
+    finally:
+        mock.stop()
+
+
+def test_a_ready_px4_that_sends_no_attitude_ignores_the_requests(tmp_path: Path) -> None:
+    mock, _ = _px4_without_attitude(tmp_path, 0.0)  # ready: home where the vehicle stands
+
+    async def check(svc: Any, events: Events) -> None:
+        ev = events.of("telemetry")[-1]
+        assert ev["missing"] == ["ATTITUDE"] and ev["cause"] == "requests_ignored", ev
+        assert "ignores the requests for ATTITUDE" in ev["message"] and "MAV_n_MODE" in ev["message"], ev
+
+    try:
+        asyncio.run(_run(mock, check))
+    finally:
+        mock.stop()

@@ -78,3 +78,38 @@ def test_events_without_metadata_say_why_they_are_numbers(tmp_path: Path) -> Non
         asyncio.run(go())
     finally:
         mock.stop()
+
+
+def test_an_arm_refusal_names_the_arming_checks_reported_seconds_before(tmp_path: Path) -> None:
+    """Real PX4 (SIH 1.15, px4_1..5) sends its arming-check report when the checks change, 3.7 s
+    before the `arm` in the field, and with the refusal only "Arming denied: Resolve system health
+    failures first". The mock re-sends its report with every refusal: here it is made to stop
+    after the first one, as PX4 does, and the second refusal still says what fails."""
+    mock = MockAutopilot(MockConfig(autopilot="px4", endpoints=["udpin:127.0.0.1:0"], px4_ready_s=600.0,
+                                    log_path=str(tmp_path / "f.jsonl"))).start()
+    assert mock.px4 is not None
+
+    async def go() -> None:
+        svc = service_for(mock, mavlink={"events_cache_dir": str(tmp_path / "cache")})
+        events = Events(svc)
+        async with serving(svc):
+            await until(lambda: svc.link.events.metadata is not None, 20, "the events metadata")
+            await svc.commands.on_command(Command("arm"), time.monotonic())  # the report comes with it
+            await until(lambda: events.of("refused"), 15, "the first refusal")
+            assert mock.px4 is not None
+            mock.px4.report = lambda: None  # type: ignore[method-assign]  # no report with the next refusal
+            await asyncio.sleep(2.5)  # beyond the second before the ACK that is searched for reasons
+            await svc.commands.on_command(Command("arm"), time.monotonic())
+            await until(lambda: len(events.of("refused")) == 2, 15, "the second refusal")
+            refused = events.of("refused")[1]
+            assert refused["result"] == "MAV_RESULT_TEMPORARILY_REJECTED", refused
+            assert "Navigation error: No valid position estimate" in refused["reasons"], refused
+            assert "Horizontal velocity unstable" in refused["reasons"], refused
+            assert "arming checks" in refused["message"] and "No valid position estimate" in refused["message"]
+            checks = refused["arming_checks"]
+            assert checks["age_s"] >= 2.5 and "Horizontal velocity unstable" in checks["reasons"], checks
+
+    try:
+        asyncio.run(go())
+    finally:
+        mock.stop()
