@@ -56,6 +56,14 @@ def _rc(text: str) -> int | None:
         raise argparse.ArgumentTypeError(f"--rc-throttle: expected a pwm (e.g. 1000, 1500) or 'none', got {text!r}") from None
 
 
+def _shift(text: str) -> tuple[float, float, float]:
+    try:
+        n, e, d = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected three metres N,E,D (e.g. -0.011,0.008,0.010), got {text!r}") from None
+    return n, e, d
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m sitl_mock", description=__doc__)
     p.add_argument("--autopilot", choices=["px4", "ardupilot"], default="px4")
@@ -116,6 +124,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--position-after-origin", type=float, default=22.0, metavar="SECONDS",
                    help="ArduPilot: seconds from the EKF origin (and home) to the first LOCAL_POSITION_NED "
                    "(default 22: stock ArduCopter 4.6 SITL, measured)")
+    p.add_argument("--home-shift-at-arming", type=_shift, default=(-0.011, 0.008, 0.010), metavar="N,E,D",
+                   help="ArduPilot: metres home moves when the vehicle arms where it stood (default "
+                   "-0.011,0.008,0.010: stock ArduCopter 4.6 SITL, measured; 0,0,0: home stays)")
     p.add_argument("--spool-up", type=float, default=3.0, metavar="SECONDS",
                    help="ArduPilot: no climb for this long after arming (default 3.0, as measured on SITL)")
     p.add_argument("--no-shaping", dest="shaping", action="store_false",
@@ -143,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
             signing_key=read_signing_key(args.signing_key) if args.signing_key else None,
             ground_z=args.ground_z, px4_statustext=args.px4_statustext, px4_ready_s=args.px4_ready_s,
             rc_throttle=args.rc_throttle, ekf_origin_delay_s=args.ekf_origin_delay, spool_up_s=args.spool_up,
-            position_after_origin_s=args.position_after_origin,
+            position_after_origin_s=args.position_after_origin, home_shift_at_arming=args.home_shift_at_arming,
             shaping=args.shaping,
         )
         mock = MockAutopilot(config)

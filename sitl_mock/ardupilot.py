@@ -17,7 +17,8 @@
   requires a position refused with "PreArm: Need Position Estimate"
   (``ArduCopter/AP_Arming.cpp`` mandatory_gps_checks).
 - Home is set where the vehicle arms and sent at once (AP_Arming_Copter::arm,
-  ``AP_AHRS::set_home`` sends HOME and ORIGIN).
+  ``AP_AHRS::set_home`` sends HOME and ORIGIN); the home of the origin lies
+  ``home_shift_at_arming`` from there (measured: home moved ~1 cm at arming).
 - Motors spool for ``spool_up_s`` after arming before any climb (measured 3.0 s).
 - BRAKE stops with 7.5 m/s^2 and holds where it stopped, climb rate 0, until the mode changes
   (``ArduCopter/mode_brake.cpp``: BRAKE_MODE_DECEL_RATE 750, BRAKE_MODE_SPEED_Z 250, no
@@ -98,11 +99,13 @@ class ArduPilotRules:
     """The ArduPilot flavour's state beyond the common mock: RC, EKF origin, the shaped path."""
 
     def __init__(self, rc_throttle: int | None, ekf_origin_delay_s: float, spool_up_s: float,
-                 shaping: bool, position_after_origin_s: float = 0.0) -> None:
+                 shaping: bool, position_after_origin_s: float = 0.0,
+                 home_shift_at_arming: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> None:
         self.rc_throttle = rc_throttle  # pwm the autopilot receives now; None: no RC frames
         self.rc_seen = rc_throttle is not None
         self.ekf_origin_delay_s = ekf_origin_delay_s
         self.position_after_origin_s = position_after_origin_s
+        self.home_shift_at_arming = np.asarray(home_shift_at_arming, dtype=float)
         self.spool_up_s = spool_up_s
         self.shaping = shaping
         self.rc_last = 0.0
@@ -135,8 +138,9 @@ class ArduPilotRules:
             self.origin_set = True
             self.origin_t = mock.t
             self.position_known = self.position_after_origin_s <= 0.0
-            # Copter sets home from the EKF once it has an origin (update_home_from_EKF).
-            mock.home_ned = mock.vehicle.state.pos.copy()
+            # Copter sets home from the EKF once it has an origin (update_home_from_EKF); the
+            # estimate on the ground moves on before arming sets home again (measured ~1 cm)
+            mock.home_ned = mock.vehicle.state.pos - self.home_shift_at_arming
             mock.log.write("event", mock.t, event="ekf_origin_set", since_boot=mock.t - mock.boot_t)
             mock._text(mav.MAV_SEVERITY_INFO, "EKF3 IMU0 origin set")
             # AP_AHRS::set_home: "send new home and ekf origin to GCS" (MSG_HOME, MSG_ORIGIN)

@@ -100,7 +100,7 @@ class MockAutopilot(MavlinkHandlers):
         self._last_reject_text: dict[str, float] = {}
         self._reboot_pending = False
         self.ap = ArduPilotRules(config.rc_throttle, config.ekf_origin_delay_s, config.spool_up_s, config.shaping,
-                                 config.position_after_origin_s)
+                                 config.position_after_origin_s, config.home_shift_at_arming)
         # PX4 readiness, component metadata and FTP (sitl_mock.px4); None for ArduPilot.
         ready_s = px4.DEFAULT_READY_S if config.px4_ready_s is None else config.px4_ready_s
         self.px4 = px4.Px4Rules(self, ready_s) if self.flavour is Flavour.PX4 else None

@@ -125,7 +125,7 @@ def test_an_exception_from_the_planner_is_a_refusal_that_says_so(monkeypatch: py
 
     rejected: list[tuple[str, str, str]] = []
     nav: Any = SimpleNamespace(report=SimpleNamespace(reject=lambda k, f, r, **_: rejected.append((k, f, r))),
-                               _clipped_text=lambda _spec: "")  # no autopilot limits in this fake
+                               _clipped_note=lambda _spec: "")  # no autopilot limits in this fake
     records: list[logging.LogRecord] = []
     handler = logging.Handler(logging.ERROR)
     handler.emit = records.append  # type: ignore[method-assign]

@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 import time
 
+import numpy as np
 import pytest
 from mockkit import CUSTOM, records, wait_for
 from pymavlink import mavutil
@@ -193,6 +194,36 @@ def test_home_moves_to_where_it_arms_and_is_sent(make_mock) -> None:  # type: ig
     homes += [m for m in [c.wait("HOME_POSITION", 1)] if m is not None]
     assert homes, "HOME_POSITION not sent at arming"
     assert (homes[0].x, homes[0].y) == (pytest.approx(3.0, abs=0.05), pytest.approx(2.0, abs=0.05))
+
+
+def test_home_of_the_origin_moves_at_arming_by_the_measured_shift(make_mock) -> None:  # type: ignore[no-untyped-def]
+    """Stock ArduCopter 4.6 SITL, measured 2026-12-02: home moved ~1 cm at arming (the EKF's
+    estimate on the ground moved on after the origin set home); the mock's default is that
+    shift, and a larger one is settable."""
+    assert MockConfig(autopilot="ardupilot", endpoints=["udpin:127.0.0.1:0"]).home_shift_at_arming == (
+        -0.011, 0.008, 0.010)
+    shift = np.array([0.3, -0.2, 0.1])
+    _, c = make_mock("ardupilot", speed=3.0, home_shift_at_arming=tuple(shift))
+    result, seen = c.command_collect(mav.MAV_CMD_REQUEST_MESSAGE, mav.MAVLINK_MSG_ID_HOME_POSITION)
+    assert result == ACCEPTED
+    first = next((m for m in seen if m.get_type() == "HOME_POSITION"), None) or c.wait("HOME_POSITION", 1)
+    assert first is not None
+    assert c.command(mav.MAV_CMD_SET_MESSAGE_INTERVAL, mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED, 50_000) == ACCEPTED
+    pos = c.wait("LOCAL_POSITION_NED", 2)
+    assert pos is not None
+    before = np.array([first.x, first.y, first.z])
+    here = np.array([pos.x, pos.y, pos.z])
+    assert np.allclose(here - before, shift, atol=2e-3), (before, here)
+    assert c.command(176, CUSTOM, GUIDED) == ACCEPTED
+    result, seen = c.command_collect(400, 1)
+    assert result == ACCEPTED
+    homes = [m for m in seen if m.get_type() == "HOME_POSITION"]
+    homes += [m for m in [c.wait("HOME_POSITION", 1)] if m is not None]
+    assert homes, "HOME_POSITION not sent at arming"
+    after = np.array([homes[0].x, homes[0].y, homes[0].z])
+    assert np.allclose(after - before, shift, atol=2e-3) and np.allclose(after, here, atol=2e-3)
+    with pytest.raises(ValueError, match="home_shift_at_arming"):
+        MockConfig(autopilot="ardupilot", endpoints=["udpin:127.0.0.1:0"], home_shift_at_arming=(0.0, math.nan, 0.0)).validate()
 
 
 def test_spool_up_before_the_climb(make_mock) -> None:  # type: ignore[no-untyped-def]
