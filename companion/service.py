@@ -11,7 +11,9 @@ The parts, each the one owner of what it holds:
   thread flies and its time base, changed together; what is left of a mission (loaded,
   interrupted);
 - `Navigator` (navigator.py): planning missions, changes and pop-ups in flight; the obstacles;
-- `Commands` (commands.py): the command sequences; `AutopilotWatch` (autopilot.py): reports;
+- `Commands` (commands.py): the command sequences; `HandOver` (handover.py): leaving the
+  vehicle to the autopilot; `Tracking` (tracking.py): the tracking error and the lead;
+  `AutopilotWatch` (autopilot.py): reports;
 - `Runtime` (runtime.py): executors; `Reporter` (report.py): events.
 """
 
@@ -36,6 +38,7 @@ from companion.config import Config
 from companion.control import Control
 from companion.deconfliction import REPUBLISH, Deconfliction
 from companion.fleet import FleetFrame
+from companion.handover import HandOver
 from companion.limits_watch import LimitsWatch
 from companion.mission import warm_up, warm_up_replan
 from companion.navigator import Navigator
@@ -53,6 +56,7 @@ from companion.setpoints import (
     sleep_until,
 )
 from companion.supervisor import Supervisor
+from companion.tracking import Tracking
 from companion.wire import encode as enc
 from companion.wire.errors import InternalError, MessageError, Oversized, quote
 from companion.wire.mavlink import MavlinkLink
@@ -106,12 +110,15 @@ class Service:
                                on_new_plan=self.publish_trajectory, on_latency=self._latency_event)
         self.navigator = Navigator(cfg, self.flight, self.control, self.runtime, self.report, self._position)
         self.commands = Commands(cfg, self.flight, self.control, self.link, self.navigator, self.report, self.runtime)
+        self.tracking = Tracking(cfg, self.flight, self.control, self.link, self.navigator, self.report)
+        self.handover = HandOver(cfg, self.flight, self.control, self.link, self.navigator, self.report,
+                                 self.commands.cancel_sequence)
         self.liveness = Liveness(cfg.setpoints.loop_stall_limit)
         self.sender.liveness = self.liveness
         # what the supervisor decides to stop is stopped here: the stream, and any command sequence
         self.flight.connect(release=self.commands.release_control, stop_stream=self.control.release)
         self.watch = AutopilotWatch(cfg, self.flight, self.link, self.report,
-                                    on_position=self.commands.check_tracking, stalled=self._stalled)
+                                    on_position=self.tracking.check_tracking, stalled=self._stalled)
         self.link.on_message = self._on_mavlink
         # where the autopilot's local frame sits in the fleet frame ([fleet] origin; companion.fleet)
         self.fleet = FleetFrame(cfg.fleet)
@@ -127,8 +134,8 @@ class Service:
         self.watch.on_link_up = self._link_up
         self.navigator.limits = self.limits
         self.link.on_ignored = self._mavlink_ignored
-        # lag compensation: a fixed lead, or "auto" (set by Commands from its estimate)
-        self.commands.steer_lead(self.sender)
+        # lag compensation: a fixed lead, or "auto" (set by Tracking from its estimate)
+        self.tracking.steer_lead(self.sender)
         self.zio: ZenohIO | None = None
         self.notifier = Notifier()
         self.gc = GcPacer()
@@ -318,8 +325,8 @@ class Service:
 
     def status(self) -> dict[str, Any]:
         st, ctl = self.link.state, self.control
-        # measured position against the setpoint of the measurement's own time (Commands)
-        self.tracking_error = self.commands.tracking_error if ctl.streaming else None
+        # measured position against the setpoint of the measurement's own time (Tracking)
+        self.tracking_error = self.tracking.tracking_error if ctl.streaming else None
         return {
             "vehicle": self.cfg.vehicle.id,
             "session": self.zio.zid if self.zio is not None else None,
@@ -342,9 +349,9 @@ class Service:
             "streaming": ctl.streaming,
             **self.navigator.status_fields(),
             "tracking_error": enc.num(self.tracking_error),
-            "tracking_error_max": enc.num(self.commands.tracking_error_max),
+            "tracking_error_max": enc.num(self.tracking.tracking_error_max),
             "lead_ms": round(self.sender.lead * 1000, 1),
-            "lag_estimate_ms": enc.ms(self.commands.lag_estimate),
+            "lag_estimate_ms": enc.ms(self.tracking.lag_estimate),
             "tracking_allowance": self.cfg.planner.tracking_allowance,
             **self._limits_status(),
             "message_to_setpoint_ms": enc.ms(ctl.setpoint_latency),
@@ -553,7 +560,7 @@ class Service:
     def _link_up(self, why: str) -> None:
         """The autopilot found (link-up, reconnect): its limits read, the lead it starts with."""
         self.limits.read(why)
-        self.commands.autopilot_found()
+        self.tracking.autopilot_found()
 
     def _stalled(self) -> bool:
         """The companion is stalled or just woke from a stall (see setpoints.Liveness); not
@@ -590,10 +597,10 @@ class Service:
             if not self.flight.controlling:
                 reaction = "not in control"
             elif withheld is not None and silence >= STALL_HOLD_WITHIN:
-                self.commands.after_stall(reason)
+                self.handover.after_stall(reason)
                 reaction = "released control"
             else:
-                reaction = self.commands.hold_after_stall(reason)
+                reaction = self.handover.hold_after_stall(reason)
             live.release()
             link = self.link.link_ok()
             silent = (f"setpoints were withheld for {silence * 1000:.0f} ms" if withheld is not None
@@ -740,10 +747,10 @@ class Service:
             self.report.event("stopped", "companion stopping", handed_over=self._handed_over)
 
     async def _hand_over(self, why: str, can_brake: bool) -> bool:
-        """`Commands.hand_over`, bounded by `[safety] exit_timeout` and given up on `abandon`."""
-        job = asyncio.create_task(self.commands.hand_over(why, can_brake=can_brake))
+        """`HandOver.hand_over`, bounded by `[safety] exit_timeout` and given up on `abandon`."""
+        job = asyncio.create_task(self.handover.hand_over(why, can_brake=can_brake))
         quit_now = asyncio.create_task(self.abandon.wait())
-        timeout = self.commands.hold_profile().exit_timeout  # per autopilot; [safety] exit_timeout overrides
+        timeout = self.handover.hold_profile().exit_timeout  # per autopilot; [safety] exit_timeout overrides
         done, _ = await asyncio.wait([job, quit_now], timeout=timeout,
                                      return_when=asyncio.FIRST_COMPLETED)
         quit_now.cancel()
