@@ -4,7 +4,7 @@ On exit (`hand_over`): brake to a verified stop, then hand over as `[safety] on_
 confirm the hold by watching the vehicle, with each autopilot's thresholds (`hold_profile`,
 docs/handover.md). After a stall: stop the mission and hold, or, when setpoints were withheld
 too long, ask the autopilot for an autonomous hold. Never a pilot mode unless a pilot is known
-present.
+present. Each autopilot's hold thresholds (HOLD_PROFILES, measured on the simulators) live here too.
 """
 
 from __future__ import annotations
@@ -13,11 +13,12 @@ import asyncio
 import functools
 import logging
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from companion.config import Config, HoldProfile, hold_profile
+from companion.config import Config, SafetyConfig
 from companion.control import Control
 from companion.flight import HOLDING_CONTROL, State
 from companion.navigator import Navigator
@@ -45,6 +46,41 @@ log = logging.getLogger("companion")
 S = State
 # Modes that hold with no pilot input, per autopilot (docs/handover.md): never "pilot modes".
 AUTONOMOUS_HOLDS = {"px4": ("LOITER",), "ardupilot": ("GUIDED", "BRAKE")}
+
+
+@dataclass(frozen=True)
+class HoldProfile:
+    """How the hand-over's hold is confirmed on one autopilot (docs/handover.md)."""
+    settle: float  # s after the verified stop's end (the hold's start without one) before the speed is judged
+    speed_tolerance: float  # m/s, once settled
+    altitude_tolerance: float  # m from where the hold began, judged throughout
+    confirm: float  # s watched after the hold began (at least until settled)
+    exit_timeout: float  # s for the whole hand-over (keep it below systemd's TimeoutStopSec, 10 s)
+
+
+# Measured on the real simulators (2026-12-02, /work/sitl/measure/out, docs/handover.md):
+# PX4 SIH 1.15 (px4_1..5): under 0.3 m/s 3.5-5.8 s after SIGTERM at 3.3 m/s (the estimate),
+# AUTO.LOITER's estimate drifting at up to 0.50-0.65 m/s while holding (|vz| <= 0.31 m/s), the
+# estimated altitude within 0.41 m for 10 s (truth: 0.17 m, <= 0.31 m/s). ArduCopter 4.6 (ap_1..4):
+# under 0.3 m/s within 2.2-2.6 s, altitude within 0.04 m, speed <= 0.19 m/s. Both catch a
+# pilot-mode descent (2.5 m/s) within 0.4 s on the altitude alone.
+HOLD_PROFILES: dict[str, HoldProfile] = {
+    "px4": HoldProfile(settle=2.0, speed_tolerance=1.0, altitude_tolerance=1.0, confirm=3.0, exit_timeout=9.5),
+    "ardupilot": HoldProfile(settle=3.0, speed_tolerance=0.5, altitude_tolerance=0.5, confirm=3.0, exit_timeout=8.0),
+}
+
+
+def hold_profile(safety: SafetyConfig, autopilot: str | None) -> HoldProfile:
+    """The autopilot's hold profile (ArduPilot's when the autopilot is not known), with every
+    `[safety]` key that is set (non-zero) overriding its default."""
+    base = HOLD_PROFILES["px4" if autopilot == "px4" else "ardupilot"]
+    return HoldProfile(
+        settle=safety.hold_settle or base.settle,
+        speed_tolerance=safety.hold_speed_tolerance or base.speed_tolerance,
+        altitude_tolerance=safety.hold_altitude_tolerance or base.altitude_tolerance,
+        confirm=safety.hold_confirm or base.confirm,
+        exit_timeout=safety.exit_timeout or base.exit_timeout,
+    )
 
 
 def in_mode(mode: str, state: Any) -> bool:
