@@ -154,7 +154,7 @@ class Service:
     def _publish(self, key: str, body: dict[str, Any]) -> None:
         if self.zio is not None:
             # which companion said it: clients check it against the session that answers
-            # their status query (companion.__main__, `send`/`watch`)
+            # their status query (companion.cli_send, companion.cli_watch)
             self.zio.publish(key, {**body, "session": self.zio.zid})
         if key == "events" and (body.get("type") == "mission_complete" or (
                 body.get("type") in ("accepted", "rejected") and body.get("key") in ("mission", "change"))):
