@@ -157,7 +157,7 @@ class _SafeUnpickler(pickle.Unpickler):
         if (module, name) in _NUMPY or module.startswith("numpy.dtypes"):
             return super().find_class(module, name)
         if module.startswith(("planner_core", "companion")) and not module.startswith(
-                ("planner_core.formats", "companion.__main__", "companion.service")):
+                ("planner_core.formats", "companion.__main__", "companion.cli_", "companion.service")):
             obj = super().find_class(module, name)
             if isinstance(obj, type) and (dataclasses.is_dataclass(obj) or issubclass(obj, enum.Enum | BaseException)):
                 return obj

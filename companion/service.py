@@ -1,7 +1,7 @@
 """The companion service: wiring only. One asyncio loop per vehicle.
 
-Zenoh in (mission, obstacles, change, command) -> `wire.messages.read` (typed, NED) -> one
-handler per kind -> planning in workers -> a verified trajectory swapped in by `Control` ->
+Zenoh in (mission, obstacles, change, command) -> `Inbound` (inbound.py: `wire.messages.read`,
+typed, NED) -> one handler per kind -> planning in workers -> a verified trajectory swapped in by `Control` ->
 the setpoint thread -> MAVLink out. Telemetry comes back over MAVLink and goes out on Zenoh.
 
 The parts, each the one owner of what it holds:
@@ -11,7 +11,10 @@ The parts, each the one owner of what it holds:
   thread flies and its time base, changed together; what is left of a mission (loaded,
   interrupted);
 - `Navigator` (navigator.py): planning missions, changes and pop-ups in flight; the obstacles;
-- `Commands` (commands.py): the command sequences; `AutopilotWatch` (autopilot.py): reports;
+- `Commands` (commands.py): the command sequences; `HandOver` (handover.py): leaving the
+  vehicle to the autopilot; `Tracking` (tracking.py): the tracking error and the lead;
+  `AutopilotWatch` (autopilot.py): reports;
+- `StallWatch` (stalls.py): the companion's own stalls; `StatusReport` (status.py): the status;
 - `Runtime` (runtime.py): executors; `Reporter` (report.py): events.
 """
 
@@ -19,9 +22,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import functools
 import logging
-import math
 import sys
 import time
 from typing import Any
@@ -36,6 +37,8 @@ from companion.config import Config
 from companion.control import Control
 from companion.deconfliction import REPUBLISH, Deconfliction
 from companion.fleet import FleetFrame
+from companion.handover import HandOver
+from companion.inbound import Inbound
 from companion.limits_watch import LimitsWatch
 from companion.mission import warm_up, warm_up_replan
 from companion.navigator import Navigator
@@ -46,24 +49,18 @@ from companion.sdnotify import Notifier
 from companion.sendproc import SetpointProcess
 from companion.setpoints import (
     DeadlineScheduler,
-    Liveness,
     SetpointSender,
     Tick,
     YawPolicy,
     sleep_until,
 )
+from companion.stalls import StallWatch
+from companion.status import StatusReport
 from companion.supervisor import Supervisor
+from companion.tracking import Tracking
 from companion.wire import encode as enc
-from companion.wire.errors import InternalError, MessageError, Oversized, quote
 from companion.wire.mavlink import MavlinkLink
 from companion.wire.messages import (
-    Change,
-    Command,
-    Message,
-    MissionSpec,
-    ObstacleUpdate,
-    fence_at_home,
-    read,
     warm_validators,
 )
 from companion.wire.zenoh import ZenohIO
@@ -71,10 +68,6 @@ from planner_core import FloatArray, Trajectory, hold
 
 log = logging.getLogger("companion")
 
-INLINE_DECODE_BYTES = 4096
-# s: setpoints withheld after a stall for less than this (half PX4's default COM_OF_LOSS_T):
-# the autopilot still flies our plan, so the companion keeps control and holds
-STALL_HOLD_WITHIN = 0.5
 
 
 class Service:
@@ -106,12 +99,17 @@ class Service:
                                on_new_plan=self.publish_trajectory, on_latency=self._latency_event)
         self.navigator = Navigator(cfg, self.flight, self.control, self.runtime, self.report, self._position)
         self.commands = Commands(cfg, self.flight, self.control, self.link, self.navigator, self.report, self.runtime)
-        self.liveness = Liveness(cfg.setpoints.loop_stall_limit)
-        self.sender.liveness = self.liveness
+        self.tracking = Tracking(cfg, self.flight, self.control, self.link, self.navigator, self.report)
+        self.handover = HandOver(cfg, self.flight, self.control, self.link, self.navigator, self.report,
+                                 self.commands.cancel_sequence)
+        # the companion's own stalls: the loop's beat, setpoints that stop leaving
+        self.stalls = StallWatch(cfg, self.stop, self.report, self.link, self.control, self.flight, self.sender,
+                                 self.handover)
+        self.sender.liveness = self.stalls.liveness
         # what the supervisor decides to stop is stopped here: the stream, and any command sequence
         self.flight.connect(release=self.commands.release_control, stop_stream=self.control.release)
         self.watch = AutopilotWatch(cfg, self.flight, self.link, self.report,
-                                    on_position=self.commands.check_tracking, stalled=self._stalled)
+                                    on_position=self.tracking.check_tracking, stalled=self.stalls.stalled)
         self.link.on_message = self._on_mavlink
         # where the autopilot's local frame sits in the fleet frame ([fleet] origin; companion.fleet)
         self.fleet = FleetFrame(cfg.fleet)
@@ -126,25 +124,24 @@ class Service:
         self.commands.events_heard = self.watch.events_heard  # the arming-check report, for refusals
         self.watch.on_link_up = self._link_up
         self.navigator.limits = self.limits
-        self.link.on_ignored = self._mavlink_ignored
-        # lag compensation: a fixed lead, or "auto" (set by Commands from its estimate)
-        self.commands.steer_lead(self.sender)
+        self.inbound = Inbound(cfg, self.stop, self.report, self.link, self.fleet, self.runtime, self.tap,
+                               self.navigator, self.commands)
+        self.link.on_ignored = self.inbound.mavlink_ignored
+        # lag compensation: a fixed lead, or "auto" (set by Tracking from its estimate)
+        self.tracking.steer_lead(self.sender)
         self.zio: ZenohIO | None = None
         self.notifier = Notifier()
         self.gc = GcPacer()
         self.loop: asyncio.AbstractEventLoop | None = None
-        self.tracking_error: float | None = None
-        self.tasks: list[asyncio.Task[Any]] = []
+        self.status_report = StatusReport(
+            cfg, flight=self.flight, link=self.link, control=self.control, navigator=self.navigator,
+            tracking=self.tracking, sender=self.sender, limits=self.limits, gc=self.gc, stalls=self.stalls,
+            tap=self.tap, fleet=self.fleet, deconfliction=self.deconfliction,
+            session=lambda: self.zio.zid if self.zio is not None else None)
         self._traj_seq = 0
         self._traj_published = 0
         self._traj_bytes: bytes | None = None
         self._sender_failure: asyncio.Future[None] | None = None
-        self._ordered: asyncio.Queue[tuple[str, bytes | Oversized, float]] = asyncio.Queue()
-        self._missions: list[asyncio.Task[Any]] = []  # mission handlers not yet done
-        self._drops = 0
-        self._drop_said = -math.inf
-        self._wrong_said: dict[str, float] = {}  # key expression -> when its refusal was said
-        self.setpoints_stalled = False
         self._ticked = asyncio.Event()
         self._log_listener: Any = None
         self._handed_over = False  # the last run's hand-over (said in the `stopped` event)
@@ -157,7 +154,7 @@ class Service:
     def _publish(self, key: str, body: dict[str, Any]) -> None:
         if self.zio is not None:
             # which companion said it: clients check it against the session that answers
-            # their status query (companion.__main__, `send`/`watch`)
+            # their status query (companion.cli_send, companion.cli_watch)
             self.zio.publish(key, {**body, "session": self.zio.zid})
         if key == "events" and (body.get("type") == "mission_complete" or (
                 body.get("type") in ("accepted", "rejected") and body.get("key") in ("mission", "change"))):
@@ -308,6 +305,9 @@ class Service:
                 if self.zio is not None:
                     self.zio.publish("status", self.status())
 
+    def status(self) -> dict[str, Any]:
+        return self.status_report.build()
+
     def _on_mavlink(self, kind: str, msg: Any) -> None:
         self.watch.on_message(kind, msg)
         if kind in ("GPS_GLOBAL_ORIGIN", "HOME_POSITION") and self.fleet.enabled:
@@ -316,306 +316,12 @@ class Service:
             if said is not None:
                 self.report.event("fleet_frame", said, **(self.fleet.status() or {}))
 
-    def status(self) -> dict[str, Any]:
-        st, ctl = self.link.state, self.control
-        # measured position against the setpoint of the measurement's own time (Commands)
-        self.tracking_error = self.commands.tracking_error if ctl.streaming else None
-        return {
-            "vehicle": self.cfg.vehicle.id,
-            "session": self.zio.zid if self.zio is not None else None,
-            "time": round(time.time(), 3),
-            "state": self.flight.state.value,
-            "airborne": self.flight.airborne,
-            "autopilot": st.autopilot,
-            "mode": st.mode,
-            # a disarmed PX4 reports its last user mode (OFFBOARD after an offboard landing):
-            # that flies nothing
-            "active_mode": st.mode if st.armed else None,
-            "armed": st.armed,
-            "origin": "local",
-            "home": enc.vec(st.home) if st.home is not None else None,
-            # a usable LOCAL_POSITION_NED: real ArduCopter reports home ~22 s before its first one
-            "position_ok": st.position_problem() is None,
-            "geofence": self._geofence(),
-            "ground_z": enc.num(self.flight.ground_z),
-            "link": self.link.link_ok() if self.flight.seen_link else False,
-            "streaming": ctl.streaming,
-            **self.navigator.status_fields(),
-            "tracking_error": enc.num(self.tracking_error),
-            "tracking_error_max": enc.num(self.commands.tracking_error_max),
-            "lead_ms": round(self.sender.lead * 1000, 1),
-            "lag_estimate_ms": enc.ms(self.commands.lag_estimate),
-            "tracking_allowance": self.cfg.planner.tracking_allowance,
-            **self._limits_status(),
-            "message_to_setpoint_ms": enc.ms(ctl.setpoint_latency),
-            "setpoints_sent": self.link.sent_setpoints,
-            "setpoint_gap_max_ms": round(ctl.setpoint_gap_max * 1000, 2),
-            "setpoint_period_ms": ctl.period_stats(),
-            "gc_pause_max_ms": round(self.gc.worst * 1000, 2),
-            "setpoints_stalled": self.setpoints_stalled,
-            **self.tap.status_fields(),
-            "mavlink_ignored": dict(self.link.gate.ignored) if self.link.gate is not None else {},
-            "fleet": self._fleet_status(),
-        }
-
-    def _fleet_status(self) -> dict[str, Any] | None:
-        st = self.fleet.status()
-        sep = self.deconfliction.status()
-        return st if st is None or sep is None else {**st, "deconfliction": sep}
-
-    def _limits_status(self) -> dict[str, Any]:
-        """The autopilot's limits (each with its source) and the bounds flown because of them."""
-        lim = self.limits.assumed()
-        b = self.limits.default_bounds()
-        return {
-            "autopilot_limits": None if lim is None else {
-                **lim.as_status(), "read": self.limits.limits is not None, "headroom": self.limits.headroom},
-            "bounds_flown": {name: {"lo": [round(float(x), 4) for x in b.lo[i]],
-                                    "hi": [round(float(x), 4) for x in b.hi[i]],
-                                    "horizontal": enc.num(float(b.horizontal[i]))}
-                             for i, name in enumerate(("velocity", "acceleration", "jerk", "snap"))},
-        }
-
-    def _geofence(self) -> dict[str, Any]:
-        """The geofence box in use, in the local frame, and what it is relative to."""
-        home = self.link.state.home
-        fence = fence_at_home(self.cfg, home).geofence
-        follows = self.cfg.geofence.origin == "home" and home is not None
-        return {"min": enc.vec(np.asarray(fence.min)), "max": enc.vec(np.asarray(fence.max)),
-                "relative_to": "home" if follows else "local"}
-
-    # -- inbound messages: one reader per kind ------------------------------------------------------
-
-    async def inbox_loop(self) -> None:
-        """Small obstacle messages (pop-ups) are handled at once; the rest keep their order in
-        `ordered_loop`, where one large mission may take a while to validate: a pop-up must not
-        wait behind it. (Obstacle updates do not depend on a mission being loaded first: a
-        mission is planned against the obstacles known when it is planned.) Nothing a message
-        does ends this loop: the last-resort guard turns it into a rejection and an error."""
-        assert self.zio is not None
-        self.zio.on_dropped = self._dropped
-        while not self.stop.is_set():
-            kind, payload, arrived = await self.zio.inbox.get()
-            try:
-                self.tap.inbound(kind, payload, arrived)
-                if kind == "obstacles" and len(payload) <= INLINE_DECODE_BYTES:
-                    self._dispatch(kind, payload, arrived, read(kind, payload, self.cfg, self.link.state.home,
-                                                                fleet=self.fleet.for_messages()))
-                elif self._ordered.qsize() >= self.cfg.limits.max_queued_messages:
-                    self._dropped(kind, len(payload))
-                else:
-                    self._ordered.put_nowait((kind, payload, arrived))
-            except Exception as exc:
-                self._unforeseen(kind, payload, exc)
-            # one message per loop step: a backlog of small messages decoded here must not
-            # hold up the timers (periodic status, stall checks) behind it
-            await asyncio.sleep(0)
-
-    async def ordered_loop(self) -> None:
-        while not self.stop.is_set():
-            kind, payload, arrived = await self._ordered.get()
-            # JSON Schema validation is pure Python (~0.1 ms per waypoint): large messages off
-            # the loop, small ones (a command: well under a millisecond) right here, which
-            # spares two thread hand-offs. One message at a time, so the order is kept.
-            try:
-                assert self.loop is not None
-                job = functools.partial(read, kind, payload, self.cfg, self.link.state.home,
-                                        home_pending=self.link.state.home_pending,
-                                        fleet=self.fleet.for_messages())
-                msg = job() if len(payload) <= INLINE_DECODE_BYTES else \
-                    await self.loop.run_in_executor(self.runtime.decode_pool, job)
-                self._dispatch(kind, payload, arrived, msg)
-            except Exception as exc:
-                self._unforeseen(kind, payload, exc)
-
-    def _unforeseen(self, kind: str, payload: bytes | Oversized, exc: BaseException) -> None:
-        """The last resort at the loop boundary: a rejection and an error event, never an exit."""
-        log.error("message on %s: unforeseen %r", kind, exc, exc_info=exc)
-        what = f"{type(exc).__name__}: {quote(str(exc))}"
-        with contextlib.suppress(Exception):
-            self.report.reject(kind, "", f"internal error while handling the message: {what}", bytes=len(payload))
-            self.report.event("error", f"{kind}: internal error while handling a message: {what}; "
-                              "holding the current plan", key=kind)
-
-    def _dropped(self, kind: str, size: int) -> None:
-        """A message refused because the inbound queues are full: said at most once a second."""
-        self._drops += 1
-        now = time.monotonic()
-        if now - self._drop_said >= 1.0:
-            n, self._drops, self._drop_said = self._drops, 0, now
-            lim = self.cfg.limits.max_queued_messages
-            self.report.reject(kind, "", f"{n} message(s) dropped: {lim} messages are already queued "
-                               f"([limits] max_queued_messages = {lim})", bytes=size, dropped=n)
-
-    def _refused(self, counts: dict[str, int]) -> None:
-        """Messages refused on arrival over `[limits] inbound_rate`: one event for all of them."""
-        lim = self.cfg.limits
-        total = sum(counts.values())
-        each = ", ".join(f"{n} on {k}" for k, n in sorted(counts.items()))
-        self.report.reject(next(iter(sorted(counts))) if len(counts) == 1 else "", "",
-                           f"{total} message(s) refused on arrival ({each}): more than {lim.inbound_burst:g} at once "
-                           f"or {lim.inbound_rate:g} a second per key ([limits] inbound_rate, inbound_burst)",
-                           refused=counts)
-
-    def _mavlink_ignored(self, counts: dict[str, int], rebound: str | None) -> None:
-        """MAVLink messages not from the bound autopilot (never acted on), or a re-bind."""
-        gate = self.link.gate
-        if rebound is not None:
-            self.report.event("mavlink_peer", f"the autopilot's address changed ({rebound}) after its old address "
-                              f"was silent for over {self.cfg.mavlink.link_timeout:g} s ([mavlink] link_timeout): "
-                              "re-bound to it", rebound=rebound)
-            return
-        words = {"other_address": "from another address than the autopilot's",
-                 "other_id": "from another system or component id",
-                 "unsigned": "unsigned or not signed with our key ([mavlink] require_signed_inbound)",
-                 "before_binding": "before the autopilot's first heartbeat"}
-        where = f" (bound to {gate.address[0]}:{gate.address[1]})" if gate is not None and gate.address else ""
-        text = "; ".join(f"{n} {words.get(why, why)}" for why, n in counts.items())
-        self.report.event("mavlink_ignored", f"MAVLink messages ignored, not from the autopilot "
-                          f"{self.cfg.vehicle.sysid}/{self.cfg.vehicle.autopilot_component}{where}: {text}",
-                          ignored=counts, total=dict(gate.ignored) if gate is not None else None)
-
-    def _wrong_key(self, kind: str, key: str, size: int) -> None:
-        """A put on a key expression other than this vehicle's exact key: never acted on. One
-        event per key expression a second (a put on `bezier/drone1/*` reaches all four kinds)."""
-        now = time.monotonic()
-        if now - self._wrong_said.get(key, -math.inf) < 1.0:
-            return
-        if len(self._wrong_said) > 64:  # bounded: a peer may try many expressions
-            self._wrong_said = {k: t for k, t in self._wrong_said.items() if now - t < 1.0}
-        self._wrong_said[key] = now
-        self.report.reject(kind, "key_expr", f"a put on key expression {quote(key, 80)} is refused: only this "
-                           f"vehicle's exact keys ({self.cfg.key('<kind>')}) are acted on, never a wildcard or a "
-                           "key matching several vehicles or kinds (send one put per vehicle)",
-                           key_expr=key[:100], bytes=size)
-
-    def _dispatch(self, kind: str, payload: bytes | Oversized, arrived: float, msg: Message | MessageError) -> None:
-        if isinstance(msg, MessageError):
-            self.report.reject(kind, msg.field, msg.reason, bytes=len(payload))
-            if isinstance(msg, InternalError):
-                self.report.event("error", f"{kind}: {msg.reason}; holding the current plan", key=kind)
-            return
-        handler: Any
-        if isinstance(msg, MissionSpec):
-            self._missions = [t for t in self._missions if not t.done()]
-            lim = self.cfg.limits.max_pending_missions
-            if len(self._missions) >= lim:
-                self.report.reject(kind, "", f"mission {msg.id}: {len(self._missions)} missions are already being "
-                                   f"checked or planned ([limits] max_pending_missions = {lim})", mission=msg.id)
-                return
-            handler = self.navigator.on_mission
-        elif isinstance(msg, ObstacleUpdate):
-            handler = self.navigator.on_obstacles
-        elif isinstance(msg, Change):
-            handler = self.navigator.on_change
-        elif isinstance(msg, Command):
-            handler = self.commands.on_command
-        else:  # pragma: no cover - read() makes only these
-            raise TypeError(f"no handler for {type(msg).__name__}")
-        task = asyncio.create_task(self._guard(kind, handler(msg, arrived)))
-        if isinstance(msg, MissionSpec):
-            self._missions.append(task)
-        self.tasks.append(task)
-        self.tasks = [t for t in self.tasks if not t.done()]
-
-    # -- the setpoint-stream watchdog ---------------------------------------------------------------
-
-    async def setpoint_watchdog(self) -> None:
-        """Notices when setpoints stop leaving while streaming (the setpoint thread stalled or
-        its sends fail), and when this loop itself was held up: status (`setpoints_stalled`) and
-        an `error` event say so, and `setpoints_resumed` when they flow again. (A hung loop is
-        systemd's watchdog's: it is fed only from setpoint ticks handled on the loop.)"""
-        period = 1.0 / self.cfg.setpoints.rate_hz
-        limit = max(0.1, 5 * period)
-        count, since = self.link.sent_setpoints, time.monotonic()
-        expected = since + period
-        while not self.stop.is_set():
-            await asyncio.sleep(period)
-            now = time.monotonic()
-            if now - expected > 0.25:
-                self.report.event("error", f"the event loop was held up for {(now - expected) * 1000:.0f} ms",
-                                  loop_stall_ms=round((now - expected) * 1000, 1))
-            expected = now + period
-            n = self.link.sent_setpoints
-            if n != count or not self.control.streaming:
-                if self.setpoints_stalled:
-                    self.setpoints_stalled = False
-                    self.report.event("setpoints_resumed", f"setpoints leave again after {(now - since) * 1000:.0f} ms",
-                                      silence_ms=round((now - since) * 1000, 1))
-                count, since = n, now
-            elif not self.setpoints_stalled and now - since > limit:
-                self.setpoints_stalled = True
-                self.report.event("error", f"setpoints stopped leaving: none sent for {(now - since) * 1000:.0f} ms "
-                                  "while streaming", silence_ms=round((now - since) * 1000, 1))
-
-    # -- the companion's own liveness ------------------------------------------------------------
+    # -- the autopilot found --------------------------------------------------------------------
 
     def _link_up(self, why: str) -> None:
         """The autopilot found (link-up, reconnect): its limits read, the lead it starts with."""
         self.limits.read(why)
-        self.commands.autopilot_found()
-
-    def _stalled(self) -> bool:
-        """The companion is stalled or just woke from a stall (see setpoints.Liveness); not
-        before the setpoint thread runs (the warm-up does not beat)."""
-        if self.sender.native_id is None:
-            return False
-        return self.liveness.stale() or self.sender.withheld
-
-    async def loop_liveness(self) -> None:
-        """Beats every setpoint period, so the setpoint thread knows the loop runs. When this
-        loop did not run for `[setpoints] loop_stall_limit`, or the setpoint thread withheld
-        setpoints (it saw the loop, or itself, stall): say that the companion - not the link -
-        caused the episode, and deal with it before setpoints leave again. Setpoints silent for
-        under STALL_HOLD_WITHIN: the autopilot still flies our plan; stop the mission and hold
-        (it waits for `resume`). Longer: the autopilot may have left OFFBOARD on its own;
-        release control (FAILSAFE; the autopilot is asked to hold) and wait for `start`."""
-        period = 1.0 / self.cfg.setpoints.rate_hz
-        limit = self.cfg.setpoints.loop_stall_limit
-        live = self.liveness
-        live.beat()
-        was = self.flight.state
-        while not self.stop.is_set():
-            await asyncio.sleep(period)
-            gap = live.beat()
-            withheld = live.withheld
-            if gap <= limit and withheld is None:
-                was = self.flight.state  # as it was before any stall
-                continue
-            now = time.monotonic()
-            what = "the setpoint thread" if withheld is not None and withheld[1] == "thread" else "its event loop"
-            stall = max(gap, withheld[2] if withheld is not None else 0.0)
-            silence = now - live.last_sent
-            reason = f"the companion stalled ({what} did not run for {stall * 1000:.0f} ms)"
-            if not self.flight.controlling:
-                reaction = "not in control"
-            elif withheld is not None and silence >= STALL_HOLD_WITHIN:
-                self.commands.after_stall(reason)
-                reaction = "released control"
-            else:
-                reaction = self.commands.hold_after_stall(reason)
-            live.release()
-            link = self.link.link_ok()
-            silent = (f"setpoints were withheld for {silence * 1000:.0f} ms" if withheld is not None
-                      else "no setpoint was withheld")
-            self.report.event(
-                "stalled", f"{reason} while {was.value}: cause the companion, not the link (the autopilot "
-                f"{'is heard' if link else 'is not heard either'}); {silent}; {reaction}; now "
-                f"{self.flight.state.value}, mode {self.link.state.mode}",
-                cause="companion", stalled=what.removeprefix("its ").replace(" ", "_"), stall_ms=round(stall * 1000, 1),
-                setpoints_withheld=withheld is not None,
-                silence_ms=enc.ms(silence, 1) if withheld is not None else None,
-                previous_state=was.value, link=link, mode=self.link.state.mode)
-            was = self.flight.state
-
-    async def _guard(self, kind: str, coro: Any) -> None:
-        try:
-            await coro
-        except asyncio.CancelledError:
-            raise
-        except Exception as exc:  # a bug in one handler must not stop the service
-            log.exception("handler for %s failed", kind)
-            self.report.event("error", f"{kind}: internal error: {exc!r}; holding the current plan", key=kind)
+        self.tracking.autopilot_found()
 
     # -- run ----------------------------------------------------------------------------------------
 
@@ -659,9 +365,9 @@ class Service:
                         failure = t.exception()
                 self.notifier.stopping()
                 # No new message is taken from now on; what was being handled is cancelled.
-                for t in [*inbound, *self.tasks]:
+                for t in [*inbound, *self.inbound.tasks]:
                     t.cancel()
-                await asyncio.gather(*inbound, *self.tasks, return_exceptions=True)
+                await asyncio.gather(*inbound, *self.inbound.tasks, return_exceptions=True)
                 why = "stop requested" if failure is None else f"internal failure ({failure})"
                 if failure is not None:
                     log.critical("%s: handing the vehicle over to the autopilot", why)
@@ -685,11 +391,10 @@ class Service:
         # switch interval bounds how long the setpoint thread can wait for it.
         sys.setswitchinterval(0.0005)
         self.zio = ZenohIO(self.cfg, self.loop)
-        self.zio.on_refused = self._refused
+        self.inbound.attach(self.zio)
         self.zio.tap = self.tap
         undo.callback(self.tap.close)
         self.tap.open()
-        self.zio.on_wrong_key = self._wrong_key
         undo.callback(self.zio.close)
         self.zio.open({"plan": self.query_plan, "status": self.query_status})
         if self.deconfliction.enabled:
@@ -708,7 +413,7 @@ class Service:
         assert self.loop is not None
         self.gc.start(time.monotonic())
         self._sender_failure = self.loop.create_future()
-        self.liveness.beat()  # the warm-up above is not a stall
+        self.stalls.liveness.beat()  # the warm-up above is not a stall
         undo.callback(self.sender.stop)
         self.sender.start(rtsched.starter())
         undo.callback(self.control.release)  # nothing is streamed once the sender stops
@@ -717,10 +422,11 @@ class Service:
         log.info("setpoint %s: %.0f Hz, %s scheduling", "process" if self.cfg.setpoints.process else "thread",
                  self.cfg.setpoints.rate_hz, self.sender.scheduling)
         periodic = [asyncio.create_task(c) for c in (self.heartbeat_loop(), self.telemetry_loop(), self.status_loop(),
-                                                       self.setpoint_watchdog(), self.loop_liveness())]
+                                                       self.stalls.setpoint_watchdog(),
+                                                       self.stalls.loop_liveness())]
         if self.deconfliction.enabled:
             periodic.append(asyncio.create_task(self.fleet_loop()))
-        inbound = [asyncio.create_task(c) for c in (self.inbox_loop(), self.ordered_loop())]
+        inbound = [asyncio.create_task(c) for c in (self.inbound.inbox_loop(), self.inbound.ordered_loop())]
         sender = asyncio.ensure_future(self._sender_failure)
         runners: list[asyncio.Future[Any]] = [*periodic, *inbound, sender]
         self._runners = runners
@@ -731,19 +437,20 @@ class Service:
     async def _cancel(self) -> None:
         seq = self.commands.task
         runners = self._runners
-        for t in [*runners, *self.tasks, *([seq] if seq else [])]:
+        handlers = self.inbound.tasks
+        for t in [*runners, *handlers, *([seq] if seq else [])]:
             t.cancel()
-        await asyncio.gather(*runners, *self.tasks, return_exceptions=True)
+        await asyncio.gather(*runners, *handlers, return_exceptions=True)
 
     def _report_stopped(self) -> None:
         with contextlib.suppress(Exception):
             self.report.event("stopped", "companion stopping", handed_over=self._handed_over)
 
     async def _hand_over(self, why: str, can_brake: bool) -> bool:
-        """`Commands.hand_over`, bounded by `[safety] exit_timeout` and given up on `abandon`."""
-        job = asyncio.create_task(self.commands.hand_over(why, can_brake=can_brake))
+        """`HandOver.hand_over`, bounded by `[safety] exit_timeout` and given up on `abandon`."""
+        job = asyncio.create_task(self.handover.hand_over(why, can_brake=can_brake))
         quit_now = asyncio.create_task(self.abandon.wait())
-        timeout = self.commands.hold_profile().exit_timeout  # per autopilot; [safety] exit_timeout overrides
+        timeout = self.handover.hold_profile().exit_timeout  # per autopilot; [safety] exit_timeout overrides
         done, _ = await asyncio.wait([job, quit_now], timeout=timeout,
                                      return_when=asyncio.FIRST_COMPLETED)
         quit_now.cancel()

@@ -6,7 +6,7 @@ from __future__ import annotations
 def test_wait_for_ready_needs_home_and_a_position() -> None:
     """`watch --wait-for ready` (README walkthrough, demo): real ArduCopter reports home ~22 s
     before its first LOCAL_POSITION_NED, and `start` is refused without a position."""
-    from companion.__main__ import status_reached
+    from companion.cli_watch import status_reached
 
     assert not status_reached({"home": [0.0, 0.0, 0.0], "position_ok": False}, "ready")
     assert status_reached({"home": [0.0, 0.0, 0.0], "position_ok": False}, "home")

@@ -149,7 +149,7 @@ def test_fleet_config() -> None:
 def test_fleet_tool_says_when_a_vehicles_clock_is_off() -> None:
     """`python -m companion fleet`: the vehicle's status time against this computer's clock,
     said when it is off by more than the vehicle's [fleet] clock_tolerance beyond the round trip."""
-    from companion.__main__ import clock_warning
+    from companion.cli_fleet import clock_warning
 
     status = {"fleet": {"clock_tolerance": 0.05}}
     ok = {"vehicle": "a", "status": status, "clock_offset_ms": 60.0, "clock_uncertainty_ms": 15.0}

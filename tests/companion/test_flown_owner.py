@@ -165,7 +165,7 @@ def test_the_braking_deadline_and_the_lead_have_one_writer_each() -> None:
     lead = [(p, line.strip()) for p, t in src.items() for line in t.splitlines()
             if re.search(r"\.lead\s*=[^=]", line) and not line.strip().startswith(("#", '"', "`"))
             and "setpoints.lead =" not in line]
-    # the sender's own initial zero, and Commands._set_lead
-    assert sorted(lead) == [("commands.py", "self.lead_target.lead = lead"),
-                            ("setpoints.py", "self.lead = 0.0  # s: setpoints are sampled this far ahead on the "
-                                             "trajectory (lag compensation)")], lead
+    # the sender's own initial zero, and Tracking._set_lead
+    assert sorted(lead) == [("setpoints.py", "self.lead = 0.0  # s: setpoints are sampled this far ahead on the "
+                                             "trajectory (lag compensation)"),
+                            ("tracking.py", "self.lead_target.lead = lead")], lead

@@ -18,10 +18,9 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from companion.config import Config
+from companion.wire.errors import MAX_QUOTE, MAX_REASON
 from companion.wire.messages import (
     KINDS,
-    MAX_QUOTE,
-    MAX_REASON,
     Change,
     Command,
     InternalError,

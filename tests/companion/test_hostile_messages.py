@@ -11,13 +11,13 @@ from typing import Any
 import numpy as np
 import pytest
 
-from companion import service as service_mod
 from companion.config import Config, LimitsConfig, config_from_dict
+from companion.inbound import Inbound
 from companion.obstacles import ObstacleStore
 from companion.tap import NO_TAP
-from companion.wire import messages
+from companion.wire import decode, messages
+from companion.wire.errors import MAX_REASON
 from companion.wire.messages import (
-    MAX_REASON,
     Command,
     InternalError,
     MessageError,
@@ -106,7 +106,7 @@ def test_oversized_payload_is_refused_from_its_size() -> None:
 def test_commands_take_only_their_fields() -> None:
     assert read("command", b'{"command": "takeoff", "altitude": 3}', CFG) == Command("takeoff", 3.0)
     assert read("command", b'{"command": "arm"}', CFG) == Command("arm", None)
-    assert messages.schema("command")["else"] == {"properties": {"altitude": False, "origin": False}}
+    assert decode.schema("command")["else"] == {"properties": {"altitude": False, "origin": False}}
 
 
 def test_limits_are_configurable_and_named() -> None:
@@ -174,12 +174,12 @@ def test_loop_boundary_guard_reports_and_goes_on() -> None:
     stop = asyncio.Event()
     fake = SimpleNamespace(
         zio=SimpleNamespace(inbox=inbox, on_dropped=None), stop=stop, cfg=CFG, report=report,
-        link=SimpleNamespace(state=SimpleNamespace(home=None)), _ordered=asyncio.Queue(), _dispatch=dispatch, _dropped=lambda *a: None,
+        link=SimpleNamespace(state=SimpleNamespace(home=None)), _ordered=asyncio.Queue(), dispatch=dispatch, _dropped=lambda *a: None,
         tap=NO_TAP, fleet=SimpleNamespace(for_messages=lambda: None))
-    fake._unforeseen = lambda kind, payload, exc: service_mod.Service._unforeseen(fake, kind, payload, exc)  # type: ignore[arg-type]
+    fake._unforeseen = lambda kind, payload, exc: Inbound._unforeseen(fake, kind, payload, exc)  # type: ignore[arg-type]
 
     async def main() -> None:
-        task = asyncio.create_task(service_mod.Service.inbox_loop(fake))  # type: ignore[arg-type]
+        task = asyncio.create_task(Inbound.inbox_loop(fake))  # type: ignore[arg-type]
         inbox.put_nowait(("obstacles", b"boom", 0.0))
         inbox.put_nowait(("obstacles", b'{"clear": true}', 0.0))
         await asyncio.sleep(0.05)
@@ -219,7 +219,7 @@ def test_a_full_inbox_drops_and_says_so_once_a_second() -> None:
     async def main() -> None:
         zio = ZenohIO(cfg, asyncio.get_running_loop())
         fake = SimpleNamespace(cfg=cfg, report=report, _drops=0, _drop_said=-1e9)
-        zio.on_dropped = lambda kind, size: service_mod.Service._dropped(fake, kind, size)  # type: ignore[arg-type]
+        zio.on_dropped = lambda kind, size: Inbound._dropped(fake, kind, size)  # type: ignore[arg-type]
         for _ in range(10):
             zio._enqueue("command", b"{}", 0.0)
         assert zio.inbox.qsize() == 3 and zio.dropped == 7

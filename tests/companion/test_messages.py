@@ -4,7 +4,8 @@ import json
 
 import pytest
 
-from companion.wire.messages import KINDS, MessageError, check_geofence, decode, schema
+from companion.wire.decode import check_geofence, decode, schema
+from companion.wire.messages import KINDS, MessageError
 
 
 def rejected(kind: str, payload: bytes | dict, max_bytes: int = 1 << 20) -> MessageError:

@@ -12,7 +12,8 @@ from typing import Any
 
 import pytest
 
-from companion.wire.messages import KINDS, schema
+from companion.wire.decode import schema
+from companion.wire.messages import KINDS
 
 DOC = (Path(__file__).resolve().parents[2] / "docs" / "protocol.md").read_text()
 

@@ -225,7 +225,7 @@ def test_a_sink_that_fails_mid_flight_is_given_up_once(tmp_path: Path) -> None:
 
 def test_the_systemd_units_recording_directory_is_the_default_unless_the_file_says(tmp_path: Path,
                                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
-    from companion.__main__ import RECORDING_ENV, recording_default
+    from companion.cli_run import RECORDING_ENV, recording_default
     from companion.config import load_config
 
     monkeypatch.setenv(RECORDING_ENV, "/var/lib/bezier-companion/uav1")
@@ -241,7 +241,7 @@ def test_the_systemd_units_recording_directory_is_the_default_unless_the_file_sa
 
 
 def test_the_systemd_unit_records_into_its_state_directory() -> None:
-    from companion.__main__ import RECORDING_ENV
+    from companion.cli_run import RECORDING_ENV
 
     unit = (Path(__file__).resolve().parents[2] / "systemd" / "bezier-companion@.service").read_text()
     lines = [ln.strip() for ln in unit.splitlines()]

@@ -7,7 +7,7 @@ from types import SimpleNamespace
 from typing import Any
 
 from companion.config import Config
-from companion.service import Service
+from companion.stalls import StallWatch
 
 
 class _Report:
@@ -24,7 +24,7 @@ def test_watchdog_reports_a_stall_and_the_resumption() -> None:
                            link=SimpleNamespace(sent_setpoints=0), control=SimpleNamespace(streaming=True))
 
     async def main() -> None:
-        task = asyncio.create_task(Service.setpoint_watchdog(fake))  # type: ignore[arg-type]
+        task = asyncio.create_task(StallWatch.setpoint_watchdog(fake))  # type: ignore[arg-type]
         for _ in range(10):  # flowing: 50 Hz
             fake.link.sent_setpoints += 1
             await asyncio.sleep(0.02)

@@ -355,7 +355,7 @@ def _send_as(port: int, tmp: Path, user: str) -> subprocess.CompletedProcess[str
 def test_send_through_the_router_tells_an_observers_denial(router: int, tmp_path: Path) -> None:
     """Through the secured router, `send` as an observer exits 7 (denied by access control);
     as an operator the (test's silent) companion receives it: 6, not done in time."""
-    from companion.__main__ import EXIT_ACCESS_DENIED, EXIT_UNFINISHED
+    from companion.cli_client import EXIT_ACCESS_DENIED, EXIT_UNFINISHED
 
     d2 = _client(router, "drone2", USERS["drone2"])
     assert d2 is not None

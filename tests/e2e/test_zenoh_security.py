@@ -257,7 +257,7 @@ def _send_as(companion: Any, tmp_path: Path, user: str, password: str) -> subpro
 
 
 def test_send_reports_an_observers_command_as_denied(companion: Any, tmp_path: Path) -> None:
-    from companion.__main__ import EXIT_ACCESS_DENIED, EXIT_UNFINISHED
+    from companion.cli_client import EXIT_ACCESS_DENIED, EXIT_UNFINISHED
 
     denied = _send_as(companion, tmp_path, "observer", "obs-secret")
     assert denied.returncode == EXIT_ACCESS_DENIED, denied.stderr

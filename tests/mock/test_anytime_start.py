@@ -55,7 +55,7 @@ def fly(tmp_path: Path, anytime: bool, during: Any = None,
             await until(lambda: svc.link.state.position_problem() is None, 20, "position")
             await svc.commands.takeoff(2.0)
             t0 = time.monotonic()
-            svc._dispatch("mission", b"", t0, read("mission", mission("any"), svc.cfg))
+            svc.inbound.dispatch("mission", b"", t0, read("mission", mission("any"), svc.cfg))
             await until(lambda: events.of("accepted") or events.of("rejected"), 30, "the mission answered")
             assert not events.of("rejected"), events.of("rejected")
             route = svc.navigator.route

@@ -115,8 +115,8 @@ def test_after_a_long_stall_ardupilot_is_asked_for_brake_not_loiter(tmp_path: Pa
 
 
 def test_a_pilot_is_known_present_only_from_a_live_centred_transmitter_or_the_config() -> None:
-    from companion.commands import Commands
     from companion.config import config_from_dict
+    from companion.handover import HandOver
     from companion.report import Reporter
     from companion.supervisor import Supervisor
     from companion.wire.mavlink import MavlinkLink
@@ -129,8 +129,9 @@ def test_a_pilot_is_known_present_only_from_a_live_centred_transmitter_or_the_co
             link.state.rc_throttle, link.state.last_rc = throttle, time.monotonic() - age
         said: list[dict[str, Any]] = []
         flight = Supervisor()
-        cmds = Commands(cfg, flight, None, link, None, Reporter(flight, lambda k, b: said.append(b)))  # type: ignore[arg-type]
-        return cmds.exit_plan(stream_works=True)[0]
+        handover = HandOver(cfg, flight, None, link, None,  # type: ignore[arg-type]
+                            Reporter(flight, lambda k, b: said.append(b)), lambda: None)
+        return handover.exit_plan(stream_works=True)[0]
 
     loiter = {"exit_pilot_mode": "LOITER"}
     assert plan(loiter, None) == "GUIDED"  # no RC heard: no pilot

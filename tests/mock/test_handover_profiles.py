@@ -15,7 +15,8 @@ from typing import Any
 import numpy as np
 from companionkit import Events, service_for, up
 
-from companion.config import HOLD_PROFILES, config_from_dict, hold_profile
+from companion.config import config_from_dict
+from companion.handover import HOLD_PROFILES, hold_profile
 from sitl_mock import MockAutopilot, MockConfig
 
 

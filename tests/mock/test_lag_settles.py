@@ -75,7 +75,7 @@ async def _fly(mock: MockAutopilot) -> dict[str, Any]:
             raise AssertionError([(e["type"], e["message"]) for e in events.all]) from None
         t_start = mock.t
         while svc.flight.state.value == "STREAMING":
-            samples.append((time.monotonic(), svc.commands.lag_estimate, svc.sender.lead, svc.flight.state.value))
+            samples.append((time.monotonic(), svc.tracking.lag_estimate, svc.sender.lead, svc.flight.state.value))
             await asyncio.sleep(0.1)
         t_end = mock.t
         status = svc.status()

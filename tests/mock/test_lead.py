@@ -39,8 +39,8 @@ async def _fly(mock: MockAutopilot, lead: Any) -> tuple[float, Any, float]:
 
     def record(now: float) -> None:
         sample(now)
-        if svc.flight.state.value == "STREAMING" and svc.commands.tracking_error is not None:
-            errors.append(svc.commands.tracking_error)
+        if svc.flight.state.value == "STREAMING" and svc.tracking.tracking_error is not None:
+            errors.append(svc.tracking.tracking_error)
 
     svc.watch.on_position_sample = record
     async with serving(svc):

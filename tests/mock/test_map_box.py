@@ -32,8 +32,8 @@ async def _send(svc: Service, events: Events, body: dict[str, Any]) -> dict[str,
     n = len(events.all)
     payload = json.dumps(body).encode()
     st = svc.link.state
-    svc._dispatch("mission", payload, time.monotonic(),
-                  read("mission", payload, svc.cfg, st.home, home_pending=st.home_pending))
+    svc.inbound.dispatch("mission", payload, time.monotonic(),
+                          read("mission", payload, svc.cfg, st.home, home_pending=st.home_pending))
     await until(lambda: any(e.get("key") == "mission" for e in events.all[n:]), 30, "the mission's answer")
     return next(e for e in events.all[n:] if e.get("key") == "mission")
 

@@ -74,7 +74,7 @@ def test_missions_replaced_in_flight_are_all_flown(tmp_path: Path, cpu_hog: Any)
             try:
                 for i, (mid, n) in enumerate(zip(ids, sizes, strict=True)):
                     sent = time.monotonic()
-                    svc._dispatch("mission", b"", sent, read("mission", mission(mid, n, 0.7 * i), svc.cfg))
+                    svc.inbound.dispatch("mission", b"", sent, read("mission", mission(mid, n, 0.7 * i), svc.cfg))
                     await until(lambda mid=mid: answered(mid), 150, f"mission {mid} answered")  # type: ignore[misc]
                     await asyncio.sleep(max(0.0, 1.5 - (time.monotonic() - sent)))
                 await until(lambda: any(e.get("mission") == ids[-1] for e in events.of("mission_complete")), 60,

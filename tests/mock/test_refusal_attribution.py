@@ -12,7 +12,8 @@ from pathlib import Path
 
 from companionkit import Events, service_for, serving, until
 
-from companion.__main__ import EXIT_DENIED, EXIT_REFUSED, _outcome
+from companion.cli_client import EXIT_DENIED, EXIT_REFUSED
+from companion.cli_send import outcome
 from companion.wire.messages import Command, read
 from sitl_mock import ControlClient, MockAutopilot, MockConfig
 
@@ -49,7 +50,7 @@ def test_refusals_say_who_refused_and_send_exits_by_it(tmp_path: Path) -> None:
             assert refused["by"] == "companion", refused
             assert refused["reason"] == "vehicle is on the ground: send 'takeoff' first", refused
             assert [e["type"] for e in seen][:2] == ["accepted", "refused"]
-            assert _outcome("command", seen) == EXIT_REFUSED
+            assert outcome("command", seen) == EXIT_REFUSED
             assert not svc.link.state.in_follow_mode()  # the companion did not take control
 
             # the autopilot's own refusal: by autopilot, exit 5
@@ -62,7 +63,7 @@ def test_refusals_say_who_refused_and_send_exits_by_it(tmp_path: Path) -> None:
             await until(lambda: any(e["type"] == "refused" for e in events.all[mark:]), 15, "the arm refusal")
             denied = next(e for e in events.all[mark:] if e["type"] == "refused")
             assert denied["by"] == "autopilot" and denied["reason"].startswith("failed: "), denied
-            assert _outcome("command", events.all[mark:]) == EXIT_DENIED
+            assert outcome("command", events.all[mark:]) == EXIT_DENIED
 
     try:
         asyncio.run(go())
@@ -73,7 +74,7 @@ def test_refusals_say_who_refused_and_send_exits_by_it(tmp_path: Path) -> None:
 def test_send_exit_code_follows_by() -> None:
     """`by` decides; an event of a companion before `by` existed falls back on "failed:"."""
     ev = {"type": "refused", "key": "command", "reason": "failed: x"}
-    assert _outcome("command", [{**ev, "by": "companion"}]) == EXIT_REFUSED
-    assert _outcome("command", [{**ev, "by": "autopilot", "reason": "denied"}]) == EXIT_DENIED
-    assert _outcome("command", [ev]) == EXIT_DENIED
-    assert _outcome("command", [{**ev, "reason": "no mission"}]) == EXIT_REFUSED
+    assert outcome("command", [{**ev, "by": "companion"}]) == EXIT_REFUSED
+    assert outcome("command", [{**ev, "by": "autopilot", "reason": "denied"}]) == EXIT_DENIED
+    assert outcome("command", [ev]) == EXIT_DENIED
+    assert outcome("command", [{**ev, "reason": "no mission"}]) == EXIT_REFUSED

@@ -26,8 +26,8 @@ def test_no_tracking_event_while_arming_or_climbing(tmp_path: Path) -> None:
             worst = 0.0
             task = asyncio.create_task(svc.commands.takeoff(2.0))
             while not task.done():
-                if svc.flight.state.value in ("ARMING", "TAKEOFF") and svc.commands.tracking_error is not None:
-                    worst = max(worst, svc.commands.tracking_error)
+                if svc.flight.state.value in ("ARMING", "TAKEOFF") and svc.tracking.tracking_error is not None:
+                    worst = max(worst, svc.tracking.tracking_error)
                 await asyncio.sleep(0.02)
             await task
             assert worst > 0.2, worst  # the climb was over the allowance ...

@@ -36,7 +36,7 @@ def test_tracking_error_over_the_limit_brakes_and_holds(tmp_path: Path) -> None:
             try:
                 await until(lambda: events.of("tracking"), 20, "the tracking event")
             except AssertionError:
-                raise AssertionError(f"{svc.flight.state} max {svc.commands.tracking_error_max} "
+                raise AssertionError(f"{svc.flight.state} max {svc.tracking.tracking_error_max} "
                                      f"{[(e['type'], e['message']) for e in events.all][-8:]}") from None
             ev = events.of("tracking")[0]
             assert ev["error"] > ev["limit"] == 0.2 and ev["samples"] >= 3

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from companionkit import Events, service_for, serving, until
 
-from companion.commands import TRACKING_MAX_SHARE, TRACKING_RMS_SHARE
+from companion.tracking import TRACKING_MAX_SHARE, TRACKING_RMS_SHARE
 from companion.wire.messages import read
 from sitl_mock import MockAutopilot, MockConfig
 from sitl_mock.vehicle import RESPONSES

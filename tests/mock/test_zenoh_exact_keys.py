@@ -14,7 +14,7 @@ from typing import Any
 import zenoh
 from companionkit import Events, service_for, serving, until, zenoh_client
 
-from companion.__main__ import Origin
+from companion.cli_client import Origin
 from sitl_mock import MockAutopilot, MockConfig
 
 

@@ -319,8 +319,9 @@ def test_scenario_format_errors_name_the_field(bound: dict, field: str, words: s
 
 def test_mission_message_carries_norm_bounds() -> None:
     from companion.config import Config
+    from companion.wire.decode import decode
     from companion.wire.frames import scenario_to_ned
-    from companion.wire.messages import MessageError, bounds_from, decode
+    from companion.wire.messages import MessageError, bounds_from
 
     msg = {"id": "m", "frame": "enu", "waypoints": [[0, 0, 1], [5, 5, 2]],
            "bounds": {"velocity": {"horizontal": 5, "up": 2.5, "down": 1.5},

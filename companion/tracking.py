@@ -1,0 +1,199 @@
+"""How well the vehicle follows its setpoints, and the lead that makes up for its lag.
+
+Each position sample is measured against the setpoint of the measurement's own time: above
+`[planner] tracking_allowance` (the margin the obstacles are inflated by) for a few samples in
+a row while a plan is flown, the vehicle brakes to a verified stop and holds. The lag behind the
+setpoints is estimated from the same samples (companion.lag); with `[setpoints] lead = "auto"`
+the setpoints lead by it. This module is the one writer of the setpoints' lead.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+from typing import Any
+
+import numpy as np
+
+from companion.config import Config
+from companion.control import Control
+from companion.flight import State
+from companion.lag import LagEstimator, initial_lead
+from companion.navigator import Navigator
+from companion.report import Reporter
+from companion.supervisor import Supervisor
+from companion.wire.mavlink import MavlinkLink
+
+S = State
+LEAD_SLEW = 0.1  # s per s: how fast the auto lead follows the lag estimate (the setpoints run 10 % fast or slow)
+TRACKING_SAMPLES = 3  # position samples in a row above the limit (0.1 s at 30 Hz) before acting
+# The tracking measured in flight against [planner] tracking_allowance: an event when the RMS
+# over the last TRACKING_WINDOW samples (or the largest error) passes this share of it.
+TRACKING_WINDOW = 150  # position samples (~5 s at 30 Hz)
+TRACKING_RMS_SHARE = 0.5
+TRACKING_MAX_SHARE = 0.8
+
+
+class Tracking:
+    def __init__(self, cfg: Config, flight: Supervisor, control: Control, link: MavlinkLink, navigator: Navigator,
+                 report: Reporter) -> None:
+        self.cfg = cfg
+        self.flight = flight
+        self.control = control
+        self.link = link
+        self.nav = navigator
+        self.report = report
+        # tracking: measured position against the setpoint of the measurement's time
+        self.tracking_error: float | None = None
+        self.tracking_error_max = 0.0  # since the service started
+        self._over = 0  # consecutive samples above [planner] tracking_allowance
+        self._tracking_said = False
+        self._tracking_stop: asyncio.Task[None] | None = None
+        self._recent_errors: collections.deque[float] = collections.deque(maxlen=TRACKING_WINDOW)
+        self._nearing_said = False  # the tracking measured nears the allowance: said once per flight phase
+        # lag compensation: the vehicle's lag behind the setpoints it is sent, from telemetry
+        self.lag = LagEstimator(cap=cfg.setpoints.lead_max)
+        self._leads: collections.deque[tuple[float, float]] = collections.deque()  # (t, lead) sampled
+        self._lead_set_at: float | None = None
+        self.lead_target: Any = None  # the setpoint thread (its `lead` is set here only: steer_lead)
+
+    @property
+    def lag_estimate(self) -> float | None:
+        return self.lag.estimate
+
+    def _brake_name(self) -> str:
+        return "[safety] tracking_brake" if self.cfg.safety.tracking_brake else "[planner] tracking_allowance"
+
+    def check_tracking(self, measured_at: float) -> None:
+        """Each position sample: the time-aligned tracking error; above `[planner]
+        tracking_allowance` (the margin the obstacles are inflated by) for TRACKING_SAMPLES
+        samples in a row while a plan is flown: brake to a verified stop and hold (holding
+        already: say so once), with the figures. The measured RMS or max nearing the allowance
+        is said too (once per flight phase): the certificate assumes the allowance holds."""
+        st, ctl, fl = self.link.state, self.control, self.flight
+        err = ctl.tracking_error(st.position, measured_at) if fl.controlling else None
+        self.tracking_error = err
+        # Judged only in the air, flying or holding a plan of ours after the takeoff's climb
+        # (`flying_ours`: READY, STREAMING, HOLDING, BRAKING and airborne): on the ground and
+        # while arming, an estimate not yet settled (PX4 before ready: z wandering by up to 2 m)
+        # is no tracking error, and the climb is PX4's to shape (it trails by up to 2.5 m).
+        if err is None or not fl.flying_ours:
+            self._over = 0
+            self._recent_errors.clear()
+            self._nearing_said = False
+            self.lag.hold()
+            return
+        self.tracking_error_max = max(self.tracking_error_max, err)
+        self._estimate_lag(measured_at)
+        limit = self.cfg.safety.tracking_brake or self.cfg.planner.tracking_allowance
+        if limit <= 0.0:  # no allowance: no inflation and no brake (planning tests, benches)
+            return
+        self._check_nearing(err, limit)
+        self._over = self._over + 1 if err > limit else 0
+        if self._over == 0:
+            self._tracking_said = False
+            return
+        if self._over < TRACKING_SAMPLES or self._tracking_said:
+            return
+        if self._tracking_stop is not None and not self._tracking_stop.done():
+            return
+        self._tracking_said = True
+        ref = ctl.reference(measured_at)
+        flying = fl.state is S.STREAMING and fl.airborne
+        what = "braking to a stop and holding" if flying else "holding already"
+        self.report.event("tracking", f"tracking error {err:.2f} m over {self._brake_name()} {limit:.2f} m "
+                          f"for {self._over} samples: {what}",
+                          error=round(err, 3), limit=limit, samples=self._over,
+                          position=[round(float(x), 3) for x in st.position],
+                          setpoint=None if ref is None else [round(float(x), 3) for x in ref])
+        if flying:
+            self._tracking_stop = asyncio.get_running_loop().create_task(
+                self.nav.hold(f"tracking error {err:.2f} m > {self._brake_name()} {limit:.2f} m", None))
+
+    def _check_nearing(self, err: float, limit: float) -> None:
+        if not self.flight.flying_ours:
+            return
+        self._recent_errors.append(err)
+        if self._nearing_said or len(self._recent_errors) < TRACKING_WINDOW // 3:
+            return
+        e = np.asarray(self._recent_errors)
+        rms, worst = float(np.sqrt(np.mean(e * e))), float(e.max())
+        if rms < TRACKING_RMS_SHARE * limit and worst < TRACKING_MAX_SHARE * limit:
+            return
+        self._nearing_said = True
+        allowance = self.cfg.planner.tracking_allowance
+        if self.cfg.safety.tracking_brake:  # the brake is set apart from the allowance: name both
+            near = "the brake"
+            advice = (f"[planner] tracking_allowance {allowance:.2f} m is what the obstacles are inflated by, "
+                      "the track beyond it is outside what was certified: lower the bounds, or raise the "
+                      "allowance")
+        else:
+            near, advice = "the allowance", "raise the allowance or lower the bounds"
+        self.report.event("tracking_margin", f"tracking measured near {near}: RMS {rms:.2f} m, max {worst:.2f} m over "
+                          f"the last {len(e)} samples, {self._brake_name()} {limit:.2f} m (warned at "
+                          f"{TRACKING_RMS_SHARE:.0%} RMS / {TRACKING_MAX_SHARE:.0%} max): {advice}",
+                          rms=round(rms, 3), max=round(worst, 3), limit=limit, limit_name=self._brake_name(),
+                          tracking_allowance=allowance, samples=len(e))
+
+    def _estimate_lag(self, measured_at: float) -> None:
+        """The vehicle's lag behind its setpoints (companion.lag: a least-squares fit over a
+        sliding window of motion, smoothed, held at rest, at most [setpoints] lead_max). With
+        `setpoints.lead = "auto"` the setpoints lead by it."""
+        ctl = self.control
+        active, t_base = ctl.active, ctl.t_base
+        if not self.flight.flying_ours or not ctl.streaming or active is None or t_base is None:
+            self.lag.hold()
+            self._lead_set_at = None
+            return
+        lead_now = float(getattr(self.lead_target, "lead", 0.0))
+        jet = ctl.reference_jet(measured_at + lead_now)
+        if jet is None:
+            return
+        speed = float(np.linalg.norm(jet[1]))
+        leads = self._leads
+        leads.append((measured_at, lead_now))
+        while len(leads) > 2 and leads[1][0] < measured_at - self.cfg.setpoints.lead_max - 0.5:
+            leads.popleft()
+        lt, lv = np.array([x[0] for x in leads]), np.array([x[1] for x in leads])
+
+        def stream_at(times: np.ndarray) -> np.ndarray:
+            # the setpoint sent at time t was the plan at t + the lead of then
+            ts = np.clip(times - t_base + np.interp(times, lt, lv), active.t0, active.t_end)
+            return np.asarray(active.evaluate(ts, 0), dtype=float)
+
+        self.lag.add(measured_at, self.link.state.position, speed, stream_at)
+        est = self.lag.estimate
+        if est is not None and self.cfg.setpoints.lead == "auto" and self.lead_target is not None:
+            # towards the estimate at most LEAD_SLEW s per s: a jump of the lead would make the
+            # setpoints jump along the plan
+            last = self._lead_set_at if self._lead_set_at is not None else measured_at
+            step = LEAD_SLEW * max(0.0, measured_at - last)
+            want = min(est, self.cfg.setpoints.lead_max)
+            self._set_lead(lead_now + max(-step, min(step, want - lead_now)))
+        self._lead_set_at = measured_at
+
+    def steer_lead(self, target: Any) -> None:
+        """Set the lead of `target` (the setpoint thread or process), from now on only here: the
+        configured one, or with `setpoints.lead = "auto"` the initial one, then the estimate."""
+        sp = self.cfg.setpoints
+        self.lead_target = target
+        self._set_lead(self.initial_lead() if sp.lead == "auto" else float(sp.lead))
+
+    def initial_lead(self) -> float:
+        """The auto lead before the estimate has seen motion: `[setpoints] lead_initial`, by
+        default the lag measured on the autopilot linked (companion.lag.MEASURED_LAG)."""
+        sp = self.cfg.setpoints
+        return initial_lead(sp.lead_initial, self.link.state.autopilot, sp.lead_max)
+
+    def autopilot_found(self) -> None:
+        """Link-up (or a reconnect): the autopilot is known. With `lead = "auto"` and no
+        estimate yet, the lead starts at that autopilot's measured lag (PX4 SIH lags ~0.33 s,
+        ArduCopter ~0.06 s: from ArduCopter's, a PX4 vehicle's first seconds of motion trail
+        the plan by ~0.27 s x the speed). Not while streaming: the setpoints would jump."""
+        if (self.cfg.setpoints.lead == "auto" and self.lag.estimate is None and self.lead_target is not None
+                and not self.control.streaming):
+            self._set_lead(self.initial_lead())
+
+    def _set_lead(self, lead: float) -> None:
+        """The one writer of the setpoints' lead."""
+        self.lead_target.lead = lead
