@@ -23,7 +23,8 @@ from companion.config import Config
 from companion.control import SWAP_LATE, Control
 from companion.flight import HOLDING_CONTROL, State
 from companion.handover import at_rest
-from companion.navigator import MAX_AHEAD, RETRY_MARGIN, Navigator
+from companion.navigator import Navigator
+from companion.plan_budget import MAX_AHEAD, RETRY_MARGIN
 from companion.report import Reporter
 from companion.runtime import Runtime
 from companion.supervisor import (
@@ -245,7 +246,7 @@ class Commands:
         bounds = self.nav.default_bounds()  # within the autopilot's limits
         # split as far ahead as planning takes in this service; a plan that comes late is planned
         # again once, further ahead (as Navigator._swap_at_split does for missions)
-        ahead = self.nav.split_ahead_for(2)
+        ahead = self.nav.budget.split_ahead_for(2)
         for attempt in range(2):
             base = self.control.active
             assert base is not None

@@ -34,6 +34,13 @@ from companion.mission import (
     trim,
 )
 from companion.obstacles import Known, ObstacleStore
+from companion.plan_budget import (
+    FULL_SEARCH,
+    MAX_AHEAD,
+    RETRY_MARGIN,
+    PlanBudget,
+    ahead_within,
+)
 from companion.report import Reporter
 from companion.route import Outcome, OutcomeStatus, Route
 from companion.runtime import Runtime
@@ -60,13 +67,6 @@ from planner_core import (
 log = logging.getLogger("companion")
 S = State
 
-FIXED_WAYPOINTS = 3  # a candidate plan's fixed cost (process hop, corridors, set-up), in waypoints' worth
-LATE_MARGIN = 1.5  # the split is this many expected planning times ahead
-RETRY_MARGIN = 2.0  # after a late plan: this many times the time it took (a loaded computer varies)
-MAX_AHEAD = 30.0  # s: never further ahead (the old, verified plan flies on meanwhile)
-SPLIT_FIT = 1.0  # a mission starts where the flown acceleration and jerk are within this share of its bounds
-FULL_SEARCH = 40  # candidates: a cap this large is no cap (a small mission's whole search plans ~30)
-MIN_CANDIDATES = 2  # the default allocation and one more (a long mission's local pass)
 IMPROVE_MIN = 0.05  # s: the search's plan replaces the anytime start's only if it lands this much earlier
 FLEET_TRIES = 8  # candidates that lost to other vehicles before a plan is given up (docs/fleet.md)
 
@@ -101,9 +101,7 @@ class Navigator:
         self.plan_latency: float | None = None
         self._improving: asyncio.Task[None] | None = None  # the anytime start's search (improve)
         self.replan_latency: float | None = None
-        # seconds per candidate plan per waypoint (FIXED_WAYPOINTS more) measured in this service: a
-        # running estimate, up fast and down slowly; until warm-up, a guess on the slow side
-        self.plan_per_waypoint = 0.004
+        self.budget = PlanBudget(cfg)  # how long plans take here, so how far ahead they split
         self.brakes = Brakes(cfg, flight, control, runtime, report, self.stop_context, position)
         self.limits: Any = None  # companion.limits_watch.LimitsWatch (set by the service): bounds flown
         # companion.deconfliction.Deconfliction (set by the service): the other vehicles' trajectories
@@ -307,57 +305,10 @@ class Navigator:
                 say(reason)
         return Swapped(None, reason=reason or "too close")
 
-    def candidate_seconds(self, n_waypoints: int) -> float:
-        """Expected wall time of one candidate plan of n waypoints in this service."""
-        return self.plan_per_waypoint * (max(n_waypoints, 1) + FIXED_WAYPOINTS)
-
-    def split_ahead_for(self, n_waypoints: int, candidates: int = 1) -> float:
-        """How far ahead of now a plan of n waypoints and that many candidate plans is split: the
-        planning time expected from the ones measured in this service, with a margin, never less
-        than [planner] split_ahead nor more than MAX_AHEAD."""
-        expect = self.candidate_seconds(n_waypoints) * max(candidates, 1)
-        return float(min(max(self.cfg.planner.split_ahead, LATE_MARGIN * expect + 0.05), MAX_AHEAD))
-
-    def candidates_within(self, n_waypoints: int, seconds: float) -> int | None:
-        """The fastest-allocation search's cap for a mission of n waypoints planned in `seconds`
-        (None: no cap; never below MIN_CANDIDATES: a long mission then splits further ahead)."""
-        k = int(max(seconds - 0.05, 0.0) / LATE_MARGIN / self.candidate_seconds(n_waypoints))
-        return None if k >= FULL_SEARCH else max(k, MIN_CANDIDATES)
-
-    def mission_ahead(self, n_waypoints: int) -> float:
-        """The first split of a mission flown now: as far ahead as a search of [planner]
-        search_time takes here (at least MIN_CANDIDATES candidates, at most FULL_SEARCH)."""
-        fit = int(self.cfg.planner.search_time / self.candidate_seconds(n_waypoints))
-        return self.split_ahead_for(n_waypoints, min(max(fit, MIN_CANDIDATES), FULL_SEARCH))
-
-    def ahead_within(self, bounds: Bounds, ahead: float, step: float = 0.05) -> float:
-        """`ahead`, or further, to the first split (at most MAX_AHEAD) where the flown plan's
-        velocity, acceleration and jerk are within `bounds` (velocity: within the 0.98 that
-        start_mission clips it to): a mission with lower bounds than the flight (a = 3 sent while
-        the vehicle accelerates at 4 m/s^2, or flies at 3.7 m/s) cannot start from a jet beyond
-        them at any duration, so it starts once the flown plan is back within them; where it never
-        is, at `ahead` (and the refusal says the start is beyond the bounds)."""
+    def ahead_within(self, bounds: Bounds, ahead: float) -> float:
+        """`ahead`, or further, to where the flown plan is back within `bounds` (plan_budget.ahead_within)."""
         active = self.control.active
-        if active is None:
-            return ahead
-        # every candidate split at once (one at a time: ~0.2 s of the event loop over 30 s ahead)
-        ts = self.control.committed() + ahead + step * np.arange(int((MAX_AHEAD - ahead) / step) + 1)
-        inside = np.ones(ts.size, dtype=bool)
-        for order, share in ((1, 0.98), (2, SPLIT_FIT), (3, SPLIT_FIT)):
-            d = active.evaluate(np.minimum(ts, active.t_end), order)
-            d[ts >= active.t_end] = 0.0  # at rest past its end (Control.jet)
-            inside &= np.all((d >= share * bounds.lo[order - 1] - 1e-9) & (d <= share * bounds.hi[order - 1] + 1e-9),
-                             axis=1)
-        k = np.flatnonzero(inside)
-        return ahead + step * int(k[0]) if k.size else ahead
-
-    def _measured(self, seconds: float, n_waypoints: int, candidates: int = 1) -> None:
-        """A plan's wall time (queueing included) and its candidate plans into the running estimate."""
-        per = seconds / max(candidates, 1) / (max(n_waypoints, 1) + FIXED_WAYPOINTS)
-        # up at once (a plan that came late is planned again from this estimate: CI's runner
-        # refused a mission whose retry, estimated at half the slowdown, was late again), down slowly
-        a = 1.0 if per > self.plan_per_waypoint else 0.2
-        self.plan_per_waypoint = (1 - a) * self.plan_per_waypoint + a * per
+        return ahead if active is None else ahead_within(active, self.control.committed(), bounds, ahead)
 
     # -- missions ---------------------------------------------------------------------------------
 
@@ -418,7 +369,7 @@ class Navigator:
                 # a count, so a recording replays the same plan)
                 # the swap takes a plan ready before t_split - lead: the time after what is committed
                 left = t_split - self.control.committed() - (self.fleet.wait if self.fleet_on() else 0.0)
-                cap = self.candidates_within(n, left)
+                cap = self.budget.candidates_within(n, left)
                 # without a fleet the call is start_mission's own (what a recording names and replays)
                 fn: Any = (partial(start_separated, neighbours=self.neighbours(spec.bounds), candidates=cap)
                            if self.fleet_on() else partial(start_mission, quick=True) if quick[0]
@@ -426,11 +377,11 @@ class Navigator:
                 out: Outcome = self.logged(await self.runtime.plan(fn, replace(spec, raw={}), jet, t_split,
                                                                    self.known(), self.cfg))
                 self.plan_latency = time.perf_counter() - t0
-                self._measured(self.plan_latency, n, int(out.stats.get("candidates", 1)))
+                self.budget.measured(self.plan_latency, n, int(out.stats.get("candidates", 1)))
                 quick[0] = quick[0] and out.ok  # the default allocation failed: the search, as without anytime
                 return out
 
-            ahead = self.split_ahead_for(n) if quick[0] else self.mission_ahead(n)
+            ahead = self.budget.split_ahead_for(n) if quick[0] else self.budget.mission_ahead(n)
             done = await self._swap_at_split(f"mission {spec.id}", arrived, plan_at,
                                              ahead=self.ahead_within(spec.bounds, ahead))
             if not done.ok:
@@ -473,7 +424,7 @@ class Navigator:
         n = len(quick.waypoints)
         what = f"mission {quick.mission.id}"
         # a search of about [planner] search_time here, split as far ahead as it takes
-        cap = min(max(int(self.cfg.planner.search_time / self.candidate_seconds(n)), MIN_CANDIDATES), FULL_SEARCH)
+        cap = self.budget.search_cap(n)
 
         def superseded() -> bool:
             return self.control.route is not quick or self.lock.locked() or not self.flight.flying_ours
@@ -485,7 +436,7 @@ class Navigator:
             fn: Any = (partial(replan_remainder, allocate=True, candidates=cap) if cap < FULL_SEARCH
                        else partial(replan_remainder, allocate=True))
             out: Outcome = self.logged(await self.runtime.plan(fn, quick, base, t_split, self.known(), self.cfg))
-            self._measured(time.perf_counter() - t0, n, int(out.stats.get("candidates", 1)))
+            self.budget.measured(time.perf_counter() - t0, n, int(out.stats.get("candidates", 1)))
             if superseded():
                 return Outcome(False, message="the flown plan changed first")
             if out.ok and out.route is not None and out.route.t_end > quick.t_end - IMPROVE_MIN:
@@ -495,7 +446,7 @@ class Navigator:
 
         t0 = time.perf_counter()
         done = await self._swap_at_split(f"{what} (fastest durations)", None, plan_at,
-                                         ahead=self.split_ahead_for(n, cap))
+                                         ahead=self.budget.split_ahead_for(n, cap))
         if not done.ok or done.outcome is None or done.outcome.route is None:
             log.info("%s: the default durations fly on: %s", what, done.reason)
             return
@@ -594,7 +545,7 @@ class Navigator:
         # candidate plans, each detour tried) took 0.45-0.5 s on the loaded 2-core machine for a
         # wall across a leg: past the 0.15 s to the split, and again past the braking deadline.
         n = len(r.waypoints) + 2  # a detour's two points
-        cap = self.candidates_within(n, t_split - self.control.committed()) if allocate else None
+        cap = self.budget.candidates_within(n, t_split - self.control.committed()) if allocate else None
         kw: dict[str, Any] = {"candidates": cap} if cap else {}
         out = self.logged(await self.runtime.plan(partial(replan_remainder, allocate=allocate,
                                                           neighbours=self.neighbours(r.mission.bounds), **kw),

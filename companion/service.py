@@ -334,7 +334,7 @@ class Service:
         # a second, warm plan: the first estimate of planning time in this service (in-flight splits)
         t0 = time.monotonic()
         await rt.plan(warm_up, self.cfg)
-        self.navigator._measured(time.monotonic() - t0, 2)
+        self.navigator.budget.measured(time.monotonic() - t0, 2)
         await loop.run_in_executor(rt.io_pool, enc.encode_trajectory, hold(np.zeros(3), 0.0))
         await loop.run_in_executor(rt.replan_pool, warm_up_replan, self.cfg)
         await loop.run_in_executor(rt.decode_pool, warm_validators)

@@ -32,7 +32,7 @@ def test_a_late_climb_plan_is_planned_again_further_ahead(tmp_path: Path, late: 
             calls.append(0.0)
             if len(calls) <= late:  # past the split chosen from the measured planning time, by far
                 # (the retry splits further ahead by what the first took: the second must be later still)
-                await asyncio.sleep((2.0 * svc.navigator.split_ahead_for(2) + 0.3) * (4.0 if len(calls) == 2 else 1.0))
+                await asyncio.sleep((2.0 * svc.navigator.budget.split_ahead_for(2) + 0.3) * (4.0 if len(calls) == 2 else 1.0))
             return await real(fn, *args, **kw)
 
         async with serving(svc):

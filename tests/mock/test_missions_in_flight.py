@@ -21,7 +21,8 @@ from companionkit import Events, service_for, serving, until
 
 from companion.config import Config
 from companion.control import SWAP_DIFFERS, SWAP_LATE
-from companion.navigator import FULL_SEARCH, LATE_MARGIN, MAX_AHEAD, MIN_CANDIDATES, Navigator
+from companion.navigator import Navigator
+from companion.plan_budget import FULL_SEARCH, LATE_MARGIN, MAX_AHEAD, MIN_CANDIDATES, PlanBudget
 from companion.route import Outcome
 from companion.wire.messages import read
 from sitl_mock import MockAutopilot, MockConfig
@@ -91,9 +92,9 @@ def test_missions_replaced_in_flight_are_all_flown(tmp_path: Path, cpu_hog: Any)
             assert not rejected, rejected
             flown = [e["mission"] for e in events.of("accepted") if e.get("mission") in ids]
             assert flown == ids, flown  # in order, each planned and swapped in
-            print(f"estimated plan time per waypoint {svc.navigator.plan_per_waypoint * 1000:.1f} ms; "
-                  f"split ahead for 5 / 300 waypoints: {svc.navigator.split_ahead_for(5):.2f} / "
-                  f"{svc.navigator.split_ahead_for(300):.2f} s; "
+            print(f"estimated plan time per waypoint {svc.navigator.budget.per_waypoint * 1000:.1f} ms; "
+                  f"split ahead for 5 / 300 waypoints: {svc.navigator.budget.split_ahead_for(5):.2f} / "
+                  f"{svc.navigator.budget.split_ahead_for(300):.2f} s; "
                   f"plans (ms): {[e.get('plan_ms') for e in events.of('accepted')]}")
 
     try:
@@ -134,7 +135,7 @@ def _navigator(refusals: list[str]) -> Navigator:
     nav.cfg = Config()
     nav.control = _Control(refusals)  # type: ignore[assignment]
     nav.flight = SimpleNamespace(flying_ours=True, state=SimpleNamespace(value="STREAMING"))  # type: ignore[assignment]
-    nav.plan_per_waypoint = 0.004
+    nav.budget = PlanBudget(nav.cfg)
     nav.fleet = None  # no [fleet]: no commit wait in the replan loop
     return nav
 
@@ -174,13 +175,13 @@ def test_a_late_plan_is_planned_again_once_further_ahead() -> None:
 def test_the_split_follows_the_measured_planning_time() -> None:
     nav = _navigator([])
     floor = nav.cfg.planner.split_ahead
-    assert floor <= nav.split_ahead_for(5) < 0.2  # idle: about the configured split
+    assert floor <= nav.budget.split_ahead_for(5) < 0.2  # idle: about the configured split
     for _ in range(5):
-        nav._measured(1.0, 5)  # a loaded machine: 1 s for 5 waypoints
-    assert nav.split_ahead_for(5) >= 1.4 and nav.split_ahead_for(300) == MAX_AHEAD
+        nav.budget.measured(1.0, 5)  # a loaded machine: 1 s for 5 waypoints
+    assert nav.budget.split_ahead_for(5) >= 1.4 and nav.budget.split_ahead_for(300) == MAX_AHEAD
     for _ in range(40):
-        nav._measured(0.03, 5)
-    assert nav.split_ahead_for(5) < 0.3 and math.isfinite(nav.plan_per_waypoint)
+        nav.budget.measured(0.03, 5)
+    assert nav.budget.split_ahead_for(5) < 0.3 and math.isfinite(nav.budget.per_waypoint)
 
 
 def test_the_search_is_cut_to_what_fits_before_the_split() -> None:
@@ -190,19 +191,19 @@ def test_the_search_is_cut_to_what_fits_before_the_split() -> None:
     mission keeps at least the default allocation and its local pass, and splits further ahead."""
     nav = _navigator([])
     for _ in range(20):
-        nav._measured(0.05, 5, 8)  # ~6 ms a candidate: a quiet 2-core machine, numpy path
-    ahead = nav.mission_ahead(5)
-    assert nav.candidates_within(5, ahead) is None and ahead < 1.0
+        nav.budget.measured(0.05, 5, 8)  # ~6 ms a candidate: a quiet 2-core machine, numpy path
+    ahead = nav.budget.mission_ahead(5)
+    assert nav.budget.candidates_within(5, ahead) is None and ahead < 1.0
     for _ in range(5):
-        nav._measured(1.0, 5, 1)  # a busy one
-    ahead = nav.mission_ahead(5)
-    cap = nav.candidates_within(5, ahead)
+        nav.budget.measured(1.0, 5, 1)  # a busy one
+    ahead = nav.budget.mission_ahead(5)
+    cap = nav.budget.candidates_within(5, ahead)
     assert cap is not None and MIN_CANDIDATES <= cap < FULL_SEARCH
-    assert cap * nav.candidate_seconds(5) * LATE_MARGIN <= ahead  # the search fits before the split
-    assert ahead <= LATE_MARGIN * max(nav.cfg.planner.search_time, MIN_CANDIDATES * nav.candidate_seconds(5)) + 0.1
-    assert nav.candidates_within(1000, nav.mission_ahead(1000)) == MIN_CANDIDATES
+    assert cap * nav.budget.candidate_seconds(5) * LATE_MARGIN <= ahead  # the search fits before the split
+    assert ahead <= LATE_MARGIN * max(nav.cfg.planner.search_time, MIN_CANDIDATES * nav.budget.candidate_seconds(5)) + 0.1
+    assert nav.budget.candidates_within(1000, nav.budget.mission_ahead(1000)) == MIN_CANDIDATES
     # less time, fewer candidates; never fewer than MIN_CANDIDATES
-    caps = [nav.candidates_within(5, s) or FULL_SEARCH for s in (0.1, 1.0, 5.0, 20.0, 60.0)]
+    caps = [nav.budget.candidates_within(5, s) or FULL_SEARCH for s in (0.1, 1.0, 5.0, 20.0, 60.0)]
     assert caps == sorted(caps) and caps[0] == MIN_CANDIDATES
 
 
