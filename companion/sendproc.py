@@ -11,7 +11,8 @@ What crosses between the processes:
 - parent -> child, one pipe (`multiprocessing.Connection`), read by the child between ticks:
   the feed (trajectory, time base, yaw) as a whole, the lead, where the autopilot is (the
   route), every other MAVLink message the service sends (so one writer owns the link's packet
-  sequence and signing timestamps; see `MavlinkLink.use_writer`), stop;
+  sequence and signing timestamps; see `MavlinkLink.use_writer`), the descriptor to write to
+  when a TCP link is connected again (or none while it is down), stop;
 - child -> parent, a non-blocking pipe of fixed-size records, one per tick: the child never
   waits for the parent (a full pipe drops records, counted), the parent turns them back into
   `Tick`s for the loop exactly as the thread did;
@@ -35,7 +36,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from multiprocessing import reduction, resource_tracker, shared_memory
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
@@ -93,7 +94,7 @@ class Encoding:
 @dataclass(frozen=True)
 class _Start:
     rate: float
-    fd: _Fd  # an int in the child
+    fd: _Fd | None  # an int in the child; None: a TCP link not connected yet
     datagram: bool  # a UDP socket: sendto the route; else write to the stream/device
     encoding: Encoding
     yaw: tuple[str, float, float]  # YawPolicy(mode, fixed, min_speed)
@@ -106,7 +107,7 @@ class SetpointProcess:
     """`SetpointSender`'s surface (feed, lead, liveness, start, stop, withheld, native_id,
     scheduling) with the stream in a child process."""
 
-    def __init__(self, rate: float, transport: Callable[[], tuple[int, bool, Encoding]], yaw: YawPolicy,
+    def __init__(self, rate: float, transport: Callable[[], tuple[int | None, bool, Encoding]], yaw: YawPolicy,
                  on_tick: Callable[[Tick], None], on_failure: Callable[[BaseException], None],
                  priority: int = 0) -> None:
         self.rate = rate
@@ -188,6 +189,12 @@ class SetpointProcess:
             self._route = addresses
             self._post(("route", addresses))
 
+    def use_fd(self, fd: int | None) -> None:
+        """Write to `fd` from now on (a TCP link connected again), or to nothing (None: lost).
+        The child gets its own copy of `fd` (multiprocessing's resource sharer passes it), and
+        closes the copy it had: the old connection is not kept half-open by the child."""
+        self._post(("fd", None if fd is None else _Fd(fd)))
+
     def post_message(self, msg: Any) -> bool:
         """Have the child pack (its sequence numbers and signature) and write `msg`."""
         return self._post(("message", msg))
@@ -229,7 +236,7 @@ class SetpointProcess:
         os.set_blocking(wr, False)
         self._records = rd
         fd, datagram, encoding = self._transport()
-        start = _Start(self.rate, _Fd(fd), datagram, encoding,
+        start = _Start(self.rate, None if fd is None else _Fd(fd), datagram, encoding,
                        (self.yaw.mode, self.yaw.last, self.yaw.min_speed), self.priority, self.liveness, self._sent)
         self._proc = ctx.Process(target=_child_main, args=(start, child_end, _Fd(wr)),
                                  name="companion-setpoints", daemon=True)
@@ -340,7 +347,7 @@ def _scheduling_code(text: str) -> int:
 class _Writer:
     """The child's side of the link: packs with its own sequence and signing state, writes."""
 
-    def __init__(self, start: _Start, fd: int) -> None:
+    def __init__(self, start: _Start, fd: int | None) -> None:
         os.environ.setdefault("MAVLINK20", "1")
         from pymavlink import mavutil
 
@@ -363,10 +370,20 @@ class _Writer:
             self.sock = socket.socket(fileno=fd)
         self.route: tuple[Any, ...] = ()  # the autopilot's address(es), from the parent
 
+    def use_fd(self, fd: int | None) -> None:
+        """A stream link's new descriptor (a TCP link connected again), or None while it is down."""
+        if self.fd is not None and self.fd != fd:
+            with contextlib.suppress(OSError):
+                os.close(self.fd)
+        self.fd = fd
+
     def write(self, packet: bytes) -> None:
         if self.datagram:
             for address in self.route:
                 self.sock.sendto(packet, address)
+        elif self.fd is None:
+            # a setpoint that did not leave is not counted as sent, and its tick says why
+            raise OSError(errno.ENOTCONN, "no connection to the autopilot (reconnecting)")
         else:
             os.write(self.fd, packet)
 
@@ -405,12 +422,12 @@ def _read_curve(name: str, t_shape: tuple[int, ...], p_shape: tuple[int, ...]) -
 
 
 def _child_main(start: _Start, inbox: multiprocessing.connection.Connection, records_fd: Any) -> None:
-    # `start.fd` and `records_fd` arrive here as plain descriptors (_Fd's reduction).
+    # `start.fd` and `records_fd` arrive here as plain descriptors (_Fd's reduction), or None.
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the service stops us (first signal: hand-over)
     name_thread("setpoints")
     parent = os.getppid()
     out = int(records_fd)
-    writer = _Writer(start, start.fd)  # type: ignore[arg-type]
+    writer = _Writer(start, cast("int | None", start.fd))
     scheduling = realtime_here(start.priority)
     dropped = 0
     mode, fixed, min_speed = start.yaw
@@ -443,6 +460,8 @@ def _child_main(start: _Start, inbox: multiprocessing.connection.Connection, rec
             lead = body
         elif kind == "route":
             writer.route = body
+        elif kind == "fd":
+            writer.use_fd(None if body is None else int(body))
         elif kind == "message":
             with contextlib.suppress(OSError):
                 writer.write(writer.pack(body))

@@ -4,7 +4,9 @@ The connection's file descriptor is registered with `loop.add_reader`, so
 decoding happens on the loop thread; sending is a non-blocking sendto. Periodic
 setpoints are sent from the setpoint thread (companion.setpoints.SetpointSender),
 everything else from the loop: sends are serialised by a lock, as pymavlink's
-packet sequence counter is not thread-safe.
+packet sequence counter is not thread-safe. A TCP link is dialled, and re-dialled
+after a loss, by a thread of its own (companion.wire.tcp): nothing here ever waits
+for a connect.
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
+import logging
 import math
 import os
 import socket
@@ -36,7 +39,9 @@ from companion.wire import dialect
 from companion.wire.peer import OTHER_ID, UNBOUND, PeerGate, SignatureCheck
 from companion.wire.px4_events import Px4Events
 from companion.wire.signing import read_signing_key
+from companion.wire.tcp import Dialler, TcpConnection, describe, tcp_address
 
+log = logging.getLogger("companion")
 dialect.install()  # PX4 >= 1.14 says what happens in EVENT (410), which pymavlink lacks
 mavlink = mavutil.mavlink
 
@@ -290,19 +295,22 @@ class MavlinkLink:
         self._ignored_said: dict[str, tuple[float, int]] = {}
         self._sock: Any = None  # UDP: the socket read here, datagram by datagram
         self._udp_server = False
+        self._dialler: Dialler | None = None  # TCP: dials the autopilot off the loop
+        self._reading: int | None = None  # the descriptor registered with the loop
+        self._tcp_where = "?"  # the TCP connection's ends, for the log (unknown once the peer is gone)
 
     # -- lifecycle -----------------------------------------------------------
 
     def open(self, loop: asyncio.AbstractEventLoop) -> None:
         v = self.cfg.vehicle
         device, baud = parse_url(self.cfg.mavlink.url)
-        self.conn = mavutil.mavlink_connection(
-            device,
-            baud=baud,
-            source_system=v.sysid,
-            source_component=v.component,
-            autoreconnect=True,
-        )
+        if device.startswith("tcp:"):
+            # not pymavlink's mavtcp: it dials in the constructor and re-dials inside recv and
+            # write, on the loop (companion.wire.tcp)
+            self.conn = TcpConnection(tcp_address(device), v.sysid, v.component)
+        else:
+            self.conn = mavutil.mavlink_connection(device, baud=baud, source_system=v.sysid,
+                                                   source_component=v.component, autoreconnect=True)
         self.conn.mav.robust_parsing = True
         self.conn.mav.set_send_callback(self.tap.mavlink_sent)  # after each write: O(1), never waits
         mc = self.cfg.mavlink
@@ -328,7 +336,75 @@ class MavlinkLink:
             # receive our setpoints. Only the bound autopilot's address is written to.
             self.conn.write = self._write_bound
         self._loop = loop
-        loop.add_reader(self.conn.fd, self._readable)
+        if isinstance(self.conn, TcpConnection):
+            self.conn.on_lost = self._tcp_lost_elsewhere
+            self._dialler = Dialler(self.conn.destination_addr, self._tcp_dialled)
+            self._dialler.start()
+            self._dialler.dial()  # the first connection too: the service starts without it, as with UDP
+            return
+        self._read(self.conn.fd)
+        self.send_heartbeat()
+
+    def _read(self, fd: int | None) -> None:
+        """Read `fd` on the loop from now on (None: nothing), and no longer the one read so far.
+        The old one is unregistered before anyone closes it: epoll would otherwise go on
+        reporting a socket that the setpoint process still holds a copy of."""
+        assert self._loop is not None
+        if self._reading is not None:
+            self._loop.remove_reader(self._reading)
+        self._reading = fd
+        if fd is not None:
+            self._loop.add_reader(fd, self._readable)
+
+    # -- TCP: the connection lost and made again, off the loop -------------------------------
+
+    def _tcp_lost_elsewhere(self, sock: socket.socket, why: str) -> None:
+        """TcpConnection saw its connection end, on the loop or on the setpoint thread."""
+        loop = self._loop
+        if loop is None:
+            sock.close()
+            return
+        try:
+            loop.call_soon_threadsafe(self._tcp_lost, sock, why)
+        except RuntimeError:  # the loop is closed: nobody reads any more
+            sock.close()
+
+    def _tcp_lost(self, sock: socket.socket, why: str) -> None:
+        if self._reading == sock.fileno():
+            self._read(None)
+        sock.close()
+        if self._writer is not None:
+            self._writer.use_fd(None)  # its copy closed too: the old connection is gone on our side
+        if self.conn is None or self._dialler is None:
+            return  # closing
+        log.warning("MAVLink TCP connection %s lost (%s): reconnecting off the event loop; the link "
+                    "is judged by the autopilot's heartbeats as ever", self._tcp_where, why)
+        self._dialler.dial()
+
+    def _tcp_dialled(self, sock: socket.socket) -> None:
+        """The dialler connected (on its thread): the loop takes the connection over."""
+        loop = self._loop
+        try:
+            assert loop is not None
+            loop.call_soon_threadsafe(self._tcp_connected, sock)
+        except (RuntimeError, AssertionError):
+            sock.close()
+
+    def _tcp_connected(self, sock: socket.socket) -> None:
+        conn = self.conn
+        if conn is None or not isinstance(conn, TcpConnection):
+            sock.close()  # closed meanwhile
+            return
+        with self._send_lock:
+            conn.attach(sock)
+        self._read(sock.fileno())
+        if self._writer is not None:
+            # the setpoint process writes to a copy of the connection's descriptor: hand it the
+            # new one, before anything else it is asked to send
+            self._writer.use_fd(sock.fileno())
+        attempts = self._dialler.attempts if self._dialler is not None else 0
+        self._tcp_where = describe(sock)
+        log.info("MAVLink TCP connected %s (attempt %d)", self._tcp_where, attempts)
         self.send_heartbeat()
 
     @property
@@ -337,12 +413,12 @@ class MavlinkLink:
         and, once it writes for us, the setpoint process's periodic ones."""
         return self._sent + (self._writer.sent if self._writer is not None else 0)
 
-    def transport(self) -> tuple[int, bool, Encoding]:
+    def transport(self) -> tuple[int | None, bool, Encoding]:
         """What a setpoint process needs to write to the autopilot itself: the link's
         descriptor, whether it is a datagram socket, and how to pack (companion.sendproc)."""
         conn, v = self.conn, self.cfg.vehicle
         datagram = isinstance(conn, mavutil.mavudp)
-        fd = conn.port.fileno() if datagram else conn.fd
+        fd = conn.port.fileno() if datagram else conn.fd  # None: a TCP link not connected (yet)
         key = read_signing_key(self.cfg.mavlink.signing_key_file) if self.cfg.mavlink.signing_key_file else None
         return fd, datagram, Encoding(v.sysid, v.component, v.sysid, v.autopilot_component, key, self._boot)
 
@@ -372,8 +448,11 @@ class MavlinkLink:
     def close(self) -> None:
         if self.conn is None:
             return
+        if self._dialler is not None:
+            self._dialler.stop()
+            self._dialler = None
         if self._loop is not None:
-            self._loop.remove_reader(self.conn.fd)
+            self._read(None)
         self.conn.close()
         self.conn = None
 
