@@ -56,12 +56,12 @@ def _rc(text: str) -> int | None:
         raise argparse.ArgumentTypeError(f"--rc-throttle: expected a pwm (e.g. 1000, 1500) or 'none', got {text!r}") from None
 
 
-def _shift(text: str) -> tuple[float, float, float]:
+def _shift(text: str) -> tuple[float, float]:
     try:
-        n, e, d = (float(v) for v in text.split(","))
+        n, e = (float(v) for v in text.split(","))
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected three metres N,E,D (e.g. -0.011,0.008,0.010), got {text!r}") from None
-    return n, e, d
+        raise argparse.ArgumentTypeError(f"expected two metres N,E (e.g. -0.011,0.008), got {text!r}") from None
+    return n, e
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -124,9 +124,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--position-after-origin", type=float, default=22.0, metavar="SECONDS",
                    help="ArduPilot: seconds from the EKF origin (and home) to the first LOCAL_POSITION_NED "
                    "(default 22: stock ArduCopter 4.6 SITL, measured)")
-    p.add_argument("--home-shift-at-arming", type=_shift, default=(-0.011, 0.008, 0.010), metavar="N,E,D",
-                   help="ArduPilot: metres home moves when the vehicle arms where it stood (default "
-                   "-0.011,0.008,0.010: stock ArduCopter 4.6 SITL, measured; 0,0,0: home stays)")
+    p.add_argument("--home-shift-at-arming", type=_shift, default=(-0.011, 0.008), metavar="N,E",
+                   help="ArduPilot: metres the ground estimate moves from the origin's home before arming, so home "
+                   "moves when it arms (default -0.011,0.008: stock ArduCopter 4.6 SITL, measured; 0,0: home stays)")
     p.add_argument("--spool-up", type=float, default=3.0, metavar="SECONDS",
                    help="ArduPilot: no climb for this long after arming (default 3.0, as measured on SITL)")
     p.add_argument("--no-shaping", dest="shaping", action="store_false",

@@ -17,8 +17,8 @@
   requires a position refused with "PreArm: Need Position Estimate"
   (``ArduCopter/AP_Arming.cpp`` mandatory_gps_checks).
 - Home is set where the vehicle arms and sent at once (AP_Arming_Copter::arm,
-  ``AP_AHRS::set_home`` sends HOME and ORIGIN); the home of the origin lies
-  ``home_shift_at_arming`` from there (measured: home moved ~1 cm at arming).
+  ``AP_AHRS::set_home`` sends HOME and ORIGIN); the estimate on the ground has moved
+  ``home_shift_at_arming`` from the origin's home by then (measured: home moved ~1 cm at arming).
 - Motors spool for ``spool_up_s`` after arming before any climb (measured 3.0 s).
 - BRAKE stops with 7.5 m/s^2 and holds where it stopped, climb rate 0, until the mode changes
   (``ArduCopter/mode_brake.cpp``: BRAKE_MODE_DECEL_RATE 750, BRAKE_MODE_SPEED_Z 250, no
@@ -100,7 +100,7 @@ class ArduPilotRules:
 
     def __init__(self, rc_throttle: int | None, ekf_origin_delay_s: float, spool_up_s: float,
                  shaping: bool, position_after_origin_s: float = 0.0,
-                 home_shift_at_arming: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> None:
+                 home_shift_at_arming: tuple[float, float] = (0.0, 0.0)) -> None:
         self.rc_throttle = rc_throttle  # pwm the autopilot receives now; None: no RC frames
         self.rc_seen = rc_throttle is not None
         self.ekf_origin_delay_s = ekf_origin_delay_s
@@ -138,9 +138,11 @@ class ArduPilotRules:
             self.origin_set = True
             self.origin_t = mock.t
             self.position_known = self.position_after_origin_s <= 0.0
-            # Copter sets home from the EKF once it has an origin (update_home_from_EKF); the
-            # estimate on the ground moves on before arming sets home again (measured ~1 cm)
-            mock.home_ned = mock.vehicle.state.pos - self.home_shift_at_arming
+            # Copter sets home from the EKF once it has an origin (update_home_from_EKF)
+            mock.home_ned = mock.vehicle.state.pos.copy()
+            # and the estimate on the ground moves on before arming sets home again (measured
+            # ~1 cm); the mock's vehicle is its estimate, so it is moved
+            mock.vehicle.state.pos[:2] += self.home_shift_at_arming
             mock.log.write("event", mock.t, event="ekf_origin_set", since_boot=mock.t - mock.boot_t)
             mock._text(mav.MAV_SEVERITY_INFO, "EKF3 IMU0 origin set")
             # AP_AHRS::set_home: "send new home and ekf origin to GCS" (MSG_HOME, MSG_ORIGIN)

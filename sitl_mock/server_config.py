@@ -92,11 +92,11 @@ class MockConfig:
     # ArduPilot: seconds from the EKF origin (and home) to the first LOCAL_POSITION_NED (stock
     # ArduCopter 4.6 SITL, measured 2026-12-02: home and origin ~22 s before the first one).
     position_after_origin_s: float = 22.0
-    # ArduPilot: how far home moves when the vehicle first arms where it stood (m, NED): home
-    # is set from the EKF when its origin is set and again where it arms, and the estimate on
-    # the ground has moved by then (stock ArduCopter 4.6 SITL, measured 2026-12-02: home moved
-    # to [-0.011, 0.008, 0.010] m at arming). The origin's home is the arming point minus this.
-    home_shift_at_arming: tuple[float, float, float] = (-0.011, 0.008, 0.010)
+    # ArduPilot: how far (m, north and east) the position estimate on the ground moves between
+    # the EKF origin (home set there) and arming (home set again where the estimate then is): stock
+    # ArduCopter 4.6 SITL, measured 2026-12-02, home moved to [-0.011, 0.008, 0.010] m at arming.
+    # The mock's ground is a plane (truth and estimate are one), so the 1 cm down is not copied.
+    home_shift_at_arming: tuple[float, float] = (-0.011, 0.008)
     # ArduPilot: seconds after arming before any climb (stock SITL: 3.0 s).
     spool_up_s: float = 3.0
     # Shape targets with the autopilot's own limits (ArduCopter GUIDED: WPNAV_*; PX4: MPC_*).
@@ -124,9 +124,10 @@ class MockConfig:
             raise ValueError(f"ground_z: must be a finite z in [-1000, 1000] m, got {self.ground_z}")
         if self.rc_throttle is not None and not 800 <= self.rc_throttle <= 2200:
             raise ValueError(f"rc_throttle: must be a pwm in 800..2200 or None (no RC), got {self.rc_throttle}")
-        if len(self.home_shift_at_arming) != 3 or not all(
+        if len(self.home_shift_at_arming) != 2 or not all(
                 math.isfinite(v) and abs(v) <= 10.0 for v in self.home_shift_at_arming):
-            raise ValueError(f"home_shift_at_arming: must be 3 finite metres within 10 m, got {self.home_shift_at_arming}")
+            raise ValueError(f"home_shift_at_arming: must be 2 finite metres (north, east) within 10 m, "
+                             f"got {self.home_shift_at_arming}")
         for name in ("ekf_origin_delay_s", "spool_up_s", "position_after_origin_s"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0.0):

@@ -27,7 +27,7 @@ def _ardupilot_mock_origin_at_boot(monkeypatch: pytest.MonkeyPatch) -> None:
 
     def fast(rc_throttle: int | None, ekf_origin_delay_s: float, spool_up_s: float, shaping: bool,
              position_after_origin_s: float = 0.0,
-             home_shift_at_arming: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> object:
+             home_shift_at_arming: tuple[float, float] = (0.0, 0.0)) -> object:
         origin = 0.0 if ekf_origin_delay_s == stock.ekf_origin_delay_s else ekf_origin_delay_s
         position = 0.0 if position_after_origin_s == stock.position_after_origin_s else position_after_origin_s
         # the home shift costs no time: every flight keeps it, as stock ArduCopter does

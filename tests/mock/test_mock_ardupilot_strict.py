@@ -186,7 +186,8 @@ def test_home_moves_to_where_it_arms_and_is_sent(make_mock) -> None:  # type: ig
     assert wait_for(lambda: math.dist(mock.snapshot()["position"][:2], (3.0, 2.0)) < 0.05, 10)
     assert c.command(mav.MAV_CMD_NAV_LAND) == ACCEPTED
     assert wait_for(lambda: not mock.snapshot()["armed"], 15)
-    assert mock.snapshot()["home"][:2] == [0.0, 0.0]
+    # home stays where it armed (the ground estimate, moved by the default shift from the origin)
+    assert mock.snapshot()["home"][:2] == pytest.approx(list(mock.config.home_shift_at_arming), abs=1e-9)
     assert c.command(176, CUSTOM, GUIDED) == ACCEPTED
     result, seen = c.command_collect(400, 1)
     assert result == ACCEPTED
@@ -200,10 +201,9 @@ def test_home_of_the_origin_moves_at_arming_by_the_measured_shift(make_mock) -> 
     """Stock ArduCopter 4.6 SITL, measured 2026-12-02: home moved ~1 cm at arming (the EKF's
     estimate on the ground moved on after the origin set home); the mock's default is that
     shift, and a larger one is settable."""
-    assert MockConfig(autopilot="ardupilot", endpoints=["udpin:127.0.0.1:0"]).home_shift_at_arming == (
-        -0.011, 0.008, 0.010)
-    shift = np.array([0.3, -0.2, 0.1])
-    _, c = make_mock("ardupilot", speed=3.0, home_shift_at_arming=tuple(shift))
+    assert MockConfig(autopilot="ardupilot", endpoints=["udpin:127.0.0.1:0"]).home_shift_at_arming == (-0.011, 0.008)
+    shift = np.array([0.3, -0.2, 0.0])
+    _, c = make_mock("ardupilot", speed=3.0, home_shift_at_arming=(0.3, -0.2))
     result, seen = c.command_collect(mav.MAV_CMD_REQUEST_MESSAGE, mav.MAVLINK_MSG_ID_HOME_POSITION)
     assert result == ACCEPTED
     first = next((m for m in seen if m.get_type() == "HOME_POSITION"), None) or c.wait("HOME_POSITION", 1)
@@ -214,6 +214,10 @@ def test_home_of_the_origin_moves_at_arming_by_the_measured_shift(make_mock) -> 
     before = np.array([first.x, first.y, first.z])
     here = np.array([pos.x, pos.y, pos.z])
     assert np.allclose(here - before, shift, atol=2e-3), (before, here)
+    # home was set at the origin: the two are one point until the vehicle arms
+    result, seen = c.command_collect(mav.MAV_CMD_REQUEST_MESSAGE, mav.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN)
+    origin = next((m for m in seen if m.get_type() == "GPS_GLOBAL_ORIGIN"), None) or c.wait("GPS_GLOBAL_ORIGIN", 1)
+    assert origin is not None and (origin.latitude, origin.longitude) == (first.latitude, first.longitude)
     assert c.command(176, CUSTOM, GUIDED) == ACCEPTED
     result, seen = c.command_collect(400, 1)
     assert result == ACCEPTED
@@ -223,7 +227,7 @@ def test_home_of_the_origin_moves_at_arming_by_the_measured_shift(make_mock) -> 
     after = np.array([homes[0].x, homes[0].y, homes[0].z])
     assert np.allclose(after - before, shift, atol=2e-3) and np.allclose(after, here, atol=2e-3)
     with pytest.raises(ValueError, match="home_shift_at_arming"):
-        MockConfig(autopilot="ardupilot", endpoints=["udpin:127.0.0.1:0"], home_shift_at_arming=(0.0, math.nan, 0.0)).validate()
+        MockConfig(autopilot="ardupilot", endpoints=["udpin:127.0.0.1:0"], home_shift_at_arming=(0.0, math.nan)).validate()
 
 
 def test_spool_up_before_the_climb(make_mock) -> None:  # type: ignore[no-untyped-def]
