@@ -35,13 +35,13 @@ from companion.supervisor import (
     ModeReport,
     Supervisor,
 )
-from companion.wire.mavlink import (
+from companion.wire.mavlink import MavlinkLink
+from companion.wire.vehicle import (
     MAV_LANDED_IN_AIR,
     MAV_LANDED_LANDING,
     MAV_LANDED_ON_GROUND,
     WANTED,
     CommandFailed,
-    MavlinkLink,
     Note,
 )
 

@@ -43,15 +43,10 @@ from companion.supervisor import (
     TakingControl,
     TookOff,
 )
-from companion.wire.mavlink import (
-    MAV_LANDED_IN_AIR,
-    MAV_LANDED_ON_GROUND,
-    CommandFailed,
-    MavlinkLink,
-    Note,
-)
+from companion.wire.mavlink import MavlinkLink
 from companion.wire.messages import Command
 from companion.wire.px4_events import arming_report
+from companion.wire.vehicle import MAV_LANDED_IN_AIR, MAV_LANDED_ON_GROUND, CommandFailed, Note
 from planner_core import Problem, allocate_times, plan, splice, takeoff_duration
 
 log = logging.getLogger("companion")

@@ -34,13 +34,8 @@ from companion.supervisor import (
     Supervisor,
     TakeoffInterrupted,
 )
-from companion.wire.mavlink import (
-    APM_MODES,
-    MAV_LANDED_IN_AIR,
-    PX4_MODES,
-    CommandFailed,
-    MavlinkLink,
-)
+from companion.wire.mavlink import MavlinkLink
+from companion.wire.vehicle import APM_MODES, MAV_LANDED_IN_AIR, PX4_MODES, CommandFailed
 
 log = logging.getLogger("companion")
 S = State

@@ -12,17 +12,14 @@ for a connect.
 from __future__ import annotations
 
 import asyncio
-import collections
 import contextlib
 import logging
 import math
 import os
 import socket
-import struct
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -40,233 +37,42 @@ from companion.wire.peer import OTHER_ID, UNBOUND, PeerGate, SignatureCheck
 from companion.wire.px4_events import Px4Events
 from companion.wire.signing import read_signing_key
 from companion.wire.tcp import Dialler, TcpConnection, describe, tcp_address
+from companion.wire.vehicle import (
+    APM_GUIDED,
+    APM_LAND,
+    APM_MAVN_FROM,
+    APM_MODES,
+    APM_STREAMS,
+    NOTE_AFTER,
+    NOTE_BEFORE,
+    POSITION_ONLY_MASK,
+    PX4_MODES,
+    PX4_OFFBOARD,
+    TYPE_MASK,
+    WANTED,
+    CommandFailed,
+    Note,
+    VehicleState,
+    autopilot_name,
+    decode_mode,
+    param_name,
+    param_value,
+    parse_url,
+    result_name,
+)
 
 log = logging.getLogger("companion")
 dialect.install()  # PX4 >= 1.14 says what happens in EVENT (410), which pymavlink lacks
 mavlink = mavutil.mavlink
 
-# EXTENDED_SYS_STATE landed_state (MAV_LANDED_STATE)
-MAV_LANDED_ON_GROUND = mavlink.MAV_LANDED_STATE_ON_GROUND
-MAV_LANDED_IN_AIR = mavlink.MAV_LANDED_STATE_IN_AIR
-MAV_LANDED_TAKEOFF = mavlink.MAV_LANDED_STATE_TAKEOFF
-MAV_LANDED_LANDING = mavlink.MAV_LANDED_STATE_LANDING
-# Position + velocity + acceleration + yaw: only the yaw-rate bit is set.
-TYPE_MASK = 2048
-PX4_OFFBOARD = 6
-APM_GUIDED = 4
-APM_LAND = 9
-# Modes the companion may hand over to, as (DO_SET_MODE param2, param3) and as decoded
-# from the heartbeat (mavutil.mode_string_v10 names).
-# PX4's "LOITER" is AUTO.LOITER (autonomous); POSCTL and ALTCTL are pilot modes.
-PX4_MODES: dict[str, tuple[int, int]] = {"LOITER": (4, 3), "RTL": (4, 5), "LAND": (4, 6), "POSCTL": (3, 0),
-                                         "ALTCTL": (2, 0)}
-APM_MODES: dict[str, int] = {"STABILIZE": 0, "ALT_HOLD": 2, "GUIDED": 4, "LOITER": 5, "RTL": 6, "LAND": 9,
-                             "POSHOLD": 16, "BRAKE": 17}
-# Position only (velocity, acceleration and yaw rate ignored): ArduPilot's GUIDED holds such a
-# target with no timeout (mode_guided.cpp pos_control_run; docs/handover.md).
-POSITION_ONLY_MASK = 8 | 16 | 32 | 64 | 128 | 256 | 2048
-# RC_CHANNELS: a transmitter is live when heard this recently (s) ...
-RC_FRESH = 1.0
-# ... and its throttle stick is centred (us): ArduCopter's pilot modes then climb at 0
-# (ArduCopter/Attitude.cpp get_pilot_desired_climb_rate, the deadband around mid-stick).
-RC_MID_STICK = (1400, 1600)
-
-# The telemetry the companion uses, at the rate it asks for (Hz). HEARTBEAT is unsolicited.
-WANTED: dict[str, float] = {"LOCAL_POSITION_NED": 30.0, "ATTITUDE": 10.0, "EXTENDED_SYS_STATE": 2.0}
-# ArduPilot's legacy stream groups (REQUEST_DATA_STREAM) carrying them, and the suffix of the
-# parameter that sets each group's rate at boot on the link's port (MAVn_* from 4.7, SRn_* before).
-APM_STREAMS: dict[str, tuple[int, str]] = {
-    "LOCAL_POSITION_NED": (mavlink.MAV_DATA_STREAM_POSITION, "POSITION"),
-    "ATTITUDE": (mavlink.MAV_DATA_STREAM_EXTRA1, "EXTRA1"),
-    "EXTENDED_SYS_STATE": (mavlink.MAV_DATA_STREAM_EXTENDED_STATUS, "EXT_STAT"),
-}
-APM_MAVN_FROM = (4, 7)  # the SRn_* rate parameters became MAVn_* in ArduPilot 4.7
-POSITION_STALE = 1.0  # s without LOCAL_POSITION_NED: no position estimate
 IGNORED_EVERY = 5.0  # s between two reports of messages ignored as not the autopilot's
 IGNORED_OTHER_ID_EVERY = 60.0  # the same for other ids (a GCS or camera on a shared link)
-# What the autopilot says (EVENT, STATUSTEXT) this long before a refusing COMMAND_ACK, or up
-# to NOTE_AFTER after it, is taken as the refusal's reason.
-NOTE_BEFORE = 1.0
-NOTE_AFTER = 0.3
-
 _IGNORED_TYPES = {
     mavlink.MAV_TYPE_GCS,
     mavlink.MAV_TYPE_ONBOARD_CONTROLLER,
     mavlink.MAV_TYPE_GIMBAL,
     mavlink.MAV_TYPE_ADSB,
 }
-
-
-def result_name(result: int) -> str:
-    """MAV_RESULT's name for a COMMAND_ACK result (the number when unknown)."""
-    entry = mavlink.enums["MAV_RESULT"].get(result)
-    return entry.name if entry is not None else str(result)
-
-
-@dataclass(frozen=True)
-class Note:
-    """Something the autopilot said: an EVENT (PX4 >= 1.14) or a STATUSTEXT."""
-
-    at: float  # monotonic arrival
-    source: str  # "event" | "statustext"
-    text: str  # the event in words (PX4's events metadata), else "event <id> (why not)"; or the STATUSTEXT
-    level: str  # EVENT log level or MAV_SEVERITY name, without its prefix
-    event_id: int | None = None
-    name: str | None = None  # the PX4 event name, when known
-    words: bool = False  # the text is the autopilot's own wording (decoded event, or STATUSTEXT)
-
-    def fields(self) -> dict[str, Any]:
-        if self.source == "event":
-            return {"event": {"id": self.event_id, "level": self.level, "name": self.name}}
-        return {"statustext": {"text": self.text, "severity": self.level}}
-
-
-class CommandFailed(RuntimeError):
-    """A command sequence failed; `result` (MAV_RESULT name) and `note` (what the autopilot
-    said around the refusal) when the autopilot refused a COMMAND_LONG. `by`: who refused,
-    "autopilot" (it said no, did not answer, or did not do it in time) or "companion" (one of
-    the companion's own checks: the operator's `send` exits 4, not 5, on it)."""
-
-    def __init__(self, message: str, result: str | None = None, note: Note | None = None,
-                 reasons: tuple[str, ...] = (), by: str = "autopilot") -> None:
-        super().__init__(message)
-        self.result = result
-        self.note = note
-        self.reasons = reasons  # what the autopilot said around the refusal, in words
-        self.by = by  # who refused: "autopilot", or "companion" when its own check did
-
-    def fields(self) -> dict[str, Any]:
-        """For the `refused` event: the result code and the EVENT/STATUSTEXT, when known."""
-        out: dict[str, Any] = {}
-        if self.result is not None:
-            out["result"] = self.result
-        if self.note is not None:
-            out.update(self.note.fields())
-        if self.reasons:
-            out["reasons"] = list(self.reasons)
-        return out
-
-    def chained(self, message: str) -> CommandFailed:
-        """The same refusal with a longer message."""
-        return CommandFailed(message, self.result, self.note, self.reasons, self.by)
-
-
-@dataclass
-class VehicleState:
-    """What the autopilot last told us (NED, SI units, monotonic times)."""
-
-    autopilot: str | None = None  # "px4" | "ardupilot"
-    mav_type: int = 0
-    base_mode: int = 0
-    custom_mode: int = 0
-    mode: str = ""
-    armed: bool = False
-    system_status: int = 0
-    last_heartbeat: float = -math.inf
-    last_message: float = -math.inf  # any message from the autopilot's component (liveness)
-    position: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
-    velocity: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    attitude: np.ndarray = field(default_factory=lambda: np.zeros(3))  # roll, pitch, yaw
-    last_position: float = -math.inf
-    received: dict[str, float] = field(default_factory=dict)  # message type -> last arrival
-    landed_state: int = 0  # MAV_LANDED_STATE; 0 unknown
-    last_landed_state: float = -math.inf  # when EXTENDED_SYS_STATE last arrived
-    # HOME_POSITION's local x, y, z (NED, the autopilot's local frame); None until reported
-    home: np.ndarray | None = None
-    # PX4 sent HOME_POSITION at the local origin: home is not valid yet (the autopilot is not ready)
-    home_pending: bool = False
-    # HOME_POSITION's latitude, longitude (deg) and altitude (m AMSL), with `home`; None until reported
-    home_lla: tuple[float, float, float] | None = None
-    # GPS_GLOBAL_ORIGIN: the local frame's origin, (lat deg, lon deg, alt m AMSL); None until reported
-    gps_origin: tuple[float, float, float] | None = None
-    sw_version: tuple[int, int, int] | None = None  # AUTOPILOT_VERSION.flight_sw_version
-    # why LOCAL_POSITION_NED is missing, once the companion has told the causes apart
-    position_advice: str | None = None
-    rc_throttle: int | None = None  # RC_CHANNELS chan3_raw (us), when the autopilot sends it
-    last_rc: float = -math.inf
-    notes: collections.deque[Note] = field(default_factory=lambda: collections.deque(maxlen=16))
-
-    @property
-    def has_position(self) -> bool:
-        return bool(np.all(np.isfinite(self.position)))
-
-    def position_problem(self, now: float | None = None) -> str | None:
-        """Why there is no usable position estimate now (None: there is one)."""
-        now = time.monotonic() if now is None else now
-        if "LOCAL_POSITION_NED" not in self.received:
-            hint = ("the autopilot has not sent LOCAL_POSITION_NED since the link came up (requested at "
-                    f"{WANTED['LOCAL_POSITION_NED']:.0f} Hz); ")
-            if self.position_advice is not None:
-                hint += self.position_advice
-            elif self.autopilot == "ardupilot":
-                hint += "see the `telemetry` event for the cause (no EKF origin yet, or requests ignored)"
-            else:
-                hint += "check its position estimate (EKF2 / GPS or vision) and the MAVLink instance's mode"
-            return f"no position estimate from the autopilot: {hint}"
-        age = now - self.last_position
-        if age > POSITION_STALE:
-            return f"no position estimate from the autopilot: the last LOCAL_POSITION_NED is {age:.1f} s old"
-        if not self.has_position:
-            return "no position estimate from the autopilot: LOCAL_POSITION_NED is not finite"
-        return None
-
-    def pilot_sticks_live(self, now: float | None = None) -> bool:
-        """A transmitter is heard (RC_CHANNELS within RC_FRESH) with the throttle centred."""
-        now = time.monotonic() if now is None else now
-        return (self.rc_throttle is not None and now - self.last_rc <= RC_FRESH
-                and RC_MID_STICK[0] <= self.rc_throttle <= RC_MID_STICK[1])
-
-    def in_follow_mode(self) -> bool:
-        if self.autopilot == "px4":
-            return self.mode == "OFFBOARD"
-        return self.mode == "GUIDED"
-
-
-def autopilot_name(code: int) -> str | None:
-    if code == mavlink.MAV_AUTOPILOT_PX4:
-        return "px4"
-    if code == mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA:
-        return "ardupilot"
-    return None
-
-
-def decode_mode(autopilot: str | None, mav_type: int, base_mode: int, custom_mode: int) -> str:
-    if autopilot == "px4":
-        return str(mavutil.interpret_px4_mode(base_mode, custom_mode))
-    mapping = mavutil.mode_mapping_bynumber(mav_type) or mavutil.mode_mapping_acm
-    return str(mapping.get(custom_mode, f"Mode({custom_mode})"))
-
-
-def param_name(raw: Any) -> str:
-    """A PARAM_VALUE's param_id (char[16], NUL-padded unless 16 long) as text."""
-    text = raw.decode("ascii", errors="replace") if isinstance(raw, bytes) else str(raw)
-    return text.split("\x00", 1)[0]
-
-
-def param_value(autopilot: str | None, ptype: int, value: float) -> float:
-    """A PARAM_VALUE's value: PX4 sends integer types bytewise in the float field (its
-    MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE), ArduPilot casts them to float."""
-    ints = (mavlink.MAV_PARAM_TYPE_UINT8, mavlink.MAV_PARAM_TYPE_INT8, mavlink.MAV_PARAM_TYPE_UINT16,
-            mavlink.MAV_PARAM_TYPE_INT16, mavlink.MAV_PARAM_TYPE_UINT32, mavlink.MAV_PARAM_TYPE_INT32)
-    if autopilot == "px4" and ptype in ints:
-        raw = struct.pack("<f", value)
-        return float(struct.unpack("<I" if ptype == mavlink.MAV_PARAM_TYPE_UINT32 else "<i", raw)[0])
-    return float(value)
-
-
-_NETWORK = ("udpin:", "udpout:", "udp:", "udpbcast:", "tcp:", "tcpin:")
-
-
-def parse_url(url: str) -> tuple[str, int]:
-    """(device, baud) for pymavlink: network URLs as they are; `serial:/dev/ttyX:921600`
-    or `/dev/ttyX:921600` for a serial port (baud defaults to 57600)."""
-    if url.startswith(_NETWORK):
-        return url, 57600
-    device = url.removeprefix("serial:")
-    head, sep, tail = device.rpartition(":")
-    if sep and tail.isdigit():
-        return head, int(tail)
-    return device, 57600
 
 
 class MavlinkLink:

@@ -33,7 +33,8 @@ from typing import TYPE_CHECKING, Any
 if TYPE_CHECKING:
     from collections.abc import Iterable
 
-    from companion.wire.mavlink import MavlinkLink, Note
+    from companion.wire.mavlink import MavlinkLink
+    from companion.wire.vehicle import Note
 
 log = logging.getLogger("companion")
 

@@ -9,7 +9,7 @@ from companion.config import Config
 from companion.flight import FlightState, State
 from companion.report import Reporter
 from companion.supervisor import Supervisor
-from companion.wire.mavlink import VehicleState
+from companion.wire.vehicle import VehicleState
 
 
 class Link:

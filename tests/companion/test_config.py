@@ -68,7 +68,7 @@ def test_print_default_config_cli() -> None:
 
 
 def test_mavlink_urls() -> None:
-    from companion.wire.mavlink import parse_url
+    from companion.wire.vehicle import parse_url
 
     assert parse_url("udpout:127.0.0.1:14540") == ("udpout:127.0.0.1:14540", 57600)
     assert parse_url("tcp:10.0.0.2:5760") == ("tcp:10.0.0.2:5760", 57600)

@@ -14,8 +14,9 @@ from companion.config import ConfigError, config_from_dict
 from companion.limits import clip_bounds, clips_text, limit_box, limits_from_params, refusal_note
 from companion.report import MAX_TEXT
 from companion.wire.limits_params import names_to_read
-from companion.wire.mavlink import mavlink, param_value
+from companion.wire.mavlink import mavlink
 from companion.wire.messages import bounds_from, read
+from companion.wire.vehicle import param_value
 from planner_core import Bounds
 
 

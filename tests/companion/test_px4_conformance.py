@@ -19,8 +19,8 @@ from companion.flight import FlightState, State
 from companion.report import Reporter
 from companion.setpoints import Feed, Liveness, SetpointSender, Tick, YawPolicy
 from companion.supervisor import GroundLearnt, HeightReport, LandRequested, Supervisor
-from companion.wire.mavlink import VehicleState, decode_mode
 from companion.wire.messages import Command, MessageError, MissionSpec, ObstacleUpdate, read
+from companion.wire.vehicle import VehicleState, decode_mode
 from planner_core import hold
 
 S = State

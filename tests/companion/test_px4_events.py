@@ -9,8 +9,9 @@ from pathlib import Path
 import pytest
 
 from companion.config import config_from_dict
-from companion.wire.mavlink import MavlinkLink, Note
+from companion.wire.mavlink import MavlinkLink
 from companion.wire.px4_events import EventsMetadata, MetadataError, default_cache_dir, ftp_path
+from companion.wire.vehicle import Note
 
 META = {
     "version": 2,

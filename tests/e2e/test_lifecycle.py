@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from e2e_rig import Rig
 
-from companion.wire.mavlink import POSITION_ONLY_MASK
+from companion.wire.vehicle import POSITION_ONLY_MASK
 
 pytestmark = pytest.mark.slow
 
