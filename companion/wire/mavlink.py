@@ -40,7 +40,6 @@ from companion.wire.tcp import Dialler, TcpConnection, describe, tcp_address
 from companion.wire.vehicle import (
     APM_GUIDED,
     APM_LAND,
-    APM_MAVN_FROM,
     APM_MODES,
     APM_STREAMS,
     NOTE_AFTER,
@@ -53,12 +52,11 @@ from companion.wire.vehicle import (
     CommandFailed,
     Note,
     VehicleState,
-    autopilot_name,
-    decode_mode,
     param_name,
     param_value,
     parse_url,
     result_name,
+    telemetry_hint,
 )
 
 log = logging.getLogger("companion")
@@ -67,12 +65,6 @@ mavlink = mavutil.mavlink
 
 IGNORED_EVERY = 5.0  # s between two reports of messages ignored as not the autopilot's
 IGNORED_OTHER_ID_EVERY = 60.0  # the same for other ids (a GCS or camera on a shared link)
-_IGNORED_TYPES = {
-    mavlink.MAV_TYPE_GCS,
-    mavlink.MAV_TYPE_ONBOARD_CONTROLLER,
-    mavlink.MAV_TYPE_GIMBAL,
-    mavlink.MAV_TYPE_ADSB,
-}
 
 
 class MavlinkLink:
@@ -347,57 +339,10 @@ class MavlinkLink:
         now = time.monotonic()
         self.tap.mavlink_received(msg, now)
         st = self.state
-        if kind != "HEARTBEAT":
-            st.received[kind] = now
-            if msg.get_srcComponent() == self.cfg.vehicle.autopilot_component:
-                st.last_message = now
-        if kind == "HEARTBEAT":
-            if msg.type in _IGNORED_TYPES or msg.autopilot == mavlink.MAV_AUTOPILOT_INVALID:
-                return
-            if msg.get_srcComponent() != self.cfg.vehicle.autopilot_component:
-                return
-            st.autopilot = autopilot_name(msg.autopilot) or st.autopilot
-            st.mav_type, st.base_mode, st.custom_mode = msg.type, msg.base_mode, msg.custom_mode
-            st.mode = decode_mode(st.autopilot, msg.type, msg.base_mode, msg.custom_mode)
-            st.armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
-            st.system_status = msg.system_status
-            st.last_heartbeat = now
-        elif kind == "LOCAL_POSITION_NED":
-            st.position = np.array([msg.x, msg.y, msg.z], dtype=float)
-            st.velocity = np.array([msg.vx, msg.vy, msg.vz], dtype=float)
-            st.last_position = now
-        elif kind == "ATTITUDE":
-            st.attitude = np.array([msg.roll, msg.pitch, msg.yaw], dtype=float)
-        elif kind == "EXTENDED_SYS_STATE":
-            st.landed_state = msg.landed_state
-            st.last_landed_state = now
-        elif kind == "HOME_POSITION":
-            home = np.array([msg.x, msg.y, msg.z], dtype=float)
-            if st.autopilot == "px4" and not np.any(home):
-                # PX4 reports home at the local origin until its estimator is ready (~37 s after
-                # boot on SIH 1.15) while its estimate on the ground reads z +0.4..+2.3 m: not a
-                # home to place anything by (autopilot-facts.md)
-                st.home_pending = True
-            elif np.all(np.isfinite(home)):
-                st.home = home
-                st.home_pending = False
-                if msg.latitude != 0 or msg.longitude != 0:  # 0, 0: no global position (a vehicle without GPS)
-                    st.home_lla = (msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3)
-        elif kind == "GPS_GLOBAL_ORIGIN":
-            if msg.latitude != 0 or msg.longitude != 0:
-                st.gps_origin = (msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3)
-        elif kind == "AUTOPILOT_VERSION":
-            v = int(msg.flight_sw_version)
-            st.sw_version = ((v >> 24) & 0xFF, (v >> 16) & 0xFF, (v >> 8) & 0xFF)
+        if not st.take(kind, msg, now, self.cfg.vehicle.autopilot_component):
+            return  # a heartbeat not from the autopilot
+        if kind == "AUTOPILOT_VERSION":
             self.events.on_message(kind, msg)  # the events metadata is keyed by the firmware
-        elif kind == "RC_CHANNELS":
-            if int(msg.chancount) >= 3 and 800 <= int(msg.chan3_raw) <= 2200:
-                st.rc_throttle = int(msg.chan3_raw)
-                st.last_rc = now
-        elif kind == "STATUSTEXT":
-            sev = mavlink.enums["MAV_SEVERITY"].get(int(msg.severity))
-            level = sev.name.removeprefix("MAV_SEVERITY_") if sev is not None else str(msg.severity)
-            st.notes.append(Note(now, "statustext", str(msg.text), level, words=True))
         elif kind == "EVENT":
             info = dialect.decode_event(msg)
             said = self.events.describe(info.id, dialect.event_arguments(msg))
@@ -623,37 +568,9 @@ class MavlinkLink:
         """AUTOPILOT_VERSION (which rate parameters ArduPilot has); a refusal is not fatal."""
         await self.command(mavlink.MAV_CMD_REQUEST_MESSAGE, mavlink.MAVLINK_MSG_ID_AUTOPILOT_VERSION)
 
-    def serial_port(self) -> int | None:
-        """The ArduPilot SERIALn port this link is on, where the URL tells it for certain:
-        SITL's first TCP port (5760) and a USB CDC device are SERIAL0. None otherwise
-        (ArduPilot does not say which port a message came in on)."""
-        url = self.cfg.mavlink.url
-        if url.startswith(("tcp:", "tcpin:")) and url.rsplit(":", 1)[-1] == "5760":
-            return 0
-        device = parse_url(url)[0]
-        if device.startswith(("/dev/ttyACM", "/dev/serial/by-id/usb-ArduPilot")):
-            return 0
-        return None
-
-    def rate_parameter(self, group: str) -> str:
-        """The rate parameter of a stream group on this link's port, by the autopilot's version
-        (SRn_* before 4.7, MAVn_* from 4.7) and port; never a port number it cannot know."""
-        n, ver = self.serial_port(), self.state.sw_version
-        port = "SERIAL0" if n == 0 else "the serial port this link is on"
-        if ver is not None and ver[:2] >= APM_MAVN_FROM:
-            return f"MAVn_{group} (n: the MAVLink instance on {port})"
-        if ver is not None:
-            return f"SR0_{group}" if n == 0 else f"SRn_{group} (n: the MAVLink channel of {port})"
-        where = f"SR0_{group}" if n == 0 else f"SRn_{group}"
-        return (f"{where} before 4.7, MAVn_{group} from 4.7 (the autopilot did not send AUTOPILOT_VERSION; "
-                f"n: the MAVLink instance on {port})")
-
     def telemetry_hint(self, missing: list[str]) -> str:
-        if self.state.autopilot == "ardupilot":
-            return "set " + ", ".join(f"{self.rate_parameter(APM_STREAMS[m][1])} (for {m})" for m in missing) + \
-                " to a rate in Hz"
-        return ("PX4 streams these in its Onboard MAVLink mode: check MAV_n_MODE = Onboard on this link, or add "
-                "'mavlink stream -r RATE -s MESSAGE' in the SD card's etc/extras.txt")
+        """How to make the autopilot send `missing` (companion.wire.vehicle.telemetry_hint)."""
+        return telemetry_hint(self.state.autopilot, missing, self.cfg.mavlink.url, self.state.sw_version)
 
     async def set_mode(self, name: str) -> None:
         """One of PX4_MODES / APM_MODES by MAV_CMD_DO_SET_MODE (custom mode enabled)."""

@@ -66,6 +66,15 @@ POSITION_STALE = 1.0  # s without LOCAL_POSITION_NED: no position estimate
 NOTE_BEFORE = 1.0
 NOTE_AFTER = 0.3
 
+# heartbeats of these types are other components on the link, not an autopilot
+IGNORED_TYPES = {
+    mavlink.MAV_TYPE_GCS,
+    mavlink.MAV_TYPE_ONBOARD_CONTROLLER,
+    mavlink.MAV_TYPE_GIMBAL,
+    mavlink.MAV_TYPE_ADSB,
+}
+
+
 def result_name(result: int) -> str:
     """MAV_RESULT's name for a COMMAND_ACK result (the number when unknown)."""
     entry = mavlink.enums["MAV_RESULT"].get(result)
@@ -190,6 +199,62 @@ class VehicleState:
             return self.mode == "OFFBOARD"
         return self.mode == "GUIDED"
 
+    def take(self, kind: str, msg: Any, now: float, autopilot_component: int) -> bool:
+        """The one reader of the messages that say what the vehicle is and does (the link
+        reads the rest: acknowledgements, parameters, PX4's events). False: a heartbeat that is
+        not the autopilot's (a GCS, a camera, another component), to be ignored."""
+        if kind != "HEARTBEAT":
+            self.received[kind] = now
+            if msg.get_srcComponent() == autopilot_component:
+                self.last_message = now
+        if kind == "HEARTBEAT":
+            if msg.type in IGNORED_TYPES or msg.autopilot == mavlink.MAV_AUTOPILOT_INVALID:
+                return False
+            if msg.get_srcComponent() != autopilot_component:
+                return False
+            self.autopilot = autopilot_name(msg.autopilot) or self.autopilot
+            self.mav_type, self.base_mode, self.custom_mode = msg.type, msg.base_mode, msg.custom_mode
+            self.mode = decode_mode(self.autopilot, msg.type, msg.base_mode, msg.custom_mode)
+            self.armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+            self.system_status = msg.system_status
+            self.last_heartbeat = now
+        elif kind == "LOCAL_POSITION_NED":
+            self.position = np.array([msg.x, msg.y, msg.z], dtype=float)
+            self.velocity = np.array([msg.vx, msg.vy, msg.vz], dtype=float)
+            self.last_position = now
+        elif kind == "ATTITUDE":
+            self.attitude = np.array([msg.roll, msg.pitch, msg.yaw], dtype=float)
+        elif kind == "EXTENDED_SYS_STATE":
+            self.landed_state = msg.landed_state
+            self.last_landed_state = now
+        elif kind == "HOME_POSITION":
+            home = np.array([msg.x, msg.y, msg.z], dtype=float)
+            if self.autopilot == "px4" and not np.any(home):
+                # PX4 reports home at the local origin until its estimator is ready (~37 s after
+                # boot on SIH 1.15) while its estimate on the ground reads z +0.4..+2.3 m: not a
+                # home to place anything by (autopilot-facts.md)
+                self.home_pending = True
+            elif np.all(np.isfinite(home)):
+                self.home = home
+                self.home_pending = False
+                if msg.latitude != 0 or msg.longitude != 0:  # 0, 0: no global position (a vehicle without GPS)
+                    self.home_lla = (msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3)
+        elif kind == "GPS_GLOBAL_ORIGIN":
+            if msg.latitude != 0 or msg.longitude != 0:
+                self.gps_origin = (msg.latitude * 1e-7, msg.longitude * 1e-7, msg.altitude * 1e-3)
+        elif kind == "AUTOPILOT_VERSION":
+            v = int(msg.flight_sw_version)
+            self.sw_version = ((v >> 24) & 0xFF, (v >> 16) & 0xFF, (v >> 8) & 0xFF)
+        elif kind == "RC_CHANNELS":
+            if int(msg.chancount) >= 3 and 800 <= int(msg.chan3_raw) <= 2200:
+                self.rc_throttle = int(msg.chan3_raw)
+                self.last_rc = now
+        elif kind == "STATUSTEXT":
+            sev = mavlink.enums["MAV_SEVERITY"].get(int(msg.severity))
+            level = sev.name.removeprefix("MAV_SEVERITY_") if sev is not None else str(msg.severity)
+            self.notes.append(Note(now, "statustext", str(msg.text), level, words=True))
+        return True
+
 
 def autopilot_name(code: int) -> str | None:
     if code == mavlink.MAV_AUTOPILOT_PX4:
@@ -236,3 +301,38 @@ def parse_url(url: str) -> tuple[str, int]:
     if sep and tail.isdigit():
         return head, int(tail)
     return device, 57600
+
+
+def serial_port(url: str) -> int | None:
+    """The ArduPilot SERIALn port a link of this URL is on, where the URL tells it for certain:
+    SITL's first TCP port (5760) and a USB CDC device are SERIAL0. None otherwise (ArduPilot
+    does not say which port a message came in on)."""
+    if url.startswith(("tcp:", "tcpin:")) and url.rsplit(":", 1)[-1] == "5760":
+        return 0
+    device = parse_url(url)[0]
+    if device.startswith(("/dev/ttyACM", "/dev/serial/by-id/usb-ArduPilot")):
+        return 0
+    return None
+
+
+def rate_parameter(group: str, url: str, sw_version: tuple[int, int, int] | None) -> str:
+    """The rate parameter of a stream group on the port of a link of this URL, by the autopilot's
+    version (SRn_* before 4.7, MAVn_* from 4.7); never a port number it cannot know."""
+    n = serial_port(url)
+    port = "SERIAL0" if n == 0 else "the serial port this link is on"
+    if sw_version is not None and sw_version[:2] >= APM_MAVN_FROM:
+        return f"MAVn_{group} (n: the MAVLink instance on {port})"
+    if sw_version is not None:
+        return f"SR0_{group}" if n == 0 else f"SRn_{group} (n: the MAVLink channel of {port})"
+    where = f"SR0_{group}" if n == 0 else f"SRn_{group}"
+    return (f"{where} before 4.7, MAVn_{group} from 4.7 (the autopilot did not send AUTOPILOT_VERSION; "
+            f"n: the MAVLink instance on {port})")
+
+
+def telemetry_hint(autopilot: str | None, missing: list[str], url: str, sw_version: tuple[int, int, int] | None) -> str:
+    """What to set so that the autopilot sends the `missing` messages at all."""
+    if autopilot == "ardupilot":
+        return "set " + ", ".join(f"{rate_parameter(APM_STREAMS[m][1], url, sw_version)} (for {m})"
+                                  for m in missing) + " to a rate in Hz"
+    return ("PX4 streams these in its Onboard MAVLink mode: check MAV_n_MODE = Onboard on this link, or add "
+            "'mavlink stream -r RATE -s MESSAGE' in the SD card's etc/extras.txt")

@@ -106,20 +106,18 @@ def test_no_position_estimate_is_told_apart_and_withdrawn_when_it_arrives(tmp_pa
 
 
 def test_the_rate_parameter_is_named_by_version_and_port() -> None:
-    from companion.config import config_from_dict
-    from companion.wire.mavlink import MavlinkLink
+    from companion.wire.vehicle import rate_parameter, telemetry_hint
 
-    sitl = MavlinkLink(config_from_dict({"mavlink": {"url": "tcp:127.0.0.1:5760"}}))  # SITL's SERIAL0
-    sitl.state.sw_version = (4, 6, 0)
-    assert sitl.rate_parameter("POSITION") == "SR0_POSITION"
-    sitl.state.sw_version = (4, 7, 0)
-    assert sitl.rate_parameter("POSITION").startswith("MAVn_POSITION") and "SERIAL0" in sitl.rate_parameter("POSITION")
-    radio = MavlinkLink(config_from_dict({"mavlink": {"url": "serial:/dev/ttyAMA0:921600"}}))
-    radio.state.sw_version = (4, 5, 7)
-    assert radio.rate_parameter("EXTRA1").startswith("SRn_EXTRA1 (n:")
-    radio.state.sw_version = None
-    text = radio.rate_parameter("EXTRA1")
+    sitl = "tcp:127.0.0.1:5760"  # SITL's SERIAL0
+    assert rate_parameter("POSITION", sitl, (4, 6, 0)) == "SR0_POSITION"
+    text = rate_parameter("POSITION", sitl, (4, 7, 0))
+    assert text.startswith("MAVn_POSITION") and "SERIAL0" in text
+    radio = "serial:/dev/ttyAMA0:921600"
+    assert rate_parameter("EXTRA1", radio, (4, 5, 7)).startswith("SRn_EXTRA1 (n:")
+    text = rate_parameter("EXTRA1", radio, None)
     assert "SRn_EXTRA1 before 4.7" in text and "MAVn_EXTRA1 from 4.7" in text
+    hint = telemetry_hint("ardupilot", ["LOCAL_POSITION_NED", "ATTITUDE"], sitl, (4, 6, 0))
+    assert "SR0_POSITION (for LOCAL_POSITION_NED)" in hint and "SR0_EXTRA1 (for ATTITUDE)" in hint
 
 
 def test_waiting_for_a_heartbeat_is_said() -> None:
