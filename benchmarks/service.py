@@ -575,7 +575,8 @@ def run_put(out: Path, sizes: list[int], each: int, hog: bool, search_time: floa
                                 "message": None if answer is None else str(answer.get("message", ""))[:200],
                                 "sent_mono": None if lat is None else lat.get("sent_mono"),
                                 "companion_ms": None if lat is None else lat.get("latency_ms"),
-                                "plan_ms": None if answer is None else answer.get("plan_ms")})
+                                "plan_ms": None if answer is None else answer.get("plan_ms"),
+                                "compute_ms": None if answer is None else answer.get("compute_ms")})
                 time.sleep(1.0)
     stamps = np.asarray(json.loads(stamps_path.read_text()))
     result: dict[str, Any] = {"hog": hog, "each": each, "search_time": search_time, "samples": samples}
@@ -589,10 +590,14 @@ def run_put(out: Path, sizes: list[int], each: int, hog: bool, search_time: floa
             if k:
                 put_ms.append((float(stamps[k[0]]) - x["put"]) * 1e3)
         comp = [float(x["companion_ms"]) for x in rows if x["companion_ms"] is not None]
+        plan = [float(x["plan_ms"]) for x in rows if x.get("plan_ms") is not None]
+        compute = [float(x["compute_ms"]) for x in rows if x.get("compute_ms") is not None]
         capped = [x for x in rows if x["message"] and "stopped after" in x["message"]]
         result.update({f"put_{n}_median_ms": float(np.median(put_ms)) if put_ms else float("nan"),
                        f"put_{n}_max_ms": float(np.max(put_ms)) if put_ms else float("nan"),
                        f"companion_{n}_median_ms": float(np.median(comp)) if comp else float("nan"),
+                       f"plan_{n}_median_ms": float(np.median(plan)) if plan else float("nan"),
+                       f"compute_{n}_median_ms": float(np.median(compute)) if compute else float("nan"),
                        f"accepted_{n}": sum(1 for x in rows if x["accepted"]), f"sent_{n}": len(rows),
                        f"capped_{n}": len(capped),
                        f"improved_{n}": sum(1 for x in rows if x["improved_s"] is not None),
@@ -611,6 +616,9 @@ def format_put(results: list[dict[str, Any]], sizes: list[int]) -> str:
                  ["  max [ms]", *[f"{r[f'put_{n}_max_ms']:.1f}" for r in results]],
                  ["  companion's own clock (arrival -> send), median [ms]",
                   *[f"{r[f'companion_{n}_median_ms']:.1f}" for r in results]],
+                 ["    of which the plan's round trip to the planner process / the planner's own time [ms]",
+                  *[f"{r.get(f'plan_{n}_median_ms', float('nan')):.1f} / {r.get(f'compute_{n}_median_ms', float('nan')):.1f}"
+                    for r in results]],
                  ["  accepted / sent; search cut to fit", *[f"{r[f'accepted_{n}']} / {r[f'sent_{n}']}; {r[f'capped_{n}']}"
                                                              for r in results]],
                  ["  the fastest durations swapped in later (anytime start); median s earlier",

@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -30,9 +31,11 @@ from planner_core import (
     Bounds,
     CorridorError,
     FloatArray,
+    Neighbours,
     Polytope,
     Trajectory,
     braking_trajectory,
+    certify_all,
     splice,
     stop_time_scale,
 )
@@ -83,6 +86,9 @@ class StopPlan:
     start: float
     message: str
     in_free_space: bool  # False: only the dynamic bounds were respected (last resort)
+    # in a fleet: certified separated from the other vehicles' live trajectories (None: no fleet,
+    # or a last resort that was not checked; the trajectory's certificates are made when published)
+    separated: bool | None = None
 
 
 def _jet_at(traj: Trajectory, t: float) -> FloatArray:
@@ -110,8 +116,48 @@ def safe_corridor(position: FloatArray, velocity: FloatArray, obstacles: Sequenc
         return None
 
 
+# A stop that is not separated from another vehicle's live trajectory is tried stretched (longer
+# stops from the same state rest elsewhere: the braking QP picks their end), then from earlier
+# starts (it rests short of where the others pass); each is a verified stop like the first.
+EARLIER_STARTS = (0.5, 0.0)  # fractions of the way from the earliest possible start to the asked one
+STRETCHES = (1.5, 2.5)
+
+
+def separation_failure(traj: Trajectory, neighbours: Neighbours | None, names: Sequence[str] = ()) -> str:
+    """Why `traj` (and the hold at its end) is not separated from the other vehicles' live
+    trajectories ("" when it is, or when there are none), the vehicle named."""
+    if neighbours is None or not neighbours.trajectories:
+        return ""
+    _, failure, _ = certify_all(traj, neighbours)
+    if failure is None:
+        return ""
+
+    def name(m: re.Match[str]) -> str:
+        k = int(m.group(1))
+        return names[k] if 0 <= k < len(names) else m.group(0)
+
+    return re.sub(r"neighbour (\d+)", name, failure.message)
+
+
+def _separated_stop(jet: FloatArray, bounds: Bounds, corridor: Polytope, t_b: float, first: Trajectory, said: str,
+                    neighbours: Neighbours, names: Sequence[str]) -> tuple[Trajectory | None, str]:
+    """The first of the stop from `jet` (`first`, its message `said`) and its stretched variants
+    that is separated, with its message (None and why the first one is not, if none is)."""
+    why = separation_failure(first, neighbours, names)
+    if not why:
+        return first, said
+    durations = np.diff(first.times)
+    for k in STRETCHES:
+        result = braking_trajectory(jet, bounds, corridor, t_b, durations=(durations * k).tolist())
+        if result.ok and result.trajectory is not None and not separation_failure(result.trajectory, neighbours, names):
+            return result.trajectory, (f"{result.message} (its durations x{k:g}: the shortest stop from there was not "
+                                       f"separated: {why})")
+    return None, why
+
+
 def plan_stop(base: Trajectory, starts: Sequence[float], clock: Callable[[], float], obstacles: Sequence[Polytope],
-              mission: MissionSpec | None, bounds: Bounds, lead: float) -> StopPlan:
+              mission: MissionSpec | None, bounds: Bounds, lead: float, neighbours: Neighbours | None = None,
+              names: Sequence[str] = ()) -> StopPlan:
     """A verified stop branching off `base` at the latest of `starts` that works.
 
     `clock()` is the trajectory time now (this runs in a worker thread while `base` is being
@@ -121,10 +167,22 @@ def plan_stop(base: Trajectory, starts: Sequence[float], clock: Callable[[], flo
     radius), so the stop cannot enter one. If none works, the last resorts (`in_free_space`
     False, and the message says so) are a stop as soon as possible inside the corridor of the
     flown segment (planned before the newest obstacles), then within the dynamic bounds alone.
+
+    In a fleet (`neighbours`: the other vehicles' live trajectories, local frame and flight
+    time; `names` for messages) the stop and the hold at its end must also be certified
+    separated from every one of them: a stop that is not is tried stretched, then from earlier
+    starts (never earlier than clock() + lead: the flown plan up to there was certified with
+    them); when none is, the first verified stop is flown and its message says from which
+    vehicle it is not separated (`separated` False).
     """
     reasons: list[str] = []
     tried: set[float] = set()
-    for want in sorted(starts, reverse=True):
+    fallback: StopPlan | None = None
+    wanted = sorted(starts, reverse=True)
+    if neighbours is not None and neighbours.trajectories and wanted:
+        soonest = clock() + lead
+        wanted += [soonest + f * (wanted[-1] - soonest) for f in EARLIER_STARTS if wanted[-1] - soonest > 0.05]
+    for want in wanted:
         for _ in range(3):
             began = clock()
             t_b = max(float(want), began + lead)
@@ -140,10 +198,21 @@ def plan_stop(base: Trajectory, starts: Sequence[float], clock: Callable[[], flo
             if traj is None:
                 reasons.append(f"start t={t_b:.3f} s: {why}")
                 break
+            if neighbours is not None and neighbours.trajectories:
+                found, note = _separated_stop(jet, bounds, corridor, t_b, traj, why, neighbours, names)
+                if found is None:
+                    if fallback is None:
+                        fallback = StopPlan(traj, t_b, f"{why}; not separated from the other vehicles: {note}", True,
+                                            separated=False)
+                    reasons.append(f"start t={t_b:.3f} s: not separated: {note}")
+                    break
+                traj, why = found, note
             if clock() <= t_b - 0.5 * lead:
-                return StopPlan(traj, t_b, why, True)
+                return StopPlan(traj, t_b, why, True, separated=None if neighbours is None else True)
             # Planned too slowly to be swapped in before its start: plan further ahead.
             lead = max(lead, 2.0 * (clock() - began))
+    if fallback is not None and fallback.trajectory is not None and clock() <= fallback.start - 0.5 * lead:
+        return fallback
     detail = "; ".join(reasons) or "no start given"
     t_b = clock() + lead
     jet = _jet_at(base, t_b)
@@ -183,11 +252,14 @@ def warm_up_brake(cfg: Config) -> bool:
 
 @dataclass(frozen=True)
 class StopContext:
-    """What a stop is planned against: the flown mission (None: none), obstacles, bounds."""
+    """What a stop is planned against: the flown mission (None: none), obstacles, bounds, and
+    in a fleet the other vehicles' live trajectories (with their names, for messages)."""
 
     mission: MissionSpec | None
     obstacles: tuple[Polytope, ...]
     bounds: Bounds
+    neighbours: Neighbours | None = None
+    names: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -308,7 +380,7 @@ class Brakes:
         ctx = self.context()
         lead = max(BRAKE_LEAD, 3.0 / self.cfg.setpoints.rate_hz)
         return loop.run_in_executor(self.runtime.brake_pool, plan_stop, base, starts, self.control.clock(),
-                                    list(ctx.obstacles), ctx.mission, ctx.bounds, lead)
+                                    list(ctx.obstacles), ctx.mission, ctx.bounds, lead, ctx.neighbours, ctx.names)
 
     def _commit(self, base: Trajectory, plan: StopPlan | None, arrived: float | None) -> bool:
         if plan is None or plan.trajectory is None or self.control.active is not base:
@@ -420,4 +492,5 @@ def stop_fields(plan: StopPlan | None) -> dict[str, Any]:
     if plan is None or plan.trajectory is None:
         return {}
     return {"brake_start": round(plan.start, 4), "stop_time": round(plan.trajectory.t_end, 4),
-            "stop_position": vec(plan.trajectory.control_points[-1, -1]), "in_free_space": plan.in_free_space}
+            "stop_position": vec(plan.trajectory.control_points[-1, -1]), "in_free_space": plan.in_free_space,
+            **({} if plan.separated is None else {"separated": plan.separated})}

@@ -150,7 +150,10 @@ class Navigator:
         mission = self.route.mission if self.route is not None else None
         every = self.known() + (Known.of(mission.obstacles) if mission is not None else Known())
         bounds = mission.bounds if mission is not None else self.default_bounds()
-        return StopContext(mission, every.polytopes, bounds)
+        # in a fleet the stop (and the hold at its end) is chosen separated from the others
+        nb = self.neighbours(bounds)
+        names = tuple(self.fleet.order) if nb is not None else ()
+        return StopContext(mission, every.polytopes, bounds, nb, names)
 
     def default_bounds(self) -> Bounds:
         """The configured bounds, within the autopilot's limits when they are known."""

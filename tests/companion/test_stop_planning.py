@@ -12,7 +12,15 @@ import pytest
 from companion.braking import BRAKE_MARGIN_SECONDS, MIN_STOP_SECONDS, brake_deadline, plan_stop
 from companion.route import Route
 from companion.runtime import GcPacer
-from planner_core import Bounds, first_hit, inflate, splice
+from planner_core import (
+    Bounds,
+    FloatArray,
+    Neighbours,
+    certify_separation,
+    first_hit,
+    inflate,
+    splice,
+)
 from planner_core.problem import Polytope, Trajectory
 from tests.companion.test_route import box, fly
 
@@ -121,3 +129,46 @@ def test_gc_pacer_turns_automatic_collection_off_and_collects_on_the_loops_terms
     del junk
     pacer.stop()
     assert gc.isenabled()
+
+
+# -- in a fleet: the stop chosen separated from the other vehicles (issue 24.4) -----------------
+
+
+def crossing(rest: FloatArray, t_end: float) -> Trajectory:
+    """Another vehicle's trajectory across the leg, through `rest` about 1 s after `t_end`."""
+    return fly([[3.0, float(rest[1]), float(rest[2])]], [-3.0, float(rest[1]), float(rest[2])], t0=t_end - 1.0).trajectory
+
+
+def test_a_stop_in_a_fleet_is_chosen_separated_from_the_others() -> None:
+    r, ob, _ = across()
+    now = 1.0
+    plain = plan_stop(r.trajectory, [1.5], lambda: now, [ob], r.mission, r.mission.bounds, 0.08)
+    assert plain.trajectory is not None and plain.separated is None  # no fleet: not judged
+    other = crossing(plain.trajectory.control_points[-1, -1], plain.trajectory.t_end)
+    nb = Neighbours((other,), 1.0)
+    # the shortest stop rests where the other vehicle passes a second later
+    assert not certify_separation(plain.trajectory, other, 1.0).ok
+    plan = plan_stop(r.trajectory, [1.5], lambda: now, [ob], r.mission, r.mission.bounds, 0.08, nb, ("drone7",))
+    stop = plan.trajectory
+    assert stop is not None and plan.separated is True and plan.in_free_space
+    assert certify_separation(stop, other, 1.0).ok  # checked independently of the choice
+    assert now + 0.08 - 1e-12 <= plan.start <= 1.5
+    assert np.allclose(stop.jet(stop.t0), r.trajectory.jet(plan.start), atol=1e-6)
+    assert np.linalg.norm(stop.evaluate(np.array([stop.t_end]), 1)) <= 1e-9
+    assert within_bounds(stop, r.mission.bounds) and not enters(splice(r.trajectory, stop), ob, now)
+    assert "drone7" in plan.message and "neighbour" not in plan.message, plan.message
+
+
+def test_a_stop_no_candidate_of_which_is_separated_is_flown_and_says_from_whom() -> None:
+    r, ob, _ = across()
+    now = 1.0
+    # the other vehicle holds 0.5 m beside the leg for ever: no stop from it keeps 3 m
+    beside = fly([[0.5, 2.0, -1.5]], [0.5, 1.9, -1.5], t0=0.0).trajectory
+    plan = plan_stop(r.trajectory, [1.5], lambda: now, [ob], r.mission, r.mission.bounds, 0.08,
+                     Neighbours((beside,), 3.0), ("drone7",))
+    stop = plan.trajectory
+    assert stop is not None and plan.in_free_space and plan.separated is False
+    assert not certify_separation(stop, beside, 3.0).ok
+    assert "not separated from the other vehicles" in plan.message and "drone7" in plan.message, plan.message
+    assert plan.start == pytest.approx(1.5)  # the asked start's shortest stop: the obstacle comes first
+    assert not enters(splice(r.trajectory, stop), ob, now)
