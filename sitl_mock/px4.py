@@ -41,6 +41,21 @@ DEFAULT_READY_S = 36.5
 DRIFT_CENTRE = -0.25
 DRIFT_AMPLITUDE = 0.95
 DRIFT_PERIOD_S = 23.0
+# In AUTO.LOITER in the air, PX4 SIH's reported estimate wanders (field, PX4 SIH 1.15 after the
+# companion's hand-over: estimate speeds 0.50-0.65 m/s while the hold kept its altitude within
+# 0.2 m and drifted <= 1 m): when AUTO.LOITER follows OFFBOARD in the air (a hand-over, a pilot's
+# takeover: the case measured), the mock's LOCAL_POSITION_NED wanders horizontally by
+# LOITER_WANDER_M at up to LOITER_WANDER_SPEED (a sine along one horizontal direction, from the
+# mode's start).
+LOITER_WANDER_M = 0.5
+LOITER_WANDER_SPEED = 0.6
+LOITER_WANDER_DIR = np.array([math.cos(math.radians(30.0)), math.sin(math.radians(30.0)), 0.0])
+# PX4 sends its arming-check report when the checks' results change (Report::report: a
+# difference not yet reported, rate-limited), never in answer to an arm (Commander::arm calls
+# update() without forcing a report). While the estimator settles its checks change now and
+# then: on PX4 SIH 1.15 a report came 3.7 s before a refused arm, then none for 28 s. The mock
+# reports at boot and again every REPORT_AGAIN_S until ready (MockConfig.px4_report_every_s).
+REPORT_AGAIN_S = 28.0
 
 GENERAL_URI = "mftp://etc/extras/component_general.json.xz"
 EVENTS_URI = "mftp://etc/extras/all_events.json.xz"
@@ -155,9 +170,13 @@ class FtpServer:
 class Px4Rules:
     """The PX4 flavour's readiness and metadata rules, driven by `MockAutopilot` hooks."""
 
-    def __init__(self, mock: MockAutopilot, ready_s: float) -> None:
+    def __init__(self, mock: MockAutopilot, ready_s: float, report_every_s: float = REPORT_AGAIN_S) -> None:
         self.mock = mock
         self.ready_s = ready_s
+        self.report_every_s = report_every_s
+        self.reported_at = -math.inf
+        self.loiter_since: float | None = None  # airborne in AUTO.LOITER after OFFBOARD since (the wander's phase)
+        self.last_mode = ""
         files, self.general_crc = metadata_files()
         self.ftp = FtpServer(files)
         self.ready = True
@@ -167,12 +186,15 @@ class Px4Rules:
     def reset(self) -> None:
         """At boot (and reboot): not ready; home at the local origin until ready."""
         self.ready = self.ready_s <= 0
+        self.reported_at = -math.inf  # the boot report is due at the first step
         self.ftp.session = None
         if not self.ready:
             self.mock.home_ned = np.zeros(3)
 
     def step(self) -> None:
         m = self.mock
+        if not self.ready and m.t - self.reported_at >= self.report_every_s:
+            self.report()  # the checks changed as the estimate settles (REPORT_AGAIN_S)
         if not self.ready and m.t - m.boot_t >= self.ready_s:
             self.ready = True
             m.home_ned = m.vehicle.state.pos.copy()  # PX4 sets home where the vehicle stands
@@ -188,28 +210,40 @@ class Px4Rules:
 
     def sends(self, msg_id: int) -> bool:
         """GPS_GLOBAL_ORIGIN only once the estimator has a global origin (the stream sends nothing
-        while vehicle_local_position has no xy_global / z_global): here, once ready."""
-        return self.ready or msg_id != mav.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN
+        while vehicle_local_position has no xy_global / z_global), ATTITUDE only once its attitude
+        is valid (field, PX4 SIH 1.15: ATTITUDE began ~30 s after the link, with the estimator
+        still settling): here, both once ready."""
+        return self.ready or msg_id not in (mav.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN, mav.MAVLINK_MSG_ID_ATTITUDE)
 
     def arm_refusal(self) -> str | None:
         """Why PX4 refuses to arm now (None: it may), after saying so as PX4 does."""
         if self.ready:
             return None
-        self.report()
+        # no report here: the reasons went out when the checks last changed (REPORT_AGAIN_S)
         why = "Arming denied: Resolve system health failures first"
         self.mock._report(mav.MAV_SEVERITY_CRITICAL, why, "commander_arm_denied_resolve_failures",
                           internal=mav.MAV_SEVERITY_INFO)
         return why
 
-    def estimate(self, pos: np.ndarray) -> np.ndarray:
-        """LOCAL_POSITION_NED's position: before ready, z on the ground wanders."""
+    def estimate(self, pos: np.ndarray, vel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """LOCAL_POSITION_NED's position and velocity: before ready, z on the ground wanders; in
+        AUTO.LOITER in the air, the horizontal estimate wanders (LOITER_WANDER_*)."""
         m = self.mock
-        if self.ready or not m.landed:
-            return pos
-        phase = 2.0 * math.pi * (m.t - m.boot_t) / DRIFT_PERIOD_S
-        out = pos.copy()
-        out[2] = m.ground_z + DRIFT_CENTRE + DRIFT_AMPLITUDE * math.sin(phase)
-        return out
+        if not self.ready and m.landed:
+            phase = 2.0 * math.pi * (m.t - m.boot_t) / DRIFT_PERIOD_S
+            out = pos.copy()
+            out[2] = m.ground_z + DRIFT_CENTRE + DRIFT_AMPLITUDE * math.sin(phase)
+            return out, vel
+        entered = m.mode != self.last_mode
+        if entered:
+            self.loiter_since = m.t if m.mode == "LOITER" and self.last_mode == "OFFBOARD" and not m.landed else None
+            self.last_mode = m.mode
+        if self.loiter_since is None or m.landed:
+            return pos, vel
+        w = LOITER_WANDER_SPEED / LOITER_WANDER_M
+        tau = m.t - self.loiter_since
+        return (pos + LOITER_WANDER_DIR * LOITER_WANDER_M * math.sin(w * tau),
+                vel + LOITER_WANDER_DIR * LOITER_WANDER_SPEED * math.cos(w * tau))
 
     def component_metadata(self) -> Any:
         return mavwire.component_metadata(self.mock.time_boot_ms, self.general_crc, GENERAL_URI)
@@ -228,6 +262,7 @@ class Px4Rules:
         """Report::report: the summary, each failing check, the health summary (events only;
         PX4 < 1.14 said "Preflight Fail: ..." in STATUSTEXT instead)."""
         m = self.mock
+        self.reported_at = m.t
         error = 0 if self.ready else ev.HEALTH_BIT["local_position_estimate"]
         can_arm = ALL_MODES if self.ready else ALL_MODES & ~POSITION_MODES
         if m.events:

@@ -104,6 +104,9 @@ class MockConfig:
     # PX4: seconds from boot until the estimator has settled and arming is allowed (sitl_mock.px4);
     # None: sitl_mock.px4.DEFAULT_READY_S (36.5 s, as PX4 1.15 SIH); 0: ready at boot.
     px4_ready_s: float | None = None
+    # PX4: seconds between arming-check reports while not ready; None: sitl_mock.px4.REPORT_AGAIN_S
+    # (28 s, as measured); tests about the words, not the timing, shorten it.
+    px4_report_every_s: float | None = None
 
     def validate(self) -> None:
         if self.autopilot not in ("px4", "ardupilot"):
@@ -120,6 +123,9 @@ class MockConfig:
             raise ValueError("endpoints: at least one endpoint is needed")
         if self.px4_ready_s is not None and not (math.isfinite(self.px4_ready_s) and self.px4_ready_s >= 0):
             raise ValueError(f"px4_ready_s: must be a finite number of seconds >= 0, got {self.px4_ready_s}")
+        if self.px4_report_every_s is not None and not (math.isfinite(self.px4_report_every_s)
+                                                        and self.px4_report_every_s > 0):
+            raise ValueError(f"px4_report_every_s: must be a finite number of seconds > 0, got {self.px4_report_every_s}")
         if self.ground_z is not None and not (math.isfinite(self.ground_z) and abs(self.ground_z) <= 1000.0):
             raise ValueError(f"ground_z: must be a finite z in [-1000, 1000] m, got {self.ground_z}")
         if self.rc_throttle is not None and not 800 <= self.rc_throttle <= 2200:

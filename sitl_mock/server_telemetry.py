@@ -71,7 +71,7 @@ class TelemetryStreams(AutopilotState):
         elif mid == mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED:
             pos, vel = self._noisy()
             if self.px4 is not None:
-                pos = self.px4.estimate(pos)
+                pos, vel = self.px4.estimate(pos, vel)
             self._send(m.local_position_ned_encode(ms, *pos.tolist(), *vel.tolist()))
         elif mid == mav.MAVLINK_MSG_ID_ATTITUDE:
             roll, pitch, yaw = self.vehicle.attitude()

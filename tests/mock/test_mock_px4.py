@@ -252,3 +252,25 @@ def test_two_mocks_with_different_sysids(make_mock) -> None:  # type: ignore[no-
     assert c2.command(176, CUSTOM, 3, 0, target=2) == ACCEPTED
     assert m2.snapshot()["mode"] == "POSCTL" and m1.snapshot()["mode"] == "LOITER"
     assert isinstance(c1, Client)
+
+
+def test_loiter_after_offboard_reports_a_wandering_estimate(make_mock) -> None:  # type: ignore[no-untyped-def]
+    """PX4 SIH 1.15 after the companion's hand-over to AUTO.LOITER (field): estimate speeds of
+    0.50-0.65 m/s while the hold kept its altitude within 0.2 m and drifted <= 1 m. The mock's
+    LOCAL_POSITION_NED does the same; the vehicle itself holds."""
+    mock, c = make_mock("px4", speed=2.0)
+    streamer = fly_offboard(mock, c, mock.addresses[0][1])
+    time.sleep(1.0)
+    calm = [m for m in c.collect(1.0) if m.get_type() == "LOCAL_POSITION_NED"]
+    assert calm and max(math.hypot(m.vx, m.vy) for m in calm) < 0.2  # hovering in OFFBOARD: no wander
+    assert c.command(176, *LOITER) == ACCEPTED
+    streamer.stop()
+    held = mock.snapshot()["position"]
+    seen = [m for m in c.collect(4.0) if m.get_type() == "LOCAL_POSITION_NED"]  # 8 s simulated
+    speeds = [math.hypot(m.vx, m.vy) for m in seen]
+    assert 0.5 <= max(speeds) <= 0.65, max(speeds)
+    xs, ys, zs = ([getattr(m, k) for m in seen] for k in "xyz")
+    assert math.hypot(max(xs) - min(xs), max(ys) - min(ys)) <= 1.0 + 1e-6  # drift <= 1 m
+    assert max(zs) - min(zs) <= 0.2
+    truth = mock.snapshot()["position"]
+    assert math.dist(truth, held) < 0.2  # the vehicle holds; its estimate wanders

@@ -31,18 +31,28 @@ def event_args(msgs: list[Any], name: str) -> bytes:
 
 
 def test_arming_refused_until_ready_with_px4s_events_then_allowed(make_mock) -> None:  # type: ignore[no-untyped-def]
-    mock, c = make_mock("px4", speed=4.0, px4_ready_s=12.0)
-    result, seen = c.command_collect(ARM, 1)
-    assert result == mav.MAV_RESULT_TEMPORARILY_REJECTED
+    # the report every 6 s of simulated time (1.5 s here) instead of 28, for the test's time
+    mock, c = make_mock("px4", speed=4.0, px4_ready_s=12.0, px4_report_every_s=6.0)
+    # the reasons come in PX4's arming-check report, sent when the checks change ...
+    def is_event(name: str) -> Any:
+        return lambda m: m.get_type() == "EVENT" and int(m.id) == px4_events.IDS[name]
+
+    first = c.collect(3.0, until=is_event("commander_arming_check_summary"))  # a whole report: from its start
+    seen = first[-1:] + c.collect(1.0, until=is_event("commander_health_summary"))
     ids = event_ids(seen)
-    assert ids[-1] == 16910493  # commander_arm_denied_resolve_failures, last before the ACK
-    assert {25679424, 30612409, 27825120, 18691879} <= set(ids)  # reasons, arming and health summaries
+    assert {25679424, 30612409, 27825120, 18691879} <= set(ids), ids  # reasons, arming and health summaries
     chunk, error, warning, can_arm = struct.unpack_from("<BIII", event_args(seen, "commander_arming_check_summary"))
     local = px4_events.HEALTH_BIT["local_position_estimate"]
     offboard, manual = 1 << px4_events.NAV_STATE["offboard"], 1 << px4_events.NAV_STATE["manual"]
     assert (chunk, error, warning) == (0, local, 0) and not can_arm & offboard and can_arm & manual
     modes, component = struct.unpack_from("<IB", event_args(seen, "check_modes_local_pos"))
     assert modes & offboard and component == px4_events.HEALTH_INDEX["local_position_estimate"]
+    # ... and no ATTITUDE while the estimator settles (PX4 SIH sent none for ~30 s)
+    assert not [m for m in first + seen if m.get_type() == "ATTITUDE"]
+    # ... not in answer to an arm: the refusal carries only commander_arm_denied_resolve_failures
+    result, at_arm = c.command_collect(ARM, 1)
+    assert result == mav.MAV_RESULT_TEMPORARILY_REJECTED
+    assert event_ids(at_arm) == [16910493], event_ids(at_arm)
     assert not mock.snapshot()["armed"] and not mock.snapshot()["ready"]
 
     # before ready: home at the local origin; the ground estimate wanders between +0.4 and +2.3
@@ -61,6 +71,7 @@ def test_arming_refused_until_ready_with_px4s_events_then_allowed(make_mock) -> 
     assert home is not None and abs(home.z - mock.ground_z) < 1e-6
     lpos = c.wait("LOCAL_POSITION_NED", 2)
     assert lpos is not None and abs(lpos.z - mock.ground_z) < 1e-6
+    assert c.wait("ATTITUDE", 2) is not None  # once ready
     assert c.command(ARM, 1) == mav.MAV_RESULT_ACCEPTED
 
 

@@ -81,9 +81,10 @@ def test_layout_and_crc_extra_match_the_published_headers(definition: mavwire.Me
 
 
 def test_event_the_mock_sends_has_the_spec_layout_and_checksum(tmp_path: Path) -> None:
-    """An arming refusal before PX4 is ready, caught as raw datagrams."""
+    """An arming refusal before PX4 is ready and the arming-check reports (every second here),
+    caught as raw datagrams."""
     mock = MockAutopilot(MockConfig(autopilot="px4", endpoints=["udpin:127.0.0.1:0"], px4_ready_s=60.0,
-                                    log_path=str(tmp_path / "f.jsonl"))).start()
+                                    px4_report_every_s=1.0, log_path=str(tmp_path / "f.jsonl"))).start()
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sock.settimeout(0.2)
     try:
@@ -94,7 +95,10 @@ def test_event_the_mock_sends_has_the_spec_layout_and_checksum(tmp_path: Path) -
                     .pack(sender), addr)
         events: list[bytes] = []
         end = time.monotonic() + 3.0
-        while time.monotonic() < end and len(events) < 5:
+        def refused() -> bool:
+            return any(int.from_bytes(f[10:14], "little") == 16910493 for f in events)
+
+        while time.monotonic() < end and not (len(events) >= 5 and refused()):
             try:
                 data = sock.recv(2048)
             except TimeoutError:
@@ -111,9 +115,10 @@ def test_event_the_mock_sends_has_the_spec_layout_and_checksum(tmp_path: Path) -
         event_id, _, _, dcomp, dsys, _ = struct.unpack_from("<IIHBBB", payload)
         assert event_id >> 24 == 1 and (dcomp, dsys) == (0, 0)
     ids = [struct.unpack_from("<I", f, 10)[0] for f in events]
-    assert ids[-1] == 16910493  # commander_arm_denied_resolve_failures, as measured on PX4 1.15
+    assert 16910493 in ids  # commander_arm_denied_resolve_failures, as measured on PX4 1.15
     assert {25679424, 30612409, 27825120} <= set(ids)  # PX4's reasons and summary (autopilot-facts.md)
-    last = events[-1][10:10 + events[-1][1]].ljust(53, b"\0")
+    denied = events[ids.index(16910493)]
+    last = denied[10:10 + denied[1]].ljust(53, b"\0")
     assert last[12] == (6 << 4) | 2  # external CRITICAL, internal INFO (Commander.cpp arm())
 
 
