@@ -15,6 +15,7 @@ import logging
 import math
 import time
 from collections.abc import Iterable
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -47,7 +48,15 @@ from companion.wire.mavlink import MavlinkLink
 from companion.wire.messages import Command
 from companion.wire.px4_events import arming_report
 from companion.wire.vehicle import MAV_LANDED_IN_AIR, MAV_LANDED_ON_GROUND, CommandFailed, Note
-from planner_core import Problem, allocate_times, plan, splice, takeoff_duration
+from planner_core import (
+    Problem,
+    Trajectory,
+    allocate_times,
+    plan,
+    shifted,
+    splice,
+    takeoff_duration,
+)
 
 log = logging.getLogger("companion")
 S = State
@@ -271,7 +280,15 @@ class Commands:
                 raise CommandFailed(f"climb not swapped in: {self.control.refusal}"
                                     + (f" (planning took {took:.2f} s, twice)" if attempt == 1 else ""), by="companion")
             ahead = min(max(2.0 * ahead, RETRY_MARGIN * took + 0.1), MAX_AHEAD)
+            # planned too late on a busy computer: from a hold the same climb starts later just as
+            # well (the curve and its checks do not depend on the time), so it is moved, not replanned
+            t_later = self.control.committed() + ahead
+            if held_still(base, t_split, t_later) and self.control.swap(
+                    splice(base, later := shifted(result.trajectory, t_later - t_split)), t_later, None, "takeoff"):
+                result = replace(result, trajectory=later)
+                break
         tol, rest = self.cfg.safety.arrival_tolerance, self.cfg.safety.rest_speed
+        assert result.trajectory is not None
         end = result.trajectory.t_end
         await self.link.wait_for(
             lambda s: self.control.flying and self.control.now() >= end and abs(s.position[2] - target[2]) <= tol
@@ -347,3 +364,12 @@ class Commands:
             return False
         self.flight.handle(DisarmedOnCommand("disarmed on command"))
         return True
+
+
+def held_still(base: Trajectory, t0: float, t1: float) -> bool:
+    """Whether `base` holds one point at rest from t0 to t1 (a plan starting from it there may
+    start anywhere in between)."""
+    ts = np.linspace(t0, t1, 9)
+    pos = base.evaluate(ts)
+    moving = max(float(np.abs(base.evaluate(ts, k)).max()) for k in (1, 2, 3, 4))
+    return bool(np.ptp(pos, axis=0).max() <= 1e-9 and moving <= 1e-9)

@@ -53,7 +53,7 @@ class HoldProfile:
     exit_timeout: float  # s for the whole hand-over (keep it below systemd's TimeoutStopSec, 10 s)
 
 
-# Measured on the real simulators (2026-12-02, /work/sitl/measure/out, docs/handover.md):
+# Measured on the real simulators (2026-12-02, docs/handover.md):
 # PX4 SIH 1.15 (px4_1..5): under 0.3 m/s 3.5-5.8 s after SIGTERM at 3.3 m/s (the estimate),
 # AUTO.LOITER's estimate drifting at up to 0.50-0.65 m/s while holding (|vz| <= 0.31 m/s), the
 # estimated altitude within 0.41 m for 10 s (truth: 0.17 m, <= 0.31 m/s). ArduCopter 4.6 (ap_1..4):

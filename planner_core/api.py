@@ -24,7 +24,7 @@ no files (the JSON codec below turns trajectories into dicts and back, nothing m
   `RemoveWaypoint`, `AppendWaypoints`; `parse_change`, `parse_polytope`
 - geometry: `build_corridors`, `polytope_vertices`, `first_hit`, `inflate`
 - braking: `braking_trajectory`, `stop_time_scale`
-- trajectory surgery: `split_at`, `splice`, `trim_before`, `hold`, `Sampler`, `sampler`,
+- trajectory surgery: `split_at`, `splice`, `trim_before`, `shifted`, `hold`, `Sampler`, `sampler`,
   `start_jet`, `end_jet`, `split_segment`
 - JSON: `trajectory_to_dict`, `trajectory_from_dict`, `trajectory_json` (the file's text, fast);
   bounds: `vehicle_bound` (one order's {"horizontal", "up", "down"} form), `bounds_to_dict`
@@ -103,6 +103,7 @@ if TYPE_CHECKING:
         end_jet,
         hold,
         sampler,
+        shifted,
         splice,
         split_at,
         split_segment,
@@ -180,6 +181,7 @@ _WHERE: dict[str, tuple[str, str]] = {
     "ScaleSearch": ("planner_core.feasibility", "ScaleSearch"),
     "SetCorridor": ("planner_core.changes", "SetCorridor"),
     "SetDuration": ("planner_core.changes", "SetDuration"),
+    "shifted": ("planner_core.trajectory", "shifted"),
     "splice": ("planner_core.trajectory", "splice"),
     "split_at": ("planner_core.trajectory", "split_at"),
     "split_segment": ("planner_core.trajectory", "split_segment"),
@@ -268,6 +270,7 @@ __all__ = [
     "scale_search",
     "scaled_durations",
     "separation_rows",
+    "shifted",
     "speed_bound",
     "splice",
     "split_at",

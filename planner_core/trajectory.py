@@ -87,6 +87,13 @@ def trim_before(traj: Trajectory, t: float) -> Trajectory:
     return Trajectory(traj.times[k:], traj.control_points[k:], cors, traj.stats)
 
 
+def shifted(traj: Trajectory, dt: float) -> Trajectory:
+    """The same curve `dt` s later: a plan from rest (a climb, a start from a hold) stays verified
+    when its start moves, since nothing it is checked against (bounds, corridors) depends on the
+    time."""
+    return Trajectory(traj.times + float(dt), traj.control_points, traj.corridors, traj.stats)
+
+
 def hold(position: FloatArray, t: float) -> Trajectory:
     """A verified-by-construction hold: all control points at a measured position."""
     ctrl = np.repeat(np.asarray(position, dtype=float).reshape(1, 1, 3), 10, axis=1)

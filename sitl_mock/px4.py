@@ -42,13 +42,15 @@ DRIFT_CENTRE = -0.25
 DRIFT_AMPLITUDE = 0.95
 DRIFT_PERIOD_S = 23.0
 # In AUTO.LOITER in the air, PX4 SIH's reported estimate wanders (field, PX4 SIH 1.15 after the
-# companion's hand-over: estimate speeds 0.50-0.65 m/s while the hold kept its altitude within
-# 0.2 m and drifted <= 1 m): when AUTO.LOITER follows OFFBOARD in the air (a hand-over, a pilot's
-# takeover: the case measured), the mock's LOCAL_POSITION_NED wanders horizontally by
-# LOITER_WANDER_M at up to LOITER_WANDER_SPEED (a sine along one horizontal direction, from the
-# mode's start).
+# companion's hand-over: estimate speeds up to 0.50-0.65 m/s horizontally and 0.31 m/s vertically
+# while the hold kept its altitude within 0.2 m and drifted <= 1 m): when AUTO.LOITER follows
+# OFFBOARD in the air (a hand-over, a pilot's takeover: the case measured), the mock's
+# LOCAL_POSITION_NED wanders by LOITER_WANDER_M at up to LOITER_WANDER_SPEED horizontally (a sine
+# along one direction) and by LOITER_WANDER_Z_M at up to LOITER_WANDER_Z_SPEED vertically.
 LOITER_WANDER_M = 0.5
 LOITER_WANDER_SPEED = 0.6
+LOITER_WANDER_Z_M = 0.1
+LOITER_WANDER_Z_SPEED = 0.25
 LOITER_WANDER_DIR = np.array([math.cos(math.radians(30.0)), math.sin(math.radians(30.0)), 0.0])
 # PX4 sends its arming-check report when the checks' results change (Report::report: a
 # difference not yet reported, rate-limited), never in answer to an arm (Commander::arm calls
@@ -240,10 +242,12 @@ class Px4Rules:
             self.last_mode = m.mode
         if self.loiter_since is None or m.landed:
             return pos, vel
-        w = LOITER_WANDER_SPEED / LOITER_WANDER_M
+        w, wz = LOITER_WANDER_SPEED / LOITER_WANDER_M, LOITER_WANDER_Z_SPEED / LOITER_WANDER_Z_M
         tau = m.t - self.loiter_since
-        return (pos + LOITER_WANDER_DIR * LOITER_WANDER_M * math.sin(w * tau),
-                vel + LOITER_WANDER_DIR * LOITER_WANDER_SPEED * math.cos(w * tau))
+        up = np.array([0.0, 0.0, 1.0])
+        return (pos + LOITER_WANDER_DIR * LOITER_WANDER_M * math.sin(w * tau) + up * LOITER_WANDER_Z_M * math.sin(wz * tau),
+                vel + LOITER_WANDER_DIR * LOITER_WANDER_SPEED * math.cos(w * tau)
+                + up * LOITER_WANDER_Z_SPEED * math.cos(wz * tau))
 
     def component_metadata(self) -> Any:
         return mavwire.component_metadata(self.mock.time_boot_ms, self.general_crc, GENERAL_URI)
