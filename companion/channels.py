@@ -15,8 +15,11 @@ Frames (docs/recording.md):
 from __future__ import annotations
 
 import collections
+import dataclasses
+import enum
 import json
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from functools import cache
 from typing import Any
@@ -78,6 +81,24 @@ STATS = _obj("bezier.RecorderStats", "The recorder's own counts", {
     "t": T_MONO, "written": {"type": "integer"}, "dropped": {"type": "object"},
     "dropped_total": {"type": "integer"}, "queued": {"type": "integer"},
 }, ("written", "dropped_total"))
+
+FLIGHT_STATE = {"type": "object", "description": "companion.flight.FlightState: the state and the flags about "
+                "the vehicle's situation", "properties": {
+                    "state": {"type": "string"}, "airborne": {"type": "boolean"}, "seen_link": {"type": "boolean"},
+                    "link_lost": {"type": "boolean"}, "exit_requested": {"type": "boolean"},
+                    "disarm_requested": {"type": "boolean"}, "starting": {"type": "boolean"},
+                    "ground_z": {"type": ["number", "null"]}},
+                "required": ["state"]}
+TAGGED = {"type": "object", "properties": {"type": {"type": "string", "description": "the class name"},
+                                           "fields": {"type": "object"}}, "required": ["type", "fields"]}
+TRANSITION = _obj("bezier.SupervisorTransition", "One Supervisor.handle call (companion/supervisor.py): the event, "
+                  "the flight state before and after, the actions", {
+    "seq": {"type": "integer", "description": "1, 2, ... per run, numbered as handle ran: a gap is a record "
+            "the recorder dropped (its queue was full)"},
+    "t": T_MONO, "event": TAGGED, "before": FLIGHT_STATE, "after": FLIGHT_STATE,
+    "actions": {"type": "array", "items": TAGGED},
+    "pickle": {"type": ["string", "null"], "description": "pickle (base64) of (before, event, after, actions)"},
+}, ("seq", "t", "event", "before", "after", "actions", "pickle"))
 
 NUM_OR_NULL = {"type": ["number", "null"], "description": "null: unbounded"}
 BOUNDS = _obj("bezier.Bounds", "The bounds a plan used, per derivative order (SI units): the tightest over "
@@ -158,6 +179,8 @@ def spec(topic: str) -> Spec:
         return _json(MAVLINK)
     if topic == "/planner/plan":
         return _json(PLAN)
+    if topic == "/supervisor/transition":
+        return _json(TRANSITION)
     if topic == "/recorder/stats":
         return _json(STATS)
     if topic == "/viz/bounds":
@@ -212,6 +235,30 @@ def mavlink_record(msg: Any, t: float) -> bytes:
     d["t"] = t
     d["sysid"], d["compid"] = msg.get_srcSystem(), msg.get_srcComponent()
     return dumps(d)
+
+
+def _plain(x: Any) -> Any:
+    """A supervisor value as JSON: enums by value, data classes and mappings as objects."""
+    if isinstance(x, enum.Enum):
+        return x.value
+    if dataclasses.is_dataclass(x) and not isinstance(x, type):
+        return {f.name: _plain(getattr(x, f.name)) for f in dataclasses.fields(x)}
+    if isinstance(x, Mapping):
+        return {str(k): _plain(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [_plain(v) for v in x]
+    return x
+
+
+def _tagged(x: Any) -> dict[str, Any]:
+    return {"type": type(x).__name__, "fields": _plain(x)}
+
+
+def transition_fields(before: Any, event: Any, after: Any, actions: tuple[Any, ...]) -> dict[str, Any]:
+    """The readable part of a /supervisor/transition record (replay checks it against the
+    record's pickle, so what a viewer shows is what was replayed)."""
+    return {"event": _tagged(event), "before": _plain(before), "after": _plain(after),
+            "actions": [_tagged(a) for a in actions]}
 
 
 ORDERS = ("velocity", "acceleration", "jerk", "snap")

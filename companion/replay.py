@@ -1,19 +1,30 @@
-"""`python -m companion replay FILE.mcap`: run every recorded plan again and compare bit for bit.
+"""`python -m companion replay FILE.mcap`: run every recorded supervisor transition and every
+recorded plan again and compare bit for bit.
 
-What it covers: the planner boundary. Each `/planner/plan` record holds the planner call the
-service made (the function and its arguments: the mission, the jet to start from, the known
-obstacles, the configuration, the route and trajectory being replanned) and its result. Replay
-runs the same function on the same arguments, in this process, with the same planner path
-(the numpy path unless the record says the compiled one ran), and compares the result with the
-recorded one: every array bit for bit, every number by its exact binary value, every string,
-leaving out only the `stats` dictionaries (timings). What it does not cover: the service's
-decisions around the planner (which message led to which call, when a plan was swapped in) are
-not re-run; they are in the file (inbound messages, events, what was flown) to be read.
+Transitions: each `/supervisor/transition` record holds one `Supervisor.handle` call (the
+state before, the event, the state after, the actions). Replay runs `transition(before, event)`
+again and compares the state and the actions with the recorded ones exactly, and checks the
+chain: each record starts from the state the one before it ended in, and the numbers have no
+gap (a state replaced outside `handle`, a record removed or one the recorder dropped shows).
 
-A recording comes from a companion you trust: the calls are pickled. They are read with an
-allow-list (planner_core and companion data classes and planner functions, numpy arrays,
-plain containers), so a file cannot name any other function to call; still, do not replay
-files from unknown sources.
+Plans: each `/planner/plan` record holds the planner call the service made (the function and
+its arguments: the mission, the jet to start from, the known obstacles, the configuration, the
+route and trajectory being replanned) and its result. Replay runs the same function on the
+same arguments, in this process, with the same planner path (the numpy path unless the record
+says the compiled one ran), and compares the result with the recorded one: every array bit for
+bit, every number by its exact binary value, every string, leaving out only the `stats`
+dictionaries (timings).
+
+What it does not cover: how messages became supervisor events and planner calls, and the
+navigator's, the brakes' and the command sequences' own decisions (which plan to swap in and
+when, when to brake) are not re-run; they are in the file (inbound messages, events, what was
+flown) to be read.
+
+A recording comes from a companion you trust: the calls are pickled. Plan records are read with
+an allow-list (planner_core and companion data classes and planner functions, numpy arrays,
+plain containers), transition records with a narrower one (the flight state, its enum, the
+supervisor's events and actions), so a file cannot name any other function to call; still, do
+not replay files from unknown sources.
 """
 
 from __future__ import annotations
@@ -86,13 +97,16 @@ def fingerprint(obj: Any) -> str:
     return h.hexdigest()
 
 
-def first_difference(recorded: Any, replayed: Any) -> str:
-    a, b = list(leaves(recorded)), list(leaves(replayed))
+def first_difference(recorded: Any, replayed: Any, root: str = "result",
+                     names: tuple[str, str] = ("recorded", "replayed")) -> str:
+    """The first leaf (in `leaves` order) where the two differ, said as `names` say them."""
+    ra, rb = names
+    a, b = list(leaves(recorded, root)), list(leaves(replayed, root))
     for (pa, va), (pb, vb) in zip(a, b, strict=False):
         if pa != pb or va != vb:
-            return f"{pa}: recorded {va}, replayed {vb}" if pa == pb else f"recorded {pa} = {va}, replayed {pb} = {vb}"
+            return f"{pa}: {ra} {va}, {rb} {vb}" if pa == pb else f"{ra} {pa} = {va}, {rb} {pb} = {vb}"
     if len(a) != len(b):
-        return f"recorded {len(a)} values, replayed {len(b)}"
+        return f"{ra} {len(a)} values, {rb} {len(b)}"
     return "no difference found leaf by leaf"
 
 
@@ -175,6 +189,30 @@ def loads(text: str) -> Any:
     return _SafeUnpickler(io.BytesIO(base64.b64decode(text))).load()
 
 
+@functools.cache
+def _supervisor_types() -> frozenset[tuple[str, str]]:
+    """The classes a transition record holds: the flight state and its enum, the supervisor's
+    events and actions (nothing callable but these constructors)."""
+    import typing
+
+    from companion import supervisor
+    from companion.flight import FlightState, State
+
+    kinds = (FlightState, State, *typing.get_args(supervisor.Event), *typing.get_args(supervisor.Action))
+    return frozenset((k.__module__, k.__qualname__) for k in kinds)
+
+
+class _TransitionUnpickler(pickle.Unpickler):
+    def find_class(self, module: str, name: str) -> Any:
+        if (module, name) in _supervisor_types():
+            return super().find_class(module, name)
+        raise pickle.UnpicklingError(f"replay does not load {module}.{name} from a transition record")
+
+
+def loads_transition(text: str) -> Any:
+    return _TransitionUnpickler(io.BytesIO(base64.b64decode(text))).load()
+
+
 # -- the replay ---------------------------------------------------------------------------------
 
 
@@ -188,41 +226,72 @@ class Replayed:
     difference: str = ""
 
 
-def recorded_environment(path: str) -> dict[str, str]:
-    import json
-
+def recorded_metadata(path: str) -> dict[str, dict[str, str]]:
+    """The file's metadata records by name (none in a file cut short: no summary, no index)."""
     from mcap.exceptions import McapError
     from mcap.reader import make_reader
 
     try:
         with open(path, "rb") as fh:
-            for m in make_reader(fh).iter_metadata():
-                if m.name == "companion" and "environment" in m.metadata:
-                    env: dict[str, str] = json.loads(m.metadata["environment"])
-                    return env
+            return {m.name: dict(m.metadata) for m in make_reader(fh).iter_metadata()}
     except (McapError, ValueError):  # no summary: no metadata index
-        pass
-    return {}
+        return {}
 
 
-def plan_records(path: str, since: float | None = None, until: float | None = None) -> Iterator[dict[str, Any]]:
-    """The /planner/plan records of a file; `since`/`until`: seconds from the recording's start."""
+def recorded_environment(path: str) -> dict[str, str]:
+    import json
+
+    meta = recorded_metadata(path).get("companion", {})
+    env: dict[str, str] = json.loads(meta["environment"]) if "environment" in meta else {}
+    return env
+
+
+def records(path: str, topics: tuple[str, ...]) -> Iterator[tuple[str, float, dict[str, Any]]]:
+    """(topic, seconds from the recording's start, record) of the JSON records on `topics`;
+    the start is the file's first message of any channel."""
     import json
 
     from companion.recording import read_messages
 
     start = None
-    for _schema, _channel, message in read_messages(path):  # the first message of any channel: t = 0
+    for _schema, channel, message in read_messages(path):
         if start is None:
             start = message.log_time
-        if _channel.topic != "/planner/plan":
-            continue
-        rel = (message.log_time - start) / 1e9
-        if since is not None and rel < since:
-            continue
+        if channel.topic in topics:
+            yield channel.topic, (message.log_time - start) / 1e9, json.loads(message.data)
+
+
+def _within(rel: float, since: float | None, until: float | None) -> bool:
+    return (since is None or rel >= since) and (until is None or rel <= until)
+
+
+def plan_records(path: str, since: float | None = None, until: float | None = None) -> Iterator[dict[str, Any]]:
+    """The /planner/plan records of a file; `since`/`until`: seconds from the recording's start."""
+    for _topic, rel, rec in records(path, ("/planner/plan",)):
         if until is not None and rel > until:
             break
-        yield json.loads(message.data)
+        if _within(rel, since, until):
+            yield rec
+
+
+def transition_records(path: str, since: float | None = None,
+                       until: float | None = None) -> tuple[list[dict[str, Any]], int]:
+    """The /supervisor/transition records of a file (in `seq` order; `since`/`until` as for
+    plans), and how many transition records the recorder said it dropped: its `recorder`
+    metadata, or the last /recorder/stats of a file cut short; counted over the whole run."""
+    import json
+
+    found: list[dict[str, Any]] = []
+    dropped = 0
+    for topic, rel, rec in records(path, ("/supervisor/transition", "/recorder/stats")):
+        if topic == "/recorder/stats":
+            dropped = max(dropped, int(rec.get("dropped", {}).get("transition", 0)))
+        elif _within(rel, since, until):
+            found.append(rec)
+    meta = recorded_metadata(path).get("recorder", {})
+    if "dropped" in meta:
+        dropped = max(dropped, int(json.loads(meta["dropped"]).get("transition", 0)))
+    return sorted(found, key=lambda r: int(r["seq"])), dropped
 
 
 def replay_one(rec: dict[str, Any]) -> Replayed:
@@ -257,6 +326,88 @@ def replay_one(rec: dict[str, Any]) -> Replayed:
     return Replayed(rec["seq"], name, False, rec.get("latency_ms", 0.0), took, why)
 
 
+# -- transitions --------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass
+class Transitions:
+    """What replaying a file's transitions found: `reproduced` of `total` (the records, and the
+    numbers missing between them), and every difference in `seq` order."""
+
+    total: int = 0
+    reproduced: int = 0
+    differences: list[str] = dataclasses.field(default_factory=list)
+
+
+def _label(seq: int, event: Any) -> str:
+    return f"seq {seq} {event!r}"
+
+
+def check_transition(rec: dict[str, Any], previous: tuple[int, Any] | None) -> tuple[Any, list[str]]:
+    """Run one record through `transition` again: (its recorded state after, for the next
+    record's chain check, or None if unreadable; what differs). `previous`: the seq and the
+    recorded state after of the record just before it (None: nothing to chain to)."""
+    import json
+
+    from companion.channels import dumps, transition_fields
+    from companion.supervisor import transition
+
+    seq = int(rec["seq"])
+    if rec.get("pickle") is None:
+        return None, [f"seq {seq} {rec['event'].get('type')}: the values were not recorded (not picklable)"]
+    before, event, after, actions = loads_transition(rec["pickle"])
+    label, why = _label(seq, event), []
+    # what a viewer shows of the record is what is replayed here
+    readable = json.loads(dumps(transition_fields(before, event, after, actions)))
+    for name, value in readable.items():
+        if rec.get(name) != value:
+            why.append(f"{label}: the record's {name} (JSON) is not its pickled value")
+    if previous is not None and fingerprint(before) != fingerprint(previous[1]):
+        where = first_difference(previous[1], before, "before", (f"seq {previous[0]} ended in", "this one starts from"))
+        why.append(f"{label}: does not start where seq {previous[0]} ended ({where}): the state was replaced "
+                   "outside Supervisor.handle, or a record was altered")
+    try:
+        new, acts = transition(before, event)
+    except Exception as exc:  # the recorded call returned: raising now is a difference
+        why.append(f"{label}: replayed raised {type(exc).__name__}: {exc}")
+        return after, why
+    if fingerprint(new) != fingerprint(after):
+        why.append(f"{label}: {first_difference(after, new, 'after')}")
+    if fingerprint(tuple(acts)) != fingerprint(tuple(actions)):
+        why.append(f"{label}: {first_difference(tuple(actions), tuple(acts), 'actions')}")
+    return after, why
+
+
+def replay_transitions(recs: list[dict[str, Any]], dropped: int = 0) -> Transitions:
+    """Every record (in `seq` order) run again and chained to the one before it; a gap in the
+    numbers, and records the recorder counted as dropped, are differences: the chain cannot be
+    checked across them."""
+    out = Transitions(total=len(recs))
+    previous: tuple[int, Any] | None = None
+    last: int | None = None
+    for rec in recs:
+        seq = int(rec["seq"])
+        if last is not None and seq != last + 1:
+            if seq == last:
+                out.differences.append(f"seq {seq} recorded twice")
+            else:
+                missing = seq - last - 1
+                out.total += missing
+                where = f"seq {last + 1}" if missing == 1 else f"seq {last + 1} to {seq - 1}"
+                out.differences.append(f"{where} missing ({missing} record{'s' * (missing > 1)}: dropped by the "
+                                       "recorder, or removed): the chain is not checkable there")
+            previous = None
+        after, why = check_transition(rec, previous)
+        out.differences.extend(why)
+        out.reproduced += not why
+        previous = None if after is None else (seq, after)
+        last = seq
+    if dropped:
+        out.differences.append(f"the recorder dropped {dropped} transition record{'s' * (dropped > 1)} in this run "
+                               "(its queue was full): the chain is not checkable across them")
+    return out
+
+
 def main(argv: list[str]) -> int:
     import argparse
 
@@ -267,7 +418,8 @@ def main(argv: list[str]) -> int:
     p.add_argument("--from", dest="since", type=float, default=None, metavar="T",
                    help="seconds from the start of the recording")
     p.add_argument("--until", type=float, default=None, metavar="T")
-    p.add_argument("--keep-going", action="store_true", help="replay every plan, not only up to the first difference")
+    p.add_argument("--keep-going", action="store_true",
+                   help="replay every plan and list every transition difference, not only the first")
     args = p.parse_args(argv)
     n = bad = 0
     try:
@@ -278,6 +430,17 @@ def main(argv: list[str]) -> int:
         if differ:
             print("note: recorded on another environment (" + ", ".join(f"{k} {a} here {b}" for k, (a, b)
                   in differ.items()) + "): its numerical kernels may round differently", flush=True)
+        recs, dropped = transition_records(args.file, args.since, args.until)
+        checked = replay_transitions(recs, dropped)
+        if not recs and not dropped:
+            print("transitions: none recorded", flush=True)
+        elif not checked.differences:
+            print(f"transitions: {checked.total} of {checked.total} reproduced", flush=True)
+        else:
+            print(f"transitions: {checked.reproduced} of {checked.total} reproduced; first difference: "
+                  f"{checked.differences[0]}", flush=True)
+            for more in checked.differences[1:] if args.keep_going else ():
+                print(f"  also: {more}")
         for rec in plan_records(args.file, args.since, args.until):
             r = replay_one(rec)
             n += 1
@@ -289,12 +452,15 @@ def main(argv: list[str]) -> int:
                 print(f"  first difference: {r.difference}")
                 if not args.keep_going:
                     break
-    except (OSError, ValueError, KeyError, pickle.UnpicklingError, McapError) as exc:
+    except (OSError, ValueError, KeyError, TypeError, pickle.UnpicklingError, McapError) as exc:
         print(f"replay: {args.file}: {exc}", file=sys.stderr)
         return 2
-    if n == 0:
-        print("replay: no plan in the recording (or in the time range)", file=sys.stderr)
+    if n == 0 and not recs and not dropped:
+        print("replay: no plan and no transition in the recording (or in the time range)", file=sys.stderr)
         return 2
-    print(f"{n - bad} of {n} plans reproduced bit-identically" if bad == 0 or args.keep_going
-          else f"plan {n}: the first that differs")
-    return 0 if bad == 0 else 1
+    if n == 0:
+        print("plans: none recorded")
+    else:
+        print(f"plans: {n - bad} of {n} reproduced bit-identically" if bad == 0 or args.keep_going
+              else f"plans: plan {n} is the first that differs")
+    return 0 if bad == 0 and not checked.differences else 1

@@ -107,7 +107,8 @@ class Service:
                                  self.handover)
         self.sender.liveness = self.stalls.liveness
         # what the supervisor decides to stop is stopped here: the stream, and any command sequence
-        self.flight.connect(release=self.commands.release_control, stop_stream=self.control.release)
+        self.flight.connect(release=self.commands.release_control, stop_stream=self.control.release,
+                            observe=self.tap.transition)  # every transition recorded, for replay (issue 23)
         self.watch = AutopilotWatch(cfg, self.flight, self.link, self.report,
                                     on_position=self.tracking.check_tracking, stalled=self.stalls.stalled)
         self.link.on_message = self._on_mavlink

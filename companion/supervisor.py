@@ -7,12 +7,17 @@ replaces its `FlightState` with the one `transition` returns and carries out the
 through the sinks the service connected (publish the state event, stop commanding, ...).
 Everyone else reads the state through the supervisor's properties, never writes it.
 
+Every `handle` call is also shown to an observer the shell connects (the flight recorder's
+`Tap.transition`: `python -m companion replay` runs the recorded calls through `transition`
+again). The supervisor knows only a callable; `transition` knows nothing of it.
+
 The policies about what the vehicle did on its own (a disarm, a mode we did not ask for, the
 link lost, the companion stalled) are here, next to the transitions they cause.
 """
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -27,6 +32,7 @@ from companion.flight import (
 )
 
 S = State
+log = logging.getLogger("companion")
 
 # -- events: what happened, as the module that saw it says -----------------------------------
 
@@ -251,6 +257,9 @@ class Say:
 
 Action = Announce | Release | StopStream | Say
 Step = tuple[FlightState, tuple[Action, ...]]
+# what an observer of `Supervisor.handle` is shown: the state before, the event, the state after
+# and the actions, once per call
+Observer = Callable[[FlightState, Event, FlightState, tuple[Action, ...]], None]
 
 
 def _to(fs: FlightState, to: State, reason: str, *before: Action) -> Step:
@@ -392,6 +401,10 @@ def _nothing() -> None:
     pass
 
 
+def _unobserved(_before: FlightState, _event: Event, _after: FlightState, _actions: tuple[Action, ...]) -> None:
+    pass
+
+
 class Supervisor:
     """Holds the current `FlightState`, the only object that replaces it (`handle`), and
     carries out the actions `transition` returns through the sinks connected to it."""
@@ -403,19 +416,31 @@ class Supervisor:
         self._say: Callable[[Say], None] = lambda _a: None
         self._release: Callable[[], None] = _nothing
         self._stop_stream: Callable[[], None] = _nothing
+        self._observe: Observer = _unobserved
 
     def connect(self, *, announce: Callable[[Announce], None] | None = None, say: Callable[[Say], None] | None = None,
-                release: Callable[[], None] | None = None, stop_stream: Callable[[], None] | None = None) -> None:
-        """Where the actions go (the reporter, the control): the shell wires them once."""
+                release: Callable[[], None] | None = None, stop_stream: Callable[[], None] | None = None,
+                observe: Observer | None = None) -> None:
+        """Where the actions go (the reporter, the control), and who is shown every `handle`
+        call (the recorder's tap: it must return at once): the shell wires them once."""
         self._announce = announce or self._announce
         self._say = say or self._say
         self._release = release or self._release
         self._stop_stream = stop_stream or self._stop_stream
+        self._observe = observe or self._observe
 
     def handle(self, event: Event) -> tuple[Action, ...]:
         """Apply `event`, then carry out its actions in order (the new state is in place
         before any of them runs, as each published event carries it)."""
-        self._now, actions = transition(self._now, event)
+        before = self._now
+        self._now, actions = transition(before, event)
+        # shown before the actions run: an action may lead to another `handle` call, and the
+        # observer must see the calls in the order the states replaced each other (replay
+        # checks that each one starts from the last one's end)
+        try:
+            self._observe(before, event, self._now, actions)
+        except Exception:  # a recorder's fault must never keep a Release from being carried out
+            log.exception("supervisor: the transition observer failed")
         for action in actions:
             match action:
                 case Announce(src, dst, reason):

@@ -35,6 +35,11 @@ class Tap:
         """A planner call: the function, its arguments, its result (or the exception raised),
         when it was submitted and when its result was back on the loop, and where it ran."""
 
+    def transition(self, before: Any, event: Any, after: Any, actions: tuple[Any, ...]) -> None:
+        """A `Supervisor.handle` call (companion/supervisor.py): the flight state before, the
+        event, the state after and the actions, as immutable values; on the loop, so no time:
+        the tap takes it."""
+
     def flown(self, trajectory: Any, t_base: float | None, t: float) -> None:
         """What the setpoint thread flies from now on (a new plan, a swap, a hold)."""
 

@@ -17,6 +17,7 @@ from recorder_support import Wire, config, plan_call
 
 from companion.recorder import McapSink, Recorder
 from companion.setpoints import Feed, SetpointSender, YawPolicy
+from companion.supervisor import Heartbeat, Supervisor, TakingControl
 from companion.wire.errors import Oversized
 from planner_core import hold
 
@@ -53,6 +54,10 @@ def record_a_little_of_everything(rec: Recorder) -> None:
     rec.plan(fn, args, out, now, now + 0.05, "process")
     assert out.route is not None
     rec.flown(out.route.trajectory, now - 1.0, now + 0.06)
+    sup = Supervisor()
+    sup.connect(observe=rec.transition)
+    sup.handle(Heartbeat())
+    sup.handle(TakingControl("arm command"))
 
 
 def test_the_file_opens_with_the_mcap_reader_and_every_message_matches_its_schema(tmp_path: Path) -> None:
@@ -65,7 +70,7 @@ def test_the_file_opens_with_the_mcap_reader_and_every_message_matches_its_schem
     for topic in ("/in/mission", "/in/command", "/in/obstacles", "/out/status", "/out/events",
                   "/mavlink/out/SET_POSITION_TARGET_LOCAL_NED", "/mavlink/out/COMMAND_LONG",
                   "/mavlink/in/ATTITUDE", "/mavlink/in/LOCAL_POSITION_NED", "/planner/plan", "/viz/bounds",
-                  "/recorder/stats"):
+                  "/recorder/stats", "/supervisor/transition"):
         schema, channel = channels[topic]
         assert (schema.encoding, channel.message_encoding) == ("jsonschema", "json"), topic
     for topic, kind in (("/viz/vehicle", "foxglove.PoseInFrame"), ("/viz/tf", "foxglove.FrameTransform"),
@@ -90,6 +95,8 @@ def test_the_file_opens_with_the_mcap_reader_and_every_message_matches_its_schem
     assert plan["function"] == "companion.mission.start_mission" and plan["ok"] and plan["latency_ms"] == 50.0
     assert plan["trajectory"]["segments"] and plan["call"] and plan["result"]
     assert 0 < by_topic["/viz/bounds"][0]["velocity"] <= rec.cfg.planner.bounds.velocity
+    assert [(t["seq"], t["event"]["type"], t["after"]["state"]) for t in by_topic["/supervisor/transition"]] == [
+        (1, "Heartbeat", "IDLE"), (2, "TakingControl", "ARMING")]
     assert "[recording]" in meta["companion"]["config"] and float(meta["companion"]["monotonic_to_unix"]) > 1e9
     assert json.loads(meta["recorder"]["dropped_total"]) == 0
 
@@ -115,14 +122,20 @@ def test_a_full_queue_drops_and_counts_without_waiting(tmp_path: Path) -> None:
     wire = Wire(rec.mavlink_sent)
     for k in range(100):
         wire.setpoint(k)
-    assert rec.dropped == {"inbound": 936, "mavlink_sent": 36}
-    assert rec.status_fields()["recording"]["dropped"] == 972
+    sup = Supervisor()
+    sup.connect(observe=rec.transition)
+    for _ in range(70):
+        sup.handle(Heartbeat())
+    # each kind on its own queue: the inbound flood took none of the others' room
+    assert rec.dropped == {"inbound": 936, "mavlink_sent": 36, "transition": 6}
+    assert rec.status_fields()["recording"]["dropped"] == 978
 
 
 def test_a_burst_drops_other_records_never_setpoints_and_counts_every_drop(tmp_path: Path) -> None:
     """The setpoint thread sends at 50 Hz through pymavlink's send callback (as the service
-    does) while another thread floods the recorder; every setpoint sent is in the file, and
-    what is not in the file is exactly what was counted as dropped."""
+    does) while another thread floods the recorder; every setpoint sent is in the file, every
+    supervisor transition handled meanwhile too, and what is not in the file is exactly what
+    was counted as dropped."""
     rec = Recorder(config(tmp_path, queue=256))
     rec.open()
     wire = Wire(rec.mavlink_sent)
@@ -143,9 +156,17 @@ def test_a_burst_drops_other_records_never_setpoints_and_counts_every_drop(tmp_p
             rec.inbound("obstacles", b'{"clear": true}', float(k))
         stop.set()
 
+    sup = Supervisor()
+    sup.connect(observe=rec.transition)
     sender.start()
     flooder = threading.Thread(target=flood)
     flooder.start()
+    handled = 0
+    while True:  # the loop's heartbeats, at a loop's pace, during the flood
+        sup.handle(Heartbeat())
+        handled += 1
+        if stop.wait(0.005):
+            break
     flooder.join()
     time.sleep(0.5)
     sender.stop()
@@ -156,7 +177,9 @@ def test_a_burst_drops_other_records_never_setpoints_and_counts_every_drop(tmp_p
     assert sent[0] > 10
     assert [r["time_boot_ms"] for r in setpoints] == list(range(1, sent[0] + 1))  # every one, in order
     dropped = json.loads(meta["recorder"]["dropped"])
-    assert dropped.get("mavlink_sent", 0) == 0
+    assert dropped.get("mavlink_sent", 0) == 0 and dropped.get("transition", 0) == 0
+    transitions = [json.loads(m.data)["seq"] for _s, c, m in messages if c.topic == "/supervisor/transition"]
+    assert handled > 0 and sorted(transitions) == list(range(1, handled + 1))
     assert dropped["inbound"] > 0  # the burst did overflow the queue ...
     assert inbound + dropped["inbound"] == burst  # ... and every record is in the file or counted
     assert json.loads(meta["recorder"]["dropped_total"]) == dropped["inbound"]

@@ -31,7 +31,7 @@ SETPOINT = "/mavlink/out/SET_POSITION_TARGET_LOCAL_NED"
 JSON_CHANNELS = ("/in/command", "/in/mission", "/in/change", "/out/status", "/out/events", "/out/telemetry",
                  "/out/trajectory", SETPOINT, "/mavlink/out/HEARTBEAT", "/mavlink/out/COMMAND_LONG",
                  "/mavlink/in/HEARTBEAT", "/mavlink/in/LOCAL_POSITION_NED", "/mavlink/in/ATTITUDE",
-                 "/mavlink/in/COMMAND_ACK", "/planner/plan", "/viz/bounds", "/recorder/stats")
+                 "/mavlink/in/COMMAND_ACK", "/planner/plan", "/viz/bounds", "/recorder/stats", "/supervisor/transition")
 FOXGLOVE_CHANNELS = {"/viz/vehicle": "foxglove.PoseInFrame", "/viz/tf": "foxglove.FrameTransform",
                      "/viz/planned_path": "foxglove.PosesInFrame", "/viz/flown_path": "foxglove.PosesInFrame",
                      "/viz/obstacles": "foxglove.SceneUpdate", "/viz/corridors": "foxglove.SceneUpdate"}
@@ -187,7 +187,7 @@ def test_the_file_holds_every_setpoint_sent_at_50_hz(flight: Any) -> None:
     assert abs(len(sp) - 50.0 * span) <= 0.02 * 50.0 * span
 
 
-def test_every_plan_of_the_flight_replays_bit_identically(flight: Any) -> None:
+def test_every_plan_and_transition_of_the_flight_replays_bit_identically(flight: Any) -> None:
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     run = subprocess.run([sys.executable, "-m", "companion", "replay", str(flight["path"])], cwd=REPO, env=env,
                          capture_output=True, text=True, timeout=300)
@@ -195,6 +195,9 @@ def test_every_plan_of_the_flight_replays_bit_identically(flight: Any) -> None:
     lines = [ln for ln in run.stdout.splitlines() if ln.startswith("plan ")]
     assert len(lines) >= 3 and all(": identical" in ln for ln in lines)  # climb, mission, replan
     assert any("replan" in ln for ln in lines)
+    _meta, msgs = messages(flight["path"])
+    n = sum(1 for _s, c, _m in msgs if c.topic == "/supervisor/transition")
+    assert n > 10 and f"transitions: {n} of {n} reproduced" in run.stdout.splitlines()
 
 
 def test_the_summary_tells_the_flight(flight: Any) -> None:
