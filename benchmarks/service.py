@@ -680,7 +680,7 @@ class _EventLog:
 
 
 def _one_popup(peer: Any, events: _EventLog, i: int) -> Popup:
-    from demo.run import trajectory_of
+    from demo.analysis import trajectory_of
 
     latest = peer.latest.get("trajectory")
     status = peer.query("status", timeout=1.0) or {}

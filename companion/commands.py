@@ -249,7 +249,7 @@ class Commands:
         """A verified vertical climb streamed in OFFBOARD (PX4 has no GUIDED-style takeoff for us)."""
         bounds = self.nav.default_bounds()  # within the autopilot's limits
         # split as far ahead as planning takes in this service; a plan that comes late is planned
-        # again once, further ahead (as Navigator._swap_at_split does for missions)
+        # again once, further ahead (as SplitSwap.at_split does for missions)
         ahead = self.nav.budget.split_ahead_for(2)
         for attempt in range(2):
             base = self.control.active

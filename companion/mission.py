@@ -74,7 +74,7 @@ def start_mission(mission: MissionSpec, initial: FloatArray, t_start: float, kno
     `quick`: a mission without durations is planned on the default allocation alone (one plan,
     stretched where it is infeasible, as a timed mission is) instead of the search for the
     fastest durations: the companion's anytime start flies it at once and swaps the search's
-    plan in later (Navigator.improve); the route keeps the mission as sent (no durations), so
+    plan in later (MissionStart.improve); the route keeps the mission as sent (no durations), so
     what is planned from it later chooses its durations again."""
     wps = mission.waypoints
     labels = mission.first_index + np.arange(len(wps), dtype=float)

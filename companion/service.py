@@ -11,6 +11,8 @@ The parts, each the one owner of what it holds:
   thread flies and its time base, changed together; what is left of a mission (loaded,
   interrupted);
 - `Navigator` (navigator.py): planning missions, changes and pop-ups in flight; the obstacles;
+  its parts `MissionStart` (mission_start.py: accepted, started, improved), `Replans`
+  (replans.py: changes, pop-ups, the fleet) and the one retry loop `SplitSwap` (split_swap.py);
 - `Commands` (commands.py): the command sequences; `HandOver` (handover.py): leaving the
   vehicle to the autopilot; `Tracking` (tracking.py): the tracking error and the lead;
   `AutopilotWatch` (autopilot.py): reports;
@@ -97,7 +99,15 @@ class Service:
                                          priority=cfg.setpoints.realtime_priority)
         self.control = Control(self.sender, self.link.send_setpoint, self.yaw, cfg.setpoints.rate_hz,
                                on_new_plan=self.publish_trajectory, on_latency=self._latency_event)
-        self.navigator = Navigator(cfg, self.flight, self.control, self.runtime, self.report, self._position)
+        # where the autopilot's local frame sits in the fleet frame ([fleet] origin; companion.fleet)
+        self.fleet = FleetFrame(cfg.fleet)
+        # the other vehicles' trajectories and the commit protocol ([fleet] separation; companion.deconfliction)
+        self.deconfliction = Deconfliction(cfg, self.fleet, lambda: self.control.t_base, self._publish_proposal,
+                                           self.report.event)
+        # the autopilot's own limits: read at link-up and after a reconnect, planned within
+        self.limits = LimitsWatch(cfg, self.link, self.report)
+        self.navigator = Navigator(cfg, self.flight, self.control, self.runtime, self.report, self._position,
+                                   self.limits, self.deconfliction)
         self.commands = Commands(cfg, self.flight, self.control, self.link, self.navigator, self.report, self.runtime)
         self.tracking = Tracking(cfg, self.flight, self.control, self.link, self.navigator, self.report)
         self.handover = HandOver(cfg, self.flight, self.control, self.link, self.navigator, self.report,
@@ -112,19 +122,10 @@ class Service:
         self.watch = AutopilotWatch(cfg, self.flight, self.link, self.report,
                                     on_position=self.tracking.check_tracking, stalled=self.stalls.stalled)
         self.link.on_message = self._on_mavlink
-        # where the autopilot's local frame sits in the fleet frame ([fleet] origin; companion.fleet)
-        self.fleet = FleetFrame(cfg.fleet)
-        # the other vehicles' trajectories and the commit protocol ([fleet] separation; companion.deconfliction)
-        self.deconfliction = Deconfliction(cfg, self.fleet, lambda: self.control.t_base, self._publish_proposal,
-                                           self.report.event)
-        self.navigator.fleet = self.deconfliction
         self.deconfliction.on_replan = self.navigator.fleet_replan
         self.deconfliction.on_clock_off = self.navigator.fleet_stop
-        # the autopilot's own limits: read at link-up and after a reconnect, planned within
-        self.limits = LimitsWatch(cfg, self.link, self.report)
         self.commands.events_heard = self.watch.events_heard  # the arming-check report, for refusals
         self.watch.on_link_up = self._link_up
-        self.navigator.limits = self.limits
         self.inbound = Inbound(cfg, self.stop, self.report, self.link, self.fleet, self.runtime, self.tap,
                                self.navigator, self.commands)
         self.link.on_ignored = self.inbound.mavlink_ignored

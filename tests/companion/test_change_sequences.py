@@ -150,7 +150,7 @@ def test_changes_on_a_fastest_plan_are_read_between_mission_waypoints_not_knots(
 def test_changes_that_give_times_keep_them_on_an_allocated_mission() -> None:
     """On a mission without durations the remainder is allocated again after a change, unless
     the change gives times (a set duration, appended durations): those are flown as given, and
-    the navigator keeps the mission's times from then on (Navigator.user_timed)."""
+    the navigator keeps the mission's times from then on (Replans.user_timed)."""
     r = flying(LONG)
     t = 0.5
     cases = [

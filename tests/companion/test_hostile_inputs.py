@@ -121,18 +121,19 @@ def test_an_exception_from_the_planner_is_a_refusal_that_says_so(monkeypatch: py
 
     from types import SimpleNamespace
 
-    from companion.navigator import Navigator
+    from companion.mission_start import MissionStart
+    from companion.split_swap import logged
 
     rejected: list[tuple[str, str, str]] = []
     nav: Any = SimpleNamespace(report=SimpleNamespace(reject=lambda k, f, r, **_: rejected.append((k, f, r))),
-                               _clipped_note=lambda _spec: "")  # no autopilot limits in this fake
+                               clipped_note=lambda _spec: "")  # no autopilot limits in this fake
     records: list[logging.LogRecord] = []
     handler = logging.Handler(logging.ERROR)
     handler.emit = records.append  # type: ignore[method-assign]
     logger = logging.getLogger("companion")
     logger.addHandler(handler)
     try:
-        Navigator._reject_outcome(nav, spec, Navigator.logged(out))
+        MissionStart.reject_outcome(nav, spec, logged(out))
     finally:
         logger.removeHandler(handler)
     assert rejected and rejected[0][0] == "mission" and "Singular matrix" in rejected[0][2]

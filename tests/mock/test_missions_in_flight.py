@@ -11,6 +11,7 @@ import math
 import subprocess
 import sys
 import time
+from functools import partial
 from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
@@ -21,9 +22,10 @@ from companionkit import Events, service_for, serving, until
 
 from companion.config import Config
 from companion.control import SWAP_DIFFERS, SWAP_LATE
-from companion.navigator import Navigator
+from companion.mission_start import MissionStart
 from companion.plan_budget import FULL_SEARCH, LATE_MARGIN, MAX_AHEAD, MIN_CANDIDATES, PlanBudget
 from companion.route import Outcome
+from companion.split_swap import SplitSwap
 from companion.wire.messages import read
 from sitl_mock import MockAutopilot, MockConfig
 
@@ -130,30 +132,32 @@ class _Control:
         return not self.refusal
 
 
-def _navigator(refusals: list[str]) -> Navigator:
-    nav = object.__new__(Navigator)
-    nav.cfg = Config()
-    nav.control = _Control(refusals)  # type: ignore[assignment]
-    nav.flight = SimpleNamespace(flying_ours=True, state=SimpleNamespace(value="STREAMING"))  # type: ignore[assignment]
-    nav.budget = PlanBudget(nav.cfg)
-    nav.fleet = None  # no [fleet]: no commit wait in the replan loop
+def _navigator(refusals: list[str]) -> Any:
+    """What the retry loop (companion.split_swap) and a mission's split (MissionStart) read."""
+    cfg = Config()
+    control = _Control(refusals)
+    flight = SimpleNamespace(flying_ours=True, state=SimpleNamespace(value="STREAMING"))
+    # no [fleet]: no commit wait in the replan loop
+    nav = SimpleNamespace(cfg=cfg, control=control, flight=flight, budget=PlanBudget(cfg),
+                          swap=SplitSwap(cfg, flight, control, None, None))  # type: ignore[arg-type]
+    nav.ahead_within = partial(MissionStart.ahead_within, nav)
     return nav
 
 
-def _run(nav: Navigator, aheads: list[float]) -> Any:
+def _run(nav: Any, aheads: list[float]) -> Any:
     async def plan_at(_base: Any, t_split: float) -> Outcome:
         aheads.append(t_split)
         await asyncio.sleep(0.01)
         return Outcome(True, route=SimpleNamespace(trajectory=None))  # type: ignore[arg-type]
 
-    import companion.navigator as navmod
+    import companion.split_swap as swapmod
 
-    splice, navmod.splice = navmod.splice, lambda a, b: b  # type: ignore[assignment]
+    splice, swapmod.splice = swapmod.splice, lambda a, b: b  # type: ignore[assignment]
     try:
         notes: list[str] = []
-        return asyncio.run(nav._swap_at_split("mission x", None, plan_at, notes=notes)), notes
+        return asyncio.run(nav.swap.at_split("mission x", None, plan_at, notes=notes)), notes
     finally:
-        navmod.splice = splice
+        swapmod.splice = splice
 
 
 def test_a_swap_refused_by_the_check_says_so_once_not_the_split_time() -> None:
@@ -218,15 +222,15 @@ def test_a_mission_with_lower_bounds_starts_where_the_flight_is_within_them() ->
     assert flown.ok and flown.result.trajectory is not None
     traj = flown.result.trajectory
     nav = _navigator([])
-    nav.control.active = traj  # type: ignore[attr-defined]
-    nav.control.jet = lambda t: traj.jet(min(t, traj.t_end))  # type: ignore[attr-defined]
-    nav.control.t = traj.t0  # type: ignore[attr-defined]
+    nav.control.active = traj
+    nav.control.jet = lambda t: traj.jet(min(t, traj.t_end))
+    nav.control.t = traj.t0
     gentle = Bounds.symmetric(3.0, 3.0, 10.0, 50.0)
     ts = np.linspace(traj.t0, traj.t_end, 400)
     peak = max(float(np.max(np.abs(traj.jet(t)[2]))) for t in ts)
     assert peak > 3.0  # the premise: the flight accelerates beyond the mission's bound
     t_hot = float(ts[int(np.argmax([abs(traj.jet(t)[2][0]) for t in ts]))])
-    nav.control.t = t_hot - 0.2  # type: ignore[attr-defined]
+    nav.control.t = t_hot - 0.2
     ahead = nav.ahead_within(gentle, 0.15)
     assert ahead > 0.15
     jet = traj.jet(t_hot - 0.2 + ahead)
