@@ -30,7 +30,7 @@ from companion.replans import Replans
 from companion.report import Reporter
 from companion.route import Route
 from companion.runtime import Runtime
-from companion.split_swap import SplitSwap
+from companion.split_swap import SplitSwap, neighbours
 from companion.supervisor import MissionComplete, StoppedAfterBraking, Supervisor
 from companion.wire.encode import num
 from companion.wire.messages import Change, MissionSpec, ObstacleUpdate, bounds_from
@@ -90,7 +90,7 @@ class Navigator:
         every = self.known() + (Known.of(mission.obstacles) if mission is not None else Known())
         bounds = mission.bounds if mission is not None else self.default_bounds()
         # in a fleet the stop (and the hold at its end) is chosen separated from the others
-        nb = self.neighbours(bounds)
+        nb = neighbours(self.fleet, bounds)
         names = tuple(self.fleet.order) if nb is not None else ()
         return StopContext(mission, every.polytopes, bounds, nb, names)
 
