@@ -100,6 +100,18 @@ TRANSITION = _obj("bezier.SupervisorTransition", "One Supervisor.handle call (co
     "pickle": {"type": ["string", "null"], "description": "pickle (base64) of (before, event, after, actions)"},
 }, ("seq", "t", "event", "before", "after", "actions", "pickle"))
 
+DECODED = _obj("bezier.DecodedMessage", "An inbound message as the companion read it (companion.wire.messages.read): "
+               "the typed message (local_ned) or the refusal, and what read was given besides the bytes", {
+    "seq": {"type": "integer", "description": "1, 2, ... per run, numbered as the message was read: a gap is a "
+            "record the recorder dropped"},
+    "key": {"type": "string"}, "t": T_MONO,
+    "ok": {"type": "boolean", "description": "false: refused (field, reason)"},
+    "type": {"type": "string", "description": "the typed message's class, or the error's"},
+    "field": {"type": ["string", "null"]}, "reason": {"type": ["string", "null"]},
+    "fingerprint": {"type": "string", "description": "sha256 of the typed message (or of the refusal)"},
+    "call": {"type": ["string", "null"], "description": "pickle (base64) of (key, payload, home, home_pending, fleet)"},
+}, ("seq", "key", "t", "ok", "type", "fingerprint"))
+
 NUM_OR_NULL = {"type": ["number", "null"], "description": "null: unbounded"}
 BOUNDS = _obj("bezier.Bounds", "The bounds a plan used, per derivative order (SI units): the tightest over "
               "the axes, and the per-axis box (local_ned; rows velocity..snap, columns x, y, z)", {
@@ -181,6 +193,8 @@ def spec(topic: str) -> Spec:
         return _json(PLAN)
     if topic == "/supervisor/transition":
         return _json(TRANSITION)
+    if topic == "/inbound/decoded":
+        return _json(DECODED)
     if topic == "/recorder/stats":
         return _json(STATS)
     if topic == "/viz/bounds":

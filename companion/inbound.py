@@ -74,8 +74,11 @@ class Inbound:
             try:
                 self.tap.inbound(kind, payload, arrived)
                 if kind == "obstacles" and len(payload) <= INLINE_DECODE_BYTES:
-                    self.dispatch(kind, payload, arrived, read(kind, payload, self.cfg, self.link.state.home,
-                                                               fleet=self.fleet.for_messages()))
+                    context: dict[str, Any] = {"home": self.link.state.home, "home_pending": False,
+                                               "fleet": self.fleet.for_messages()}
+                    msg = read(kind, payload, self.cfg, context["home"], fleet=context["fleet"])
+                    self.tap.decoded(kind, payload, context, msg, arrived)
+                    self.dispatch(kind, payload, arrived, msg)
                 elif self._ordered.qsize() >= self.cfg.limits.max_queued_messages:
                     self._dropped(kind, len(payload))
                 else:
@@ -93,11 +96,14 @@ class Inbound:
             # the loop, small ones (a command: well under a millisecond) right here, which
             # spares two thread hand-offs. One message at a time, so the order is kept.
             try:
-                job = functools.partial(read, kind, payload, self.cfg, self.link.state.home,
-                                        home_pending=self.link.state.home_pending,
-                                        fleet=self.fleet.for_messages())
+                context: dict[str, Any] = {"home": self.link.state.home,
+                                           "home_pending": self.link.state.home_pending,
+                                           "fleet": self.fleet.for_messages()}
+                job = functools.partial(read, kind, payload, self.cfg, context["home"],
+                                        home_pending=context["home_pending"], fleet=context["fleet"])
                 msg = job() if len(payload) <= INLINE_DECODE_BYTES else \
                     await asyncio.get_running_loop().run_in_executor(self.runtime.decode_pool, job)
+                self.tap.decoded(kind, payload, context, msg, arrived)
                 self.dispatch(kind, payload, arrived, msg)
             except Exception as exc:
                 self._unforeseen(kind, payload, exc)

@@ -164,6 +164,7 @@ class Recorder(Tap):
         self._viz.offset = self.offset
         self._plan_seq = itertools.count(1)
         self._transition_seq = itertools.count(1)
+        self._decoded_seq = itertools.count(1)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._last_stats = 0.0
@@ -233,6 +234,9 @@ class Recorder(Tap):
 
     def outbound(self, key: str, payload: bytes, t: float) -> None:
         self._put(self._rest, ("outbound", key, payload, t))
+
+    def decoded(self, key: str, payload: Any, context: dict[str, Any], result: Any, t: float) -> None:
+        self._put(self._rest, ("decoded", next(self._decoded_seq), key, payload, context, result, t))
 
     def mavlink_sent(self, msg: Any, t: float | None = None) -> None:
         # called by pymavlink's send callback, in whichever thread sent (the setpoint thread)
@@ -353,6 +357,9 @@ class Recorder(Tap):
             self._emit("/planner/plan", plan_record(seq, fn, args, result, submitted, done, where, self.cfg), done)
             for topic, data in self._viz.on_plan(args, result, done):
                 self._emit(topic, data, done)
+        elif kind == "decoded":
+            _, seq, key, payload, context, result, t = item
+            self._emit("/inbound/decoded", decoded_record(seq, key, payload, context, result, t), t)
         elif kind == "transition":
             _, seq, before, event, after, actions, t = item
             self._emit("/supervisor/transition", transition_record(seq, t, before, event, after, actions), t)
@@ -415,6 +422,19 @@ def transition_record(seq: int, t: float, before: Any, event: Any, after: Any, a
     blob = _pickled((before, event, after, actions))
     return b"".join([ch.dumps({"seq": seq, "t": t, **body})[:-1],
                      b',"pickle":', b"null" if blob is None else b'"' + blob + b'"', b"}"])
+
+
+def decoded_record(seq: int, key: str, payload: Any, context: dict[str, Any], result: Any, t: float) -> bytes:
+    """One inbound message read: what it became (readable, and a fingerprint) and the call's
+    inputs pickled (base64), which `python -m companion replay` reads again and compares. The
+    result is not pickled: a typed message is its fingerprint and the refusal its words."""
+    from companion import replay
+
+    body: dict[str, Any] = {"seq": seq, "key": key, "t": t, **replay.decoded_summary(result),
+                            "fingerprint": replay.decoded_fingerprint(result)}
+    raw = bytes(payload) if isinstance(payload, bytes | bytearray | memoryview) else len(payload)
+    call = _pickled((key, raw, context.get("home"), bool(context.get("home_pending")), context.get("fleet")))
+    return b"".join([ch.dumps(body)[:-1], b',"call":', b"null" if call is None else b'"' + call + b'"', b"}"])
 
 
 class _Frames:

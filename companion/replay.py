@@ -164,6 +164,22 @@ _PLAIN = {
 }
 
 
+def decoded_summary(result: Any) -> dict[str, Any]:
+    """What an inbound message became, readable: ok, the class, and a refusal's field and reason."""
+    if isinstance(result, BaseException):
+        return {"ok": False, "type": type(result).__name__, "field": getattr(result, "field", None),
+                "reason": getattr(result, "reason", str(result))}
+    return {"ok": True, "type": type(result).__name__, "field": None, "reason": None}
+
+
+def decoded_fingerprint(result: Any) -> str:
+    """A typed message by its every value; a refusal by its class, field and reason."""
+    if isinstance(result, BaseException):
+        return fingerprint(("refused", type(result).__name__, getattr(result, "field", None),
+                            getattr(result, "reason", str(result))))
+    return fingerprint(result)
+
+
 class _SafeUnpickler(pickle.Unpickler):
     def find_class(self, module: str, name: str) -> Any:
         if (module, name) in _PLAIN:
@@ -408,6 +424,42 @@ def replay_transitions(recs: list[dict[str, Any]], dropped: int = 0) -> Transiti
     return out
 
 
+def recorded_config(path: str) -> Any:
+    """The configuration the recording service ran with (its `companion` metadata), or None."""
+    import tomllib
+
+    from companion.config import config_from_dict
+
+    text = recorded_metadata(path).get("companion", {}).get("config")
+    return None if text is None else config_from_dict(tomllib.loads(text))
+
+
+def decoded_records(path: str, since: float | None = None, until: float | None = None) -> list[dict[str, Any]]:
+    """The /inbound/decoded records of a file, in `seq` order (`since`/`until` as for plans)."""
+    found = [rec for _t, rel, rec in records(path, ("/inbound/decoded",)) if _within(rel, since, until)]
+    return sorted(found, key=lambda r: int(r["seq"]))
+
+
+def replay_decoded(rec: dict[str, Any], cfg: Any) -> str:
+    """Read the recorded message again as the service did: "" when it becomes the same typed
+    message (or the same refusal, word for word), else what differs."""
+    from companion.wire.errors import Oversized
+    from companion.wire.messages import read
+
+    if rec.get("call") is None:
+        return f"message {rec['seq']} on {rec['key']}: its inputs could not be recorded"
+    key, raw, home, home_pending, fleet = loads(rec["call"])
+    payload = Oversized(raw) if isinstance(raw, int) else raw
+    result = read(key, payload, cfg, home, home_pending=home_pending, fleet=fleet)
+    if decoded_fingerprint(result) == rec["fingerprint"]:
+        return ""
+    now = decoded_summary(result)
+    was = f"{rec['type']}" + ("" if rec["ok"] else f" ({rec.get('field') or 'payload'}: {rec.get('reason')})")
+    got = f"{now['type']}" + ("" if now["ok"] else f" ({now['field'] or 'payload'}: {now['reason']})")
+    return f"message {rec['seq']} on {key}: recorded {was}, read again {got}" if was != got else \
+        f"message {rec['seq']} on {key}: the {got} read again differs in its values"
+
+
 def main(argv: list[str]) -> int:
     import argparse
 
@@ -441,6 +493,19 @@ def main(argv: list[str]) -> int:
                   f"{checked.differences[0]}", flush=True)
             for more in checked.differences[1:] if args.keep_going else ():
                 print(f"  also: {more}")
+        decoded = decoded_records(args.file, args.since, args.until)
+        decode_bad: list[str] = []
+        if decoded:
+            cfg = recorded_config(args.file)
+            if cfg is None:
+                raise ValueError("the recording holds no configuration to read its messages with")
+            decode_bad = [why for why in (replay_decoded(rec, cfg) for rec in decoded) if why]  # ms each
+            alike = f"messages: {len(decoded) - len(decode_bad)} of {len(decoded)} read again alike"
+            print(alike + (f"; first difference: {decode_bad[0]}" if decode_bad else ""), flush=True)
+            for more in decode_bad[1:] if args.keep_going else ():
+                print(f"  also: {more}")
+        else:
+            print("messages: none recorded", flush=True)
         for rec in plan_records(args.file, args.since, args.until):
             r = replay_one(rec)
             n += 1
@@ -455,12 +520,13 @@ def main(argv: list[str]) -> int:
     except (OSError, ValueError, KeyError, TypeError, pickle.UnpicklingError, McapError) as exc:
         print(f"replay: {args.file}: {exc}", file=sys.stderr)
         return 2
-    if n == 0 and not recs and not dropped:
-        print("replay: no plan and no transition in the recording (or in the time range)", file=sys.stderr)
+    if n == 0 and not recs and not dropped and not decoded:
+        print("replay: no plan, transition or inbound message in the recording (or in the time range)",
+              file=sys.stderr)
         return 2
     if n == 0:
         print("plans: none recorded")
     else:
         print(f"plans: {n - bad} of {n} reproduced bit-identically" if bad == 0 or args.keep_going
               else f"plans: plan {n} is the first that differs")
-    return 0 if bad == 0 and not checked.differences else 1
+    return 0 if bad == 0 and not checked.differences and not decode_bad else 1

@@ -23,6 +23,11 @@ class Tap:
     def outbound(self, key: str, payload: bytes, t: float) -> None:
         """A Zenoh publication: its key's last part and the bytes published."""
 
+    def decoded(self, key: str, payload: Any, context: dict[str, Any], result: Any, t: float) -> None:
+        """An inbound message read (companion.wire.messages.read): its key's last part, the bytes
+        (or `Oversized`), what else `read` was given (`home`, `home_pending`, `fleet`), and what
+        it made of them (a typed message or the MessageError that refuses it); its arrival time."""
+
     def mavlink_sent(self, msg: Any, t: float | None = None) -> None:
         """A MAVLink message just written to the link (setpoints included); pymavlink's send
         callback, so no time: the tap takes it."""

@@ -19,6 +19,7 @@ from companion.recorder import McapSink, Recorder
 from companion.setpoints import Feed, SetpointSender, YawPolicy
 from companion.supervisor import Heartbeat, Supervisor, TakingControl
 from companion.wire.errors import Oversized
+from companion.wire.messages import read
 from planner_core import hold
 
 
@@ -41,6 +42,9 @@ def record_a_little_of_everything(rec: Recorder) -> None:
     rec.inbound("mission", b'{"id": "m"}', now)
     rec.inbound("command", b"\xff\xfe not utf-8", now)
     rec.inbound("obstacles", Oversized(5_000_000), now)
+    for payload in (b'{"id": "m"}', Oversized(5_000_000)):  # refused: no waypoints; too large
+        context = {"home": None, "home_pending": False, "fleet": None}
+        rec.decoded("mission", payload, context, read("mission", payload, rec.cfg), now)
     rec.outbound("status", json.dumps({"state": "READY", "tracking_error": 0.1}).encode(), now)
     rec.outbound("events", json.dumps({"type": "started", "message": "hi"}).encode(), now)
     for k in range(10):
@@ -70,7 +74,7 @@ def test_the_file_opens_with_the_mcap_reader_and_every_message_matches_its_schem
     for topic in ("/in/mission", "/in/command", "/in/obstacles", "/out/status", "/out/events",
                   "/mavlink/out/SET_POSITION_TARGET_LOCAL_NED", "/mavlink/out/COMMAND_LONG",
                   "/mavlink/in/ATTITUDE", "/mavlink/in/LOCAL_POSITION_NED", "/planner/plan", "/viz/bounds",
-                  "/recorder/stats", "/supervisor/transition"):
+                  "/recorder/stats", "/supervisor/transition", "/inbound/decoded"):
         schema, channel = channels[topic]
         assert (schema.encoding, channel.message_encoding) == ("jsonschema", "json"), topic
     for topic, kind in (("/viz/vehicle", "foxglove.PoseInFrame"), ("/viz/tf", "foxglove.FrameTransform"),

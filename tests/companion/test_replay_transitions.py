@@ -109,9 +109,10 @@ def transition_records(path: Path) -> list[dict[str, Any]]:
 
 
 def rewrite(src: Path, dst: Path, edit: Callable[[dict[str, Any]], dict[str, Any] | None] = lambda r: r,
-            meta: Callable[[str, dict[str, str]], dict[str, str]] = lambda _n, m: m) -> Path:
-    """`src` written again with the `mcap` writer, each transition record through `edit` (None:
-    left out) and each metadata record through `meta`: a file altered after the flight."""
+            meta: Callable[[str, dict[str, str]], dict[str, str]] = lambda _n, m: m, topic: str = TOPIC) -> Path:
+    """`src` written again with the `mcap` writer, each record on `topic` (the transitions by
+    default) through `edit` (None: left out) and each metadata record through `meta`: a file
+    altered after the flight."""
     with open(src, "rb") as fh:
         reader = make_reader(fh)
         metadata = [(m.name, dict(m.metadata)) for m in reader.iter_metadata()]
@@ -128,7 +129,7 @@ def rewrite(src: Path, dst: Path, edit: Callable[[dict[str, Any]], dict[str, Any
                     schemas[schema.id] = w.register_schema(schema.name, schema.encoding, schema.data)
                 chans[channel.topic] = w.register_channel(channel.topic, channel.message_encoding, schemas[schema.id])
             data = m.data
-            if channel.topic == TOPIC:
+            if channel.topic == topic:
                 rec = edit(json.loads(data))
                 if rec is None:
                     continue

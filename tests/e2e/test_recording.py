@@ -31,7 +31,8 @@ SETPOINT = "/mavlink/out/SET_POSITION_TARGET_LOCAL_NED"
 JSON_CHANNELS = ("/in/command", "/in/mission", "/in/change", "/out/status", "/out/events", "/out/telemetry",
                  "/out/trajectory", SETPOINT, "/mavlink/out/HEARTBEAT", "/mavlink/out/COMMAND_LONG",
                  "/mavlink/in/HEARTBEAT", "/mavlink/in/LOCAL_POSITION_NED", "/mavlink/in/ATTITUDE",
-                 "/mavlink/in/COMMAND_ACK", "/planner/plan", "/viz/bounds", "/recorder/stats", "/supervisor/transition")
+                 "/mavlink/in/COMMAND_ACK", "/planner/plan", "/viz/bounds", "/recorder/stats", "/supervisor/transition",
+                 "/inbound/decoded")
 FOXGLOVE_CHANNELS = {"/viz/vehicle": "foxglove.PoseInFrame", "/viz/tf": "foxglove.FrameTransform",
                      "/viz/planned_path": "foxglove.PosesInFrame", "/viz/flown_path": "foxglove.PosesInFrame",
                      "/viz/obstacles": "foxglove.SceneUpdate", "/viz/corridors": "foxglove.SceneUpdate"}
@@ -198,6 +199,12 @@ def test_every_plan_and_transition_of_the_flight_replays_bit_identically(flight:
     _meta, msgs = messages(flight["path"])
     n = sum(1 for _s, c, _m in msgs if c.topic == "/supervisor/transition")
     assert n > 10 and f"transitions: {n} of {n} reproduced" in run.stdout.splitlines()
+    # every inbound message the flight took in was read, and reads again the same (none was
+    # dropped or refused on arrival in this flight)
+    inbound = sum(1 for _s, c, _m in msgs if c.topic.startswith("/in/"))
+    read_back = sum(1 for _s, c, _m in msgs if c.topic == "/inbound/decoded")
+    assert inbound >= 3 and read_back == inbound, (inbound, read_back)
+    assert f"messages: {inbound} of {inbound} read again alike" in run.stdout.splitlines(), run.stdout
 
 
 def test_the_summary_tells_the_flight(flight: Any) -> None:
