@@ -50,8 +50,8 @@ from companion.wire.px4_events import arming_report
 from companion.wire.vehicle import MAV_LANDED_IN_AIR, MAV_LANDED_ON_GROUND, CommandFailed, Note
 from planner_core import (
     Problem,
-    Trajectory,
     allocate_times,
+    held_still,
     plan,
     shifted,
     splice,
@@ -365,11 +365,3 @@ class Commands:
         self.flight.handle(DisarmedOnCommand("disarmed on command"))
         return True
 
-
-def held_still(base: Trajectory, t0: float, t1: float) -> bool:
-    """Whether `base` holds one point at rest from t0 to t1 (a plan starting from it there may
-    start anywhere in between)."""
-    ts = np.linspace(t0, t1, 9)
-    pos = base.evaluate(ts)
-    moving = max(float(np.abs(base.evaluate(ts, k)).max()) for k in (1, 2, 3, 4))
-    return bool(np.ptp(pos, axis=0).max() <= 1e-9 and moving <= 1e-9)

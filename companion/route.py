@@ -31,6 +31,7 @@ from planner_core import (
     Trajectory,
     allocate_times,
     plan_mission,
+    shifted,
 )
 from planner_core import build_corridors as _build_corridors
 
@@ -61,6 +62,13 @@ class Route:
     @property
     def t_end(self) -> float:
         return float(self.trajectory.t_end)
+
+    def shifted(self, dt: float) -> Route:
+        """The same route `dt` s later (planner_core.shifted): for a plan from a hold that came
+        back after its split, which starts as well from the hold later. Not in a fleet: the
+        separation from the others depends on the time."""
+        return replace(self, times=self.times + dt, problem=replace(self.problem, times=self.problem.times + dt),
+                       trajectory=shifted(self.trajectory, dt))
 
     def without_knots(self) -> Route:
         """The route's waypoints without the planner's knots (the plan itself unchanged): what an

@@ -12,7 +12,7 @@ import logging
 import math
 import time
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 from companion.config import Config
@@ -21,7 +21,7 @@ from companion.plan_budget import MAX_AHEAD, RETRY_MARGIN
 from companion.report import Reporter
 from companion.route import Outcome
 from companion.supervisor import Supervisor
-from planner_core import Bounds, Trajectory, splice
+from planner_core import Bounds, Trajectory, held_still, splice
 
 log = logging.getLogger("companion")
 
@@ -132,6 +132,15 @@ class SplitSwap:
                 reason = self.control.refusal  # an internal check: planning again would not help
                 say(reason)
                 break
+            # late, from a hold: the same plan starts later just as well (the curve and its checks
+            # do not depend on the time; a fleet's separation does): moved, not planned again
+            t_later = self.control.committed() + min(max(2.0 * ahead, RETRY_MARGIN * took + 0.1), MAX_AHEAD)
+            if fleet is None and held_still(base, t_split, t_later):
+                later = outcome.route.shifted(t_later - t_split)
+                if self.control.swap(splice(base, later.trajectory), t_later, arrived, what, later):
+                    log.info("%s: planning took %.2f s, more than the %.2f s to its split time: the plan from the "
+                             "hold starts %.2f s later", what, took, ahead, t_later - t_split)
+                    return Swapped(replace(outcome, route=later), t_later)
             late += 1
             reason = (f"planning took {took:.2f} s, more than the {ahead:.2f} s to its split time"
                       + (" twice: the computer is too busy to plan this in flight now" if late == 2 else ""))

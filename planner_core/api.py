@@ -24,7 +24,7 @@ no files (the JSON codec below turns trajectories into dicts and back, nothing m
   `RemoveWaypoint`, `AppendWaypoints`; `parse_change`, `parse_polytope`
 - geometry: `build_corridors`, `polytope_vertices`, `first_hit`, `inflate`
 - braking: `braking_trajectory`, `stop_time_scale`
-- trajectory surgery: `split_at`, `splice`, `trim_before`, `shifted`, `hold`, `Sampler`, `sampler`,
+- trajectory surgery: `split_at`, `splice`, `trim_before`, `shifted`, `held_still`, `hold`, `Sampler`, `sampler`,
   `start_jet`, `end_jet`, `split_segment`
 - JSON: `trajectory_to_dict`, `trajectory_from_dict`, `trajectory_json` (the file's text, fast);
   bounds: `vehicle_bound` (one order's {"horizontal", "up", "down"} form), `bounds_to_dict`
@@ -101,6 +101,7 @@ if TYPE_CHECKING:
     from planner_core.trajectory import (
         Sampler,
         end_jet,
+        held_still,
         hold,
         sampler,
         shifted,
@@ -182,6 +183,7 @@ _WHERE: dict[str, tuple[str, str]] = {
     "SetCorridor": ("planner_core.changes", "SetCorridor"),
     "SetDuration": ("planner_core.changes", "SetDuration"),
     "shifted": ("planner_core.trajectory", "shifted"),
+    "held_still": ("planner_core.trajectory", "held_still"),
     "splice": ("planner_core.trajectory", "splice"),
     "split_at": ("planner_core.trajectory", "split_at"),
     "split_segment": ("planner_core.trajectory", "split_segment"),
@@ -257,6 +259,7 @@ __all__ = [
     "fastest_durations",
     "first_hit",
     "flight_time_lower_bound",
+    "held_still",
     "hold",
     "inflate",
     "parse_change",

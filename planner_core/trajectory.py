@@ -94,6 +94,15 @@ def shifted(traj: Trajectory, dt: float) -> Trajectory:
     return Trajectory(traj.times + float(dt), traj.control_points, traj.corridors, traj.stats)
 
 
+def held_still(traj: Trajectory, t0: float, t1: float) -> bool:
+    """Whether `traj` holds one point at rest from t0 to t1: a plan starting from it there may
+    start anywhere in between (`shifted`)."""
+    ts = np.linspace(t0, t1, 9)
+    spread = float(np.ptp(traj.evaluate(ts), axis=0).max())
+    moving = max(float(np.abs(traj.evaluate(ts, k)).max()) for k in (1, 2, 3, 4))
+    return spread <= 1e-9 and moving <= 1e-9
+
+
 def hold(position: FloatArray, t: float) -> Trajectory:
     """A verified-by-construction hold: all control points at a measured position."""
     ctrl = np.repeat(np.asarray(position, dtype=float).reshape(1, 1, 3), 10, axis=1)

@@ -144,20 +144,24 @@ def _navigator(refusals: list[str]) -> Any:
     return nav
 
 
-def _run(nav: Any, aheads: list[float]) -> Any:
+def _run(nav: Any, aheads: list[float], held: bool = False) -> Any:
+    """The retry loop with a flown plan that moves (or, `held`, holds still) at the split."""
     async def plan_at(_base: Any, t_split: float) -> Outcome:
         aheads.append(t_split)
         await asyncio.sleep(0.01)
-        return Outcome(True, route=SimpleNamespace(trajectory=None))  # type: ignore[arg-type]
+        route = SimpleNamespace(trajectory=None, shifted=lambda dt: SimpleNamespace(trajectory=None, dt=dt))
+        return Outcome(True, route=route)  # type: ignore[arg-type]
 
     import companion.split_swap as swapmod
 
     splice, swapmod.splice = swapmod.splice, lambda a, b: b  # type: ignore[assignment]
+    still, swapmod.held_still = swapmod.held_still, lambda *_: held  # type: ignore[assignment]
     try:
         notes: list[str] = []
         return asyncio.run(nav.swap.at_split("mission x", None, plan_at, notes=notes)), notes
     finally:
         swapmod.splice = splice
+        swapmod.held_still = still
 
 
 def test_a_swap_refused_by_the_check_says_so_once_not_the_split_time() -> None:
@@ -174,6 +178,13 @@ def test_a_late_plan_is_planned_again_once_further_ahead() -> None:
     aheads.clear()
     done, notes = _run(_navigator([SWAP_LATE, SWAP_LATE, SWAP_LATE]), aheads)
     assert not done.ok and len(aheads) == 2 and "twice" in done.reason and len(notes) == 2
+
+
+def test_a_late_plan_from_a_hold_is_moved_to_a_later_split_not_planned_again() -> None:
+    aheads: list[float] = []
+    done, notes = _run(_navigator([SWAP_LATE]), aheads, held=True)
+    assert done.ok and len(aheads) == 1 and not notes  # planned once
+    assert done.t_split > aheads[0] and done.outcome.route.dt == pytest.approx(done.t_split - aheads[0])
 
 
 def test_the_split_follows_the_measured_planning_time() -> None:
