@@ -179,6 +179,55 @@ def cheap_planes(pa: FloatArray, pb: FloatArray) -> tuple[FloatArray, FloatArray
     return dirs[r, best], gap[r, best], 0.5 * (hi_a[r, best] + lo_b[r, best])
 
 
+GILBERT_STEPS = 24  # Gilbert steps per batch of pairs (each a few array calls over all pairs)
+
+
+def nearest_planes(pa: FloatArray, pb: FloatArray, need: FloatArray,
+                   steps: int = GILBERT_STEPS) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Planes towards the maximum-margin one between point sets pa (K, p, 3) and pb (K, q, 3),
+    without a solver, for all K at once: Gilbert's steps towards the point x of the hull of
+    {b_i - a_j} nearest the origin (x / |x| is the max-margin normal at the limit). Each step's
+    support point is b_argmin - a_argmax along x, so the p q differences are never formed.
+    Returns the best plane seen per pair (normals (K, 3), gap = min n.b - max n.a recomputed from
+    the points, c the mid-plane), like `cheap_planes`, and `bound` (K,): |x| at the last step, an
+    upper bound on the hulls' distance and so on any plane's gap. A gap at or above `need` needs
+    no QP; nor does a bound below it (not even the max-margin plane clears `need`). Pairs stop
+    once one of the two holds."""
+    k = pa.shape[0]
+    r = np.arange(k)
+    x = pb.mean(axis=1) - pa.mean(axis=1)
+    best_n = np.zeros((k, 3))
+    best_n[:, 0] = 1.0
+    best_gap = np.full(k, -np.inf)
+    best_c = np.zeros(k)
+    bound = np.full(k, np.inf)
+    live = r
+    for _ in range(steps):
+        xl = x[live]
+        norm = np.sqrt((xl * xl).sum(axis=1))
+        bound[live] = norm
+        ok = norm > 0.0
+        n = xl / np.where(ok, norm, 1.0)[:, None]
+        proj_a = np.einsum("kpx,kx->kp", pa[live], n)
+        proj_b = np.einsum("kpx,kx->kp", pb[live], n)
+        ia, ib = proj_a.argmax(axis=1), proj_b.argmin(axis=1)
+        rl = np.arange(live.size)
+        hi_a, lo_b = proj_a[rl, ia], proj_b[rl, ib]
+        gap = np.where(ok, lo_b - hi_a, -np.inf)
+        up = gap > best_gap[live]
+        best_n[live[up]], best_gap[live[up]], best_c[live[up]] = n[up], gap[up], 0.5 * (hi_a[up] + lo_b[up])
+        # the line search towards the support point s: x + g (s - x), g in [0, 1] minimising |.|
+        d = xl - (pb[live, ib] - pa[live, ia])
+        dd = (d * d).sum(axis=1)
+        g = np.clip((xl * d).sum(axis=1) / np.where(dd > 0.0, dd, 1.0), 0.0, 1.0)
+        x[live] = xl - g[:, None] * d
+        go = ok & (best_gap[live] < need[live]) & (norm >= need[live]) & (dd > 0.0)
+        live = live[go]
+        if live.size == 0:
+            break
+    return best_n, best_gap, best_c, bound
+
+
 def max_margin_plane(pa: FloatArray, pb: FloatArray) -> tuple[FloatArray, float, float] | None:
     """The maximum-margin plane between point sets pa (p, 3) and pb (q, 3) (their convex hulls'
     distance): (unit n, gap = min n.b - max n.a, c = mid-plane), or None when the hulls meet

@@ -17,20 +17,26 @@ import numpy as np
 
 from planner_core.broadphase import overlapping_pairs
 from planner_core.problem import Bounds, FloatArray, Polytope, Problem, Trajectory
-from planner_core.separation_certificate import SeparationCertificate, SeparationCheck, certify_many
+from planner_core.separation_batch import Packed, batch_knots, locate_packed, pack
+from planner_core.separation_certificate import (
+    SeparationCertificate,
+    SeparationCheck,
+    certify_packed,
+)
 from planner_core.separation_pieces import (
     KNOT_TOL,
     IntArray,
     best_plane,
     cheap_planes,
-    common_knots,
     halves_matrix,
     locate,
     max_margin_plane,
     merge_knots,
+    nearest_planes,
     pieces_between,
     pieces_on,
     restrict,
+    segment_boxes,
     speed_bound,
 )
 
@@ -111,8 +117,10 @@ class Neighbours:
         if self.speed is not None or self.clock_tolerance == 0.0:
             return self
         out = replace(self, speed=bound_speed(bounds))
-        if "boxes" in self.__dict__:  # the same trajectories: their boxes carry over
-            out.__dict__["boxes"] = self.__dict__["boxes"]
+        # the same trajectories: their stacking and boxes carry over (built here once, so that a
+        # caller replanning again and again with the same neighbours never rebuilds them)
+        out.__dict__["packed"] = self.packed
+        out.__dict__["boxes"] = self.boxes
         return out
 
     def required(self, k: int) -> float:
@@ -120,13 +128,30 @@ class Neighbours:
         return float(self.separation + (self.our_speed + self.speed_of(k)) * self.clock_tolerance)
 
     @cached_property
+    def packed(self) -> Packed:
+        """The trajectories stacked once (`separation_batch.pack`): every pair in a few array calls."""
+        return pack(self.trajectories)
+
+    @cached_property
     def boxes(self) -> tuple[FloatArray, FloatArray, IntArray]:
-        """Every neighbour's space-time boxes stacked: (lo, hi, owner)."""
-        if not self.trajectories:
+        """Every neighbour's space-time boxes stacked (`space_time_boxes` of each, in order): (lo, hi,
+        owner). Built from `packed` in one pass (one call per neighbour cost ~20 us each)."""
+        p = self.packed
+        if p.size == 0:
             return np.zeros((0, 4)), np.zeros((0, 4)), np.zeros(0, dtype=np.intp)
-        parts = [space_time_boxes(t) for t in self.trajectories]
-        owner = np.concatenate([np.full(p[0].shape[0], k, dtype=np.intp) for k, p in enumerate(parts)])
-        return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]), owner
+        nseg = np.diff(p.rows)
+        owner = np.repeat(np.arange(p.size, dtype=np.intp), nseg + 1)
+        hold = p.rows[1:] + np.arange(1, p.size + 1)  # the box after each trajectory's segments
+        is_seg = np.ones(owner.size, dtype=bool)
+        is_seg[hold - 1] = False
+        seg_t0 = np.delete(p.times, p.first[1:] - 1)  # every knot but each trajectory's last
+        lo = np.empty((owner.size, 4))
+        hi = np.empty_like(lo)
+        lo[is_seg, 0], hi[is_seg, 0] = seg_t0, np.delete(p.times, p.first[:-1])
+        lo[is_seg, 1:], hi[is_seg, 1:] = p.lo, p.hi
+        lo[~is_seg, 0], hi[~is_seg, 0] = p.t_end, FAR
+        lo[~is_seg, 1:] = hi[~is_seg, 1:] = p.last
+        return lo, hi, owner
 
     @cached_property
     def max_required(self) -> float:
@@ -308,9 +333,9 @@ def certify_all(traj: Trajectory, neighbours: Neighbours, t_from: float | None =
     _, bk = near_pairs(qlo, qhi, olo, ohi, neighbours.max_required)
     near = sorted(set(owner[bk].tolist()))
     certs: list[tuple[int, SeparationCertificate]] = []
-    checks = certify_many(traj, [neighbours.trajectories[k] for k in near], neighbours.separation,
-                          clock_tolerance=neighbours.clock_tolerance,
-                          speeds=[(neighbours.our_speed, neighbours.speed_of(k)) for k in near], span=span)
+    checks = certify_packed(traj, neighbours.packed, np.asarray(near, dtype=np.intp), neighbours.separation,
+                            clock_tolerance=neighbours.clock_tolerance,
+                            speeds=[(neighbours.our_speed, neighbours.speed_of(k)) for k in near], span=span)
     for k, chk in zip(near, checks, strict=True):
         if not chk.ok:
             return certs, replace_message(chk, f"neighbour {k}: {chk.message}"), len(near)
@@ -379,22 +404,6 @@ def separation_rows(times: FloatArray, cert: SeparationCertificate, n_segments: 
                           np.repeat(rhs[which], 10))
 
 
-def _others_pieces(others: Sequence[Trajectory], owner: IntArray, t0: FloatArray, t1: FloatArray) -> FloatArray:
-    """Pieces (K, 10, 3) of others[owner[i]] on [t0[i], t1[i]], one de Casteljau pass for all."""
-    seg = np.zeros(t0.size, dtype=np.intp)
-    u0, u1 = np.zeros(t0.size), np.zeros(t0.size)
-    held = np.zeros(t0.size, dtype=bool)
-    ctrl = np.empty((t0.size, 10, 3))
-    for j in np.unique(owner).tolist():
-        rows = np.flatnonzero(owner == j)
-        seg[rows], u0[rows], u1[rows], held[rows] = locate(others[j], t0[rows], t1[rows])
-        ctrl[rows] = others[j].control_points[seg[rows]]
-    out = restrict(ctrl, u0, u1)
-    for i in np.flatnonzero(held).tolist():
-        out[i] = others[int(owner[i])].control_points[-1, -1]
-    return out
-
-
 def planning_rows(times: FloatArray, reference: Trajectory, neighbours: Neighbours, pieces: int = 2,
                   max_depth: int = 3) -> SeparationRows:
     """Time-resolved rows for planning on our segments of span `times` (m,): our reference (the
@@ -417,24 +426,30 @@ def planning_rows(times: FloatArray, reference: Trajectory, neighbours: Neighbou
     if not near:
         return empty
     span = (float(times[0]), float(times[-1]))
-    frac = np.arange(pieces + 1) / pieces
-    t0_l: list[FloatArray] = []
-    t1_l: list[FloatArray] = []
-    own_l: list[IntArray] = []
-    for k in near:
-        knots = common_knots(reference, neighbours.trajectories[k], extra=times, span=span)
-        if knots.size < 2:
-            continue
-        edges = knots[:-1, None] + (knots[1:] - knots[:-1])[:, None] * frac[None, :]  # (K, pieces + 1)
-        t0_l.append(edges[:, :-1].ravel())
-        t1_l.append(edges[:, 1:].ravel())
-        own_l.append(np.full(t0_l[-1].size, k, dtype=np.intp))
-    if not t0_l:
+    owners = np.asarray(near, dtype=np.intp)
+    pair, k0, k1, _ = batch_knots(reference, neighbours.packed, owners, span=span, extra=times)
+    need_of = np.array([neighbours.required(k) for k in range(len(neighbours.trajectories))])
+    who = owners[pair]
+    # an interval whose two segments' boxes are s' + reach apart on an axis gives no row (each
+    # piece's axis gap is at least the boxes'): skip it before any splitting
+    alo, ahi = segment_boxes(reference, k0, k1)
+    row, _, _, held = locate_packed(neighbours.packed, who, k0, k1)
+    blo, bhi = neighbours.packed.lo[row], neighbours.packed.hi[row]
+    blo[held] = bhi[held] = neighbours.packed.last[who[held]]
+    box_gap = np.maximum((blo - ahi).max(axis=1), (alo - bhi).max(axis=1))
+    close = box_gap < need_of[who] + neighbours.reach
+    if not close.any():
         return empty
-    t0, t1, owner = np.concatenate(t0_l), np.concatenate(t1_l), np.concatenate(own_l)
-    need = np.array([neighbours.required(k) for k in range(len(neighbours.trajectories))])[owner]
+    k0, k1, owner = k0[close], k1[close], who[close]
+    frac = np.arange(pieces + 1) / pieces
+    edges = k0[:, None] + (k1 - k0)[:, None] * frac[None, :]  # (K, pieces + 1)
+    t0, t1 = edges[:, :-1].ravel(), edges[:, 1:].ravel()
+    owner = np.repeat(owner, pieces)
+    need = need_of[owner]
     pa = pieces_between(reference, t0, t1)
-    pb = _others_pieces(neighbours.trajectories, owner, t0, t1)
+    row, u0, u1, held = locate_packed(neighbours.packed, owner, t0, t1)
+    pb = restrict(neighbours.packed.ctrl[row], u0, u1)
+    pb[held] = neighbours.packed.last[owner[held]][:, None]
     halves = halves_matrix()
     out_t0: list[FloatArray] = []
     out_t1: list[FloatArray] = []
@@ -443,7 +458,18 @@ def planning_rows(times: FloatArray, reference: Trajectory, neighbours: Neighbou
     for level in range(max_depth + 1):
         n, gap, _ = cheap_planes(pa, pb)
         keep = gap < need + neighbours.reach  # farther pieces need no row
-        for i in np.flatnonzero(keep & (gap < need)).tolist():
+        short = np.flatnonzero(keep & (gap < need))
+        bound = np.full(gap.size, np.inf)
+        if short.size:
+            # Gilbert's steps for every short piece at once; the QP only where they fall short
+            gn, gg, _, gb = nearest_planes(pa[short], pb[short], need[short])
+            better = gg > gap[short]
+            n[short[better]], gap[short[better]] = gn[better], gg[better]
+            bound[short] = gb
+        # the QP where Gilbert's steps settle nothing; below max_depth a piece no plane can clear
+        # (bound < s') is halved anyway, so it needs none
+        hopeless = (bound < need) & (level < max_depth)
+        for i in np.flatnonzero(keep & (gap < need) & ~hopeless).tolist():
             mm = max_margin_plane(pa[i], pb[i])
             if mm is not None and mm[1] > gap[i]:
                 n[i], gap[i] = mm[0], mm[1]
