@@ -127,3 +127,40 @@ def locate_packed(p: Packed, owner: IntArray, t0: FloatArray,
     u0 = np.clip((t0 - ta) / d, 0.0, 1.0)
     u1 = np.clip((t1 - ta) / d, 0.0, 1.0)
     return p.rows[owner] + seg, u0, u1, t0 >= p.t_end[owner] - KNOT_TOL
+
+
+GRID = 8  # our segments' boxes over runs of 1/GRID of their parameter (`span_boxes`)
+
+
+def _runs(grid: int) -> tuple[IntArray, IntArray]:
+    i, j = np.triu_indices(grid)
+    return i.astype(np.intp), j.astype(np.intp)
+
+
+def span_boxes(traj: Trajectory, t0: FloatArray, t1: FloatArray,
+               grid: int = GRID) -> tuple[FloatArray, FloatArray, IntArray, FloatArray, FloatArray, NDArray[np.bool_]]:
+    """(lo, hi) (K, 3): a box holding the control points of traj's piece on each [t0[k], t1[k]]
+    (within one segment, or after the end: the held point), tighter than the whole segment's box:
+    the box of the segment's restriction to the smallest run [i/grid, (j+1)/grid] of its grid that
+    holds [u0, u1] (a piece's control points are convex combinations of those of any restriction
+    holding it). The runs' boxes are built once per segment used (grid (grid+1)/2 restrictions).
+    Also returns `locate`'s (segment, u0, u1, held) of each interval."""
+    from planner_core.separation_pieces import locate, restrict
+
+    seg, u0, u1, held = locate(traj, t0, t1)
+    used, inv = np.unique(seg, return_inverse=True)
+    ri, rj = _runs(grid)
+    nr = ri.size
+    ctrl = np.repeat(traj.control_points[used], nr, axis=0)
+    run = restrict(ctrl, np.tile(ri / grid, used.size), np.tile((rj + 1) / grid, used.size))
+    rlo, rhi = run.min(axis=1), run.max(axis=1)
+    # the 1e-9 slack keeps [u0, u1] inside the run whatever the rounding of u * grid
+    i = np.clip(np.floor(u0 * grid - 1e-9), 0, grid - 1).astype(np.intp)
+    j = np.clip(np.ceil(u1 * grid + 1e-9) - 1, 0, grid - 1).astype(np.intp)
+    j = np.maximum(i, j)
+    # index of run (i, j) in triu order: rows i' < i hold grid - i' runs each
+    k = inv * nr + i * grid - (i * (i - 1)) // 2 + (j - i)
+    lo, hi = rlo[k], rhi[k]
+    if held.any():
+        lo[held] = hi[held] = traj.control_points[-1, -1]
+    return lo, hi, seg, u0, u1, held

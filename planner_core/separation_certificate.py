@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from planner_core.problem import FloatArray, Trajectory
-from planner_core.separation_batch import Packed, batch_knots, locate_packed, pack
+from planner_core.separation_batch import Packed, batch_knots, locate_packed, pack, span_boxes
 from planner_core.separation_pieces import (
     AXES,
     KNOT_TOL,
@@ -29,9 +29,7 @@ from planner_core.separation_pieces import (
     nearest_planes,
     overlap,
     peak_speed,
-    pieces_between,
     restrict,
-    segment_boxes,
     speed_bound,
 )
 
@@ -178,8 +176,9 @@ def certify_packed(
     pair, k0, k1, counts = batch_knots(a, p, owners, span)
     starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.intp)
     need = needs[pair]
-    # boxes of the whole segments first (no splitting)
-    alo, ahi = segment_boxes(a, k0, k1)
+    # boxes first (no splitting): ours over the run of our segment's grid holding the interval,
+    # theirs of the whole segment
+    alo, ahi, a_seg, a_u0, a_u1, a_held = span_boxes(a, k0, k1)
     who = owners[pair]
     b_row, b_u0, b_u1, b_held = locate_packed(p, who, k0, k1)
     blo, bhi = p.lo[b_row], p.hi[b_row]
@@ -193,7 +192,8 @@ def certify_packed(
     pa = np.zeros((k0.size, 10, 3))
     pb = np.zeros((k0.size, 10, 3))
     if todo.size:
-        pa[todo] = pieces_between(a, k0[todo], k1[todo])
+        pa[todo] = restrict(a.control_points[a_seg[todo]], a_u0[todo], a_u1[todo])
+        pa[todo[a_held[todo]]] = a.control_points[-1, -1]
         pb[todo] = restrict(p.ctrl[b_row[todo]], b_u0[todo], b_u1[todo])
         held = todo[b_held[todo]]
         pb[held] = p.last[who[held]][:, None]

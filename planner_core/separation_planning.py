@@ -14,10 +14,11 @@ from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
+from numpy.typing import NDArray
 
 from planner_core.broadphase import overlapping_pairs
 from planner_core.problem import Bounds, FloatArray, Polytope, Problem, Trajectory
-from planner_core.separation_batch import Packed, batch_knots, locate_packed, pack
+from planner_core.separation_batch import Packed, batch_knots, locate_packed, pack, span_boxes
 from planner_core.separation_certificate import (
     SeparationCertificate,
     SeparationCheck,
@@ -33,10 +34,8 @@ from planner_core.separation_pieces import (
     max_margin_plane,
     merge_knots,
     nearest_planes,
-    pieces_between,
     pieces_on,
     restrict,
-    segment_boxes,
     speed_bound,
 )
 
@@ -121,11 +120,23 @@ class Neighbours:
         # caller replanning again and again with the same neighbours never rebuilds them)
         out.__dict__["packed"] = self.packed
         out.__dict__["boxes"] = self.boxes
+        out.__dict__["their_speeds"] = self.their_speeds
         return out
 
     def required(self, k: int) -> float:
         """s' against neighbour k."""
-        return float(self.separation + (self.our_speed + self.speed_of(k)) * self.clock_tolerance)
+        return float(self.required_all[k])
+
+    @cached_property
+    def their_speeds(self) -> FloatArray:
+        """Every neighbour's bound speed (`speed_of`), once."""
+        return np.array([self.speed_of(k) for k in range(len(self.trajectories))], dtype=float)
+
+    @cached_property
+    def required_all(self) -> FloatArray:
+        """s' against every neighbour (N,): one array op instead of N calls per use."""
+        out: FloatArray = self.separation + (self.our_speed + self.their_speeds) * self.clock_tolerance
+        return out
 
     @cached_property
     def packed(self) -> Packed:
@@ -155,7 +166,7 @@ class Neighbours:
 
     @cached_property
     def max_required(self) -> float:
-        return max((self.required(k) for k in range(len(self.trajectories))), default=self.separation)
+        return float(self.required_all.max()) if self.trajectories else self.separation
 
 
 def bound_speed(bounds: Bounds) -> float:
@@ -335,7 +346,7 @@ def certify_all(traj: Trajectory, neighbours: Neighbours, t_from: float | None =
     certs: list[tuple[int, SeparationCertificate]] = []
     checks = certify_packed(traj, neighbours.packed, np.asarray(near, dtype=np.intp), neighbours.separation,
                             clock_tolerance=neighbours.clock_tolerance,
-                            speeds=[(neighbours.our_speed, neighbours.speed_of(k)) for k in near], span=span)
+                            speeds=[(neighbours.our_speed, float(neighbours.their_speeds[k])) for k in near], span=span)
     for k, chk in zip(near, checks, strict=True):
         if not chk.ok:
             return certs, replace_message(chk, f"neighbour {k}: {chk.message}"), len(near)
@@ -404,6 +415,16 @@ def separation_rows(times: FloatArray, cert: SeparationCertificate, n_segments: 
                           np.repeat(rhs[which], 10))
 
 
+def _box_gap(ours: Trajectory, t0: FloatArray, t1: FloatArray, packed: Packed, row: IntArray, held_owner: IntArray,
+             held: NDArray[np.bool_]) -> tuple[FloatArray, tuple[IntArray, FloatArray, FloatArray, NDArray[np.bool_]]]:
+    """The largest axis gap between our piece's box (`span_boxes`) and the neighbour's segment box
+    (row `row` of `packed`; its held point where `held`) on each interval, and our locations."""
+    alo, ahi, seg, u0, u1, a_held = span_boxes(ours, t0, t1)
+    blo, bhi = packed.lo[row], packed.hi[row]
+    blo[held] = bhi[held] = packed.last[held_owner]
+    return np.maximum((blo - ahi).max(axis=1), (alo - bhi).max(axis=1)), (seg, u0, u1, a_held)
+
+
 def planning_rows(times: FloatArray, reference: Trajectory, neighbours: Neighbours, pieces: int = 2,
                   max_depth: int = 3) -> SeparationRows:
     """Time-resolved rows for planning on our segments of span `times` (m,): our reference (the
@@ -428,28 +449,31 @@ def planning_rows(times: FloatArray, reference: Trajectory, neighbours: Neighbou
     span = (float(times[0]), float(times[-1]))
     owners = np.asarray(near, dtype=np.intp)
     pair, k0, k1, _ = batch_knots(reference, neighbours.packed, owners, span=span, extra=times)
-    need_of = np.array([neighbours.required(k) for k in range(len(neighbours.trajectories))])
+    need_of = neighbours.required_all
     who = owners[pair]
-    # an interval whose two segments' boxes are s' + reach apart on an axis gives no row (each
-    # piece's axis gap is at least the boxes'): skip it before any splitting
-    alo, ahi = segment_boxes(reference, k0, k1)
-    row, _, _, held = locate_packed(neighbours.packed, who, k0, k1)
-    blo, bhi = neighbours.packed.lo[row], neighbours.packed.hi[row]
-    blo[held] = bhi[held] = neighbours.packed.last[who[held]]
-    box_gap = np.maximum((blo - ahi).max(axis=1), (alo - bhi).max(axis=1))
-    close = box_gap < need_of[who] + neighbours.reach
+    # an interval (then a piece) whose boxes are s' + reach apart on an axis gives no row (each
+    # piece's axis gap is at least its boxes'): skip it before any splitting
+    packed = neighbours.packed
+    row, _, _, held = locate_packed(packed, who, k0, k1)
+    close = _box_gap(reference, k0, k1, packed, row, who[held], held)[0] < need_of[who] + neighbours.reach
     if not close.any():
         return empty
-    k0, k1, owner = k0[close], k1[close], who[close]
+    k0, k1, owner, row = k0[close], k1[close], who[close], row[close]
     frac = np.arange(pieces + 1) / pieces
     edges = k0[:, None] + (k1 - k0)[:, None] * frac[None, :]  # (K, pieces + 1)
     t0, t1 = edges[:, :-1].ravel(), edges[:, 1:].ravel()
-    owner = np.repeat(owner, pieces)
+    owner, row = np.repeat(owner, pieces), np.repeat(row, pieces)
+    _, u0, u1, held = locate_packed(packed, owner, t0, t1)
+    gap, (seg, a_u0, a_u1, a_held) = _box_gap(reference, t0, t1, packed, row, owner[held], held)
+    close = gap < need_of[owner] + neighbours.reach
+    if not close.any():
+        return empty
+    t0, t1, owner, row, u0, u1, held = t0[close], t1[close], owner[close], row[close], u0[close], u1[close], held[close]
     need = need_of[owner]
-    pa = pieces_between(reference, t0, t1)
-    row, u0, u1, held = locate_packed(neighbours.packed, owner, t0, t1)
-    pb = restrict(neighbours.packed.ctrl[row], u0, u1)
-    pb[held] = neighbours.packed.last[owner[held]][:, None]
+    pa = restrict(reference.control_points[seg[close]], a_u0[close], a_u1[close])
+    pa[a_held[close]] = reference.control_points[-1, -1]
+    pb = restrict(packed.ctrl[row], u0, u1)
+    pb[held] = packed.last[owner[held]][:, None]
     halves = halves_matrix()
     out_t0: list[FloatArray] = []
     out_t1: list[FloatArray] = []
