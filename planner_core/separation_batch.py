@@ -64,16 +64,25 @@ def batch_knots(a: Trajectory, p: Packed, owners: IntArray, span: tuple[float, f
     split at the union of both knot sets and `extra`, merged within KNOT_TOL, the last knot the
     span's end exactly)."""
     owners = np.asarray(owners, dtype=np.intp)
-    npair = owners.size
     lo = np.maximum(a.t0, p.t0[owners])
     hi = np.maximum(a.t_end, p.t_end[owners])
     if span is not None:
         lo, hi = np.maximum(lo, span[0]), np.minimum(hi, span[1])
+    ours = a.times if extra is None else np.concatenate([a.times, np.asarray(extra, dtype=float)])
+    return span_knots(lo, hi, p, owners, ours)
+
+
+def span_knots(lo: FloatArray, hi: FloatArray, p: Packed, owners: IntArray,
+               ours: FloatArray | None = None) -> tuple[IntArray, FloatArray, FloatArray, IntArray]:
+    """`batch_knots` on given spans [lo[j], hi[j]] (none where hi <= lo): each span split at
+    p[owners[j]]'s knots and the times `ours` within it, merged as `merge_knots` does."""
+    owners = np.asarray(owners, dtype=np.intp)
+    npair = owners.size
     live = hi > lo  # nothing in the span: one knot at most, no interval (as common_knots)
     nb = p.first[owners + 1] - p.first[owners]
     run = np.arange(int(nb.sum()), dtype=np.intp) - np.repeat(np.cumsum(nb) - nb, nb)
-    ours = a.times if extra is None else np.concatenate([a.times, np.asarray(extra, dtype=float)])
     pair_ids = np.arange(npair, dtype=np.intp)
+    ours = np.zeros(0) if ours is None else ours
     t = np.concatenate([np.tile(ours, npair), p.times[np.repeat(p.first[owners], nb) + run], lo, hi])
     g = np.concatenate([np.repeat(pair_ids, ours.size), np.repeat(pair_ids, nb), pair_ids, pair_ids])
     inside = (t >= lo[g]) & (t <= hi[g]) & live[g]

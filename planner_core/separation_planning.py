@@ -18,7 +18,14 @@ from numpy.typing import NDArray
 
 from planner_core.broadphase import overlapping_pairs
 from planner_core.problem import Bounds, FloatArray, Polytope, Problem, Trajectory
-from planner_core.separation_batch import Packed, batch_knots, locate_packed, pack, span_boxes
+from planner_core.separation_batch import (
+    Packed,
+    batch_knots,
+    locate_packed,
+    pack,
+    span_boxes,
+    span_knots,
+)
 from planner_core.separation_certificate import (
     SeparationCertificate,
     SeparationCheck,
@@ -30,7 +37,6 @@ from planner_core.separation_pieces import (
     best_plane,
     cheap_planes,
     halves_matrix,
-    locate,
     max_margin_plane,
     merge_knots,
     nearest_planes,
@@ -227,41 +233,28 @@ def neighbour_faces(times: FloatArray, reference: Sequence[FloatArray], neighbou
     qlo[:, 1:] = np.array([r.min(axis=0) for r in reference])
     qhi[:, 1:] = np.array([r.max(axis=0) for r in reference])
     qi, bk = near_pairs(qlo, qhi, olo, ohi, neighbours.max_required + neighbours.reach)
-    # one row per (pair, piece of the neighbour over our segment's span): located here, split below
-    # in one de Casteljau pass for every pair
-    pairs: list[tuple[int, int]] = []
-    piece_pair: list[int] = []
-    t_lo: list[FloatArray] = []
-    t_hi: list[FloatArray] = []
-    for q, k in sorted(set(zip(qi.tolist(), owner[bk].tolist(), strict=True))):
-        s = segs[q]
-        nb = neighbours.trajectories[k]
-        t0, t1 = float(times[s]), float(times[s + 1])
-        lo_t = max(t0, nb.t0)
-        if lo_t >= t1:
-            continue
-        ks = nb.times[(nb.times > lo_t) & (nb.times < t1)]
-        knots = merge_knots(np.concatenate([[lo_t, t1], ks, [nb.t_end] if lo_t < nb.t_end < t1 else []]))
-        piece_pair.extend([len(pairs)] * (knots.size - 1))
-        pairs.append((q, k))
-        t_lo.append(knots[:-1])
-        t_hi.append(knots[1:])
-    if not pairs:
+    # one row per (pair, piece of the neighbour over our segment's span), every pair at once: the
+    # span from the later start to our segment's end, split at the neighbour's knots
+    pq = sorted(set(zip(qi.tolist(), owner[bk].tolist(), strict=True)))
+    if not pq:
         return {}
-    pp = np.asarray(piece_pair, dtype=np.intp)
-    k0, k1 = np.concatenate(t_lo), np.concatenate(t_hi)
-    pair_owner = np.array([k for _, k in pairs], dtype=np.intp)
-    ctrl = np.empty((k0.size, 10, 3))
-    u0, u1 = np.empty(k0.size), np.empty(k0.size)
-    held = np.zeros(k0.size, dtype=bool)
-    piece_owner = pair_owner[pp]
-    for k in np.unique(pair_owner).tolist():
-        rows = np.flatnonzero(piece_owner == k)
-        nb = neighbours.trajectories[k]
-        sg, u0[rows], u1[rows], held[rows] = locate(nb, k0[rows], k1[rows])
-        ctrl[rows] = nb.control_points[sg]
-        ctrl[rows[held[rows]]] = nb.control_points[-1, -1]
-    pieces = restrict(ctrl, u0, u1)
+    pq_arr = np.asarray(pq, dtype=np.intp).reshape(-1, 2)
+    packed = neighbours.packed
+    s_of = sa[pq_arr[:, 0]]
+    pp, k0, k1, count = span_knots(np.maximum(times[s_of], packed.t0[pq_arr[:, 1]]), times[s_of + 1], packed,
+                                   pq_arr[:, 1])
+    if pp.size == 0:
+        return {}
+    # pairs whose span is empty (the neighbour starts after our segment) are dropped, as before
+    kept = np.flatnonzero(count > 0)
+    renum = np.full(len(pq), -1, dtype=np.intp)
+    renum[kept] = np.arange(kept.size)
+    pp = renum[pp]
+    pairs = [pq[i] for i in kept.tolist()]
+    piece_owner = pq_arr[kept, 1][pp]
+    row, u0, u1, held = locate_packed(packed, piece_owner, k0, k1)
+    pieces = restrict(packed.ctrl[row], u0, u1)
+    pieces[held] = packed.last[piece_owner[held]][:, None]
     # cheap planes for every pair at once (pad each pair's points by repeating its first piece)
     count = np.bincount(pp, minlength=len(pairs))
     width = int(count.max())
@@ -271,25 +264,25 @@ def neighbour_faces(times: FloatArray, reference: Sequence[FloatArray], neighbou
     padded[pp, slot] = pieces
     pts_all = padded.reshape(len(pairs), width * 10, 3)
     n_ref = max(r.shape[0] for r in reference)
-    refs = np.stack([reference[q][np.minimum(np.arange(n_ref), reference[q].shape[0] - 1)] for q, _ in pairs])
-    cn, cg, _ = cheap_planes(refs, pts_all)
-    faces: dict[int, tuple[list[FloatArray], list[float]]] = {}
-    for j, (q, k) in enumerate(pairs):
-        need = neighbours.required(k)
-        pts = pts_all[j]
-        if cg[j] >= need + neighbours.reach:
-            n = cn[j]  # room for `reach` already: no solver
-        else:
-            n, gap, _ = best_plane(reference[q], pieces[pp == j].reshape(-1, 3), np.inf)
-            if give_up and gap < need:
-                raise NoFace(f"neighbour {k} comes within {max(gap, 0.0):.4g} m of our reference over segment "
-                             f"{segs[q]} [{times[segs[q]]:.6g}, {times[segs[q] + 1]:.6g}] s (one plane for the "
-                             f"segment; {need:.4g} m required)")
-        rhs = float((pts @ n).min()) - need
-        entry = faces.setdefault(segs[q], ([], []))
-        entry[0].append(n)
-        entry[1].append(rhs)
-    return {s: (np.array(a), np.array(b)) for s, (a, b) in faces.items()}
+    ref_pad = np.stack([r[np.minimum(np.arange(n_ref), r.shape[0] - 1)] for r in reference])
+    pair_q = np.array([q for q, _ in pairs], dtype=np.intp)
+    pair_k = np.array([k for _, k in pairs], dtype=np.intp)
+    cn, cg, _ = cheap_planes(ref_pad[pair_q], pts_all)
+    need = neighbours.required_all[pair_k]
+    normals = cn.copy()
+    # where the cheap planes leave less than `reach` of room: the max-margin direction, in pair order
+    # (the first that cannot keep our reference s' away gives up)
+    for j in np.flatnonzero(cg < need + neighbours.reach).tolist():
+        q, k = pairs[j]
+        n, gap, _ = best_plane(reference[q], pieces[pp == j].reshape(-1, 3), np.inf)
+        if give_up and gap < need[j]:
+            raise NoFace(f"neighbour {k} comes within {max(gap, 0.0):.4g} m of our reference over segment "
+                         f"{segs[q]} [{times[segs[q]]:.6g}, {times[segs[q] + 1]:.6g}] s (one plane for the "
+                         f"segment; {need[j]:.4g} m required)")
+        normals[j] = n
+    rhs = np.einsum("jpx,jx->jp", pts_all, normals).min(axis=1) - need
+    seg_of = np.asarray(segs, dtype=np.intp)[pair_q]
+    return {int(s): (normals[seg_of == s], rhs[seg_of == s]) for s in np.unique(seg_of).tolist()}
 
 
 def add_faces(corridor: Polytope | None, face: tuple[FloatArray, FloatArray] | None) -> Polytope | None:
