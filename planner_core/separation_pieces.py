@@ -180,9 +180,10 @@ def cheap_planes(pa: FloatArray, pb: FloatArray) -> tuple[FloatArray, FloatArray
 
 
 GILBERT_STEPS = 24  # Gilbert steps per batch of pairs (each a few array calls over all pairs)
+CONVERGED = 1e-9  # relative: a gap this close to Gilbert's bound is the max-margin one
 
 
-def nearest_planes(pa: FloatArray, pb: FloatArray, need: FloatArray,
+def nearest_planes(pa: FloatArray, pb: FloatArray, need: FloatArray | None,
                    steps: int = GILBERT_STEPS) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """Planes towards the maximum-margin one between point sets pa (K, p, 3) and pb (K, q, 3),
     without a solver, for all K at once: Gilbert's steps towards the point x of the hull of
@@ -192,7 +193,8 @@ def nearest_planes(pa: FloatArray, pb: FloatArray, need: FloatArray,
     the points, c the mid-plane), like `cheap_planes`, and `bound` (K,): |x| at the last step, an
     upper bound on the hulls' distance and so on any plane's gap. A gap at or above `need` needs
     no QP; nor does a bound below it (not even the max-margin plane clears `need`). Pairs stop
-    once one of the two holds."""
+    once one of the two holds. With `need` None they run to convergence (gap within
+    CONVERGED x |x| of the bound: the plane is the max-margin one) or `steps`."""
     k = pa.shape[0]
     r = np.arange(k)
     x = pb.mean(axis=1) - pa.mean(axis=1)
@@ -221,7 +223,10 @@ def nearest_planes(pa: FloatArray, pb: FloatArray, need: FloatArray,
         dd = (d * d).sum(axis=1)
         g = np.clip((xl * d).sum(axis=1) / np.where(dd > 0.0, dd, 1.0), 0.0, 1.0)
         x[live] = xl - g[:, None] * d
-        go = ok & (best_gap[live] < need[live]) & (norm >= need[live]) & (dd > 0.0)
+        if need is None:
+            go = ok & (dd > 0.0) & (norm - best_gap[live] > CONVERGED * np.maximum(norm, 1.0))
+        else:
+            go = ok & (best_gap[live] < need[live]) & (norm >= need[live]) & (dd > 0.0)
         live = live[go]
         if live.size == 0:
             break

@@ -32,6 +32,8 @@ from planner_core.separation_certificate import (
     certify_packed,
 )
 from planner_core.separation_pieces import (
+    CONVERGED,
+    GILBERT_STEPS,
     KNOT_TOL,
     IntArray,
     best_plane,
@@ -270,11 +272,18 @@ def neighbour_faces(times: FloatArray, reference: Sequence[FloatArray], neighbou
     cn, cg, _ = cheap_planes(ref_pad[pair_q], pts_all)
     need = neighbours.required_all[pair_k]
     normals = cn.copy()
-    # where the cheap planes leave less than `reach` of room: the max-margin direction, in pair order
-    # (the first that cannot keep our reference s' away gives up)
-    for j in np.flatnonzero(cg < need + neighbours.reach).tolist():
+    # where the cheap planes leave less than `reach` of room: the max-margin direction, by Gilbert's
+    # steps for all such pairs at once where they converge, else the QP; in pair order (the first
+    # that cannot keep our reference s' away gives up)
+    tight = np.flatnonzero(cg < need + neighbours.reach)
+    gn, gg, _, gb = nearest_planes(ref_pad[pair_q[tight]], pts_all[tight], None, steps=4 * GILBERT_STEPS)
+    converged = gb - gg <= CONVERGED * np.maximum(gb, 1.0)
+    for i, j in enumerate(tight.tolist()):
         q, k = pairs[j]
-        n, gap, _ = best_plane(reference[q], pieces[pp == j].reshape(-1, 3), np.inf)
+        if converged[i]:
+            n, gap = (gn[i], float(gg[i])) if gg[i] >= cg[j] else (cn[j], float(cg[j]))
+        else:
+            n, gap, _ = best_plane(reference[q], pieces[pp == j].reshape(-1, 3), np.inf)
         if give_up and gap < need[j]:
             raise NoFace(f"neighbour {k} comes within {max(gap, 0.0):.4g} m of our reference over segment "
                          f"{segs[q]} [{times[segs[q]]:.6g}, {times[segs[q] + 1]:.6g}] s (one plane for the "

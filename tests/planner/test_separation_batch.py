@@ -10,6 +10,7 @@ from planner_core.problem import Trajectory
 from planner_core.separation import certify_many, common_pieces, verify_separation
 from planner_core.separation_batch import batch_knots, locate_packed, pack, span_boxes
 from planner_core.separation_pieces import (
+    CONVERGED,
     KNOT_TOL,
     best_plane,
     common_knots,
@@ -100,6 +101,19 @@ def test_gilbert_planes_are_real_gaps_and_bounds_hold() -> None:
         assert bound[i] >= mm[1] - 1e-6  # |x| bounds the hulls' distance
         if bound[i] < need[i]:
             assert mm[1] < need[i] + 1e-6  # "no plane can clear it" is true
+    # run to convergence, the plane is the max-margin one (the faces' direction)
+    n, gap, _c, bound = nearest_planes(pa, pb, None, steps=200)
+    converged = bound - gap <= CONVERGED * np.maximum(bound, 1.0)
+    # (where they do not, in a face-to-face case, the caller asks the QP)
+    checked = 0
+    for i in np.flatnonzero(converged).tolist():
+        mm = max_margin_plane(pa[i], pb[i])
+        if mm is None:
+            continue
+        checked += 1
+        assert abs(gap[i] - mm[1]) <= 1e-6 * max(1.0, mm[1])
+        assert float(n[i] @ mm[0]) > 1.0 - 1e-6
+    assert checked > 20
 
 
 def _first_refusal(a: Trajectory, b: Trajectory, need: float, depth: int = 4) -> int | None:
