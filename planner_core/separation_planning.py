@@ -33,7 +33,6 @@ from planner_core.separation_certificate import (
 )
 from planner_core.separation_pieces import (
     CONVERGED,
-    GILBERT_STEPS,
     KNOT_TOL,
     IntArray,
     best_plane,
@@ -273,25 +272,44 @@ def neighbour_faces(times: FloatArray, reference: Sequence[FloatArray], neighbou
     need = neighbours.required_all[pair_k]
     normals = cn.copy()
     # where the cheap planes leave less than `reach` of room: the max-margin direction, by Gilbert's
-    # steps for all such pairs at once where they converge, else the QP; in pair order (the first
-    # that cannot keep our reference s' away gives up)
+    # steps for all such pairs at once where they converge, else the QP
     tight = np.flatnonzero(cg < need + neighbours.reach)
-    gn, gg, _, gb = nearest_planes(ref_pad[pair_q[tight]], pts_all[tight], None, steps=4 * GILBERT_STEPS)
+    if give_up and tight.size:
+        _give_up_first(tight, pairs, reference, pieces, pp, ref_pad[pair_q[tight]], pts_all[tight], need, segs, times)
+    gn, gg, _, gb = nearest_planes(ref_pad[pair_q[tight]], pts_all[tight], None)
     converged = gb - gg <= CONVERGED * np.maximum(gb, 1.0)
     for i, j in enumerate(tight.tolist()):
-        q, k = pairs[j]
         if converged[i]:
-            n, gap = (gn[i], float(gg[i])) if gg[i] >= cg[j] else (cn[j], float(cg[j]))
+            normals[j] = gn[i] if gg[i] >= cg[j] else cn[j]
         else:
-            n, gap, _ = best_plane(reference[q], pieces[pp == j].reshape(-1, 3), np.inf)
-        if give_up and gap < need[j]:
-            raise NoFace(f"neighbour {k} comes within {max(gap, 0.0):.4g} m of our reference over segment "
-                         f"{segs[q]} [{times[segs[q]]:.6g}, {times[segs[q] + 1]:.6g}] s (one plane for the "
-                         f"segment; {need[j]:.4g} m required)")
-        normals[j] = n
+            q, _ = pairs[j]
+            normals[j] = best_plane(reference[q], pieces[pp == j].reshape(-1, 3), np.inf)[0]
     rhs = np.einsum("jpx,jx->jp", pts_all, normals).min(axis=1) - need
     seg_of = np.asarray(segs, dtype=np.intp)[pair_q]
     return {int(s): (normals[seg_of == s], rhs[seg_of == s]) for s in np.unique(seg_of).tolist()}
+
+
+def _give_up_first(tight: IntArray, pairs: list[tuple[int, int]], reference: Sequence[FloatArray], pieces: FloatArray,
+                   pp: IntArray, refs: FloatArray, pts: FloatArray, need: FloatArray, segs: list[int],
+                   times: FloatArray) -> None:
+    """Raise `NoFace` for the first pair (in order) whose max-margin plane leaves our reference
+    within s' of the neighbour, if any. Gilbert's steps clear most pairs at once (a plane with
+    s' to spare); the QP decides the rest, in order. In growing chunks, so that an early failure
+    (a neighbour crossing our first segment) costs no steps for the pairs after it."""
+    at, size = 0, 4
+    while at < tight.size:
+        chunk = slice(at, min(at + size, tight.size))
+        _, gg, _, _ = nearest_planes(refs[chunk], pts[chunk], need[tight[chunk]])
+        for i, j in enumerate(tight[chunk].tolist()):
+            if gg[i] >= need[j]:
+                continue
+            q, k = pairs[j]
+            gap = best_plane(reference[q], pieces[pp == j].reshape(-1, 3), np.inf)[1]
+            if gap < need[j]:
+                raise NoFace(f"neighbour {k} comes within {max(gap, 0.0):.4g} m of our reference over segment "
+                             f"{segs[q]} [{times[segs[q]]:.6g}, {times[segs[q] + 1]:.6g}] s (one plane for the "
+                             f"segment; {need[j]:.4g} m required)")
+        at, size = chunk.stop, 4 * size
 
 
 def add_faces(corridor: Polytope | None, face: tuple[FloatArray, FloatArray] | None) -> Polytope | None:
