@@ -14,12 +14,15 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 from numpy.typing import NDArray
 
 from planner_core.problem import FloatArray, Trajectory
 from planner_core.separation_pieces import KNOT_TOL, IntArray
+
+PAD_MAX = 64  # knots per trajectory up to which `Packed` keeps them padded (a count, not a search)
 
 
 @dataclass(frozen=True)
@@ -36,6 +39,7 @@ class Packed:
     t0: FloatArray  # (N,)
     t_end: FloatArray  # (N,)
     last: FloatArray  # (N, 3) the held last point
+    padded: FloatArray | None = None  # (N, L) each trajectory's knots, +inf after; None if L > PAD_MAX
 
     @property
     def size(self) -> int:
@@ -52,8 +56,12 @@ def pack(trajs: Sequence[Trajectory]) -> Packed:
     rows = first - np.arange(first.size, dtype=np.intp)
     ctrl = np.concatenate([t.control_points for t in trajs])
     times = np.concatenate([t.times for t in trajs])
+    padded = None
+    if int(lens.max()) <= PAD_MAX:
+        padded = np.full((len(trajs), int(lens.max())), np.inf)
+        padded[np.repeat(np.arange(len(trajs)), lens), np.arange(times.size) - np.repeat(first[:-1], lens)] = times
     return Packed(times, first, rows, ctrl, ctrl.min(axis=1), ctrl.max(axis=1), times[first[:-1]],
-                  times[first[1:] - 1], ctrl[rows[1:] - 1, -1])
+                  times[first[1:] - 1], ctrl[rows[1:] - 1, -1], padded)
 
 
 def batch_knots(a: Trajectory, p: Packed, owners: IntArray, span: tuple[float, float] | None = None,
@@ -119,17 +127,21 @@ def locate_packed(p: Packed, owner: IntArray, t0: FloatArray,
     mid = 0.5 * (t0 + t1)
     base = p.first[owner]
     n = p.first[owner + 1] - base
-    lo = np.zeros(owner.size, dtype=np.intp)
-    hi = n.copy()
-    # searchsorted(times_k, mid, side="right"), per owner
-    for _ in range(int(np.ceil(np.log2(max(int(n.max(initial=1)), 1) + 1))) + 1):
-        act = lo < hi
-        if not act.any():
-            break
-        m = (lo + hi) // 2
-        right = p.times[base + np.minimum(m, n - 1)] <= mid
-        lo = np.where(act & right, m + 1, lo)
-        hi = np.where(act & ~right, m, hi)
+    # searchsorted(times_k, mid, side="right"), per owner: a count against the padded knots where
+    # every trajectory is short (three calls), else a binary search (a few calls per halving)
+    if p.padded is not None:
+        lo = (p.padded[owner] <= mid[:, None]).sum(axis=1)
+    else:
+        lo = np.zeros(owner.size, dtype=np.intp)
+        hi = n.copy()
+        for _ in range(int(np.ceil(np.log2(max(int(n.max(initial=1)), 1) + 1))) + 1):
+            act = lo < hi
+            if not act.any():
+                break
+            m = (lo + hi) // 2
+            right = p.times[base + np.minimum(m, n - 1)] <= mid
+            lo = np.where(act & right, m + 1, lo)
+            hi = np.where(act & ~right, m, hi)
     seg = np.clip(lo - 1, 0, n - 2)
     ta = p.times[base + seg]
     d = p.times[base + seg + 1] - ta
@@ -141,28 +153,31 @@ def locate_packed(p: Packed, owner: IntArray, t0: FloatArray,
 GRID = 8  # our segments' boxes over runs of 1/GRID of their parameter (`span_boxes`)
 
 
-def _runs(grid: int) -> tuple[IntArray, IntArray]:
+@lru_cache(maxsize=4)
+def _run_maps(grid: int) -> FloatArray:
+    """(R, 10, 10) the restriction of a degree-9 segment to each run [i/grid, (j+1)/grid], i <= j
+    (R = grid (grid+1)/2, in triu order), as weights on its control points: built once."""
+    from planner_core.separation_pieces import restrict
+
     i, j = np.triu_indices(grid)
-    return i.astype(np.intp), j.astype(np.intp)
+    return restrict(np.broadcast_to(np.eye(10), (i.size, 10, 10)), i / grid, (j + 1) / grid)
 
 
-def span_boxes(traj: Trajectory, t0: FloatArray, t1: FloatArray,
-               grid: int = GRID) -> tuple[FloatArray, FloatArray, IntArray, FloatArray, FloatArray, NDArray[np.bool_]]:
-    """(lo, hi) (K, 3): a box holding the control points of traj's piece on each [t0[k], t1[k]]
-    (within one segment, or after the end: the held point), tighter than the whole segment's box:
-    the box of the segment's restriction to the smallest run [i/grid, (j+1)/grid] of its grid that
-    holds [u0, u1] (a piece's control points are convex combinations of those of any restriction
-    holding it). The runs' boxes are built once per segment used (grid (grid+1)/2 restrictions).
-    Also returns `locate`'s (segment, u0, u1, held) of each interval."""
-    from planner_core.separation_pieces import locate, restrict
-
-    seg, u0, u1, held = locate(traj, t0, t1)
+def span_boxes(traj: Trajectory, seg: IntArray, u0: FloatArray, u1: FloatArray, held: NDArray[np.bool_],
+               grid: int = GRID) -> tuple[FloatArray, FloatArray]:
+    """(lo, hi) (K, 3): a box holding the control points of traj's piece [u0[k], u1[k]] of segment
+    seg[k] (`locate`'s answer; `held`: after the end, the held point), tighter than the whole
+    segment's box: the box of the segment's restriction to the smallest run [i/grid, (j+1)/grid]
+    of its grid that holds [u0, u1] (a piece's control points are convex combinations of those
+    of any restriction holding it). The runs' boxes: one matmul of each segment used with the
+    runs' fixed maps."""
+    if seg.size == 0:
+        return np.zeros((0, 3)), np.zeros((0, 3))
     used, inv = np.unique(seg, return_inverse=True)
-    ri, rj = _runs(grid)
-    nr = ri.size
-    ctrl = np.repeat(traj.control_points[used], nr, axis=0)
-    run = restrict(ctrl, np.tile(ri / grid, used.size), np.tile((rj + 1) / grid, used.size))
-    rlo, rhi = run.min(axis=1), run.max(axis=1)
+    maps = _run_maps(grid)
+    nr = maps.shape[0]
+    run = np.matmul(maps[None], traj.control_points[used][:, None])  # (U, R, 10, 3), one matmul
+    rlo, rhi = run.min(axis=2).reshape(-1, 3), run.max(axis=2).reshape(-1, 3)
     # the 1e-9 slack keeps [u0, u1] inside the run whatever the rounding of u * grid
     i = np.clip(np.floor(u0 * grid - 1e-9), 0, grid - 1).astype(np.intp)
     j = np.clip(np.ceil(u1 * grid + 1e-9) - 1, 0, grid - 1).astype(np.intp)
@@ -172,4 +187,18 @@ def span_boxes(traj: Trajectory, t0: FloatArray, t1: FloatArray,
     lo, hi = rlo[k], rhi[k]
     if held.any():
         lo[held] = hi[held] = traj.control_points[-1, -1]
+    return lo, hi
+
+
+def our_boxes(traj: Trajectory, t0: FloatArray, t1: FloatArray,
+              ) -> tuple[FloatArray, FloatArray, IntArray, FloatArray, FloatArray, NDArray[np.bool_]]:
+    """The whole segment's box of each interval's piece of traj (the held point after its end)
+    and `locate`'s (segment, u0, u1, held)."""
+    from planner_core.separation_pieces import locate
+
+    seg, u0, u1, held = locate(traj, t0, t1)
+    ctrl = traj.control_points
+    lo, hi = ctrl.min(axis=1)[seg], ctrl.max(axis=1)[seg]
+    if held.any():
+        lo[held] = hi[held] = ctrl[-1, -1]
     return lo, hi, seg, u0, u1, held

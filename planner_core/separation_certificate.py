@@ -16,9 +16,17 @@ from typing import Any
 import numpy as np
 
 from planner_core.problem import FloatArray, Trajectory
-from planner_core.separation_batch import Packed, batch_knots, locate_packed, pack, span_boxes
+from planner_core.separation_batch import (
+    Packed,
+    batch_knots,
+    locate_packed,
+    our_boxes,
+    pack,
+    span_boxes,
+)
 from planner_core.separation_pieces import (
     AXES,
+    GILBERT_MIN,
     KNOT_TOL,
     IntArray,
     best_plane,
@@ -34,6 +42,7 @@ from planner_core.separation_pieces import (
 )
 
 MAX_DEPTH = 4  # an interval whose margin is short is halved up to this many times (16 pieces)
+SPAN_BOXES_MIN = 16  # fewer short intervals than this: straight to the pieces (the runs cost more)
 
 
 # --- the certificate -------------------------------------------------------------------------
@@ -171,14 +180,16 @@ def certify_packed(
     (`certify_all` keeps its neighbours stacked: nothing is gathered per call)."""
     owners = np.asarray(owners, dtype=np.intp)
     nk = owners.size
+    if nk == 0:
+        return []
     sp = [(float(x), float(y)) for x, y in speeds]
     needs = np.array([separation + (va + vb) * clock_tolerance for va, vb in sp], dtype=float)
     pair, k0, k1, counts = batch_knots(a, p, owners, span)
     starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.intp)
     need = needs[pair]
-    # boxes first (no splitting): ours over the run of our segment's grid holding the interval,
-    # theirs of the whole segment
-    alo, ahi, a_seg, a_u0, a_u1, a_held = span_boxes(a, k0, k1)
+    # boxes first (no splitting): of the two whole segments; where that is short, ours over the
+    # run of our segment's grid holding the interval (`span_boxes`)
+    alo, ahi, a_seg, a_u0, a_u1, a_held = our_boxes(a, k0, k1)
     who = owners[pair]
     b_row, b_u0, b_u1, b_held = locate_packed(p, who, k0, k1)
     blo, bhi = p.lo[b_row], p.hi[b_row]
@@ -189,12 +200,24 @@ def certify_packed(
     r = np.arange(k0.size)
     cheap_n, cheap_gap, cheap_c = AXES[best], gaps[r, best], mids[r, best]
     todo = r if exact else np.flatnonzero(cheap_gap < need)
+    if todo.size >= SPAN_BOXES_MIN and not exact:
+        slo, shi = span_boxes(a, a_seg[todo], a_u0[todo], a_u1[todo], a_held[todo])
+        gaps = np.concatenate([blo[todo] - shi, slo - bhi[todo]], axis=1)
+        best = np.argmax(gaps, axis=1)
+        rt = np.arange(todo.size)
+        better = gaps[rt, best] > cheap_gap[todo]
+        mids = np.concatenate([0.5 * (shi + blo[todo]), -0.5 * (slo + bhi[todo])], axis=1)
+        up = todo[better]
+        cheap_n[up], cheap_gap[up], cheap_c[up] = AXES[best[better]], gaps[rt, best][better], mids[rt, best][better]
+        todo = todo[cheap_gap[todo] < need[todo]]
     pa = np.zeros((k0.size, 10, 3))
     pb = np.zeros((k0.size, 10, 3))
     if todo.size:
-        pa[todo] = restrict(a.control_points[a_seg[todo]], a_u0[todo], a_u1[todo])
+        # ours and theirs in one de Casteljau pass
+        both = restrict(np.concatenate([a.control_points[a_seg[todo]], p.ctrl[b_row[todo]]]),
+                        np.concatenate([a_u0[todo], b_u0[todo]]), np.concatenate([a_u1[todo], b_u1[todo]]))
+        pa[todo], pb[todo] = both[: todo.size], both[todo.size :]
         pa[todo[a_held[todo]]] = a.control_points[-1, -1]
-        pb[todo] = restrict(p.ctrl[b_row[todo]], b_u0[todo], b_u1[todo])
         held = todo[b_held[todo]]
         pb[held] = p.last[who[held]][:, None]
         cn, cg, cc = cheap_planes(pa[todo], pb[todo])
@@ -293,7 +316,7 @@ def settle(idx: IntArray, t0: FloatArray, t1: FloatArray, qa: FloatArray, qb: Fl
         n, gap, c = cheap_planes(qa, qb)
         short = np.flatnonzero(gap < need)
         bound = np.full(idx.size, np.inf)
-        if short.size:
+        if short.size >= GILBERT_MIN:
             gn, gg, gc, gb = nearest_planes(qa[short], qb[short], need[short])
             better = gg > gap[short]
             n[short[better]], gap[short[better]], c[short[better]] = gn[better], gg[better], gc[better]

@@ -13,6 +13,8 @@ Pure numpy (plus daqp for the small max-margin QPs); no I/O.
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -180,6 +182,7 @@ def cheap_planes(pa: FloatArray, pb: FloatArray) -> tuple[FloatArray, FloatArray
 
 
 GILBERT_STEPS = 24  # Gilbert steps per batch of pairs (each a few array calls over all pairs)
+GILBERT_MIN = 4  # fewer pairs than this: one QP each is cheaper than a batch of steps
 CONVERGED = 1e-9  # relative: a gap this close to Gilbert's bound is the max-margin one
 
 
@@ -274,7 +277,11 @@ def best_plane(pa: FloatArray, pb: FloatArray, need: float) -> tuple[FloatArray,
     return n[0], float(gap[0]), float(c[0])
 
 
+@lru_cache(maxsize=1)
 def halves_matrix() -> FloatArray:
+    """(2, 10, 10) the two halves' maps, built once (read only: shared by every caller)."""
     from planner_core.bezier import subdivision_matrix
 
-    return subdivision_matrix(9, 2)
+    out = np.array(subdivision_matrix(9, 2))
+    out.flags.writeable = False
+    return out

@@ -22,6 +22,7 @@ from planner_core.separation_batch import (
     Packed,
     batch_knots,
     locate_packed,
+    our_boxes,
     pack,
     span_boxes,
     span_knots,
@@ -33,6 +34,7 @@ from planner_core.separation_certificate import (
 )
 from planner_core.separation_pieces import (
     CONVERGED,
+    GILBERT_MIN,
     KNOT_TOL,
     IntArray,
     best_plane,
@@ -276,8 +278,11 @@ def neighbour_faces(times: FloatArray, reference: Sequence[FloatArray], neighbou
     tight = np.flatnonzero(cg < need + neighbours.reach)
     if give_up and tight.size:
         _give_up_first(tight, pairs, reference, pieces, pp, ref_pad[pair_q[tight]], pts_all[tight], need, segs, times)
-    gn, gg, _, gb = nearest_planes(ref_pad[pair_q[tight]], pts_all[tight], None)
-    converged = gb - gg <= CONVERGED * np.maximum(gb, 1.0)
+    converged = np.zeros(tight.size, dtype=bool)
+    gn, gg = np.zeros((tight.size, 3)), np.zeros(tight.size)
+    if tight.size >= GILBERT_MIN:
+        gn, gg, _, gb = nearest_planes(ref_pad[pair_q[tight]], pts_all[tight], None)
+        converged = gb - gg <= CONVERGED * np.maximum(gb, 1.0)
     for i, j in enumerate(tight.tolist()):
         if converged[i]:
             normals[j] = gn[i] if gg[i] >= cg[j] else cn[j]
@@ -296,10 +301,12 @@ def _give_up_first(tight: IntArray, pairs: list[tuple[int, int]], reference: Seq
     within s' of the neighbour, if any. Gilbert's steps clear most pairs at once (a plane with
     s' to spare); the QP decides the rest, in order. In growing chunks, so that an early failure
     (a neighbour crossing our first segment) costs no steps for the pairs after it."""
-    at, size = 0, 4
+    at, size = 0, GILBERT_MIN
     while at < tight.size:
         chunk = slice(at, min(at + size, tight.size))
-        _, gg, _, _ = nearest_planes(refs[chunk], pts[chunk], need[tight[chunk]])
+        gg = np.full(chunk.stop - at, -np.inf)
+        if chunk.stop - at >= GILBERT_MIN:
+            gg = nearest_planes(refs[chunk], pts[chunk], need[tight[chunk]])[1]
         for i, j in enumerate(tight[chunk].tolist()):
             if gg[i] >= need[j]:
                 continue
@@ -436,13 +443,20 @@ def separation_rows(times: FloatArray, cert: SeparationCertificate, n_segments: 
 
 
 def _box_gap(ours: Trajectory, t0: FloatArray, t1: FloatArray, packed: Packed, row: IntArray, held_owner: IntArray,
-             held: NDArray[np.bool_]) -> tuple[FloatArray, tuple[IntArray, FloatArray, FloatArray, NDArray[np.bool_]]]:
-    """The largest axis gap between our piece's box (`span_boxes`) and the neighbour's segment box
-    (row `row` of `packed`; its held point where `held`) on each interval, and our locations."""
-    alo, ahi, seg, u0, u1, a_held = span_boxes(ours, t0, t1)
+             held: NDArray[np.bool_], room: FloatArray) -> tuple[FloatArray, tuple[IntArray, FloatArray, FloatArray,
+                                                                                NDArray[np.bool_]]]:
+    """The largest axis gap between our piece's box and the neighbour's segment box (row `row` of
+    `packed`; its held point where `held`) on each interval, and our locations. Our box: the whole
+    segment's, then, where that leaves less than `room`, the grid run's (`span_boxes`)."""
+    alo, ahi, seg, u0, u1, a_held = our_boxes(ours, t0, t1)
     blo, bhi = packed.lo[row], packed.hi[row]
     blo[held] = bhi[held] = packed.last[held_owner]
-    return np.maximum((blo - ahi).max(axis=1), (alo - bhi).max(axis=1)), (seg, u0, u1, a_held)
+    gap = np.maximum((blo - ahi).max(axis=1), (alo - bhi).max(axis=1))
+    short = np.flatnonzero(gap < room)
+    if short.size:
+        slo, shi = span_boxes(ours, seg[short], u0[short], u1[short], a_held[short])
+        gap[short] = np.maximum(gap[short], np.maximum((blo[short] - shi).max(axis=1), (slo - bhi[short]).max(axis=1)))
+    return gap, (seg, u0, u1, a_held)
 
 
 def planning_rows(times: FloatArray, reference: Trajectory, neighbours: Neighbours, pieces: int = 2,
@@ -475,7 +489,8 @@ def planning_rows(times: FloatArray, reference: Trajectory, neighbours: Neighbou
     # piece's axis gap is at least its boxes'): skip it before any splitting
     packed = neighbours.packed
     row, _, _, held = locate_packed(packed, who, k0, k1)
-    close = _box_gap(reference, k0, k1, packed, row, who[held], held)[0] < need_of[who] + neighbours.reach
+    room = need_of[who] + neighbours.reach
+    close = _box_gap(reference, k0, k1, packed, row, who[held], held, room)[0] < room
     if not close.any():
         return empty
     k0, k1, owner, row = k0[close], k1[close], who[close], row[close]
@@ -484,15 +499,17 @@ def planning_rows(times: FloatArray, reference: Trajectory, neighbours: Neighbou
     t0, t1 = edges[:, :-1].ravel(), edges[:, 1:].ravel()
     owner, row = np.repeat(owner, pieces), np.repeat(row, pieces)
     _, u0, u1, held = locate_packed(packed, owner, t0, t1)
-    gap, (seg, a_u0, a_u1, a_held) = _box_gap(reference, t0, t1, packed, row, owner[held], held)
-    close = gap < need_of[owner] + neighbours.reach
+    room = need_of[owner] + neighbours.reach
+    gap, (seg, a_u0, a_u1, a_held) = _box_gap(reference, t0, t1, packed, row, owner[held], held, room)
+    close = gap < room
     if not close.any():
         return empty
     t0, t1, owner, row, u0, u1, held = t0[close], t1[close], owner[close], row[close], u0[close], u1[close], held[close]
     need = need_of[owner]
-    pa = restrict(reference.control_points[seg[close]], a_u0[close], a_u1[close])
+    both = restrict(np.concatenate([reference.control_points[seg[close]], packed.ctrl[row]]),
+                    np.concatenate([a_u0[close], u0]), np.concatenate([a_u1[close], u1]))  # one pass
+    pa, pb = both[: t0.size], both[t0.size :]
     pa[a_held[close]] = reference.control_points[-1, -1]
-    pb = restrict(packed.ctrl[row], u0, u1)
     pb[held] = packed.last[owner[held]][:, None]
     halves = halves_matrix()
     out_t0: list[FloatArray] = []
@@ -504,7 +521,7 @@ def planning_rows(times: FloatArray, reference: Trajectory, neighbours: Neighbou
         keep = gap < need + neighbours.reach  # farther pieces need no row
         short = np.flatnonzero(keep & (gap < need))
         bound = np.full(gap.size, np.inf)
-        if short.size:
+        if short.size >= GILBERT_MIN:
             # Gilbert's steps for every short piece at once; the QP only where they fall short
             gn, gg, _, gb = nearest_planes(pa[short], pb[short], need[short])
             better = gg > gap[short]

@@ -4,6 +4,8 @@ planes must still bound what they claim to, and a batch must refuse exactly what
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from planner_core.problem import Trajectory
@@ -52,12 +54,13 @@ def test_batch_knots_and_locations_are_those_of_each_pair() -> None:
                 assert counts[j] == 0
                 continue
             np.testing.assert_array_equal(got, ref)
-            row, u0, u1, held = locate_packed(p, np.full(ref.size - 1, k), ref[:-1], ref[1:])
             seg, v0, v1, h = locate(others[k], ref[:-1], ref[1:])
-            np.testing.assert_array_equal(row - p.rows[k], seg)
-            np.testing.assert_array_equal(u0, v0)
-            np.testing.assert_array_equal(u1, v1)
-            np.testing.assert_array_equal(held, h)
+            for how in (p, replace(p, padded=None)):  # a count over padded knots, or a binary search
+                row, u0, u1, held = locate_packed(how, np.full(ref.size - 1, k), ref[:-1], ref[1:])
+                np.testing.assert_array_equal(row - p.rows[k], seg)
+                np.testing.assert_array_equal(u0, v0)
+                np.testing.assert_array_equal(u1, v1)
+                np.testing.assert_array_equal(held, h)
 
 
 def test_span_boxes_hold_every_piece_and_are_no_looser_than_the_segment() -> None:
@@ -70,7 +73,8 @@ def test_span_boxes_hold_every_piece_and_are_no_looser_than_the_segment() -> Non
         seg = np.searchsorted(a.times, t0, side="right") - 1
         end = np.where(seg < a.n_segments, a.times[np.minimum(seg + 1, a.n_segments)], np.inf)
         t1 = np.minimum(t1, end)
-        lo, hi, s, _, _, _ = span_boxes(a, t0, t1)
+        s, u0, u1, held = locate(a, t0, t1)
+        lo, hi = span_boxes(a, s, u0, u1, held)
         pts = pieces_between(a, t0, t1)
         assert (pts >= lo[:, None] - 1e-9).all() and (pts <= hi[:, None] + 1e-9).all()
         whole = a.control_points[s]
