@@ -231,24 +231,31 @@ def certify_packed(
     # the intervals the cheap planes leave short, all at once: Gilbert's steps, the QP only where
     # they settle nothing, halving where even the best plane is short
     short = np.flatnonzero(cheap_gap < need)
-    acc, fail, n_eval, fail_pts = settle(short, k0[short], k1[short], pa[short], pb[short], need[short], max_depth)
-    easy = np.flatnonzero(cheap_gap >= need)
-    it_pair = np.concatenate([pair[easy], pair[acc.idx]])
-    it_t0 = np.concatenate([k0[easy], acc.t0])
-    it_n = np.concatenate([cheap_n[easy], acc.n])
-    it_c = np.concatenate([cheap_c[easy], acc.c])
-    it_gap = np.concatenate([cheap_gap[easy], acc.gap])
-    order = np.lexsort((it_t0, it_pair))
-    it_pair, it_t0, it_n, it_c, it_gap = it_pair[order], it_t0[order], it_n[order], it_c[order], it_gap[order]
-    it_start = np.concatenate([[0], np.cumsum(np.bincount(it_pair, minlength=nk))]).astype(np.intp)
-    # each failing pair's first failure in time order (interval, then piece): what certifying pair
-    # by pair would have stopped at
     first_fail: dict[int, int] = {}
-    if fail.idx.size:
-        fo = np.lexsort((fail.t0, fail.idx))
-        fp = pair[fail.idx[fo]]
-        _, at = np.unique(fp, return_index=True)
-        first_fail = {int(fp[i]): int(fo[i]) for i in at.tolist()}
+    fail_pts = None
+    if short.size == 0:
+        # every interval cleared as it stands: the certificates are the intervals in order
+        it_t0, it_n, it_c, it_gap, it_start = k0, cheap_n, cheap_c, cheap_gap, starts
+        n_eval = short
+    else:
+        acc, fail, n_eval, fail_pts = settle(short, k0[short], k1[short], pa[short], pb[short], need[short],
+                                             max_depth)
+        easy = np.flatnonzero(cheap_gap >= need)
+        it_pair = np.concatenate([pair[easy], pair[acc.idx]])
+        it_t0 = np.concatenate([k0[easy], acc.t0])
+        it_n = np.concatenate([cheap_n[easy], acc.n])
+        it_c = np.concatenate([cheap_c[easy], acc.c])
+        it_gap = np.concatenate([cheap_gap[easy], acc.gap])
+        order = np.lexsort((it_t0, it_pair))
+        it_pair, it_t0, it_n, it_c, it_gap = it_pair[order], it_t0[order], it_n[order], it_c[order], it_gap[order]
+        it_start = np.concatenate([[0], np.cumsum(np.bincount(it_pair, minlength=nk))]).astype(np.intp)
+        # each failing pair's first failure in time order (interval, then piece): what certifying
+        # pair by pair would have stopped at
+        if fail.idx.size:
+            fo = np.lexsort((fail.t0, fail.idx))
+            fp = pair[fail.idx[fo]]
+            _, at = np.unique(fp, return_index=True)
+            first_fail = {int(fp[i]): int(fo[i]) for i in at.tolist()}
     qps = np.bincount(pair[n_eval], minlength=nk) if n_eval.size else np.zeros(nk, dtype=np.intp)
     out: list[SeparationCheck] = []
     for j in range(nk):
@@ -263,7 +270,7 @@ def certify_packed(
             before = ilo + int(np.searchsorted(it_t0[ilo:ihi], fail.t0[f], side="left"))
             low = float(it_gap[ilo:before].min()) if before > ilo else np.inf
             gap, t0, t1 = float(fail.gap[f]), float(fail.t0[f]), float(fail.t1[f])
-            if fail_pts is not None:
+            if fail_pts is not None:  # (set whenever a piece failed)
                 # the hull gap named is the max-margin one (skipped where no plane could clear s')
                 mm = max_margin_plane(fail_pts[0][f], fail_pts[1][f])
                 gap = max(gap, mm[1]) if mm is not None else gap
