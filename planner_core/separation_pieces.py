@@ -5,8 +5,10 @@ planning rows (`planner_core.separation_planning`); `planner_core.separation` te
 - `restrict`, `pieces_on`, `pieces_between`: de Casteljau restrictions of segments to sub-intervals
   (after a trajectory's end, its held last point); `common_knots` / `common_pieces` on the overlap.
 - `speed_bound` (continuous-time bound on |velocity|), `peak_speed` (sampled, the receiver's check).
-- `cheap_planes` (axis and centroid directions, no solver), `max_margin_plane` (a small QP),
-  `best_plane` (the cheap one where it clears the need, else the max-margin one).
+- `cheap_planes` (axis and centroid directions, no solver), `nearest_planes` (Gilbert's steps
+  towards the max-margin plane for many pairs at once, with an upper bound on any plane's gap),
+  `max_margin_plane` (a small QP), `best_plane` (the cheap one where it clears the need, else the
+  max-margin one).
 
 Pure numpy (plus daqp for the small max-margin QPs); no I/O.
 """
