@@ -32,6 +32,7 @@ hold for ever.
 - Broad phase: `near_pairs` (space-time boxes, a sorted sweep): far neighbours cost nothing.
 
 Where it lives: `planner_core.separation_pieces` (exact pieces, speed bounds, planes),
+`planner_core.separation_batch` (one trajectory against many stacked ones: knots, locations, boxes),
 `planner_core.separation_certificate` (the certificate: certify, verify) and
 `planner_core.separation_planning` (neighbours, broad phase, faces, rows, `certify_all`). This
 module still names everything it held before the split (recorded planner calls find their classes and

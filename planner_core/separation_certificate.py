@@ -16,25 +16,33 @@ from typing import Any
 import numpy as np
 
 from planner_core.problem import FloatArray, Trajectory
+from planner_core.separation_batch import (
+    Packed,
+    batch_knots,
+    locate_packed,
+    our_boxes,
+    pack,
+    span_boxes,
+)
 from planner_core.separation_pieces import (
     AXES,
+    GILBERT_MIN,
     KNOT_TOL,
+    IntArray,
     best_plane,
     cheap_planes,
-    common_knots,
     common_pieces,
     halves_matrix,
-    locate,
     max_margin_plane,
+    nearest_planes,
     overlap,
     peak_speed,
-    pieces_between,
     restrict,
-    segment_boxes,
     speed_bound,
 )
 
 MAX_DEPTH = 4  # an interval whose margin is short is halved up to this many times (16 pieces)
+SPAN_BOXES_MIN = 16  # fewer short intervals than this: straight to the pieces (the runs cost more)
 
 
 # --- the certificate -------------------------------------------------------------------------
@@ -147,53 +155,199 @@ def certify_many(
     are located, boxed and split in a few array operations (one de Casteljau pass for all)."""
     if not separation >= 0.0 or not clock_tolerance >= 0.0:
         raise ValueError(f"separation and clock_tolerance must be >= 0, got {separation}, {clock_tolerance}")
-    nk = len(others)
     if speeds is None:
         sa = speed_bound(a) if clock_tolerance > 0.0 else 0.0
         sp = [(sa, speed_bound(b) if clock_tolerance > 0.0 else 0.0) for b in others]
     else:
         sp = [(float(x), float(y)) for x, y in speeds]
-    needs = [separation + (va + vb) * clock_tolerance for va, vb in sp]
-    knots = [common_knots(a, b, span=span) for b in others]
-    counts = np.array([max(k.size - 1, 0) for k in knots], dtype=np.intp)
-    starts = np.concatenate([[0], np.cumsum(counts)])
-    k0 = np.concatenate([k[:-1] for k in knots]) if nk else np.zeros(0)
-    k1 = np.concatenate([k[1:] for k in knots]) if nk else np.zeros(0)
-    need = np.repeat(np.asarray(needs, dtype=float), counts)
-    # boxes of the whole segments first (no splitting)
-    alo, ahi = segment_boxes(a, k0, k1)
-    blo, bhi = np.empty_like(alo), np.empty_like(ahi)
-    b_seg = np.zeros(k0.size, dtype=np.intp)
-    b_u0, b_u1 = np.zeros(k0.size), np.zeros(k0.size)
-    b_held = np.zeros(k0.size, dtype=bool)
-    for j, b in enumerate(others):
-        sl = slice(int(starts[j]), int(starts[j + 1]))
-        b_seg[sl], b_u0[sl], b_u1[sl], b_held[sl] = locate(b, k0[sl], k1[sl])
-        ctrl = b.control_points[b_seg[sl]]
-        blo[sl], bhi[sl] = ctrl.min(axis=1), ctrl.max(axis=1)
-        if b_held[sl].any():
-            h = np.flatnonzero(b_held[sl]) + sl.start
-            blo[h] = bhi[h] = b.control_points[-1, -1]
+    return certify_packed(a, pack(others), np.arange(len(others), dtype=np.intp), separation,
+                          clock_tolerance=clock_tolerance, speeds=sp, max_depth=max_depth, exact=exact, span=span)
+
+
+def certify_packed(
+    a: Trajectory,
+    p: Packed,
+    owners: IntArray,
+    separation: float,
+    *,
+    clock_tolerance: float,
+    speeds: Sequence[tuple[float, float]],
+    max_depth: int = MAX_DEPTH,
+    exact: bool = False,
+    span: tuple[float, float] | None = None,
+) -> list[SeparationCheck]:
+    """`certify_many` against the stacked trajectories p[owners[j]] with bound speeds speeds[j]
+    (`certify_all` keeps its neighbours stacked: nothing is gathered per call)."""
+    owners = np.asarray(owners, dtype=np.intp)
+    nk = owners.size
+    if nk == 0:
+        return []
+    sp = [(float(x), float(y)) for x, y in speeds]
+    needs = np.array([separation + (va + vb) * clock_tolerance for va, vb in sp], dtype=float)
+    pair, k0, k1, counts = batch_knots(a, p, owners, span)
+    starts = np.concatenate([[0], np.cumsum(counts)]).astype(np.intp)
+    need = needs[pair]
+    # boxes first (no splitting): of the two whole segments; where that is short, ours over the
+    # run of our segment's grid holding the interval (`span_boxes`)
+    alo, ahi, a_seg, a_u0, a_u1, a_held = our_boxes(a, k0, k1)
+    who = owners[pair]
+    b_row, b_u0, b_u1, b_held = locate_packed(p, who, k0, k1)
+    blo, bhi = p.lo[b_row], p.hi[b_row]
+    blo[b_held] = bhi[b_held] = p.last[who[b_held]]
     gaps = np.concatenate([blo - ahi, alo - bhi], axis=1)
     mids = np.concatenate([0.5 * (ahi + blo), -0.5 * (alo + bhi)], axis=1)
     best = np.argmax(gaps, axis=1)
     r = np.arange(k0.size)
     cheap_n, cheap_gap, cheap_c = AXES[best], gaps[r, best], mids[r, best]
     todo = r if exact else np.flatnonzero(cheap_gap < need)
+    if todo.size >= SPAN_BOXES_MIN and not exact:
+        slo, shi = span_boxes(a, a_seg[todo], a_u0[todo], a_u1[todo], a_held[todo])
+        gaps = np.concatenate([blo[todo] - shi, slo - bhi[todo]], axis=1)
+        best = np.argmax(gaps, axis=1)
+        rt = np.arange(todo.size)
+        better = gaps[rt, best] > cheap_gap[todo]
+        mids = np.concatenate([0.5 * (shi + blo[todo]), -0.5 * (slo + bhi[todo])], axis=1)
+        up = todo[better]
+        cheap_n[up], cheap_gap[up], cheap_c[up] = AXES[best[better]], gaps[rt, best][better], mids[rt, best][better]
+        todo = todo[cheap_gap[todo] < need[todo]]
     pa = np.zeros((k0.size, 10, 3))
     pb = np.zeros((k0.size, 10, 3))
     if todo.size:
-        pa[todo] = pieces_between(a, k0[todo], k1[todo])
-        owner = np.repeat(np.arange(nk), counts)
-        ctrl_b = np.stack([others[int(o)].control_points[int(sg)] for o, sg in zip(owner[todo], b_seg[todo], strict=True)])
-        pb[todo] = restrict(ctrl_b, b_u0[todo], b_u1[todo])
-        for i in todo[b_held[todo]].tolist():
-            pb[i] = others[int(owner[i])].control_points[-1, -1]
+        # ours and theirs in one de Casteljau pass
+        both = restrict(np.concatenate([a.control_points[a_seg[todo]], p.ctrl[b_row[todo]]]),
+                        np.concatenate([a_u0[todo], b_u0[todo]]), np.concatenate([a_u1[todo], b_u1[todo]]))
+        pa[todo], pb[todo] = both[: todo.size], both[todo.size :]
+        pa[todo[a_held[todo]]] = a.control_points[-1, -1]
+        held = todo[b_held[todo]]
+        pb[held] = p.last[who[held]][:, None]
         cn, cg, cc = cheap_planes(pa[todo], pb[todo])
         better = cg > cheap_gap[todo]
         cheap_n[todo[better]], cheap_gap[todo[better]], cheap_c[todo[better]] = cn[better], cg[better], cc[better]
-    return [assemble_certificate(knots[j], int(starts[j]), cheap_n, cheap_gap, cheap_c, pa, pb, needs[j],
-                                 separation, clock_tolerance, sp[j], max_depth, exact) for j in range(nk)]
+    if exact:
+        return [assemble_certificate(np.append(k0[lo:hi], k1[hi - 1]) if hi > lo else k0[:0], lo, cheap_n, cheap_gap,
+                                     cheap_c, pa, pb, float(needs[j]), separation, clock_tolerance, sp[j], max_depth,
+                                     True)
+                for j, (lo, hi) in enumerate(zip(starts[:-1].tolist(), starts[1:].tolist(), strict=True))]
+    # the intervals the cheap planes leave short, all at once: Gilbert's steps, the QP only where
+    # they settle nothing, halving where even the best plane is short
+    short = np.flatnonzero(cheap_gap < need)
+    first_fail: dict[int, int] = {}
+    fail_pts = None
+    if short.size == 0:
+        # every interval cleared as it stands: the certificates are the intervals in order
+        it_t0, it_n, it_c, it_gap, it_start = k0, cheap_n, cheap_c, cheap_gap, starts
+        n_eval = short
+    else:
+        acc, fail, n_eval, fail_pts = settle(short, k0[short], k1[short], pa[short], pb[short], need[short],
+                                             max_depth)
+        easy = np.flatnonzero(cheap_gap >= need)
+        it_pair = np.concatenate([pair[easy], pair[acc.idx]])
+        it_t0 = np.concatenate([k0[easy], acc.t0])
+        it_n = np.concatenate([cheap_n[easy], acc.n])
+        it_c = np.concatenate([cheap_c[easy], acc.c])
+        it_gap = np.concatenate([cheap_gap[easy], acc.gap])
+        order = np.lexsort((it_t0, it_pair))
+        it_pair, it_t0, it_n, it_c, it_gap = it_pair[order], it_t0[order], it_n[order], it_c[order], it_gap[order]
+        it_start = np.concatenate([[0], np.cumsum(np.bincount(it_pair, minlength=nk))]).astype(np.intp)
+        # each failing pair's first failure in time order (interval, then piece): what certifying
+        # pair by pair would have stopped at
+        if fail.idx.size:
+            fo = np.lexsort((fail.t0, fail.idx))
+            fp = pair[fail.idx[fo]]
+            _, at = np.unique(fp, return_index=True)
+            first_fail = {int(fp[i]): int(fo[i]) for i in at.tolist()}
+    qps = np.bincount(pair[n_eval], minlength=nk) if n_eval.size else np.zeros(nk, dtype=np.intp)
+    out: list[SeparationCheck] = []
+    for j in range(nk):
+        lo, hi = int(starts[j]), int(starts[j + 1])
+        ilo, ihi = int(it_start[j]), int(it_start[j + 1])
+        if hi == lo:
+            out.append(SeparationCheck(SeparationStatus.OK, None, message="no overlap within the span"))
+            continue
+        if j in first_fail:
+            f = first_fail[j]
+            i = int(fail.idx[f]) - lo
+            before = ilo + int(np.searchsorted(it_t0[ilo:ihi], fail.t0[f], side="left"))
+            low = float(it_gap[ilo:before].min()) if before > ilo else np.inf
+            gap, t0, t1 = float(fail.gap[f]), float(fail.t0[f]), float(fail.t1[f])
+            if fail_pts is not None:  # (set whenever a piece failed)
+                # the hull gap named is the max-margin one (skipped where no plane could clear s')
+                mm = max_margin_plane(fail_pts[0][f], fail_pts[1][f])
+                gap = max(gap, mm[1]) if mm is not None else gap
+            msg = (f"interval {i} [{k0[lo + i]:.6g}, {k1[lo + i]:.6g}] s: the pieces come within "
+                   f"{max(gap, 0.0):.4g} m (hull gap) of each other on [{t0:.6g}, {t1:.6g}] s, "
+                   f"{needs[j] - gap:.4g} m short of {needs[j]:.4g} m")
+            out.append(SeparationCheck(SeparationStatus.TOO_CLOSE, None, i, (float(k0[lo + i]), float(k1[lo + i])),
+                                       float(needs[j] - gap), low, msg, {"qps": int(qps[j])}))
+            continue
+        low = float(it_gap[ilo:ihi].min())
+        cert = SeparationCertificate(np.append(it_t0[ilo:ihi], k1[hi - 1]), it_n[ilo:ihi], it_c[ilo:ihi],
+                                     float(separation), float(clock_tolerance), sp[j][0], sp[j][1])
+        out.append(SeparationCheck(SeparationStatus.OK, cert, min_gap=low,
+                                   message=f"separated by >= {low:.4g} m (required {needs[j]:.4g} m) on "
+                                   f"{cert.n_intervals} intervals",
+                                   stats={"qps": int(qps[j]), "common_intervals": hi - lo}))
+    return out
+
+
+@dataclass(frozen=True)
+class Pieces:
+    """Pieces of common intervals: the interval each lies in (`idx`), its start and end, and a
+    plane (normal, mid-plane c, gap) where one was found."""
+
+    idx: IntArray
+    t0: FloatArray
+    t1: FloatArray
+    n: FloatArray
+    c: FloatArray
+    gap: FloatArray
+
+
+def settle(idx: IntArray, t0: FloatArray, t1: FloatArray, qa: FloatArray, qb: FloatArray, need: FloatArray,
+           max_depth: int) -> tuple[Pieces, Pieces, IntArray, tuple[FloatArray, FloatArray] | None]:
+    """Planes for intervals (t0, t1, our pieces qa, theirs qb) the cheap planes left short of
+    `need`, level by level for all at once: axis/centroid planes, Gilbert's steps
+    (`nearest_planes`), the max-margin QP only where those neither clear `need` nor prove that no
+    plane can; a piece still short is halved (both at the same u, exactly) up to `max_depth`
+    times. Returns the accepted pieces, the failed ones (short at `max_depth`), the interval of
+    every piece looked at (for the stats) and the failed pieces' points (ours, theirs), if any."""
+    halves = halves_matrix()
+    empty = (idx[:0], t0[:0], t1[:0], np.zeros((0, 3)), t0[:0], t0[:0])
+    acc = [empty]
+    bad_out = empty
+    bad_pts = None
+    seen = [idx]
+    for depth in range(max_depth + 1):
+        if idx.size == 0:
+            break
+        n, gap, c = cheap_planes(qa, qb)
+        short = np.flatnonzero(gap < need)
+        bound = np.full(idx.size, np.inf)
+        if short.size >= GILBERT_MIN:
+            gn, gg, gc, gb = nearest_planes(qa[short], qb[short], need[short])
+            better = gg > gap[short]
+            n[short[better]], gap[short[better]], c[short[better]] = gn[better], gg[better], gc[better]
+            bound[short] = gb
+        for i in np.flatnonzero((gap < need) & (bound >= need)).tolist():
+            mm = max_margin_plane(qa[i], qb[i])
+            if mm is not None and mm[1] > gap[i]:
+                n[i], gap[i], c[i] = mm
+        ok = gap >= need
+        acc.append((idx[ok], t0[ok], t1[ok], n[ok], c[ok], gap[ok]))
+        no = ~ok
+        if depth == max_depth or not no.any():
+            bad_out = (idx[no], t0[no], t1[no], n[no], c[no], gap[no])
+            bad_pts = (qa[no], qb[no]) if no.any() else None
+            break
+        tm = 0.5 * (t0[no] + t1[no])
+        idx = np.concatenate([idx[no], idx[no]])
+        t0, t1 = np.concatenate([t0[no], tm]), np.concatenate([tm, t1[no]])
+        need = np.concatenate([need[no], need[no]])
+        qa = np.concatenate([np.matmul(halves[0], qa[no]), np.matmul(halves[1], qa[no])])
+        qb = np.concatenate([np.matmul(halves[0], qb[no]), np.matmul(halves[1], qb[no])])
+        seen.append(idx)
+    accepted = Pieces(*(np.concatenate(part) for part in zip(*acc, strict=True)))
+    return accepted, Pieces(*bad_out), np.concatenate(seen), bad_pts
 
 
 def assemble_certificate(knots: FloatArray, first: int, cheap_n: FloatArray, cheap_gap: FloatArray,

@@ -5,13 +5,17 @@ planning rows (`planner_core.separation_planning`); `planner_core.separation` te
 - `restrict`, `pieces_on`, `pieces_between`: de Casteljau restrictions of segments to sub-intervals
   (after a trajectory's end, its held last point); `common_knots` / `common_pieces` on the overlap.
 - `speed_bound` (continuous-time bound on |velocity|), `peak_speed` (sampled, the receiver's check).
-- `cheap_planes` (axis and centroid directions, no solver), `max_margin_plane` (a small QP),
-  `best_plane` (the cheap one where it clears the need, else the max-margin one).
+- `cheap_planes` (axis and centroid directions, no solver), `nearest_planes` (Gilbert's steps
+  towards the max-margin plane for many pairs at once, with an upper bound on any plane's gap),
+  `max_margin_plane` (a small QP), `best_plane` (the cheap one where it clears the need, else the
+  max-margin one).
 
 Pure numpy (plus daqp for the small max-margin QPs); no I/O.
 """
 
 from __future__ import annotations
+
+from functools import lru_cache
 
 import numpy as np
 from numpy.typing import NDArray
@@ -179,6 +183,61 @@ def cheap_planes(pa: FloatArray, pb: FloatArray) -> tuple[FloatArray, FloatArray
     return dirs[r, best], gap[r, best], 0.5 * (hi_a[r, best] + lo_b[r, best])
 
 
+GILBERT_STEPS = 24  # Gilbert steps per batch of pairs (each a few array calls over all pairs)
+GILBERT_MIN = 4  # fewer pairs than this: one QP each is cheaper than a batch of steps
+CONVERGED = 1e-9  # relative: a gap this close to Gilbert's bound is the max-margin one
+
+
+def nearest_planes(pa: FloatArray, pb: FloatArray, need: FloatArray | None,
+                   steps: int = GILBERT_STEPS) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """Planes towards the maximum-margin one between point sets pa (K, p, 3) and pb (K, q, 3),
+    without a solver, for all K at once: Gilbert's steps towards the point x of the hull of
+    {b_i - a_j} nearest the origin (x / |x| is the max-margin normal at the limit). Each step's
+    support point is b_argmin - a_argmax along x, so the p q differences are never formed.
+    Returns the best plane seen per pair (normals (K, 3), gap = min n.b - max n.a recomputed from
+    the points, c the mid-plane), like `cheap_planes`, and `bound` (K,): |x| at the last step, an
+    upper bound on the hulls' distance and so on any plane's gap. A gap at or above `need` needs
+    no QP; nor does a bound below it (not even the max-margin plane clears `need`). Pairs stop
+    once one of the two holds. With `need` None they run to convergence (gap within
+    CONVERGED x |x| of the bound: the plane is the max-margin one) or `steps`."""
+    k = pa.shape[0]
+    r = np.arange(k)
+    x = pb.mean(axis=1) - pa.mean(axis=1)
+    best_n = np.zeros((k, 3))
+    best_n[:, 0] = 1.0
+    best_gap = np.full(k, -np.inf)
+    best_c = np.zeros(k)
+    bound = np.full(k, np.inf)
+    live = r
+    for _ in range(steps):
+        xl = x[live]
+        norm = np.sqrt((xl * xl).sum(axis=1))
+        bound[live] = norm
+        ok = norm > 0.0
+        n = xl / np.where(ok, norm, 1.0)[:, None]
+        proj_a = np.einsum("kpx,kx->kp", pa[live], n)
+        proj_b = np.einsum("kpx,kx->kp", pb[live], n)
+        ia, ib = proj_a.argmax(axis=1), proj_b.argmin(axis=1)
+        rl = np.arange(live.size)
+        hi_a, lo_b = proj_a[rl, ia], proj_b[rl, ib]
+        gap = np.where(ok, lo_b - hi_a, -np.inf)
+        up = gap > best_gap[live]
+        best_n[live[up]], best_gap[live[up]], best_c[live[up]] = n[up], gap[up], 0.5 * (hi_a[up] + lo_b[up])
+        # the line search towards the support point s: x + g (s - x), g in [0, 1] minimising |.|
+        d = xl - (pb[live, ib] - pa[live, ia])
+        dd = (d * d).sum(axis=1)
+        g = np.clip((xl * d).sum(axis=1) / np.where(dd > 0.0, dd, 1.0), 0.0, 1.0)
+        x[live] = xl - g[:, None] * d
+        if need is None:
+            go = ok & (dd > 0.0) & (norm - best_gap[live] > CONVERGED * np.maximum(norm, 1.0))
+        else:
+            go = ok & (best_gap[live] < need[live]) & (norm >= need[live]) & (dd > 0.0)
+        live = live[go]
+        if live.size == 0:
+            break
+    return best_n, best_gap, best_c, bound
+
+
 def max_margin_plane(pa: FloatArray, pb: FloatArray) -> tuple[FloatArray, float, float] | None:
     """The maximum-margin plane between point sets pa (p, 3) and pb (q, 3) (their convex hulls'
     distance): (unit n, gap = min n.b - max n.a, c = mid-plane), or None when the hulls meet
@@ -220,7 +279,11 @@ def best_plane(pa: FloatArray, pb: FloatArray, need: float) -> tuple[FloatArray,
     return n[0], float(gap[0]), float(c[0])
 
 
+@lru_cache(maxsize=1)
 def halves_matrix() -> FloatArray:
+    """(2, 10, 10) the two halves' maps, built once (read only: shared by every caller)."""
     from planner_core.bezier import subdivision_matrix
 
-    return subdivision_matrix(9, 2)
+    out = np.array(subdivision_matrix(9, 2))
+    out.flags.writeable = False
+    return out

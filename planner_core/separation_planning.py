@@ -14,21 +14,35 @@ from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
+from numpy.typing import NDArray
 
 from planner_core.broadphase import overlapping_pairs
 from planner_core.problem import Bounds, FloatArray, Polytope, Problem, Trajectory
-from planner_core.separation_certificate import SeparationCertificate, SeparationCheck, certify_many
+from planner_core.separation_batch import (
+    Packed,
+    batch_knots,
+    locate_packed,
+    our_boxes,
+    pack,
+    span_boxes,
+    span_knots,
+)
+from planner_core.separation_certificate import (
+    SeparationCertificate,
+    SeparationCheck,
+    certify_packed,
+)
 from planner_core.separation_pieces import (
+    CONVERGED,
+    GILBERT_MIN,
     KNOT_TOL,
     IntArray,
     best_plane,
     cheap_planes,
-    common_knots,
     halves_matrix,
-    locate,
     max_margin_plane,
     merge_knots,
-    pieces_between,
+    nearest_planes,
     pieces_on,
     restrict,
     speed_bound,
@@ -111,26 +125,57 @@ class Neighbours:
         if self.speed is not None or self.clock_tolerance == 0.0:
             return self
         out = replace(self, speed=bound_speed(bounds))
-        if "boxes" in self.__dict__:  # the same trajectories: their boxes carry over
-            out.__dict__["boxes"] = self.__dict__["boxes"]
+        # the same trajectories: their stacking and boxes carry over (built here once, so that a
+        # caller replanning again and again with the same neighbours never rebuilds them)
+        out.__dict__["packed"] = self.packed
+        out.__dict__["boxes"] = self.boxes
+        out.__dict__["their_speeds"] = self.their_speeds
         return out
 
     def required(self, k: int) -> float:
         """s' against neighbour k."""
-        return float(self.separation + (self.our_speed + self.speed_of(k)) * self.clock_tolerance)
+        return float(self.required_all[k])
+
+    @cached_property
+    def their_speeds(self) -> FloatArray:
+        """Every neighbour's bound speed (`speed_of`), once."""
+        return np.array([self.speed_of(k) for k in range(len(self.trajectories))], dtype=float)
+
+    @cached_property
+    def required_all(self) -> FloatArray:
+        """s' against every neighbour (N,): one array op instead of N calls per use."""
+        out: FloatArray = self.separation + (self.our_speed + self.their_speeds) * self.clock_tolerance
+        return out
+
+    @cached_property
+    def packed(self) -> Packed:
+        """The trajectories stacked once (`separation_batch.pack`): every pair in a few array calls."""
+        return pack(self.trajectories)
 
     @cached_property
     def boxes(self) -> tuple[FloatArray, FloatArray, IntArray]:
-        """Every neighbour's space-time boxes stacked: (lo, hi, owner)."""
-        if not self.trajectories:
+        """Every neighbour's space-time boxes stacked (`space_time_boxes` of each, in order): (lo, hi,
+        owner). Built from `packed` in one pass (one call per neighbour cost ~20 us each)."""
+        p = self.packed
+        if p.size == 0:
             return np.zeros((0, 4)), np.zeros((0, 4)), np.zeros(0, dtype=np.intp)
-        parts = [space_time_boxes(t) for t in self.trajectories]
-        owner = np.concatenate([np.full(p[0].shape[0], k, dtype=np.intp) for k, p in enumerate(parts)])
-        return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts]), owner
+        nseg = np.diff(p.rows)
+        owner = np.repeat(np.arange(p.size, dtype=np.intp), nseg + 1)
+        hold = p.rows[1:] + np.arange(1, p.size + 1)  # the box after each trajectory's segments
+        is_seg = np.ones(owner.size, dtype=bool)
+        is_seg[hold - 1] = False
+        seg_t0 = np.delete(p.times, p.first[1:] - 1)  # every knot but each trajectory's last
+        lo = np.empty((owner.size, 4))
+        hi = np.empty_like(lo)
+        lo[is_seg, 0], hi[is_seg, 0] = seg_t0, np.delete(p.times, p.first[:-1])
+        lo[is_seg, 1:], hi[is_seg, 1:] = p.lo, p.hi
+        lo[~is_seg, 0], hi[~is_seg, 0] = p.t_end, FAR
+        lo[~is_seg, 1:] = hi[~is_seg, 1:] = p.last
+        return lo, hi, owner
 
     @cached_property
     def max_required(self) -> float:
-        return max((self.required(k) for k in range(len(self.trajectories))), default=self.separation)
+        return float(self.required_all.max()) if self.trajectories else self.separation
 
 
 def bound_speed(bounds: Bounds) -> float:
@@ -191,41 +236,28 @@ def neighbour_faces(times: FloatArray, reference: Sequence[FloatArray], neighbou
     qlo[:, 1:] = np.array([r.min(axis=0) for r in reference])
     qhi[:, 1:] = np.array([r.max(axis=0) for r in reference])
     qi, bk = near_pairs(qlo, qhi, olo, ohi, neighbours.max_required + neighbours.reach)
-    # one row per (pair, piece of the neighbour over our segment's span): located here, split below
-    # in one de Casteljau pass for every pair
-    pairs: list[tuple[int, int]] = []
-    piece_pair: list[int] = []
-    t_lo: list[FloatArray] = []
-    t_hi: list[FloatArray] = []
-    for q, k in sorted(set(zip(qi.tolist(), owner[bk].tolist(), strict=True))):
-        s = segs[q]
-        nb = neighbours.trajectories[k]
-        t0, t1 = float(times[s]), float(times[s + 1])
-        lo_t = max(t0, nb.t0)
-        if lo_t >= t1:
-            continue
-        ks = nb.times[(nb.times > lo_t) & (nb.times < t1)]
-        knots = merge_knots(np.concatenate([[lo_t, t1], ks, [nb.t_end] if lo_t < nb.t_end < t1 else []]))
-        piece_pair.extend([len(pairs)] * (knots.size - 1))
-        pairs.append((q, k))
-        t_lo.append(knots[:-1])
-        t_hi.append(knots[1:])
-    if not pairs:
+    # one row per (pair, piece of the neighbour over our segment's span), every pair at once: the
+    # span from the later start to our segment's end, split at the neighbour's knots
+    pq = sorted(set(zip(qi.tolist(), owner[bk].tolist(), strict=True)))
+    if not pq:
         return {}
-    pp = np.asarray(piece_pair, dtype=np.intp)
-    k0, k1 = np.concatenate(t_lo), np.concatenate(t_hi)
-    pair_owner = np.array([k for _, k in pairs], dtype=np.intp)
-    ctrl = np.empty((k0.size, 10, 3))
-    u0, u1 = np.empty(k0.size), np.empty(k0.size)
-    held = np.zeros(k0.size, dtype=bool)
-    piece_owner = pair_owner[pp]
-    for k in np.unique(pair_owner).tolist():
-        rows = np.flatnonzero(piece_owner == k)
-        nb = neighbours.trajectories[k]
-        sg, u0[rows], u1[rows], held[rows] = locate(nb, k0[rows], k1[rows])
-        ctrl[rows] = nb.control_points[sg]
-        ctrl[rows[held[rows]]] = nb.control_points[-1, -1]
-    pieces = restrict(ctrl, u0, u1)
+    pq_arr = np.asarray(pq, dtype=np.intp).reshape(-1, 2)
+    packed = neighbours.packed
+    s_of = sa[pq_arr[:, 0]]
+    pp, k0, k1, count = span_knots(np.maximum(times[s_of], packed.t0[pq_arr[:, 1]]), times[s_of + 1], packed,
+                                   pq_arr[:, 1])
+    if pp.size == 0:
+        return {}
+    # pairs whose span is empty (the neighbour starts after our segment) are dropped, as before
+    kept = np.flatnonzero(count > 0)
+    renum = np.full(len(pq), -1, dtype=np.intp)
+    renum[kept] = np.arange(kept.size)
+    pp = renum[pp]
+    pairs = [pq[i] for i in kept.tolist()]
+    piece_owner = pq_arr[kept, 1][pp]
+    row, u0, u1, held = locate_packed(packed, piece_owner, k0, k1)
+    pieces = restrict(packed.ctrl[row], u0, u1)
+    pieces[held] = packed.last[piece_owner[held]][:, None]
     # cheap planes for every pair at once (pad each pair's points by repeating its first piece)
     count = np.bincount(pp, minlength=len(pairs))
     width = int(count.max())
@@ -235,25 +267,56 @@ def neighbour_faces(times: FloatArray, reference: Sequence[FloatArray], neighbou
     padded[pp, slot] = pieces
     pts_all = padded.reshape(len(pairs), width * 10, 3)
     n_ref = max(r.shape[0] for r in reference)
-    refs = np.stack([reference[q][np.minimum(np.arange(n_ref), reference[q].shape[0] - 1)] for q, _ in pairs])
-    cn, cg, _ = cheap_planes(refs, pts_all)
-    faces: dict[int, tuple[list[FloatArray], list[float]]] = {}
-    for j, (q, k) in enumerate(pairs):
-        need = neighbours.required(k)
-        pts = pts_all[j]
-        if cg[j] >= need + neighbours.reach:
-            n = cn[j]  # room for `reach` already: no solver
+    ref_pad = np.stack([r[np.minimum(np.arange(n_ref), r.shape[0] - 1)] for r in reference])
+    pair_q = np.array([q for q, _ in pairs], dtype=np.intp)
+    pair_k = np.array([k for _, k in pairs], dtype=np.intp)
+    cn, cg, _ = cheap_planes(ref_pad[pair_q], pts_all)
+    need = neighbours.required_all[pair_k]
+    normals = cn.copy()
+    # where the cheap planes leave less than `reach` of room: the max-margin direction, by Gilbert's
+    # steps for all such pairs at once where they converge, else the QP
+    tight = np.flatnonzero(cg < need + neighbours.reach)
+    if give_up and tight.size:
+        _give_up_first(tight, pairs, reference, pieces, pp, ref_pad[pair_q[tight]], pts_all[tight], need, segs, times)
+    converged = np.zeros(tight.size, dtype=bool)
+    gn, gg = np.zeros((tight.size, 3)), np.zeros(tight.size)
+    if tight.size >= GILBERT_MIN:
+        gn, gg, _, gb = nearest_planes(ref_pad[pair_q[tight]], pts_all[tight], None)
+        converged = gb - gg <= CONVERGED * np.maximum(gb, 1.0)
+    for i, j in enumerate(tight.tolist()):
+        if converged[i]:
+            normals[j] = gn[i] if gg[i] >= cg[j] else cn[j]
         else:
-            n, gap, _ = best_plane(reference[q], pieces[pp == j].reshape(-1, 3), np.inf)
-            if give_up and gap < need:
+            q, _ = pairs[j]
+            normals[j] = best_plane(reference[q], pieces[pp == j].reshape(-1, 3), np.inf)[0]
+    rhs = np.einsum("jpx,jx->jp", pts_all, normals).min(axis=1) - need
+    seg_of = np.asarray(segs, dtype=np.intp)[pair_q]
+    return {int(s): (normals[seg_of == s], rhs[seg_of == s]) for s in np.unique(seg_of).tolist()}
+
+
+def _give_up_first(tight: IntArray, pairs: list[tuple[int, int]], reference: Sequence[FloatArray], pieces: FloatArray,
+                   pp: IntArray, refs: FloatArray, pts: FloatArray, need: FloatArray, segs: list[int],
+                   times: FloatArray) -> None:
+    """Raise `NoFace` for the first pair (in order) whose max-margin plane leaves our reference
+    within s' of the neighbour, if any. Gilbert's steps clear most pairs at once (a plane with
+    s' to spare); the QP decides the rest, in order. In growing chunks, so that an early failure
+    (a neighbour crossing our first segment) costs no steps for the pairs after it."""
+    at, size = 0, GILBERT_MIN
+    while at < tight.size:
+        chunk = slice(at, min(at + size, tight.size))
+        gg = np.full(chunk.stop - at, -np.inf)
+        if chunk.stop - at >= GILBERT_MIN:
+            gg = nearest_planes(refs[chunk], pts[chunk], need[tight[chunk]])[1]
+        for i, j in enumerate(tight[chunk].tolist()):
+            if gg[i] >= need[j]:
+                continue
+            q, k = pairs[j]
+            gap = best_plane(reference[q], pieces[pp == j].reshape(-1, 3), np.inf)[1]
+            if gap < need[j]:
                 raise NoFace(f"neighbour {k} comes within {max(gap, 0.0):.4g} m of our reference over segment "
                              f"{segs[q]} [{times[segs[q]]:.6g}, {times[segs[q] + 1]:.6g}] s (one plane for the "
-                             f"segment; {need:.4g} m required)")
-        rhs = float((pts @ n).min()) - need
-        entry = faces.setdefault(segs[q], ([], []))
-        entry[0].append(n)
-        entry[1].append(rhs)
-    return {s: (np.array(a), np.array(b)) for s, (a, b) in faces.items()}
+                             f"segment; {need[j]:.4g} m required)")
+        at, size = chunk.stop, 4 * size
 
 
 def add_faces(corridor: Polytope | None, face: tuple[FloatArray, FloatArray] | None) -> Polytope | None:
@@ -308,9 +371,9 @@ def certify_all(traj: Trajectory, neighbours: Neighbours, t_from: float | None =
     _, bk = near_pairs(qlo, qhi, olo, ohi, neighbours.max_required)
     near = sorted(set(owner[bk].tolist()))
     certs: list[tuple[int, SeparationCertificate]] = []
-    checks = certify_many(traj, [neighbours.trajectories[k] for k in near], neighbours.separation,
-                          clock_tolerance=neighbours.clock_tolerance,
-                          speeds=[(neighbours.our_speed, neighbours.speed_of(k)) for k in near], span=span)
+    checks = certify_packed(traj, neighbours.packed, np.asarray(near, dtype=np.intp), neighbours.separation,
+                            clock_tolerance=neighbours.clock_tolerance,
+                            speeds=[(neighbours.our_speed, float(neighbours.their_speeds[k])) for k in near], span=span)
     for k, chk in zip(near, checks, strict=True):
         if not chk.ok:
             return certs, replace_message(chk, f"neighbour {k}: {chk.message}"), len(near)
@@ -379,20 +442,21 @@ def separation_rows(times: FloatArray, cert: SeparationCertificate, n_segments: 
                           np.repeat(rhs[which], 10))
 
 
-def _others_pieces(others: Sequence[Trajectory], owner: IntArray, t0: FloatArray, t1: FloatArray) -> FloatArray:
-    """Pieces (K, 10, 3) of others[owner[i]] on [t0[i], t1[i]], one de Casteljau pass for all."""
-    seg = np.zeros(t0.size, dtype=np.intp)
-    u0, u1 = np.zeros(t0.size), np.zeros(t0.size)
-    held = np.zeros(t0.size, dtype=bool)
-    ctrl = np.empty((t0.size, 10, 3))
-    for j in np.unique(owner).tolist():
-        rows = np.flatnonzero(owner == j)
-        seg[rows], u0[rows], u1[rows], held[rows] = locate(others[j], t0[rows], t1[rows])
-        ctrl[rows] = others[j].control_points[seg[rows]]
-    out = restrict(ctrl, u0, u1)
-    for i in np.flatnonzero(held).tolist():
-        out[i] = others[int(owner[i])].control_points[-1, -1]
-    return out
+def _box_gap(ours: Trajectory, t0: FloatArray, t1: FloatArray, packed: Packed, row: IntArray, held_owner: IntArray,
+             held: NDArray[np.bool_], room: FloatArray) -> tuple[FloatArray, tuple[IntArray, FloatArray, FloatArray,
+                                                                                NDArray[np.bool_]]]:
+    """The largest axis gap between our piece's box and the neighbour's segment box (row `row` of
+    `packed`; its held point where `held`) on each interval, and our locations. Our box: the whole
+    segment's, then, where that leaves less than `room`, the grid run's (`span_boxes`)."""
+    alo, ahi, seg, u0, u1, a_held = our_boxes(ours, t0, t1)
+    blo, bhi = packed.lo[row], packed.hi[row]
+    blo[held] = bhi[held] = packed.last[held_owner]
+    gap = np.maximum((blo - ahi).max(axis=1), (alo - bhi).max(axis=1))
+    short = np.flatnonzero(gap < room)
+    if short.size:
+        slo, shi = span_boxes(ours, seg[short], u0[short], u1[short], a_held[short])
+        gap[short] = np.maximum(gap[short], np.maximum((blo[short] - shi).max(axis=1), (slo - bhi[short]).max(axis=1)))
+    return gap, (seg, u0, u1, a_held)
 
 
 def planning_rows(times: FloatArray, reference: Trajectory, neighbours: Neighbours, pieces: int = 2,
@@ -417,24 +481,36 @@ def planning_rows(times: FloatArray, reference: Trajectory, neighbours: Neighbou
     if not near:
         return empty
     span = (float(times[0]), float(times[-1]))
-    frac = np.arange(pieces + 1) / pieces
-    t0_l: list[FloatArray] = []
-    t1_l: list[FloatArray] = []
-    own_l: list[IntArray] = []
-    for k in near:
-        knots = common_knots(reference, neighbours.trajectories[k], extra=times, span=span)
-        if knots.size < 2:
-            continue
-        edges = knots[:-1, None] + (knots[1:] - knots[:-1])[:, None] * frac[None, :]  # (K, pieces + 1)
-        t0_l.append(edges[:, :-1].ravel())
-        t1_l.append(edges[:, 1:].ravel())
-        own_l.append(np.full(t0_l[-1].size, k, dtype=np.intp))
-    if not t0_l:
+    owners = np.asarray(near, dtype=np.intp)
+    pair, k0, k1, _ = batch_knots(reference, neighbours.packed, owners, span=span, extra=times)
+    need_of = neighbours.required_all
+    who = owners[pair]
+    # an interval (then a piece) whose boxes are s' + reach apart on an axis gives no row (each
+    # piece's axis gap is at least its boxes'): skip it before any splitting
+    packed = neighbours.packed
+    row, _, _, held = locate_packed(packed, who, k0, k1)
+    room = need_of[who] + neighbours.reach
+    close = _box_gap(reference, k0, k1, packed, row, who[held], held, room)[0] < room
+    if not close.any():
         return empty
-    t0, t1, owner = np.concatenate(t0_l), np.concatenate(t1_l), np.concatenate(own_l)
-    need = np.array([neighbours.required(k) for k in range(len(neighbours.trajectories))])[owner]
-    pa = pieces_between(reference, t0, t1)
-    pb = _others_pieces(neighbours.trajectories, owner, t0, t1)
+    k0, k1, owner, row = k0[close], k1[close], who[close], row[close]
+    frac = np.arange(pieces + 1) / pieces
+    edges = k0[:, None] + (k1 - k0)[:, None] * frac[None, :]  # (K, pieces + 1)
+    t0, t1 = edges[:, :-1].ravel(), edges[:, 1:].ravel()
+    owner, row = np.repeat(owner, pieces), np.repeat(row, pieces)
+    _, u0, u1, held = locate_packed(packed, owner, t0, t1)
+    room = need_of[owner] + neighbours.reach
+    gap, (seg, a_u0, a_u1, a_held) = _box_gap(reference, t0, t1, packed, row, owner[held], held, room)
+    close = gap < room
+    if not close.any():
+        return empty
+    t0, t1, owner, row, u0, u1, held = t0[close], t1[close], owner[close], row[close], u0[close], u1[close], held[close]
+    need = need_of[owner]
+    both = restrict(np.concatenate([reference.control_points[seg[close]], packed.ctrl[row]]),
+                    np.concatenate([a_u0[close], u0]), np.concatenate([a_u1[close], u1]))  # one pass
+    pa, pb = both[: t0.size], both[t0.size :]
+    pa[a_held[close]] = reference.control_points[-1, -1]
+    pb[held] = packed.last[owner[held]][:, None]
     halves = halves_matrix()
     out_t0: list[FloatArray] = []
     out_t1: list[FloatArray] = []
@@ -443,7 +519,18 @@ def planning_rows(times: FloatArray, reference: Trajectory, neighbours: Neighbou
     for level in range(max_depth + 1):
         n, gap, _ = cheap_planes(pa, pb)
         keep = gap < need + neighbours.reach  # farther pieces need no row
-        for i in np.flatnonzero(keep & (gap < need)).tolist():
+        short = np.flatnonzero(keep & (gap < need))
+        bound = np.full(gap.size, np.inf)
+        if short.size >= GILBERT_MIN:
+            # Gilbert's steps for every short piece at once; the QP only where they fall short
+            gn, gg, _, gb = nearest_planes(pa[short], pb[short], need[short])
+            better = gg > gap[short]
+            n[short[better]], gap[short[better]] = gn[better], gg[better]
+            bound[short] = gb
+        # the QP where Gilbert's steps settle nothing; below max_depth a piece no plane can clear
+        # (bound < s') is halved anyway, so it needs none
+        hopeless = (bound < need) & (level < max_depth)
+        for i in np.flatnonzero(keep & (gap < need) & ~hopeless).tolist():
             mm = max_margin_plane(pa[i], pb[i])
             if mm is not None and mm[1] > gap[i]:
                 n[i], gap[i] = mm[0], mm[1]
