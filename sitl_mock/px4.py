@@ -41,23 +41,30 @@ DEFAULT_READY_S = 36.5
 DRIFT_CENTRE = -0.25
 DRIFT_AMPLITUDE = 0.95
 DRIFT_PERIOD_S = 23.0
-# In AUTO.LOITER in the air, PX4 SIH's reported estimate wanders (field, PX4 SIH 1.15 after the
-# companion's hand-over: estimate speeds up to 0.50-0.65 m/s horizontally and 0.31 m/s vertically
-# while the hold kept its altitude within 0.2 m and drifted <= 1 m): when AUTO.LOITER follows
-# OFFBOARD in the air (a hand-over, a pilot's takeover: the case measured), the mock's
-# LOCAL_POSITION_NED wanders by LOITER_WANDER_M at up to LOITER_WANDER_SPEED horizontally (a sine
-# along one direction) and by LOITER_WANDER_Z_M at up to LOITER_WANDER_Z_SPEED vertically.
-LOITER_WANDER_M = 0.5
+# In AUTO.LOITER in the air, PX4 SIH's reported estimate wanders (measured 2026-12-03, 10 switches
+# from OFFBOARD to AUTO.LOITER on PX4 SIH at 9ececfdd: at rest, horizontal estimate speeds up to
+# 0.47-0.52 m/s, an excursion of 0.55-0.87 m out and back over 5-10 s; vertical speeds up to
+# 0.17-0.30 m/s and 0.15-0.18 m; 2 s after a switch at 3 m/s up to 0.67-0.79 m/s; after the
+# companion's braked hand-overs, 2026-12-02, up to 0.50-0.65 m/s: the mock takes 0.6): when AUTO.LOITER follows OFFBOARD in the air (a hand-over, a
+# pilot's takeover: the case measured), the mock's LOCAL_POSITION_NED makes excursions out to
+# LOITER_WANDER_M and back at up to LOITER_WANDER_SPEED horizontally (along one direction, from
+# rest at the mode's start: 1 - cos) and out to LOITER_WANDER_Z_M at up to LOITER_WANDER_Z_SPEED
+# vertically.
+LOITER_WANDER_M = 0.8
 LOITER_WANDER_SPEED = 0.6
-LOITER_WANDER_Z_M = 0.1
-LOITER_WANDER_Z_SPEED = 0.25
+LOITER_WANDER_Z_M = 0.16
+LOITER_WANDER_Z_SPEED = 0.28
 LOITER_WANDER_DIR = np.array([math.cos(math.radians(30.0)), math.sin(math.radians(30.0)), 0.0])
 # PX4 sends its arming-check report when the checks' results change (Report::report: a
-# difference not yet reported, rate-limited), never in answer to an arm (Commander::arm calls
-# update() without forcing a report). While the estimator settles its checks change now and
-# then: on PX4 SIH 1.15 a report came 3.7 s before a refused arm, then none for 28 s. The mock
-# reports at boot and again every REPORT_AGAIN_S until ready (MockConfig.px4_report_every_s).
-REPORT_AGAIN_S = 28.0
+# difference not yet reported, at most every 2 s), never in answer to an arm (Commander::arm calls
+# update() without forcing a report). Measured on PX4 SIH (9ececfdd, 5 boots): at 2.3-2.5 s and
+# again at 4.4-4.6 s after boot, then nothing for 28-31 s until the estimator's attitude is valid
+# (1.1-1.2 s before "Ready for takeoff!"), at ready, and on each later change; 6 refused arms
+# were followed only by commander_arm_denied_resolve_failures. The mock reports at REPORTS_AT s
+# after boot, when the attitude is valid and at ready (MockConfig.px4_report_every_s adds a
+# report that often, for tests about the words rather than the timing).
+REPORTS_AT = (2.4, 4.5)
+ATTITUDE_BEFORE_READY_S = 1.2  # ATTITUDE starts once the attitude is valid, this long before ready
 
 GENERAL_URI = "mftp://etc/extras/component_general.json.xz"
 EVENTS_URI = "mftp://etc/extras/all_events.json.xz"
@@ -172,11 +179,12 @@ class FtpServer:
 class Px4Rules:
     """The PX4 flavour's readiness and metadata rules, driven by `MockAutopilot` hooks."""
 
-    def __init__(self, mock: MockAutopilot, ready_s: float, report_every_s: float = REPORT_AGAIN_S) -> None:
+    def __init__(self, mock: MockAutopilot, ready_s: float, report_every_s: float | None = None) -> None:
         self.mock = mock
         self.ready_s = ready_s
         self.report_every_s = report_every_s
         self.reported_at = -math.inf
+        self.reports_due: list[float] = []  # s after boot (reset)
         self.loiter_since: float | None = None  # airborne in AUTO.LOITER after OFFBOARD since (the wander's phase)
         self.last_mode = ""
         files, self.general_crc = metadata_files()
@@ -188,15 +196,20 @@ class Px4Rules:
     def reset(self) -> None:
         """At boot (and reboot): not ready; home at the local origin until ready."""
         self.ready = self.ready_s <= 0
-        self.reported_at = -math.inf  # the boot report is due at the first step
+        self.reported_at = -math.inf
+        self.reports_due = [*REPORTS_AT, self.ready_s - ATTITUDE_BEFORE_READY_S]
         self.ftp.session = None
         if not self.ready:
             self.mock.home_ned = np.zeros(3)
 
     def step(self) -> None:
         m = self.mock
-        if not self.ready and m.t - self.reported_at >= self.report_every_s:
-            self.report()  # the checks changed as the estimate settles (REPORT_AGAIN_S)
+        since_boot = m.t - m.boot_t
+        due = [t for t in self.reports_due if t <= since_boot]
+        if not self.ready and (due or (self.report_every_s is not None
+                                       and m.t - self.reported_at >= self.report_every_s)):
+            self.reports_due = [t for t in self.reports_due if t > since_boot]
+            self.report()  # the checks changed (REPORTS_AT, the attitude valid), or the test's period
         if not self.ready and m.t - m.boot_t >= self.ready_s:
             self.ready = True
             m.home_ned = m.vehicle.state.pos.copy()  # PX4 sets home where the vehicle stands
@@ -212,16 +225,19 @@ class Px4Rules:
 
     def sends(self, msg_id: int) -> bool:
         """GPS_GLOBAL_ORIGIN only once the estimator has a global origin (the stream sends nothing
-        while vehicle_local_position has no xy_global / z_global), ATTITUDE only once its attitude
-        is valid (field, PX4 SIH 1.15: ATTITUDE began ~30 s after the link, with the estimator
-        still settling): here, both once ready."""
-        return self.ready or msg_id not in (mav.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN, mav.MAVLINK_MSG_ID_ATTITUDE)
+        while vehicle_local_position has no xy_global / z_global): here, once ready. ATTITUDE only
+        once its attitude is valid (measured on PX4 SIH, 5 boots: from 1.1-1.2 s before ready)."""
+        if self.ready:
+            return True
+        if msg_id == mav.MAVLINK_MSG_ID_ATTITUDE:
+            return bool(self.mock.t - self.mock.boot_t >= self.ready_s - ATTITUDE_BEFORE_READY_S)
+        return bool(msg_id != mav.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN)
 
     def arm_refusal(self) -> str | None:
         """Why PX4 refuses to arm now (None: it may), after saying so as PX4 does."""
         if self.ready:
             return None
-        # no report here: the reasons went out when the checks last changed (REPORT_AGAIN_S)
+        # no report here: the reasons went out when the checks last changed (REPORTS_AT)
         why = "Arming denied: Resolve system health failures first"
         self.mock._report(mav.MAV_SEVERITY_CRITICAL, why, "commander_arm_denied_resolve_failures",
                           internal=mav.MAV_SEVERITY_INFO)
@@ -242,12 +258,14 @@ class Px4Rules:
             self.last_mode = m.mode
         if self.loiter_since is None or m.landed:
             return pos, vel
-        w, wz = LOITER_WANDER_SPEED / LOITER_WANDER_M, LOITER_WANDER_Z_SPEED / LOITER_WANDER_Z_M
+        # excursions of 2 r at up to r w: r = M / 2, w = speed / r
+        r, rz = LOITER_WANDER_M / 2.0, LOITER_WANDER_Z_M / 2.0
+        w, wz = LOITER_WANDER_SPEED / r, LOITER_WANDER_Z_SPEED / rz
         tau = m.t - self.loiter_since
         up = np.array([0.0, 0.0, 1.0])
-        return (pos + LOITER_WANDER_DIR * LOITER_WANDER_M * math.sin(w * tau) + up * LOITER_WANDER_Z_M * math.sin(wz * tau),
-                vel + LOITER_WANDER_DIR * LOITER_WANDER_SPEED * math.cos(w * tau)
-                + up * LOITER_WANDER_Z_SPEED * math.cos(wz * tau))
+        return (pos + LOITER_WANDER_DIR * r * (1.0 - math.cos(w * tau)) + up * rz * (1.0 - math.cos(wz * tau)),
+                vel + LOITER_WANDER_DIR * LOITER_WANDER_SPEED * math.sin(w * tau)
+                + up * LOITER_WANDER_Z_SPEED * math.sin(wz * tau))
 
     def component_metadata(self) -> Any:
         return mavwire.component_metadata(self.mock.time_boot_ms, self.general_crc, GENERAL_URI)

@@ -104,8 +104,9 @@ class MockConfig:
     # PX4: seconds from boot until the estimator has settled and arming is allowed (sitl_mock.px4);
     # None: sitl_mock.px4.DEFAULT_READY_S (36.5 s, as PX4 1.15 SIH); 0: ready at boot.
     px4_ready_s: float | None = None
-    # PX4: seconds between arming-check reports while not ready; None: sitl_mock.px4.REPORT_AGAIN_S
-    # (28 s, as measured); tests about the words, not the timing, shorten it.
+    # PX4: a period of arming-check reports while not ready, besides those PX4 sends when its
+    # checks change (sitl_mock.px4.REPORTS_AT); None: none (as PX4). Tests about the words, not
+    # the timing, set one.
     px4_report_every_s: float | None = None
 
     def validate(self) -> None:

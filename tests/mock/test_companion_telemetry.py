@@ -172,7 +172,8 @@ def test_px4_not_ready_is_told_apart_from_requests_ignored(tmp_path: Path) -> No
     """The field (PX4 SIH 1.15): the companion said PX4 "ignores the requests for ATTITUDE ...
     check MAV_n_MODE" while PX4's estimator was not ready (HOME_POSITION at the local origin,
     arming checks failing); it is said as that, and withdrawn when ATTITUDE comes. The PX4 mock
-    itself sends no ATTITUDE until ready (here 9 s after boot, instead of 36.5)."""
+    itself sends no ATTITUDE until its attitude is valid (1.2 s before ready, here 9 s after boot
+    instead of 36.5)."""
     mock = MockAutopilot(MockConfig(autopilot="px4", endpoints=["udpin:127.0.0.1:0"], px4_ready_s=9.0,
                                     ground_z=1.6, log_path=str(tmp_path / "f.jsonl"))).start()
 
@@ -184,7 +185,7 @@ def test_px4_not_ready_is_told_apart_from_requests_ignored(tmp_path: Path) -> No
         assert "ignores" not in ev["message"] and "MAV_n_MODE" not in ev["message"], ev["message"]
         assert not mock.snapshot()["ready"]
         await until(lambda: events.of("telemetry")[-1].get("resolved"), 15, "the telemetry resolved")
-        assert mock.snapshot()["ready"]
+        assert mock.t - mock.boot_t >= 9.0 - 1.3  # once PX4's attitude is valid (1.2 s before ready)
 
     try:
         asyncio.run(_run(mock, check))

@@ -255,9 +255,9 @@ def test_two_mocks_with_different_sysids(make_mock) -> None:  # type: ignore[no-
 
 
 def test_loiter_after_offboard_reports_a_wandering_estimate(make_mock) -> None:  # type: ignore[no-untyped-def]
-    """PX4 SIH 1.15 after the companion's hand-over to AUTO.LOITER (field): estimate speeds of
-    0.50-0.65 m/s while the hold kept its altitude within 0.2 m and drifted <= 1 m. The mock's
-    LOCAL_POSITION_NED does the same; the vehicle itself holds."""
+    """PX4 SIH after OFFBOARD -> AUTO.LOITER at rest (measured, 4 runs): horizontal estimate
+    speeds up to 0.47-0.52 m/s, excursions of 0.55-0.87 m, vertical 0.17-0.30 m/s and within
+    0.15-0.18 m. The mock's LOCAL_POSITION_NED does the same; the vehicle itself holds."""
     mock, c = make_mock("px4", speed=2.0)
     streamer = fly_offboard(mock, c, mock.addresses[0][1])
     time.sleep(1.0)
@@ -268,9 +268,11 @@ def test_loiter_after_offboard_reports_a_wandering_estimate(make_mock) -> None: 
     held = mock.snapshot()["position"]
     seen = [m for m in c.collect(4.0) if m.get_type() == "LOCAL_POSITION_NED"]  # 8 s simulated
     speeds = [math.hypot(m.vx, m.vy) for m in seen]
-    assert 0.5 <= max(speeds) <= 0.65, max(speeds)
+    assert 0.5 <= max(speeds) <= 0.65, max(speeds)  # after braked hand-overs: 0.50-0.65
     xs, ys, zs = ([getattr(m, k) for m in seen] for k in "xyz")
-    assert math.hypot(max(xs) - min(xs), max(ys) - min(ys)) <= 1.0 + 1e-6  # drift <= 1 m
-    assert max(zs) - min(zs) <= 0.2
+    out = max(math.hypot(x - xs[0], y - ys[0]) for x, y in zip(xs, ys, strict=True))
+    assert 0.55 <= out <= 0.9, out  # an excursion of 0.55-0.87 m, and back
+    assert math.hypot(xs[-1] - xs[0], ys[-1] - ys[0]) < out
+    assert 0.1 <= max(zs) - min(zs) <= 0.2
     truth = mock.snapshot()["position"]
     assert math.dist(truth, held) < 0.2  # the vehicle holds; its estimate wanders

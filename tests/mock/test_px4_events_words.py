@@ -92,8 +92,8 @@ def test_events_without_metadata_say_why_they_are_numbers(tmp_path: Path) -> Non
 def test_an_arm_refusal_names_the_arming_checks_reported_seconds_before(tmp_path: Path) -> None:
     """Real PX4 (SIH 1.15, px4_1..5) sends its arming-check report when the checks change, 3.7 s
     before the `arm` in the field, and with the refusal only "Arming denied: Resolve system health
-    failures first". The mock does the same (a report every 8 s here); the refusal still says
-    what fails, from the report heard seconds before."""
+    failures first". The mock does the same (reports 2.4 and 4.5 s after boot, then every 8 s
+    here); the refusal still says what fails, from the report heard seconds before."""
     mock = MockAutopilot(MockConfig(autopilot="px4", endpoints=["udpin:127.0.0.1:0"], px4_ready_s=600.0,
                                     px4_report_every_s=8.0, log_path=str(tmp_path / "f.jsonl"))).start()
     assert mock.px4 is not None
@@ -103,7 +103,8 @@ def test_an_arm_refusal_names_the_arming_checks_reported_seconds_before(tmp_path
         events = Events(svc)
         async with serving(svc):
             await until(lambda: svc.link.events.metadata is not None, 20, "the events metadata")
-            await until(lambda: reported(svc), 12, "an arming-check report")
+            # past PX4's two reports after boot (sitl_mock.px4.REPORTS_AT), one heard
+            await until(lambda: reported(svc) and mock.t - mock.boot_t > 4.6, 12, "an arming-check report")
             await asyncio.sleep(2.5)  # beyond the second before the ACK that is searched for reasons
             await svc.commands.on_command(Command("arm"), time.monotonic())
             await until(lambda: events.of("refused"), 15, "the refusal")
