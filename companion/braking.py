@@ -11,7 +11,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -25,6 +24,7 @@ from companion.report import Reporter
 from companion.route import build_corridors
 from companion.runtime import Runtime
 from companion.supervisor import Braking, Supervisor
+from companion.traffic import named_neighbours
 from companion.wire.encode import vec
 from companion.wire.messages import MissionSpec
 from planner_core import (
@@ -129,14 +129,7 @@ def separation_failure(traj: Trajectory, neighbours: Neighbours | None, names: S
     if neighbours is None or not neighbours.trajectories:
         return ""
     _, failure, _ = certify_all(traj, neighbours)
-    if failure is None:
-        return ""
-
-    def name(m: re.Match[str]) -> str:
-        k = int(m.group(1))
-        return names[k] if 0 <= k < len(names) else m.group(0)
-
-    return re.sub(r"neighbour (\d+)", name, failure.message)
+    return "" if failure is None else named_neighbours(failure.message, names)
 
 
 def _separated_stop(jet: FloatArray, bounds: Bounds, corridor: Polytope, t_b: float, first: Trajectory, said: str,

@@ -13,7 +13,6 @@ import asyncio
 import json
 import logging
 import math
-import re
 import time
 from collections.abc import Callable
 from typing import Any
@@ -23,7 +22,7 @@ from companion.clocks import ClockCheck
 from companion.config import Config
 from companion.fleet import FleetFrame
 from companion.geodesy import Placement
-from companion.traffic import Claim, Traffic, other, read_claim, to_fleet
+from companion.traffic import Claim, Traffic, named_neighbours, other, read_claim, to_fleet
 from planner_core import Bounds, Trajectory
 from planner_core.separation import Neighbours, SeparationCertificate, bound_speed, speed_bound
 
@@ -110,11 +109,7 @@ class Deconfliction:
 
     def named(self, text: str) -> str:
         """planner_core's "neighbour k" in a message as the vehicle it is."""
-        def name(m: re.Match[str]) -> str:
-            k = int(m.group(1))
-            return self.order[k] if 0 <= k < len(self.order) else m.group(0)
-
-        return re.sub(r"neighbour (\d+)", name, text)
+        return named_neighbours(text, self.order)
 
     def names(self) -> list[str]:
         return sorted({c.vehicle for c in self.traffic.live(time.time())})

@@ -18,6 +18,8 @@ s' grows by exactly that much).
 from __future__ import annotations
 
 import math
+import re
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -210,6 +212,15 @@ class Traffic:
         start = float(cert.times[0])
         chk = verify_separation(from_time(claim.trajectory, start), from_time(ours, start), cert)
         return None if chk.ok else f"{claim.vehicle}'s certificate against our trajectory fails: {chk.message}"
+
+
+def named_neighbours(text: str, names: Sequence[str]) -> str:
+    """planner_core's "neighbour k" in a message as the vehicle it is (`names[k]`)."""
+    def name(m: re.Match[str]) -> str:
+        k = int(m.group(1))
+        return names[k] if 0 <= k < len(names) else m.group(0)
+
+    return re.sub(r"neighbour (\d+)", name, text)
 
 
 def other(claim: Claim, conflicts: bool, conflicts_committed: bool = False) -> Other:
