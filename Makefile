@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 AOT := $(VENV)/.kernel-built
-KERNEL_SOURCES := planner_core/window_kernel.py planner_core/kernel_aot.py planner_core/build_kernel.py
+KERNEL_SOURCES := planner_core/kernel_jit.py planner_core/window_factor.py planner_core/window_rows.py planner_core/window_kernel.py planner_core/kernel_aot.py planner_core/build_kernel.py
 
 .PHONY: setup demo demo-fleet test lint typecheck pytest bench clean
 

@@ -29,7 +29,10 @@ from typing import Any
 import numpy as np
 
 MODULE = "_window_aot"  # planner_core._window_aot
-SOURCE = Path(__file__).with_name("window_kernel.py")
+# Every file the pass is compiled from (the exported functions' modules and what they call):
+# a build, and numba's cache of the JIT (`kernel_jit.refresh_cache`), belong to all of them.
+SOURCES = tuple(Path(__file__).with_name(f) for f in
+                ("kernel_jit.py", "window_factor.py", "window_rows.py", "window_kernel.py"))
 BUILD_COMMAND = "python -m planner_core.build_kernel"
 
 _I1 = "int64[::1]"
@@ -70,10 +73,15 @@ def signature(name: str) -> str:
     return f"{ret}({', '.join(t for _, t in args)})"
 
 
-def source_digest(source: Path | None = None) -> int:
-    """63 bits of SHA-256 over the kernel's source, the exported signatures and numpy's version
-    (a pycc module is built against numpy's C API): what a build must have been made from."""
-    h = hashlib.sha256((source or SOURCE).read_bytes())
+def source_digest(sources: tuple[Path, ...] | None = None) -> int:
+    """63 bits of SHA-256 over the kernel's sources (each file's name and bytes), the exported
+    signatures and numpy's version (a pycc module is built against numpy's C API): what a build
+    must have been made from."""
+    h = hashlib.sha256()
+    for path in sources or SOURCES:
+        data = path.read_bytes()
+        h.update(f"{path.name} {len(data)}\n".encode())
+        h.update(data)
     for name in sorted(EXPORTS):
         h.update(f"\n{name}: {signature(name)}".encode())
     h.update(f"\nnumpy {np.__version__}".encode())
@@ -169,10 +177,10 @@ class AotKernel:
         self._fns["fill_rows"](*self._args("fill_rows", args))
 
 
-def load(source: Path | None = None) -> AotKernel | str:
-    """The AOT build of `source` (default `SOURCE`: window_kernel.py), or why not (not built, not
-    loadable, built from another source or for another CPU)."""
-    source = source or SOURCE
+def load(sources: tuple[Path, ...] | None = None) -> AotKernel | str:
+    """The AOT build of `sources` (default `SOURCES`: the kernel's files), or why not (not built,
+    not loadable, built from other sources or for another CPU)."""
+    sources = sources or SOURCES
     path = built_path()
     if path is None:
         return f"not built ({BUILD_COMMAND})"
@@ -182,10 +190,10 @@ def load(source: Path | None = None) -> AotKernel | str:
         cpu = int(module.cpu_hash())
     except (ImportError, OSError, AttributeError) as exc:
         return f"{path.name} does not load: {type(exc).__name__}: {exc}"
-    want = source_digest(source)
+    want = source_digest(sources)
     if built != want:
-        return (f"stale: {path.name} was built from another {source.name} (or other signatures or numpy): "
-                f"digest {built:016x}, the source's {want:016x}; rebuild with {BUILD_COMMAND}")
+        return (f"stale: {path.name} was built from other kernel sources ({', '.join(p.name for p in sources)}), "
+                f"signatures or numpy: digest {built:016x}, the sources' {want:016x}; rebuild with {BUILD_COMMAND}")
     if cpu != cpu_digest():
         return f"{path.name} was built for another CPU (its flags differ from this one's); rebuild with {BUILD_COMMAND}"
     return AotKernel(module)

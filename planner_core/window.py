@@ -79,7 +79,7 @@ _aot_reason: list[str] = []  # why the AOT build is not the one loaded (when it 
 def kernel_build(build: str) -> str:
     """Process-wide: which build of the compiled pass to load. `auto` (the default): the
     ahead-of-time build (`python -m planner_core.build_kernel`: a plain extension module, no
-    numba, ~ms to load) when it is there and built from this `window_kernel.py`, else numba's
+    numba, ~ms to load) when it is there and built from the kernel's sources as they are, else numba's
     JIT (`window_kernel`); `aot`: that build only (else no compiled pass, with the reason);
     `jit`: numba's only. The environment variable PLANNER_CORE_KERNEL sets it at start-up.
     `use_compiled_kernel(False)` still means no compiled pass at all. Returns the build before."""

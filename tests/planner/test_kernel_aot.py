@@ -105,13 +105,17 @@ def test_aot_rows_equal_jit_rows_bit_for_bit(build: None) -> None:
 
 def test_a_stale_build_is_refused_with_the_reason(build: None, tmp_path: Path,
                                                    monkeypatch: pytest.MonkeyPatch) -> None:
-    """An edit of window_kernel.py after the build: the AOT module is refused (its digest is not
-    the source's), the JIT compiles the source as it is; asked for the AOT build only, none."""
-    edited = tmp_path / "window_kernel.py"
-    edited.write_text(kernel_aot.SOURCE.read_text() + "\n# an edit after the build\n")
-    why = kernel_aot.load(edited)
+    """An edit of any file of the kernel after the build (here `window_factor.py`, which the
+    exported functions only call): the AOT module is refused (its digest is not the sources'),
+    the JIT compiles the sources as they are; asked for the AOT build only, none."""
+    edited = tmp_path / "window_factor.py"
+    sources = tuple(edited if p.name == edited.name else p for p in kernel_aot.SOURCES)
+    assert sources != kernel_aot.SOURCES
+    edited.write_text((kernel_aot.SOURCES[1].parent / edited.name).read_text() + "\n# an edit after the build\n")
+    why = kernel_aot.load(sources)
     assert isinstance(why, str) and why.startswith("stale:") and kernel_aot.BUILD_COMMAND in why
-    monkeypatch.setattr(kernel_aot, "SOURCE", edited)
+    assert not isinstance(kernel_aot.load(), str)  # the build itself is of the sources as they are
+    monkeypatch.setattr(kernel_aot, "SOURCES", sources)
     window.kernel_build("auto")
     assert window.kernel_kind() == "jit"
     reason = window.aot_unavailable()

@@ -390,7 +390,7 @@ def test_compiled_rows_and_checks_agree_with_the_stacked_rows() -> None:
     c = window._compact_rows(store)
     assert np.any(c.pd == 3)
     pts = np.empty((cache.hull.shape[1] + 10, 3))
-    nz = wk._nonzero_runs(cache.hull)
+    nz = wk.nonzero_runs(cache.hull)
     bad = np.empty(int(np.max(np.diff(store.off))), dtype=np.int64)
     flagged = 0
     for s in range(problem.m - 1):
@@ -399,7 +399,7 @@ def test_compiled_rows_and_checks_agree_with_the_stacked_rows() -> None:
         ids = np.arange(n, dtype=np.int64)
         fixed = np.full(n, -1, dtype=np.int64)
         wab, nrm, lim4 = np.empty((n, 24)), np.empty(n), np.empty((4, n))
-        wk._materialize(ids, n, store.off[s], np.full(n, s, dtype=np.int64), fixed, fixed, c.off, cache.hull, store.cs,
+        wk.materialize(ids, n, store.off[s], np.full(n, s, dtype=np.int64), fixed, fixed, c.off, cache.hull, store.cs,
                         c.pr, c.pd, c.bn1, c.nb, c.face_off, c.pa, problem.waypoints, c.b6, c.f6, np.zeros(24), wab,
                         nrm, lim4)
         np.testing.assert_allclose(wab, store.ab[rows], rtol=1e-14, atol=1e-14)
@@ -411,7 +411,7 @@ def test_compiled_rows_and_checks_agree_with_the_stacked_rows() -> None:
             lim = store.lim[:, rows]
             out = (vals > lim[3]) | (vals < lim[2])
             near = (np.abs(vals - lim[3]) < 1e-9) | (np.abs(vals - lim[2]) < 1e-9)
-            nbad = wk._seg_check(s, 0, n, xa, xb, 2, 3, 0.0, cache.hull, c.pr, c.pd, c.bn1, c.nb, c.face_off, c.pa,
+            nbad = wk.seg_check(s, 0, n, xa, xb, 2, 3, 0.0, cache.hull, c.pr, c.pd, c.bn1, c.nb, c.face_off, c.pa,
                                  problem.waypoints, c.b6, c.f6, nz, pts, bad)
             want = {lr for lr in range(n) if out[lr] and not near[lr]}
             got = set(bad[:nbad].tolist())

@@ -105,7 +105,7 @@ def test_compiled_pass_builds_the_stacked_rows() -> None:
     c = window._compact_rows(fast)
     rng = np.random.default_rng(0)
     pts = np.empty((cache.hull.shape[1] + 10, 3))  # the hull's points, then the segment's jets
-    nz = wk._nonzero_runs(cache.hull)
+    nz = wk.nonzero_runs(cache.hull)
     bad = np.empty(int(np.max(np.diff(fast.off))), dtype=np.int64)
     for s in range(problem.m - 1):
         n = fast.off[s + 1] - fast.off[s]
@@ -115,7 +115,7 @@ def test_compiled_pass_builds_the_stacked_rows() -> None:
         seg = np.full(n, s, dtype=np.int64)
         fixed = np.full(n, -1, dtype=np.int64)
         wab, nrm, lim4 = np.empty((n, 2 * NV)), np.empty(n), np.empty((4, n))
-        wk._materialize(ids, n, fast.off[s], seg, fixed, fixed, c.off, cache.hull, fast.cs, c.pr, c.pd, c.bn1,
+        wk.materialize(ids, n, fast.off[s], seg, fixed, fixed, c.off, cache.hull, fast.cs, c.pr, c.pd, c.bn1,
                         c.nb, c.face_off, c.pa, problem.waypoints, c.b6, c.f6, np.zeros(2 * NV), wab, nrm, lim4)
         np.testing.assert_array_equal(wab, fast.ab[rows])
         assert np.all(nrm == 0.0)
@@ -127,7 +127,7 @@ def test_compiled_pass_builds_the_stacked_rows() -> None:
             x = np.concatenate([xa.ravel() / fast.cs[s], xb.ravel() / fast.cs[s + 1]])  # scaled unknowns
             vals = fast.c0[rows] + fast.ab[rows] @ x
             for lra, lrb in ((0, n), (fast.n1[s], n), (0, fast.n1[s]), (fast.n1[s] + fast.n2[s], n)):
-                nbad = wk._seg_check(s, lra, lrb, xa, xb, 2, 3, 0.0, cache.hull, c.pr, c.pd, c.bn1, c.nb,
+                nbad = wk.seg_check(s, lra, lrb, xa, xb, 2, 3, 0.0, cache.hull, c.pr, c.pd, c.bn1, c.nb,
                                      c.face_off, c.pa, problem.waypoints, c.b6, c.f6, nz, pts, bad)
                 lim = fast.lim[:, rows]
                 out = (vals > lim[3]) | (vals < lim[2])
