@@ -256,8 +256,6 @@ def config_from_dict(table: dict[str, Any]) -> Config:
     if cfg.fleet.offset_ned and not cfg.fleet.origin:
         raise ConfigError("fleet.offset_ned", "needs [fleet] origin (the frame the offset is in)")
     if cfg.live.foxglove:
-        from companion.live import parse_address
-
         try:
             parse_address(cfg.live.foxglove)
         except ValueError as exc:
@@ -303,3 +301,12 @@ def config_to_toml(cfg: Config | None = None) -> str:
     out: list[str] = []
     _dump_table(cfg or Config(), "", out)
     return "\n".join(out).rstrip() + "\n"
+
+
+def parse_address(text: str) -> tuple[str, int]:
+    """"HOST:PORT", "[v6]:PORT" or ":PORT" (loopback); port 0: any free port. ValueError
+    with the reason."""
+    host, sep, port = text.rpartition(":")
+    if not sep or not port.isdigit() or not 0 <= int(port) < 65536:
+        raise ValueError(f"[live] foxglove = {text!r}: expected HOST:PORT, e.g. 127.0.0.1:8765")
+    return (host.strip("[]") or "127.0.0.1"), int(port)

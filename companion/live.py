@@ -12,18 +12,10 @@ import logging
 from typing import Any
 
 from companion import channels as ch
+from companion.config import parse_address
 from companion.wire.zenoh import loopback
 
 log = logging.getLogger("companion")
-
-
-def parse_address(text: str) -> tuple[str, int]:
-    """"HOST:PORT", "[v6]:PORT" or ":PORT" (loopback); port 0: any free port. ValueError
-    with the reason."""
-    host, sep, port = text.rpartition(":")
-    if not sep or not port.isdigit() or not 0 <= int(port) < 65536:
-        raise ValueError(f"[live] foxglove = {text!r}: expected HOST:PORT, e.g. 127.0.0.1:8765")
-    return (host.strip("[]") or "127.0.0.1"), int(port)
 
 
 class LiveSink:

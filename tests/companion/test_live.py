@@ -21,7 +21,8 @@ import pytest
 import websockets
 from recorder_support import Wire, config
 
-from companion.live import loopback, parse_address
+from companion.config import parse_address
+from companion.live import loopback
 from companion.recorder import Recorder
 
 
