@@ -103,7 +103,9 @@ class MockAutopilot(MavlinkHandlers):
                                  config.position_after_origin_s, config.home_shift_at_arming)
         # PX4 readiness, component metadata and FTP (sitl_mock.px4); None for ArduPilot.
         ready_s = px4.DEFAULT_READY_S if config.px4_ready_s is None else config.px4_ready_s
-        self.px4 = px4.Px4Rules(self, ready_s, config.px4_report_every_s) if self.flavour is Flavour.PX4 else None
+        drift = px4.DRIFT_XY_M if config.px4_drift_m is None else config.px4_drift_m
+        self.px4 = (px4.Px4Rules(self, ready_s, config.px4_report_every_s, drift)
+                    if self.flavour is Flavour.PX4 else None)
         self._reset_state()
 
     # ------------------------------------------------------------------ lifecycle
