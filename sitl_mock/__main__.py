@@ -68,8 +68,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m sitl_mock", description=__doc__)
     p.add_argument("--autopilot", choices=["px4", "ardupilot"], default="px4")
     p.add_argument("--endpoint", action="append", dest="endpoints", metavar="KIND:HOST:PORT",
-                   help=f"udpin:H:P, udpout:H:P[@BH:BP] or tcpin:H:P; repeatable (default {PX4_SITL_ENDPOINT}: PX4 "
-                   "SITL's offboard pair, which the companion's default URL meets)")
+                   help=f"udpin:H:P, udpout:H:P[@BH:BP], tcpin:H:P or tcpout:H:P (dial H:P); repeatable "
+                   f"(default {PX4_SITL_ENDPOINT}: PX4 SITL's offboard pair, which the companion's default URL "
+                   "meets)")
     p.add_argument("--px4-sitl-ports", action="store_true",
                    help=f"act as PX4 SITL's offboard link: {PX4_SITL_ENDPOINT} (listen on 14580, send to 14540, "
                    "where MAVSDK, MAVROS and the companion's default udpin:127.0.0.1:14540 listen)")
