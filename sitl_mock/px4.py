@@ -199,6 +199,8 @@ class Px4Rules:
         self.ready_s = ready_s
         self.drift_m = drift_m
         self.drift_dir = np.array([1.0, 0.0, 0.0])  # drawn at each boot (reset)
+        # its own generator: the drift's direction leaves the noise's sequence (mock.rng) as it was
+        self.drift_rng = np.random.default_rng(mock.config.seed)
         self.origin_sent = False  # GPS_GLOBAL_ORIGIN sent since boot (the origin is new once per boot)
         self.report_every_s = report_every_s
         self.reported_at = -math.inf
@@ -218,7 +220,7 @@ class Px4Rules:
         self.reports_due = [*REPORTS_AT, self.ready_s - ATTITUDE_BEFORE_READY_S]
         self.ftp.session = None
         self.origin_sent = False
-        heading = float(self.mock.rng.uniform(0.0, 2.0 * math.pi))
+        heading = float(self.drift_rng.uniform(0.0, 2.0 * math.pi))
         self.drift_dir = np.array([math.cos(heading), math.sin(heading), 0.0])
         if not self.ready:
             self.mock.home_ned = np.zeros(3)
