@@ -75,7 +75,11 @@ def waiting_hint(url: str) -> str:
     elif kind in ("udpout", "udp"):
         where = (f"sending heartbeats to UDP {rest} and listening for the answer: usual causes: nothing listens "
                  "there (a mock or autopilot that sends rather than listens needs udpin: here), or a firewall")
-    elif kind in ("tcp", "tcpin"):
+    elif kind == "tcpin":
+        where = (f"listening on TCP {rest}: the autopilot (or mavlink-router) must connect here; usual causes: "
+                 "it dials another port or host, it has not started yet, or it listens too (ArduPilot SITL "
+                 "serves tcp:127.0.0.1:5760 unless told --serial0 tcpclient:HOST:PORT: use tcp: here then)")
+    elif kind == "tcp":
         where = (f"connecting to TCP {rest}: usual causes: nothing listens there (ArduPilot SITL serves "
                  "tcp:127.0.0.1:5760) or it has not started yet")
     else:

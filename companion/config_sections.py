@@ -44,7 +44,9 @@ class ZenohConfig:
 class MavlinkConfig:
     # udpin:HOST:PORT (we listen; the autopilot sends first: PX4 SITL and PX4's Onboard-mode
     # links send to 14540), udpout:HOST:PORT (we send first), tcp:HOST:PORT (ArduPilot SITL:
-    # tcp:127.0.0.1:5760), serial:/dev/ttyAMA0:921600 (or /dev/ttyAMA0:921600); behind
+    # tcp:127.0.0.1:5760), tcpin:HOST:PORT (we listen; the autopilot dials in: ArduPilot SITL's
+    # --serial0 tcpclient:HOST:PORT, a mavlink-router TCP client endpoint; one connection at a
+    # time, the next accepted when it ends), serial:/dev/ttyAMA0:921600 (or /dev/ttyAMA0:921600); behind
     # mavlink-router: the UDP endpoint it was given. Loopback by default: on a network
     # interface, anyone on that network could talk to the companion (docs/security.md). The
     # link is bound to the autopilot ([vehicle] sysid/autopilot_component and, on UDP, the

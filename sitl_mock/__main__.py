@@ -68,8 +68,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m sitl_mock", description=__doc__)
     p.add_argument("--autopilot", choices=["px4", "ardupilot"], default="px4")
     p.add_argument("--endpoint", action="append", dest="endpoints", metavar="KIND:HOST:PORT",
-                   help=f"udpin:H:P, udpout:H:P[@BH:BP] or tcpin:H:P; repeatable (default {PX4_SITL_ENDPOINT}: PX4 "
-                   "SITL's offboard pair, which the companion's default URL meets)")
+                   help=f"udpin:H:P, udpout:H:P[@BH:BP], tcpin:H:P or tcpout:H:P (dial H:P); repeatable "
+                   f"(default {PX4_SITL_ENDPOINT}: PX4 SITL's offboard pair, which the companion's default URL "
+                   "meets)")
     p.add_argument("--px4-sitl-ports", action="store_true",
                    help=f"act as PX4 SITL's offboard link: {PX4_SITL_ENDPOINT} (listen on 14580, send to 14540, "
                    "where MAVSDK, MAVROS and the companion's default udpin:127.0.0.1:14540 listen)")
@@ -113,6 +114,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--px4-ready-after", type=float, default=None, metavar="SECONDS", dest="px4_ready_s",
                    help="PX4: seconds from boot until arming is allowed, as PX4's estimator settles (default "
                    "36.5, as PX4 1.15 SIH; 0: ready at boot)")
+    p.add_argument("--px4-drift", type=float, default=None, metavar="METRES", dest="px4_drift_m",
+                   help="PX4: how far the estimate on the ground drifts horizontally before ready, reset at "
+                   "ready (default 30; PX4 SIH measured 23-42 m; 0: none)")
     p.add_argument("--px4-statustext", action="store_true",
                    help="PX4: report with STATUSTEXT as PX4 < 1.14 did, instead of EVENT messages")
     p.add_argument("--rc-throttle", type=_rc, default=1000, metavar="PWM|none",
@@ -153,6 +157,7 @@ def main(argv: list[str] | None = None) -> int:
             offboard_warmup_s=args.offboard_warmup, vehicle=RESPONSES[args.response] if args.response else None,
             signing_key=read_signing_key(args.signing_key) if args.signing_key else None,
             ground_z=args.ground_z, px4_statustext=args.px4_statustext, px4_ready_s=args.px4_ready_s,
+            px4_drift_m=args.px4_drift_m,
             rc_throttle=args.rc_throttle, ekf_origin_delay_s=args.ekf_origin_delay, spool_up_s=args.spool_up,
             position_after_origin_s=args.position_after_origin, home_shift_at_arming=args.home_shift_at_arming,
             shaping=args.shaping,

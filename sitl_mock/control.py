@@ -132,6 +132,10 @@ class ControlClient:
         """ArduPilot: the throttle pwm the autopilot receives from now on; None: RC lost."""
         return self.request("rc", throttle=throttle)
 
+    def drop_tcp(self) -> dict[str, Any]:
+        """Close the mock's TCP connections (tcpin and tcpout); a tcpout endpoint dials again."""
+        return self.request("drop_tcp")
+
     def state(self) -> dict[str, Any]:
         return self.request("state")
 

@@ -5,9 +5,10 @@
   (TEMPORARILY_REJECTED) after PX4's arming-check report (Common.cpp Report::report: the
   arming-check summary, each failing check, the health summary) and
   commander_arm_denied_resolve_failures (Commander.cpp arm()); HOME_POSITION reads the local
-  origin (0, 0, 0); LOCAL_POSITION_NED on the ground reads a drifting z (+0.4 to +2.3 m on a
-  ground at +1.6, as measured). When ready, home is set where the vehicle stands and a clean
-  report follows.
+  origin (0, 0, 0); LOCAL_POSITION_NED on the ground drifts tens of metres horizontally and
+  its z wanders (-0.94 to +3.60 m on a ground at +1.6, as measured). When ready, the estimate is
+  reset to where the vehicle stands, home is set there and a clean report follows.
+  GPS_GLOBAL_ORIGIN comes once, 1.5 s after boot, long before ready (as measured).
 - Component metadata as PX4 serves it: COMPONENT_METADATA on MAV_CMD_REQUEST_MESSAGE
   (src/modules/mavlink/streams/COMPONENT_METADATA.hpp: uri mftp://etc/extras/component_general.json.xz),
   the general metadata naming the events file (src/lib/component_information/generate_component_general.py
@@ -36,11 +37,24 @@ if TYPE_CHECKING:
 # Seconds from boot until PX4 SIH is ready to arm (measured 36-37 s). MockConfig.px4_ready_s
 # (None) and --px4-ready-after default to it.
 DEFAULT_READY_S = 36.5
-# The estimate's z on the ground before ready: ground_z - 0.25 +- 0.95 m (with PX4's ground at
-# +1.6: +0.4 to +2.3, as measured), a slow wander.
-DRIFT_CENTRE = -0.25
-DRIFT_AMPLITUDE = 0.95
+# The estimate on the ground before ready (PX4 SIH at 9ececfdd, 5 boots, measured 2026-12-03):
+# z between -0.94 and +3.60 on PX4's +1.6 ground, so ground_z - 0.27 +- 2.27 m, a slow wander;
+# horizontally it drifted 23-42 m away from where the vehicle stood (an earlier session saw up
+# to 72 m), then was reset at ready (home then set where the vehicle stands, e.g.
+# [-0.24, -0.49, 1.48]). The mock drifts DRIFT_XY_M (MockConfig.px4_drift_m) along a direction
+# drawn at each boot, growing smoothly from rest as (t / ready)^2 (a constant velocity error
+# integrating, which is how an estimator without a position fix drifts; the shape was not
+# measured, only the size) with the matching velocity in LOCAL_POSITION_NED, and at ready it
+# reports the vehicle's own position again (the reset).
+DRIFT_CENTRE = -0.27
+DRIFT_AMPLITUDE = 2.27
 DRIFT_PERIOD_S = 23.0
+DRIFT_XY_M = 30.0
+# GPS_GLOBAL_ORIGIN came once, 1.4-1.6 s after boot (measured, 5 boots), long before ready:
+# the estimator's global origin is set by the first GPS fix and not moved by the reset at ready.
+# PX4's stream (streams/GPS_GLOBAL_ORIGIN.hpp) sends only when the origin changes, and on
+# MAV_CMD_REQUEST_MESSAGE. A mock ready sooner than this has its origin when it is ready.
+ORIGIN_AT_S = 1.5
 # In AUTO.LOITER in the air, PX4 SIH's reported estimate wanders (measured 2026-12-03, 10 switches
 # from OFFBOARD to AUTO.LOITER on PX4 SIH at 9ececfdd: at rest, horizontal estimate speeds up to
 # 0.47-0.52 m/s, an excursion of 0.55-0.87 m out and back over 5-10 s; vertical speeds up to
@@ -179,9 +193,15 @@ class FtpServer:
 class Px4Rules:
     """The PX4 flavour's readiness and metadata rules, driven by `MockAutopilot` hooks."""
 
-    def __init__(self, mock: MockAutopilot, ready_s: float, report_every_s: float | None = None) -> None:
+    def __init__(self, mock: MockAutopilot, ready_s: float, report_every_s: float | None = None,
+                 drift_m: float = DRIFT_XY_M) -> None:
         self.mock = mock
         self.ready_s = ready_s
+        self.drift_m = drift_m
+        self.drift_dir = np.array([1.0, 0.0, 0.0])  # drawn at each boot (reset)
+        # its own generator: the drift's direction leaves the noise's sequence (mock.rng) as it was
+        self.drift_rng = np.random.default_rng(mock.config.seed)
+        self.origin_sent = False  # GPS_GLOBAL_ORIGIN sent since boot (the origin is new once per boot)
         self.report_every_s = report_every_s
         self.reported_at = -math.inf
         self.reports_due: list[float] = []  # s after boot (reset)
@@ -199,8 +219,16 @@ class Px4Rules:
         self.reported_at = -math.inf
         self.reports_due = [*REPORTS_AT, self.ready_s - ATTITUDE_BEFORE_READY_S]
         self.ftp.session = None
+        self.origin_sent = False
+        heading = float(self.drift_rng.uniform(0.0, 2.0 * math.pi))
+        self.drift_dir = np.array([math.cos(heading), math.sin(heading), 0.0])
         if not self.ready:
             self.mock.home_ned = np.zeros(3)
+
+    @property
+    def origin_at(self) -> float:
+        """Seconds after boot when the estimator has its global origin (not after it is ready)."""
+        return min(ORIGIN_AT_S, self.ready_s)
 
     def step(self) -> None:
         m = self.mock
@@ -210,28 +238,37 @@ class Px4Rules:
                                        and m.t - self.reported_at >= self.report_every_s)):
             self.reports_due = [t for t in self.reports_due if t > since_boot]
             self.report()  # the checks changed (REPORTS_AT, the attitude valid), or the test's period
-        if not self.ready and m.t - m.boot_t >= self.ready_s:
+        if not self.origin_sent and since_boot >= self.origin_at:
+            # the estimator has its global origin: PX4's GPS_GLOBAL_ORIGIN stream sends it once,
+            # when it is new (src/modules/mavlink/streams/GPS_GLOBAL_ORIGIN.hpp)
+            self.origin_sent = True
+            m.log.write("event", m.t, event="px4_origin")
+            m._send_stream(mav.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN, None, requested=True)
+        if not self.ready and since_boot >= self.ready_s:
             self.ready = True
             m.home_ned = m.vehicle.state.pos.copy()  # PX4 sets home where the vehicle stands
             m.log.write("event", m.t, event="px4_ready", home=m.home_ned.tolist())
-            # The estimator now has its global origin: PX4's GPS_GLOBAL_ORIGIN stream sends when the
-            # origin is new (src/modules/mavlink/streams/GPS_GLOBAL_ORIGIN.hpp), HOME_POSITION when home
-            # is set (streams/HOME_POSITION.hpp, on home_position updates).
-            m._send_stream(mav.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN, None)
+            # HOME_POSITION when home is set (streams/HOME_POSITION.hpp, on home_position updates);
+            # the global origin is not new (set at ORIGIN_AT_S): no GPS_GLOBAL_ORIGIN
             m._send_stream(mav.MAVLINK_MSG_ID_HOME_POSITION, None)
             if not m.events:
                 m._text(mav.MAV_SEVERITY_INFO, "Ready for takeoff!")
             self.report()
 
-    def sends(self, msg_id: int) -> bool:
+    def sends(self, msg_id: int, requested: bool = False) -> bool:
         """GPS_GLOBAL_ORIGIN only once the estimator has a global origin (the stream sends nothing
-        while vehicle_local_position has no xy_global / z_global): here, once ready. ATTITUDE only
-        once its attitude is valid (measured on PX4 SIH, 5 boots: from 1.1-1.2 s before ready)."""
+        while vehicle_local_position has no xy_global / z_global; measured: 1.4-1.6 s after boot),
+        and then only when asked (REQUEST_MESSAGE): the stream sent it once, when it was new
+        (`step`), never periodically. ATTITUDE only once its attitude is valid (measured on PX4
+        SIH, 5 boots: from 1.1-1.2 s before ready)."""
+        since_boot = self.mock.t - self.mock.boot_t
+        if msg_id == mav.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN:
+            return requested and since_boot >= self.origin_at
         if self.ready:
             return True
         if msg_id == mav.MAVLINK_MSG_ID_ATTITUDE:
-            return bool(self.mock.t - self.mock.boot_t >= self.ready_s - ATTITUDE_BEFORE_READY_S)
-        return bool(msg_id != mav.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN)
+            return bool(since_boot >= self.ready_s - ATTITUDE_BEFORE_READY_S)
+        return True
 
     def arm_refusal(self) -> str | None:
         """Why PX4 refuses to arm now (None: it may), after saying so as PX4 does."""
@@ -244,14 +281,20 @@ class Px4Rules:
         return why
 
     def estimate(self, pos: np.ndarray, vel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """LOCAL_POSITION_NED's position and velocity: before ready, z on the ground wanders; in
-        AUTO.LOITER in the air, the horizontal estimate wanders (LOITER_WANDER_*)."""
+        """LOCAL_POSITION_NED's position and velocity: before ready, on the ground, the estimate
+        drifts away horizontally (DRIFT_XY_M over the time to ready) and its z wanders; at ready
+        it is reset to where the vehicle is. In AUTO.LOITER in the air, the horizontal estimate
+        wanders (LOITER_WANDER_*)."""
         m = self.mock
         if not self.ready and m.landed:
-            phase = 2.0 * math.pi * (m.t - m.boot_t) / DRIFT_PERIOD_S
-            out = pos.copy()
+            since_boot = m.t - m.boot_t
+            phase = 2.0 * math.pi * since_boot / DRIFT_PERIOD_S
+            frac = since_boot / self.ready_s  # ready_s > 0 here: not ready
+            out = pos + self.drift_dir * self.drift_m * frac * frac
             out[2] = m.ground_z + DRIFT_CENTRE + DRIFT_AMPLITUDE * math.sin(phase)
-            return out, vel
+            drift_vel = self.drift_dir * (2.0 * self.drift_m * frac / self.ready_s)
+            drift_vel[2] = DRIFT_AMPLITUDE * 2.0 * math.pi / DRIFT_PERIOD_S * math.cos(phase)
+            return out, vel + drift_vel
         entered = m.mode != self.last_mode
         if entered:
             self.loiter_since = m.t if m.mode == "LOITER" and self.last_mode == "OFFBOARD" and not m.landed else None
@@ -292,8 +335,9 @@ class Px4Rules:
                       struct.pack("<BIII", 0, error, 0, can_arm))
         if not self.ready:
             args = ev.arming_check_args(POSITION_MODES, "local_position_estimate")
-            m._report(mav.MAV_SEVERITY_ERROR, "Preflight Fail: horizontal velocity unstable",
-                      "check_estimator_hor_vel_not_stable", args)
+            # the estimator's check PX4 SIH failed while not ready (measured, 5 boots): vertical velocity
+            m._report(mav.MAV_SEVERITY_ERROR, "Preflight Fail: vertical velocity unstable",
+                      "check_estimator_vert_vel_not_stable", args)
             m._report(mav.MAV_SEVERITY_ERROR, "Navigation error: No valid position estimate",
                       "check_modes_local_pos", args)
         if m.events:

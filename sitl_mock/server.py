@@ -103,7 +103,9 @@ class MockAutopilot(MavlinkHandlers):
                                  config.position_after_origin_s, config.home_shift_at_arming)
         # PX4 readiness, component metadata and FTP (sitl_mock.px4); None for ArduPilot.
         ready_s = px4.DEFAULT_READY_S if config.px4_ready_s is None else config.px4_ready_s
-        self.px4 = px4.Px4Rules(self, ready_s, config.px4_report_every_s) if self.flavour is Flavour.PX4 else None
+        drift = px4.DRIFT_XY_M if config.px4_drift_m is None else config.px4_drift_m
+        self.px4 = (px4.Px4Rules(self, ready_s, config.px4_report_every_s, drift)
+                    if self.flavour is Flavour.PX4 else None)
         self._reset_state()
 
     # ------------------------------------------------------------------ lifecycle
@@ -182,6 +184,7 @@ class MockAutopilot(MavlinkHandlers):
                 nxt = self.link_faults.next_release()
                 if nxt is not None:
                     deadline = min(deadline, wall0 + nxt / speed)
+                self._dial()
                 timeout = max(0.0, deadline - time.monotonic())
                 socks = [s for link in self.links for s in link.poll_sockets()]
                 if self.control:
@@ -195,6 +198,13 @@ class MockAutopilot(MavlinkHandlers):
         finally:
             self.log.write("event", self.t, event="stopped")
             self.log.flush()
+
+    def _dial(self) -> None:
+        """tcpout endpoints: connect when not connected (sitl_mock.transport.TCP_REDIAL_S apart)."""
+        for link in self.links:
+            if link.maintain(time.monotonic()):
+                self.log.write("event", self.t, event="tcp_connected", endpoint=str(link.endpoint),
+                               connects=link.connects)
 
     def _on_readable(self, sock: Any) -> None:
         if self.control and sock in self.control.sockets():
@@ -263,12 +273,15 @@ class MockAutopilot(MavlinkHandlers):
             if name not in self.params:
                 raise ValueError(f"set_param: unknown parameter {name!r}")
             self.params[name] = Param(name, _number(req, "value", -math.inf), self.params[name].ptype)
+        elif cmd == "drop_tcp":
+            # every TCP connection closed, as a router or a cable drops it; tcpout dials again
+            return {"ok": True, "closed": sum(link.drop() for link in self.links)}
         elif cmd == "stop":
             self._stop.set()
         else:
             raise ValueError(
                 f"cmd: unknown command {cmd!r}; valid: state, set_mode, pause_link, drop, latency, "
-                "reboot, reject_arming, rc, set_param, stop"
+                "reboot, reject_arming, rc, set_param, drop_tcp, stop"
             )
         self.log.write("event", self.t, event="control", request=req)
         self._update_snapshot()

@@ -108,6 +108,9 @@ class MockConfig:
     # checks change (sitl_mock.px4.REPORTS_AT); None: none (as PX4). Tests about the words, not
     # the timing, set one.
     px4_report_every_s: float | None = None
+    # PX4: how far (m) the estimate on the ground drifts horizontally by the time it is ready
+    # (sitl_mock.px4.DRIFT_XY_M: 30, measured 23-42 m); None: that default; 0: no drift.
+    px4_drift_m: float | None = None
 
     def validate(self) -> None:
         if self.autopilot not in ("px4", "ardupilot"):
@@ -127,6 +130,8 @@ class MockConfig:
         if self.px4_report_every_s is not None and not (math.isfinite(self.px4_report_every_s)
                                                         and self.px4_report_every_s > 0):
             raise ValueError(f"px4_report_every_s: must be a finite number of seconds > 0, got {self.px4_report_every_s}")
+        if self.px4_drift_m is not None and not (math.isfinite(self.px4_drift_m) and 0.0 <= self.px4_drift_m <= 1000.0):
+            raise ValueError(f"px4_drift_m: must be a finite distance in [0, 1000] m, got {self.px4_drift_m}")
         if self.ground_z is not None and not (math.isfinite(self.ground_z) and abs(self.ground_z) <= 1000.0):
             raise ValueError(f"ground_z: must be a finite z in [-1000, 1000] m, got {self.ground_z}")
         if self.rc_throttle is not None and not 800 <= self.rc_throttle <= 2200:

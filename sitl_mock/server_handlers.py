@@ -158,7 +158,7 @@ class MavlinkHandlers(Simulation):
         elif msg_id == px4.MSG_ID_COMPONENT_METADATA and self.px4 is not None:
             self._send(self.px4.component_metadata())
         elif msg_id in DEFAULT_RATES:
-            self._send_stream(msg_id, self._target())
+            self._send_stream(msg_id, self._target(), requested=True)
         else:
             return int(mav.MAV_RESULT_UNSUPPORTED), f"message {msg_id} not available"
         return int(mav.MAV_RESULT_ACCEPTED), ""

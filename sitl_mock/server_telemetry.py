@@ -55,15 +55,17 @@ class TelemetryStreams(AutopilotState):
             return int(mav.MAV_LANDED_STATE_TAKEOFF)
         return int(mav.MAV_LANDED_STATE_IN_AIR)
 
-    def _send_stream(self, mid: int, target: Target | None) -> None:
+    def _send_stream(self, mid: int, target: Target | None, requested: bool = False) -> None:
+        """One message now: due on its stream, or `requested` (REQUEST_MESSAGE; an event that
+        sends it at once), which PX4 answers for messages its streams send only on change."""
         m = self.enc.mav
         ms = self.time_boot_ms
         t_usec = int((self.t - self.boot_t) * 1e6)
         s = self.vehicle.state
         if self.flavour is Flavour.ARDUPILOT and not self.ap.sends(mid):
             return  # no EKF origin yet (sitl_mock.ardupilot)
-        if self.px4 is not None and not self.px4.sends(mid):
-            return  # no global origin yet (sitl_mock.px4)
+        if self.px4 is not None and not self.px4.sends(mid, requested):
+            return  # no estimate or global origin yet, or not new (sitl_mock.px4)
         if mid == mav.MAVLINK_MSG_ID_HEARTBEAT:
             self._send_heartbeat()
         elif mid == mav.MAVLINK_MSG_ID_SYS_STATUS:

@@ -360,9 +360,11 @@ def fence_at_home(cfg: Config, home: FloatArray | None) -> Config:
     return dataclasses.replace(cfg, geofence=fence)
 
 
-NOT_READY = ("the autopilot is not ready: it reports HOME_POSITION at its local origin (PX4 does so until its "
-             "estimator is ready, ~40 s after boot), so the geofence, which follows home ([geofence] origin = "
-             "\"home\"), cannot be placed yet; send the mission again once status `home` is set")
+NOT_READY = ("the autopilot is not ready: its position estimate has not settled (it reports HOME_POSITION at its "
+             "local origin, as PX4 does until its estimator is ready, ~37 s after boot; until then PX4 SIH's "
+             "estimate on the ground drifted 23-42 m and was then reset), so a plan from the position it reports "
+             "would start tens of metres from the vehicle, and the geofence cannot follow home; send the mission "
+             "again once status `home` is set")
 
 
 def read(kind: str, payload: bytes | Oversized, cfg: Config, home: FloatArray | None = None, *,
@@ -375,7 +377,8 @@ def read(kind: str, payload: bytes | Oversized, cfg: Config, home: FloatArray | 
     try:
         obj = decode(kind, payload, limits=cfg.limits)
         frame = str(obj.get("frame", "ned"))
-        if kind == "mission" and home_pending and home is None and cfg.geofence.origin == "home":
+        if kind == "mission" and home_pending:
+            # whatever the frame: the plan starts from the reported position, which is not the vehicle's
             return MessageError("", NOT_READY)
         cfg = fence_at_home(cfg, home)
         try:

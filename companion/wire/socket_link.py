@@ -33,7 +33,7 @@ from companion.sendproc import Encoding
 from companion.tap import NO_TAP, Tap
 from companion.wire.peer import OTHER_ID, UNBOUND, PeerGate, SignatureCheck
 from companion.wire.signing import read_signing_key
-from companion.wire.tcp import Dialler, TcpConnection, describe, tcp_address
+from companion.wire.tcp import Dialler, Listener, TcpConnection, describe, tcp_address
 from companion.wire.vehicle import parse_url
 
 log = logging.getLogger("companion")
@@ -63,7 +63,7 @@ class SocketLink:
         self._ignored_said: dict[str, tuple[float, int]] = {}
         self._sock: Any = None  # UDP: the socket read here, datagram by datagram
         self._udp_server = False
-        self._dialler: Dialler | None = None  # TCP: dials the autopilot off the loop
+        self._dialler: Dialler | Listener | None = None  # TCP: dials (or accepts) the autopilot off the loop
         self._reading: int | None = None  # the descriptor registered with the loop
         self._tcp_where = "?"  # the TCP connection's ends, for the log (unknown once the peer is gone)
 
@@ -72,9 +72,10 @@ class SocketLink:
     def open(self, loop: asyncio.AbstractEventLoop) -> None:
         v = self.cfg.vehicle
         device, baud = parse_url(self.cfg.mavlink.url)
-        if device.startswith("tcp:"):
+        if device.startswith(("tcp:", "tcpin:")):
             # not pymavlink's mavtcp: it dials in the constructor and re-dials inside recv and
-            # write, on the loop (companion.wire.tcp)
+            # write, on the loop; nor its mavtcpin, which swaps descriptors inside recv and never
+            # sees a connection end (companion.wire.tcp)
             self.conn = TcpConnection(tcp_address(device), v.sysid, v.component)
         else:
             self.conn = mavutil.mavlink_connection(device, baud=baud, source_system=v.sysid,
@@ -106,7 +107,9 @@ class SocketLink:
         self.loop = loop
         if isinstance(self.conn, TcpConnection):
             self.conn.on_lost = self._tcp_lost_elsewhere
-            self._dialler = Dialler(self.conn.destination_addr, self._tcp_dialled)
+            # tcpin: the autopilot dials us; the Listener accepts as the Dialler would dial
+            maker = Listener if device.startswith("tcpin:") else Dialler
+            self._dialler = maker(self.conn.destination_addr, self._tcp_dialled)
             self._dialler.start()
             self._dialler.dial()  # the first connection too: the service starts without it, as with UDP
             return
@@ -145,8 +148,10 @@ class SocketLink:
             self._writer.use_fd(None)  # its copy closed too: the old connection is gone on our side
         if self.conn is None or self._dialler is None:
             return  # closing
-        log.warning("MAVLink TCP connection %s lost (%s): reconnecting off the event loop; the link "
-                    "is judged by the autopilot's heartbeats as ever", self._tcp_where, why)
+        again = ("waiting for the autopilot to connect again" if isinstance(self._dialler, Listener)
+                 else "reconnecting off the event loop")
+        log.warning("MAVLink TCP connection %s lost (%s): %s; the link is judged by the autopilot's "
+                    "heartbeats as ever", self._tcp_where, why, again)
         self._dialler.dial()
 
     def _tcp_dialled(self, sock: socket.socket) -> None:

@@ -1,5 +1,6 @@
-"""A TCP link to the autopilot (ArduPilot SITL's SERIAL0 on port 5760, a TCP serial bridge)
-that never blocks the thread reading or writing it.
+"""A TCP link to the autopilot (ArduPilot SITL's SERIAL0 on port 5760, a TCP serial bridge),
+or from it (`tcpin:`: the companion listens, and the autopilot or mavlink-router dials in), that
+never blocks the thread reading or writing it.
 
 pymavlink's `mavtcp` re-dials inside `recv()` and `write()` when the connection drops
 (`autoreconnect`: up to 6 connects with a 1 s sleep between). Those calls run on the event loop
@@ -8,13 +9,17 @@ the loop froze ~4 s at a time, 11-17 times, and the setpoint process went on wri
 connection's descriptor after pymavlink had replaced it. Here `TcpConnection` never dials: a
 `Dialler` thread does, with backoff, and hands each new connection over; a lost connection is
 only reported. What the companion decides about a lost link is still decided from heartbeats
-(companion/autopilot.py), as for UDP and serial links.
+(companion/autopilot.py), as for UDP and serial links. For `tcpin:` a `Listener` thread takes the
+dialler's place: it accepts one connection at a time and, after a loss, the next one (pymavlink's
+`mavtcpin` switches descriptors inside `recv`, behind the event loop's back, and never notices a
+connection that ended: a peer that dialled again was never heard).
 """
 
 from __future__ import annotations
 
 import logging
 import os
+import select
 import socket
 import threading
 import time
@@ -35,10 +40,11 @@ SAY_EVERY = 30.0  # s between two log lines about failing connects in one outage
 
 
 def tcp_address(url: str) -> tuple[str, int]:
-    """(host, port) of a `tcp:HOST:PORT` URL."""
-    host, sep, port = url.removeprefix("tcp:").rpartition(":")
+    """(host, port) of a `tcp:HOST:PORT` (to dial) or `tcpin:HOST:PORT` (to listen on) URL."""
+    kind = "tcpin" if url.startswith("tcpin:") else "tcp"
+    host, sep, port = url.removeprefix(f"{kind}:").rpartition(":")
     if not sep or not port.isdigit():
-        raise ValueError(f"[mavlink] url: expected tcp:HOST:PORT, got {url!r}")
+        raise ValueError(f"[mavlink] url: expected {kind}:HOST:PORT, got {url!r}")
     return host or "127.0.0.1", int(port)
 
 
@@ -173,6 +179,72 @@ class Dialler:
                 self._stop.wait(retry)
                 retry = min(2 * retry, MAX_RETRY)
                 continue
+            sock.setblocking(False)
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+            return sock
+        return None
+
+
+class Listener:
+    """`tcpin:`: listens on `address` and accepts connections on a thread of its own, one at a
+    time, handing each to `on_connected` (called on the listener's thread); after a loss
+    (`dial`, named as the dialler's) the next one. A peer dialling again while the old
+    connection is still open waits in the backlog until that one ends. The port is bound in
+    the constructor, so that a port in use is an error at start."""
+
+    POLL = 0.2  # s between checks for stop while waiting for a connection
+
+    def __init__(self, address: tuple[str, int], on_connected: Callable[[socket.socket], None]) -> None:
+        self.address = address
+        self.on_connected = on_connected
+        self.attempts = 0  # connections accepted so far
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        self.sock.bind(address)
+        self.sock.listen(1)
+        self._want = threading.Event()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name="mavlink-tcpin", daemon=True)
+        self._thread.start()
+
+    def dial(self) -> None:
+        """Accept the next connection (the first, or after a loss)."""
+        self._want.set()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._want.set()
+        if self._thread is not None and self._thread is not threading.current_thread():
+            self._thread.join(self.POLL + 1.0)
+        self.sock.close()
+
+    def _run(self) -> None:
+        while True:
+            self._want.wait()
+            if self._stop.is_set():
+                return
+            self._want.clear()
+            sock = self._accept()
+            if sock is None:
+                return  # stopped
+            self.on_connected(sock)
+
+    def _accept(self) -> socket.socket | None:
+        while not self._stop.is_set():
+            try:
+                ready, _, _ = select.select([self.sock], [], [], self.POLL)
+                if not ready:
+                    continue
+                sock, _ = self.sock.accept()
+            except OSError:
+                if self._stop.is_set():
+                    return None
+                time.sleep(self.POLL)  # a failed accept (the peer gave up): wait for the next
+                continue
+            self.attempts += 1
             sock.setblocking(False)
             sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             return sock

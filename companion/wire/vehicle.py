@@ -231,9 +231,11 @@ class VehicleState:
             home = np.array([msg.x, msg.y, msg.z], dtype=float)
             if self.autopilot == "px4" and not np.any(home):
                 # PX4 reports home at the local origin until its estimator is ready (~37 s after
-                # boot on SIH 1.15) while its estimate on the ground reads z +0.4..+2.3 m: not a
-                # home to place anything by (autopilot-facts.md)
+                # boot on SIH 1.15) while its estimate on the ground drifts (z -0.9..+3.6 m, tens
+                # of metres horizontally): not a home to place anything by (autopilot-facts.md).
+                # A home reported before (a PX4 that rebooted) is no longer valid either.
                 self.home_pending = True
+                self.home, self.home_lla = None, None
             elif np.all(np.isfinite(home)):
                 self.home = home
                 self.home_pending = False

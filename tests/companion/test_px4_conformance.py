@@ -245,3 +245,30 @@ def test_the_setpoint_thread_withholds_setpoints_once_the_loop_stops_beating() -
         assert _until(lambda: len(sent) > n, 0.3)
     finally:
         sender.stop()
+
+
+def _home_position(x: float, y: float, z: float, lat: float = 47.4, lon: float = 8.5) -> Any:
+    from pymavlink.dialects.v20 import common as mav
+
+    msg = mav.MAVLink_home_position_message(int(lat * 1e7), int(lon * 1e7), 488000, x, y, z,
+                                            [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, 0)
+    msg._header = mav.MAVLink_header(mav.MAVLINK_MSG_ID_HOME_POSITION, 0, 0, 1, 1)
+    return msg
+
+
+def test_a_mission_is_refused_while_px4_reports_home_at_its_origin_whatever_the_geofence() -> None:
+    """PX4 SIH before ready: HOME_POSITION at (0, 0, 0) while its estimate drifts 23-42 m; a
+    mission is refused as 'not ready' with the geofence in either frame (the plan would start
+    from the drifted position), and after a reboot the old home is no longer taken as valid."""
+    st = VehicleState(autopilot="px4")
+    st.take("HOME_POSITION", _home_position(0.0, 0.0, 0.0), 0.0, 1)
+    assert st.home_pending and st.home is None
+    for cfg in (CFG, config_with_fence()):
+        err = read("mission", mission(), cfg, st.home, home_pending=st.home_pending)
+        assert isinstance(err, MessageError) and "not ready" in err.reason and "obstacle" not in err.reason
+    st.take("HOME_POSITION", _home_position(*HOME), 1.0, 1)  # ready
+    assert not st.home_pending and st.home is not None and st.home_lla is not None
+    assert isinstance(read("mission", mission(), config_with_fence(), st.home, home_pending=st.home_pending),
+                      MissionSpec)
+    st.take("HOME_POSITION", _home_position(0.0, 0.0, 0.0), 2.0, 1)  # rebooted: not ready again
+    assert st.home_pending and st.home is None and st.home_lla is None

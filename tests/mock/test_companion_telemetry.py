@@ -78,11 +78,11 @@ def test_no_position_estimate_is_told_apart_and_withdrawn_when_it_arrives(tmp_pa
     origin_set = threading.Event()
     send_stream = mock._send_stream
 
-    def no_position_before_origin(mid: int, target: Any) -> None:  # the EKF origin delay, emulated
+    def no_position_before_origin(mid: int, target: Any, requested: bool = False) -> None:  # the EKF origin delay
         if mid in (mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED, mav.MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN,
                    mav.MAVLINK_MSG_ID_HOME_POSITION) and not origin_set.is_set():
             return
-        send_stream(mid, target)
+        send_stream(mid, target, requested)
 
     mock._send_stream = no_position_before_origin  # type: ignore[method-assign]
 
@@ -159,10 +159,10 @@ def _px4_without_attitude(tmp_path: Path, ready_s: float) -> tuple[MockAutopilot
     released = threading.Event()
     send_stream = mock._send_stream
 
-    def no_attitude_yet(mid: int, target: Any) -> None:
+    def no_attitude_yet(mid: int, target: Any, requested: bool = False) -> None:
         if mid == mav.MAVLINK_MSG_ID_ATTITUDE and not released.is_set():
             return
-        send_stream(mid, target)
+        send_stream(mid, target, requested)
 
     mock._send_stream = no_attitude_yet  # type: ignore[method-assign]
     return mock, released

@@ -40,7 +40,7 @@ def test_arming_refused_until_ready_with_px4s_events_then_allowed(make_mock) -> 
     first = c.collect(3.0, until=is_event("commander_arming_check_summary"))  # a whole report: from its start
     seen = first[-1:] + c.collect(1.0, until=is_event("commander_health_summary"))
     ids = event_ids(seen)
-    assert {25679424, 30612409, 27825120, 18691879} <= set(ids), ids  # reasons, arming and health summaries
+    assert {25948424, 30612409, 27825120, 18691879} <= set(ids), ids  # reasons, arming and health summaries
     chunk, error, warning, can_arm = struct.unpack_from("<BIII", event_args(seen, "commander_arming_check_summary"))
     local = px4_events.HEALTH_BIT["local_position_estimate"]
     offboard, manual = 1 << px4_events.NAV_STATE["offboard"], 1 << px4_events.NAV_STATE["manual"]
@@ -55,11 +55,12 @@ def test_arming_refused_until_ready_with_px4s_events_then_allowed(make_mock) -> 
     assert event_ids(at_arm) == [16910493], event_ids(at_arm)
     assert not mock.snapshot()["armed"] and not mock.snapshot()["ready"]
 
-    # before ready: home at the local origin; the ground estimate wanders between +0.4 and +2.3
+    # before ready: home at the local origin; the ground estimate's z wanders between -0.94 and
+    # +3.60 (its horizontal drift: test_mock_px4_boot.py)
     home = c.wait("HOME_POSITION", 5)
     assert home is not None and (home.x, home.y, home.z) == (0.0, 0.0, 0.0)
     zs = [m.z for m in c.collect(1.5) if m.get_type() == "LOCAL_POSITION_NED"]
-    assert zs and min(zs) >= 0.4 - 1e-6 and max(zs) <= 2.3 + 1e-6 and max(zs) - min(zs) > 0.05
+    assert zs and min(zs) >= -0.94 - 1e-6 and max(zs) <= 3.60 + 1e-6 and max(zs) - min(zs) > 0.05
     assert abs(mock.snapshot()["position"][2] - mock.ground_z) < 1e-6  # the vehicle itself stays put
 
     # ready: home where the vehicle stands, a clean report, arming allowed

@@ -116,7 +116,7 @@ def test_event_the_mock_sends_has_the_spec_layout_and_checksum(tmp_path: Path) -
         assert event_id >> 24 == 1 and (dcomp, dsys) == (0, 0)
     ids = [struct.unpack_from("<I", f, 10)[0] for f in events]
     assert 16910493 in ids  # commander_arm_denied_resolve_failures, as measured on PX4 1.15
-    assert {25679424, 30612409, 27825120} <= set(ids)  # PX4's reasons and summary (autopilot-facts.md)
+    assert {25948424, 30612409, 27825120} <= set(ids)  # PX4's reasons and summary (autopilot-facts.md; vert_vel measured)
     denied = events[ids.index(16910493)]
     last = denied[10:10 + denied[1]].ljust(53, b"\0")
     assert last[12] == (6 << 4) | 2  # external CRITICAL, internal INFO (Commander.cpp arm())

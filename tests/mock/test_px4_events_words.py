@@ -41,7 +41,9 @@ def test_arming_refusal_before_px4_is_ready_names_the_reason_in_words(tmp_path: 
             # PX4's own words (its events metadata), not numbers
             assert "Arming denied: Resolve system health failures first" in refused["reasons"], refused
             assert "Navigation error: No valid position estimate" in refused["reasons"]
-            assert "Horizontal velocity unstable" in refused["reasons"]
+            # the estimator check PX4 SIH failed before ready (measured): vertical velocity
+            assert "Vertical velocity unstable" in refused["reasons"]
+            assert "Horizontal velocity unstable" not in refused["reasons"]
             assert "Resolve system health failures first" in refused["message"]
             assert not any("summary" in r for r in refused["reasons"])  # protocol events are not reasons
             relayed = [e for e in events.of("autopilot") if e.get("source") == "event"]
@@ -111,10 +113,10 @@ def test_an_arm_refusal_names_the_arming_checks_reported_seconds_before(tmp_path
             refused = events.of("refused")[0]
             assert refused["result"] == "MAV_RESULT_TEMPORARILY_REJECTED", refused
             assert "Navigation error: No valid position estimate" in refused["reasons"], refused
-            assert "Horizontal velocity unstable" in refused["reasons"], refused
+            assert "Vertical velocity unstable" in refused["reasons"], refused
             assert "arming checks" in refused["message"] and "No valid position estimate" in refused["message"]
             checks = refused["arming_checks"]
-            assert checks["age_s"] >= 2.5 and "Horizontal velocity unstable" in checks["reasons"], checks
+            assert checks["age_s"] >= 2.5 and "Vertical velocity unstable" in checks["reasons"], checks
 
     try:
         asyncio.run(go())

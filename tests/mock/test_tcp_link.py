@@ -17,14 +17,17 @@ then a new one is started on the same port (a restarted SITL: on the ground, dis
 from __future__ import annotations
 
 import asyncio
+import json
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 from companionkit import Events, service_for, serving, until
 from mockkit import free_tcp_port
 
 from companion.flight import State
+from companion.service import Service
 from companion.wire.messages import Command
 from sitl_mock import MockAutopilot, MockConfig, read_log
 
@@ -153,3 +156,70 @@ def test_a_tcp_autopilot_not_listening_yet_is_waited_for(tmp_path: Path) -> None
     finally:
         if mock is not None:
             mock.stop()
+
+
+def test_the_companion_listens_and_an_autopilot_that_dials_in_drops_and_dials_again(tmp_path: Path) -> None:
+    """`tcpin:`: the companion listens and the autopilot dials it (the mock's `tcpout:`, as
+    ArduPilot SITL's `--serial0 tcpclient:HOST:PORT` and mavlink-router's TCP client endpoint
+    do). The mock starts first and dials until the companion listens; a mission flies over the
+    connection; the mock drops it (as a router or cable would) and dials again half a second
+    later: the companion accepts the new connection, hears the autopilot on it, and its
+    setpoints and a second mission reach the autopilot on it, the loop never blocked."""
+    from companion.wire.messages import MissionSpec, read
+    from sitl_mock import ControlClient
+
+    port = free_tcp_port()
+    log = tmp_path / "dialler.jsonl"
+    mock = MockAutopilot(MockConfig(autopilot="px4", endpoints=[f"tcpout:127.0.0.1:{port}"], control="127.0.0.1:0",
+                                    log_path=str(log), log_rate_hz=10)).start()
+    assert mock.control_address is not None
+
+    def connects() -> int:
+        return sum(1 for r in read_log(log) if r["type"] == "event" and r.get("event") == "tcp_connected")
+
+    async def fly(svc: Service, events: Events, name: str, waypoint: list[float]) -> None:
+        spec = read("mission", json.dumps({"id": name, "origin": "home", "waypoints": [waypoint]}).encode(),
+                    svc.cfg, svc.link.state.home)
+        assert isinstance(spec, MissionSpec), spec
+        done = len(events.of("mission_complete"))
+        await svc.navigator.on_mission(spec, time.monotonic())
+        await until(lambda: len(events.of("mission_complete")) > done, 30, f"mission {name}")
+
+    async def go() -> tuple[float, list[float]]:
+        svc = service_for(mock, mavlink={"url": f"tcpin:127.0.0.1:{port}"})
+        events = Events(svc)
+        st = svc.link.state
+        async with serving(svc):
+            await until(lambda: st.home is not None and st.position_problem() is None, 20, "home and a position")
+            await svc.commands.takeoff(1.0)
+            await fly(svc, events, "before", [2.0, 0.0, -1.5])
+
+            gaps, stop = [0.0], asyncio.Event()
+            ticker = asyncio.create_task(_ticker(gaps, stop))
+            mock.log.flush()
+            assert connects() == 1
+            with ControlClient(*mock.control_address) as ctl:  # type: ignore[misc]
+                assert (await asyncio.to_thread(ctl.drop_tcp))["closed"] == 1
+            dropped_at = mock.snapshot()["t"]
+            await until(lambda: (mock.log.flush(), connects())[1] >= 2, 10, "the mock dialled again")
+            heard = time.monotonic()
+            await until(lambda: st.last_heartbeat > heard, 5, "a heartbeat on the new connection")
+            await fly(svc, events, "after", [2.0, 2.0, -1.5])
+            await until(lambda: float(np.linalg.norm(st.velocity)) < 0.2, 10, "at rest")
+            stop.set()
+            await ticker
+            assert gaps[0] < LOOP_GAP_MAX, f"the event loop was blocked for {gaps[0]:.2f} s"
+            assert not events.of("link_lost"), events.of("link_lost")
+            assert st.home is not None
+            return dropped_at, [float(v) for v in st.position - st.home]
+
+    try:
+        dropped_at, end = asyncio.run(go())
+    finally:
+        mock.stop()
+    np.testing.assert_allclose(end, [2.0, 2.0, -1.5], atol=0.3)
+    reconnected = [r["t"] for r in read_log(log) if r["type"] == "event" and r.get("event") == "tcp_connected"][1]
+    applied = [r for r in read_log(log) if r["type"] == "setpoint" and r["valid"] and r["applied"]]
+    assert any(r["t"] < dropped_at for r in applied), "nothing flown before the drop"
+    after = [r for r in applied if r["t"] >= reconnected]
+    assert len(after) > 50, f"only {len(after)} setpoints applied on the new connection"
