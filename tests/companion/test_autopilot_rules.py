@@ -187,7 +187,8 @@ def test_disarmed_the_ground_is_learnt_and_the_rest_timer_cleared() -> None:
 
 
 @settings(max_examples=200, deadline=None)
-@given(st.lists(st.tuples(st.floats(-5.0, 1.0), st.floats(0.0, 2.0)), min_size=1, max_size=40),
+@given(st.lists(st.tuples(st.sampled_from([-2.0, -0.6, -0.5, -0.4, -0.3, -0.2, 0.0, 0.2]) | st.floats(-5.0, 1.0),
+                          st.sampled_from([0.0, 0.1, 0.2, 0.5]) | st.floats(0.0, 2.0)), min_size=1, max_size=40),
        st.booleans(), st.sampled_from([State.PILOT, State.READY, State.HOLDING, State.ARMING, State.TAKEOFF]))
 def test_airborne_by_height_follows_its_thresholds(samples: list[tuple[float, float]], airborne: bool,
                                                    state: State) -> None:
@@ -217,6 +218,18 @@ def test_airborne_by_height_follows_its_thresholds(samples: list[tuple[float, fl
             assert outs == ()
         assert ws.on_ground_since == rest_since
         fs, _ = through(fs, outs)
+
+
+def test_at_rest_on_the_ground_for_ground_for_is_landed() -> None:
+    fs = FlightState(State.PILOT, True, seen_link=True, ground_z=0.0)
+    ws, outs = watch_step(RULES, WatchState(), fs, pos(0.1, 0.05), 20.0)
+    assert outs == () and ws.on_ground_since == 20.0
+    ws, outs = watch_step(RULES, ws, fs, pos(0.1, 0.05), 20.0 + GROUND_FOR * 0.5)
+    assert outs == () and ws.on_ground_since == 20.0
+    assert watch_step(RULES, ws, fs, pos(0.1, 0.05), 20.0 + GROUND_FOR)[1] == (HeightReport(False),)
+    # moving, or at GROUND_HEIGHT: the rest starts again
+    assert watch_step(RULES, ws, fs, pos(0.1, GROUND_SPEED), 22.0) == (WatchState(), ())
+    assert watch_step(RULES, ws, fs, pos(-GROUND_HEIGHT, 0.0), 22.0) == (WatchState(), ())
 
 
 @settings(max_examples=100, deadline=None)
