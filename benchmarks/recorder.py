@@ -8,6 +8,10 @@ writer thread's CPU for a minute of flight traffic.
    for the records of one minute of flight at the mock PX4's rates: 50 Hz setpoints, 30 Hz
    LOCAL_POSITION_NED, 10 Hz ATTITUDE, 20 Hz telemetry, 2 Hz status, and one plan.
 
+3. The autopilot watch's rules on the loop (companion.autopilot_rules.watch_step through
+   AutopilotWatch, as each LOCAL_POSITION_NED and link check calls them), without and with the
+   recorder's observer, and the writer thread's conversion of one /autopilot/step record.
+
 benchmarks/service.py --recording-only measures the same recorder in a real flight (setpoint
 jitter at the relay, CPU, memory), which a loaded machine makes noisy.
 
@@ -103,6 +107,75 @@ def writer_cost(seconds: float = 60.0) -> dict[str, float]:
             "file_kb": size / 1024}
 
 
+def watch_cost(calls: int, record: bool) -> dict[str, float]:
+    """AutopilotWatch calls back to back: a position of a vehicle flying (armed, 2 m above the
+    ground it learnt, no landed state: the height rule runs to its end) and a link check (heard),
+    alternately, as the service's telemetry arrives; with `record`, the supervisor and the watch
+    connected to a Recorder writing a file, as the service connects them."""
+    import gc
+
+    from recorder_support import config
+
+    from companion.autopilot import AutopilotWatch
+    from companion.flight import FlightState, State
+    from companion.recorder import Recorder
+    from companion.report import Reporter
+    from companion.supervisor import Supervisor
+    from companion.wire.vehicle import VehicleState
+
+    class Link:
+        state = VehicleState(autopilot="px4", armed=True, mode="OFFBOARD")
+
+    with tempfile.TemporaryDirectory() as d:
+        sup = Supervisor(FlightState(State.STREAMING, True, seen_link=True, ground_z=0.0))
+        link = Link()
+        watch = AutopilotWatch(config(d), sup, link, Reporter(sup))  # type: ignore[arg-type]
+        rec = Recorder(config(d)) if record else None
+        if rec is not None:
+            rec.open()
+            sup.connect(observe=rec.transition)
+            watch.connect(observe=rec.autopilot_step)
+        st = link.state
+        st.position, st.velocity = np.array([1.0, 2.0, -2.0]), np.array([0.5, 0.0, 0.0])
+        times = np.empty(calls)
+        gc.collect()
+        gc.disable()
+        try:
+            for k in range(calls):
+                now = time.monotonic()
+                st.last_heartbeat = st.last_message = now
+                t0 = time.perf_counter()
+                if k % 2:
+                    watch.check_link()
+                else:
+                    watch.on_position(now)
+                times[k] = time.perf_counter() - t0
+                if k % 500 == 0:
+                    time.sleep(0.002)  # the writer thread takes what was queued, as between loop steps
+        finally:
+            gc.enable()
+            if rec is not None:
+                rec.close()
+    us = times * 1e6
+    return {"median_us": float(np.median(us)), "p99_us": float(np.percentile(us, 99)), "max_us": float(us.max())}
+
+
+def step_record_cost(records: int = 3000) -> float:
+    """The writer thread's conversion of an /autopilot/step record (JSON, pickle), in us."""
+    from companion.autopilot_rules import PositionSeen, WatchRules, WatchState, watch_step
+    from companion.flight import FlightState, State
+    from companion.recorder import step_record
+
+    fs = FlightState(State.STREAMING, True, seen_link=True, ground_z=0.0)
+    ws = WatchState()
+    reading = PositionSeen(1.0, 2.0, -2.0, 0.5, 0.0, 0.0, True, -np.inf, 1, 1)
+    after, outs = watch_step(WatchRules(), ws, fs, reading, 100.0)
+    t0 = time.process_time()
+    for k in range(records):
+        step_record(k, 1, ws, fs, reading, 100.0 + k, after, outs)
+    return (time.process_time() - t0) / records * 1e6
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--sends", type=int, default=5000)
@@ -110,15 +183,22 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     off, on = send_cost(args.sends, False), send_cost(args.sends, True)
     w = writer_cost()
+    w_off, w_on = watch_cost(args.sends * 4, False), watch_cost(args.sends * 4, True)
+    per_record = step_record_cost()
     print(f"setpoint send (pymavlink encode + write), {args.sends} sends:")
     print(f"  {'':22s} {'median us':>10s} {'p99 us':>10s} {'max us':>10s}")
     for name, r in (("without the recorder", off), ("with the recorder", on)):
         print(f"  {name:22s} {r['median_us']:10.2f} {r['p99_us']:10.2f} {r['max_us']:10.1f}")
     print(f"writer thread, one minute of flight traffic: {w['records']:.0f} records, {w['cpu_s']:.2f} s CPU "
           f"({w['core_percent']:.1f} % of a core), {w['file_kb']:.0f} kB written")
+    print(f"autopilot watch (position or link check: its rules, and the observer), {args.sends * 4} calls:")
+    for name, r in (("without the recorder", w_off), ("with the recorder", w_on)):
+        print(f"  {name:22s} {r['median_us']:10.2f} {r['p99_us']:10.2f} {r['max_us']:10.1f}")
+    print(f"writer thread, an /autopilot/step record: {per_record:.1f} us CPU")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"send_without": off, "send_with": on, "writer": w}, indent=2))
+        args.json.write_text(json.dumps({"send_without": off, "send_with": on, "writer": w, "watch_without": w_off,
+                                         "watch_with": w_on, "step_record_us": per_record}, indent=2))
     return 0
 
 

@@ -6,6 +6,12 @@ ask for is a pilot takeover and a disarm we did not ask for a failsafe: control 
 once and never retaken without a new `start`. While the companion itself is stalled (or just
 woke from a stall), what the autopilot did meanwhile is put down to that stall, not to a pilot
 or to the link.
+
+Which event each message makes is decided by a pure function, companion.autopilot_rules.watch_step
+(`now` an input, the watch's memory a frozen `WatchState`); this class reads the link into its
+typed readings, shows every call to an observer (the flight recorder: /autopilot/step, replayed by
+`python -m companion replay`) and carries out what the rules return. The telemetry requests and
+the advice about what does not arrive (timers, tasks, the link's answers) stay here, unreplayed.
 """
 
 from __future__ import annotations
@@ -20,30 +26,32 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-import numpy as np
-
+from companion.autopilot_rules import (
+    AIR_HEIGHT,
+    GROUND_FOR,
+    GROUND_HEIGHT,
+    GROUND_SPEED,
+    LANDED_STATE_STALE,
+    WATCH_EVENTS,
+    HeartbeatSeen,
+    LandedStateSeen,
+    LinkCheck,
+    LinkFound,
+    LinkRestored,
+    NoteSeen,
+    Output,
+    PositionSeen,
+    Reading,
+    WatchRules,
+    WatchState,
+    watch_step,
+)
 from companion.config import Config
-from companion.flight import State
+from companion.flight import FlightState
 from companion.report import Reporter
-from companion.supervisor import (
-    Disarmed,
-    GroundLearnt,
-    Heartbeat,
-    HeightReport,
-    LandedStateReport,
-    LinkLost,
-    ModeReport,
-    Supervisor,
-)
+from companion.supervisor import HeightReport, Supervisor
 from companion.wire.mavlink import MavlinkLink
-from companion.wire.vehicle import (
-    MAV_LANDED_IN_AIR,
-    MAV_LANDED_LANDING,
-    MAV_LANDED_ON_GROUND,
-    WANTED,
-    CommandFailed,
-    Note,
-)
+from companion.wire.vehicle import WANTED, CommandFailed, Note
 
 log = logging.getLogger("companion")
 # What an autopilot says while it has no position estimate (ArduPilot PreArm texts, PX4 events).
@@ -54,13 +62,16 @@ PX4_ESTIMATED = ("ATTITUDE", "LOCAL_POSITION_NED")
 EVENTS_KEPT = 128  # PX4 EVENTs kept: a whole arming-check report (~10) with room to spare
 TELEMETRY_CHECK = 3.0  # s after the requests: what has not arrived by then is reported
 WAITING_EVERY = 5.0  # s between "waiting for autopilot heartbeat" lines
-# Where the autopilot sends no landed state (EXTENDED_SYS_STATE), `airborne` follows the
-# height above where the vehicle stood disarmed, and the speed.
-LANDED_STATE_STALE = 3.0  # s without EXTENDED_SYS_STATE: the landed state is unknown
-AIR_HEIGHT = 0.5  # m above the ground: in the air
-GROUND_HEIGHT = 0.3  # m: on the ground when also at rest ...
-GROUND_SPEED = 0.2  # m/s
-GROUND_FOR = 1.0  # ... for this long
+# the height rule's thresholds live with the rules (companion.autopilot_rules); named here too
+__all__ = ["AIR_HEIGHT", "GROUND_FOR", "GROUND_HEIGHT", "GROUND_SPEED", "LANDED_STATE_STALE", "AutopilotWatch",
+           "StepObserver", "waiting_hint"]
+# what an observer of the rules is shown, once per call: the watch's state before, the flight
+# state the rules read, the reading, the time, the watch's state after and the outputs
+StepObserver = Callable[[WatchState, FlightState, Reading, float, WatchState, tuple[Output, ...]], None]
+
+
+def _unobserved(*_call: Any) -> None:
+    pass
 
 
 def waiting_hint(url: str) -> str:
@@ -97,20 +108,25 @@ class AutopilotWatch:
         # not beaten, or the setpoint thread withholds setpoints): what the autopilot did
         # meanwhile is a consequence of that stall, not a pilot's action nor a lost link.
         self.stalled = stalled
-        self._event_seq: int | None = None
+        # what the rules remember between readings (companion.autopilot_rules); replaced by _step only
+        self.rules = WatchRules.of(cfg)
+        self.state = WatchState()
+        self._observe: StepObserver = _unobserved
         # PX4's EVENTs, for the last arming-check report (companion.wire.px4_events.arming_report)
         self.events_heard: collections.deque[Note] = collections.deque(maxlen=EVENTS_KEPT)
-        self._lost_at = -math.inf
         self.flight = flight
         self.link = link
         self.report = report
         self.on_position_sample = on_position  # each LOCAL_POSITION_NED, with its arrival time
-        self._on_ground_since = math.inf
         self._telemetry_task: asyncio.Task[None] | None = None
         self._events_task: asyncio.Task[bool] | None = None
         self._waiting_said = -math.inf
         self.missing_telemetry: list[str] | None = None  # None: not checked yet
         self.on_link_up: Callable[[str], None] | None = None  # link-up and reconnect (why)
+
+    def connect(self, observe: StepObserver) -> None:
+        """Who is shown every call of the rules (the recorder's tap: it must return at once)."""
+        self._observe = observe
 
     # -- telemetry, asked for --------------------------------------------------------------
 
@@ -266,16 +282,44 @@ class AutopilotWatch:
         except (CommandFailed, OSError) as exc:
             log.warning("GPS_GLOBAL_ORIGIN not available: %s", exc)
 
+    # -- the decisions: companion.autopilot_rules.watch_step, recorded for replay ---------------
+
+    def _step(self, reading: Reading, now: float) -> tuple[Output, ...]:
+        """One call of the pure rules: the watch's state replaced, the call shown to the
+        observer (the recorder), the supervisor events handed to the supervisor in order and
+        what remains returned to the caller, which carries it out."""
+        before, flight = self.state, self.flight.value
+        self.state, outputs = watch_step(self.rules, before, flight, reading, now)
+        # shown before any event is handled: the recorder numbers this step before the
+        # transitions it causes, which replay matches to it
+        try:
+            self._observe(before, flight, reading, now, self.state, outputs)
+        except Exception:  # a recorder's fault must never keep an event from the supervisor
+            log.exception("autopilot watch: the step observer failed")
+        for out in outputs:
+            if isinstance(out, WATCH_EVENTS):
+                self.flight.handle(out)
+            elif isinstance(out, LinkFound | LinkRestored):
+                self._link_up(out)
+        return outputs
+
+    def _ids(self, msg: Any) -> tuple[int, int]:
+        """The message's source; the autopilot's own for a call without a message (the link's
+        state is the autopilot's by construction: its peer gate admits nothing else)."""
+        if msg is None:
+            return self.cfg.vehicle.sysid, self.cfg.vehicle.autopilot_component
+        return int(msg.get_srcSystem()), int(msg.get_srcComponent())
+
     def on_message(self, kind: str, msg: Any) -> None:
         if kind == "HEARTBEAT":
-            self.on_heartbeat()
+            self.on_heartbeat(msg)
         elif kind == "LOCAL_POSITION_NED":
             now = time.monotonic()
-            self.on_position(now)
+            self.on_position(now, msg)
             if self.on_position_sample is not None:
                 self.on_position_sample(now)
         elif kind == "EXTENDED_SYS_STATE":
-            self.on_landed_state(int(msg.landed_state))
+            self.on_landed_state(int(msg.landed_state), msg)
         elif kind in ("STATUSTEXT", "EVENT"):
             self.on_note(kind, msg)
 
@@ -284,14 +328,13 @@ class AutopilotWatch:
         note = self.link.state.notes[-1] if self.link.state.notes else None
         if note is None:
             return
+        seq = int(msg.sequence) if kind == "EVENT" else None
+        if not self._step(NoteSeen(kind, seq, *self._ids(msg)), time.monotonic()):
+            return  # a resent event
         if kind == "STATUSTEXT":
             self.report.event("autopilot", f"autopilot says: {note.text}", source="statustext",
                               severity=int(msg.severity), level=note.level)
             return
-        seq = int(msg.sequence)
-        if seq == self._event_seq:  # a resent event
-            return
-        self._event_seq = seq
         self.events_heard.append(note)  # PX4's arming-check report outlives the link's last 16 notes
         # In words from the autopilot's events metadata (companion.wire.px4_events); without it,
         # the number and why there are no words.
@@ -299,88 +342,60 @@ class AutopilotWatch:
                           event_id=note.event_id, level=note.level, name=note.name, sequence=seq,
                           text=note.text if note.words else None)
 
-    def on_landed_state(self, landed: int) -> None:
-        fl = self.flight
-        was = fl.airborne
-        fl.handle(LandedStateReport(in_air=landed in (MAV_LANDED_IN_AIR, MAV_LANDED_LANDING),
-                                    on_ground=landed == MAV_LANDED_ON_GROUND))
-        if was and not fl.airborne:
+    def on_landed_state(self, landed: int, msg: Any = None) -> None:
+        was = self.flight.airborne
+        self._step(LandedStateSeen(landed, *self._ids(msg)), time.monotonic())
+        if was and not self.flight.airborne:
             self.report.dirty = True
 
-    def on_position(self, now: float) -> None:
+    def on_position(self, now: float, msg: Any = None) -> None:
         """`airborne` from height and speed, while the autopilot sends no landed state."""
-        st, fl = self.link.state, self.flight
-        if not st.has_position:
-            return
-        z = float(st.position[2])
-        if not st.armed:
-            fl.handle(GroundLearnt(z))
-            self._on_ground_since = math.inf
-            return
-        if now - st.last_landed_state < LANDED_STATE_STALE or fl.ground_z is None:
-            return
-        if fl.state in (State.ARMING, State.TAKEOFF):
-            return  # our own takeoff decides when it is complete
-        height = fl.ground_z - z
-        if height > AIR_HEIGHT:
-            self._on_ground_since = math.inf
-            if not fl.airborne:
-                fl.handle(HeightReport(airborne=True))
-                self.report.dirty = True
-            return
-        if height < GROUND_HEIGHT and float(np.linalg.norm(st.velocity)) < GROUND_SPEED:
-            self._on_ground_since = min(self._on_ground_since, now)
-            if fl.airborne and now - self._on_ground_since >= GROUND_FOR:
-                fl.handle(HeightReport(airborne=False))
-                self.report.dirty = True
-        else:
-            self._on_ground_since = math.inf
+        st = self.link.state
+        p, v = st.position, st.velocity
+        reading = PositionSeen(float(p[0]), float(p[1]), float(p[2]), float(v[0]), float(v[1]), float(v[2]),
+                               st.armed, st.last_landed_state, *self._ids(msg))
+        if any(isinstance(out, HeightReport) for out in self._step(reading, now)):
+            self.report.dirty = True
 
-    def on_heartbeat(self) -> None:
-        st, fl = self.link.state, self.flight
-        first, restored = not fl.seen_link, fl.link_lost
-        fl.handle(Heartbeat())
-        if first:
-            self.report.event("link", f"autopilot found: {st.autopilot} in {st.mode}", autopilot=st.autopilot,
-                              mode=st.mode)
+    def on_heartbeat(self, msg: Any = None) -> None:
+        st = self.link.state
+        if self._step(HeartbeatSeen(st.autopilot, st.mode, st.armed, self.stalled(), *self._ids(msg)),
+                      time.monotonic()):
+            self.report.dirty = True
+
+    def _link_up(self, out: LinkFound | LinkRestored) -> None:
+        """The first heartbeat, or one after the link was lost: said, telemetry asked for, the
+        shell told (the autopilot's limits read again)."""
+        if isinstance(out, LinkFound):
+            self.report.event("link", f"autopilot found: {out.autopilot} in {out.mode}", autopilot=out.autopilot,
+                              mode=out.mode)
             self.ask_telemetry("link up")
             if self.on_link_up is not None:
                 self.on_link_up("link up")
-        if restored:
-            self.ask_telemetry("link restored (the autopilot may have rebooted)")
-            if self.on_link_up is not None:
-                self.on_link_up("link restored")
-            lost_s = time.monotonic() - self._lost_at + self.cfg.mavlink.link_timeout
-            self.report.event("link_restored", f"MAVLink link restored after about {lost_s:.1f} s without the "
-                              f"autopilot (cause: the link): autopilot in {st.mode}, "
-                              f"{'armed' if st.armed else 'disarmed'}; send 'start' to take control again",
-                              mode=st.mode, armed=st.armed, cause="link", silence_s=round(lost_s, 1))
-        self.report.dirty = True
-        # Armed state first: a disarmed vehicle flies nothing, whatever mode it reports (the
-        # supervisor decides what each means).
-        if not st.armed:
-            fl.handle(Disarmed(st.mode, self.stalled()))
             return
-        fl.handle(ModeReport(st.in_follow_mode(), st.mode, self.stalled()))
+        self.ask_telemetry("link restored (the autopilot may have rebooted)")
+        if self.on_link_up is not None:
+            self.on_link_up("link restored")
+        self.report.event("link_restored", f"MAVLink link restored after about {out.silence_s:.1f} s without the "
+                          f"autopilot (cause: the link): autopilot in {out.mode}, "
+                          f"{'armed' if out.armed else 'disarmed'}; send 'start' to take control again",
+                          mode=out.mode, armed=out.armed, cause="link", silence_s=round(out.silence_s, 1))
 
     def check_link(self) -> None:
-        fl = self.flight
-        if not fl.seen_link:
-            now = time.monotonic()
-            if now - self._waiting_said >= WAITING_EVERY:
-                first = self._waiting_said == -math.inf
-                self._waiting_said = now
-                text = f"waiting for autopilot heartbeat on {self.cfg.mavlink.url}"
-                hint = waiting_hint(self.cfg.mavlink.url)
-                log.warning("%s (%s)", text, hint if first else hint.split(";")[0])
-                if first:
-                    self.report.event("link", f"{text}: {hint}", url=self.cfg.mavlink.url, hint=hint)
+        if not self.flight.seen_link:
+            self._say_waiting()
             return
-        if not fl.seen_link or fl.link_lost or self.link.link_ok():
-            return
-        if self.stalled():
-            # Silence seen by a loop that did not run says nothing about the link: what the
-            # autopilot sent meanwhile waits in the socket and is read first.
-            return
-        self._lost_at = time.monotonic()
-        fl.handle(LinkLost(self.cfg.mavlink.link_timeout))
+        st = self.link.state
+        self._step(LinkCheck(st.last_heartbeat, st.last_message, self.stalled()), time.monotonic())
+
+    def _say_waiting(self) -> None:
+        """No heartbeat yet: said every WAITING_EVERY s (the log; the first time, an event with the hint)."""
+        now = time.monotonic()
+        if now - self._waiting_said >= WAITING_EVERY:
+            first = self._waiting_said == -math.inf
+            self._waiting_said = now
+            text = f"waiting for autopilot heartbeat on {self.cfg.mavlink.url}"
+            hint = waiting_hint(self.cfg.mavlink.url)
+            log.warning("%s (%s)", text, hint if first else hint.split(";")[0])
+            if first:
+                self.report.event("link", f"{text}: {hint}", url=self.cfg.mavlink.url, hint=hint)

@@ -100,6 +100,22 @@ TRANSITION = _obj("bezier.SupervisorTransition", "One Supervisor.handle call (co
     "pickle": {"type": ["string", "null"], "description": "pickle (base64) of (before, event, after, actions)"},
 }, ("seq", "t", "event", "before", "after", "actions", "pickle"))
 
+STEP = _obj("bezier.AutopilotStep", "One call of the autopilot watch's rules (companion/autopilot_rules.py "
+            "watch_step): a reading of what the autopilot reported (or a link check), the watch's state before and "
+            "after, the flight state the rules read, the supervisor events and other outputs", {
+    "seq": {"type": "integer", "description": "1, 2, ... per run, numbered as the rules ran: a gap is a record "
+            "the recorder dropped"},
+    "t": {"type": "number", "description": "the time the rules were given: the companion's monotonic clock (s), "
+          "an input of the rules"},
+    "transition": {"type": "integer", "description": "the /supervisor/transition seq its first event got (the "
+                   "next one when it made none)"},
+    "reading": TAGGED, "flight": FLIGHT_STATE,
+    "before": {"type": "object", "description": "companion.autopilot_rules.WatchState (null: infinite)"},
+    "after": {"type": "object"}, "outputs": {"type": "array", "items": TAGGED},
+    "pickle": {"type": ["string", "null"], "description": "pickle (base64) of (before, flight, reading, now, after, "
+               "outputs)"},
+}, ("seq", "t", "transition", "reading", "flight", "before", "after", "outputs", "pickle"))
+
 DECODED = _obj("bezier.DecodedMessage", "An inbound message as the companion read it (companion.wire.messages.read): "
                "the typed message (local_ned) or the refusal, and what read was given besides the bytes", {
     "seq": {"type": "integer", "description": "1, 2, ... per run, numbered as the message was read: a gap is a "
@@ -193,6 +209,8 @@ def spec(topic: str) -> Spec:
         return _json(PLAN)
     if topic == "/supervisor/transition":
         return _json(TRANSITION)
+    if topic == "/autopilot/step":
+        return _json(STEP)
     if topic == "/inbound/decoded":
         return _json(DECODED)
     if topic == "/recorder/stats":
@@ -251,12 +269,29 @@ def mavlink_record(msg: Any, t: float) -> bytes:
     return dumps(d)
 
 
+_FIELD_NAMES: dict[type, tuple[str, ...] | None] = {}
+
+
+def _field_names(kind: type) -> tuple[str, ...] | None:
+    """A data class's field names (None: not a data class), once per class: the decisions'
+    records convert tens of values a second on the writer thread."""
+    if kind not in _FIELD_NAMES:
+        _FIELD_NAMES[kind] = tuple(f.name for f in dataclasses.fields(kind)) if dataclasses.is_dataclass(kind) else None
+    return _FIELD_NAMES[kind]
+
+
 def _plain(x: Any) -> Any:
-    """A supervisor value as JSON: enums by value, data classes and mappings as objects."""
+    """A supervisor value as JSON: enums by value, data classes and mappings as objects, an
+    infinite time (never) as null, as `dumps` would write it (without its slower second pass)."""
+    if x is None or isinstance(x, bool | int | str):
+        return x
+    if isinstance(x, float):
+        return x if math.isfinite(x) else None
     if isinstance(x, enum.Enum):
         return x.value
-    if dataclasses.is_dataclass(x) and not isinstance(x, type):
-        return {f.name: _plain(getattr(x, f.name)) for f in dataclasses.fields(x)}
+    names = _field_names(type(x))
+    if names is not None:
+        return {n: _plain(getattr(x, n)) for n in names}
     if isinstance(x, Mapping):
         return {str(k): _plain(v) for k, v in x.items()}
     if isinstance(x, list | tuple):
@@ -273,6 +308,13 @@ def transition_fields(before: Any, event: Any, after: Any, actions: tuple[Any, .
     record's pickle, so what a viewer shows is what was replayed)."""
     return {"event": _tagged(event), "before": _plain(before), "after": _plain(after),
             "actions": [_tagged(a) for a in actions]}
+
+
+def step_fields(before: Any, flight: Any, reading: Any, now: float, after: Any,
+                outputs: tuple[Any, ...]) -> dict[str, Any]:
+    """The readable part of an /autopilot/step record (replay checks it against the pickle)."""
+    return {"t": now, "reading": _tagged(reading), "flight": _plain(flight), "before": _plain(before),
+            "after": _plain(after), "outputs": [_tagged(o) for o in outputs]}
 
 
 ORDERS = ("velocity", "acceleration", "jerk", "snap")

@@ -9,8 +9,9 @@ oldest removed past `keep_bytes`) and `companion.live.LiveSink` (the Foxglove We
 server). A record that finds its queue full is dropped and counted: in status
 (`recording.dropped`), in the `/recorder/stats` channel every second and in the file's
 `recorder` metadata record. Setpoints (every MAVLink message sent) have a queue of their own,
-so a burst of other traffic never drops one; so have the supervisor's transitions (every
-`Supervisor.handle` call), whose unbroken chain is what replay checks.
+so a burst of other traffic never drops one; so have the decisions replay checks as unbroken
+chains: the supervisor's transitions (every `Supervisor.handle` call) and the autopilot watch's
+steps (every call of companion.autopilot_rules.watch_step).
 
 Channels, schemas and frames: companion/channels.py and docs/recording.md.
 """
@@ -165,6 +166,8 @@ class Recorder(Tap):
         self._plan_seq = itertools.count(1)
         self._transition_seq = itertools.count(1)
         self._decoded_seq = itertools.count(1)
+        self._step_seq = itertools.count(1)
+        self._transitions = 0  # transitions numbered so far (on the loop, as both taps are called)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._last_stats = 0.0
@@ -254,8 +257,16 @@ class Recorder(Tap):
     def transition(self, before: Any, event: Any, after: Any, actions: tuple[Any, ...]) -> None:
         # the number is taken here, on the caller's thread, before the put: a record dropped
         # for a full queue leaves a gap in the file's numbers, which replay reports
-        self._put(self._decisions, ("transition", next(self._transition_seq), before, event, after, actions,
-                                    self.clock()))
+        seq = self._transitions = next(self._transition_seq)
+        self._put(self._decisions, ("transition", seq, before, event, after, actions, self.clock()))
+
+    def autopilot_step(self, before: Any, flight: Any, reading: Any, now: float, after: Any,
+                       outputs: tuple[Any, ...]) -> None:
+        # numbered as transitions are; with the number the step's first event gets from
+        # `transition` (the watch hands its events to the supervisor right after), so that
+        # replay can find the transitions each step caused
+        self._put(self._decisions, ("autopilot_step", next(self._step_seq), self._transitions + 1, before, flight,
+                                    reading, now, after, outputs))
 
     def flown(self, trajectory: Any, t_base: float | None, t: float) -> None:
         self._put(self._rest, ("flown", trajectory, t_base, t))
@@ -363,6 +374,11 @@ class Recorder(Tap):
         elif kind == "transition":
             _, seq, before, event, after, actions, t = item
             self._emit("/supervisor/transition", transition_record(seq, t, before, event, after, actions), t)
+        elif kind == "autopilot_step":
+            # logged at the time the rules were given (the service's monotonic clock), which
+            # the record holds once, as `t`
+            _, seq, first, before, flight, reading, now, after, outputs = item
+            self._emit("/autopilot/step", step_record(seq, first, before, flight, reading, now, after, outputs), now)
         elif kind == "flown":
             _, traj, t_base, t = item
             for topic, data in self._viz.on_flown(traj, t_base, t):
@@ -421,6 +437,17 @@ def transition_record(seq: int, t: float, before: Any, event: Any, after: Any, a
     body = ch.transition_fields(before, event, after, actions)
     blob = _pickled((before, event, after, actions))
     return b"".join([ch.dumps({"seq": seq, "t": t, **body})[:-1],
+                     b',"pickle":', b"null" if blob is None else b'"' + blob + b'"', b"}"])
+
+
+def step_record(seq: int, transition: int, before: Any, flight: Any, reading: Any, now: float,
+                after: Any, outputs: tuple[Any, ...]) -> bytes:
+    """One call of the autopilot watch's rules: readable fields (companion.channels.step_fields)
+    and the six values pickled together (base64), which `python -m companion replay` runs through
+    `watch_step` again."""
+    body = ch.step_fields(before, flight, reading, now, after, outputs)
+    blob = _pickled((before, flight, reading, now, after, outputs))
+    return b"".join([ch.dumps({"seq": seq, "transition": transition, **body})[:-1],
                      b',"pickle":', b"null" if blob is None else b'"' + blob + b'"', b"}"])
 
 

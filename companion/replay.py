@@ -7,6 +7,12 @@ again and compares the state and the actions with the recorded ones exactly, and
 chain: each record starts from the state the one before it ended in, and the numbers have no
 gap (a state replaced outside `handle`, a record removed or one the recorder dropped shows).
 
+Autopilot steps: each `/autopilot/step` record holds one call of the autopilot watch's rules
+(companion/autopilot_rules.py: a MAVLink reading or a link check to supervisor events), run
+again and matched to the transitions its events caused (companion/replay_autopilot.py).
+
+Inbound messages: each `/inbound/decoded` record is read again with the recorded configuration.
+
 Plans: each `/planner/plan` record holds the planner call the service made (the function and
 its arguments: the mission, the jet to start from, the known obstacles, the configuration, the
 route and trajectory being replanned) and its result. Replay runs the same function on the
@@ -15,15 +21,15 @@ says the compiled one ran), and compares the result with the recorded one: every
 bit, every number by its exact binary value, every string, leaving out only the `stats`
 dictionaries (timings).
 
-What it does not cover: how messages became supervisor events and planner calls, and the
-navigator's, the brakes' and the command sequences' own decisions (which plan to swap in and
-when, when to brake) are not re-run; they are in the file (inbound messages, events, what was
-flown) to be read.
+What it does not cover: how inbound messages and commands became supervisor events and
+planner calls, the autopilot watch's telemetry advice, and the navigator's, the brakes' and the
+command sequences' own decisions (which plan to swap in and when, when to brake) are not re-run;
+they are in the file (inbound messages, events, what was flown) to be read.
 
 A recording comes from a companion you trust: the calls are pickled. Plan records are read with
 an allow-list (planner_core and companion data classes and planner functions, numpy arrays,
-plain containers), transition records with a narrower one (the flight state, its enum, the
-supervisor's events and actions), so a file cannot name any other function to call; still, do
+plain containers), transition and autopilot step records with narrower ones (the flight state,
+its enum, the supervisor's events and actions; the watch's state, readings and outputs), so a file cannot name any other function to call; still, do
 not replay files from unknown sources.
 """
 
@@ -465,6 +471,8 @@ def main(argv: list[str]) -> int:
 
     from mcap.exceptions import McapError
 
+    from companion import replay_autopilot
+
     p = argparse.ArgumentParser(prog="python -m companion replay", description=__doc__.splitlines()[0])
     p.add_argument("file")
     p.add_argument("--from", dest="since", type=float, default=None, metavar="T",
@@ -493,6 +501,10 @@ def main(argv: list[str]) -> int:
                   f"{checked.differences[0]}", flush=True)
             for more in checked.differences[1:] if args.keep_going else ():
                 print(f"  also: {more}")
+        stepped, any_steps = replay_autopilot.replay_file(args.file, recs, args.since, args.until)
+        print(replay_autopilot.said(stepped, any_steps), flush=True)
+        for more in stepped.differences[1:] if args.keep_going else ():
+            print(f"  also: {more}")
         decoded = decoded_records(args.file, args.since, args.until)
         decode_bad: list[str] = []
         if decoded:
@@ -520,8 +532,9 @@ def main(argv: list[str]) -> int:
     except (OSError, ValueError, KeyError, TypeError, pickle.UnpicklingError, McapError) as exc:
         print(f"replay: {args.file}: {exc}", file=sys.stderr)
         return 2
-    if n == 0 and not recs and not dropped and not decoded:
-        print("replay: no plan, transition or inbound message in the recording (or in the time range)",
+    if n == 0 and not recs and not dropped and not decoded and not any_steps:
+        print("replay: no plan, transition, autopilot step or inbound message in the recording (or in the time "
+              "range)",
               file=sys.stderr)
         return 2
     if n == 0:
@@ -529,4 +542,4 @@ def main(argv: list[str]) -> int:
     else:
         print(f"plans: {n - bad} of {n} reproduced bit-identically" if bad == 0 or args.keep_going
               else f"plans: plan {n} is the first that differs")
-    return 0 if bad == 0 and not checked.differences and not decode_bad else 1
+    return 0 if bad == 0 and not checked.differences and not stepped.differences and not decode_bad else 1

@@ -121,6 +121,7 @@ class Service:
                             observe=self.tap.transition)  # every transition recorded, for replay (issue 23)
         self.watch = AutopilotWatch(cfg, self.flight, self.link, self.report,
                                     on_position=self.tracking.check_tracking, stalled=self.stalls.stalled)
+        self.watch.connect(observe=self.tap.autopilot_step)  # every call of its rules recorded, for replay
         self.link.on_message = self._on_mavlink
         self.deconfliction.on_replan = self.navigator.fleet_replan
         self.deconfliction.on_clock_off = self.navigator.fleet_stop

@@ -45,6 +45,12 @@ class Tap:
         event, the state after and the actions, as immutable values; on the loop, so no time:
         the tap takes it."""
 
+    def autopilot_step(self, before: Any, flight: Any, reading: Any, now: float, after: Any,
+                       outputs: tuple[Any, ...]) -> None:
+        """A call of the autopilot watch's rules (companion.autopilot_rules.watch_step): the
+        watch's state before, the flight state read, the reading, its time, the state after and
+        the outputs, as immutable values; on the loop."""
+
     def flown(self, trajectory: Any, t_base: float | None, t: float) -> None:
         """What the setpoint thread flies from now on (a new plan, a swap, a hold)."""
 

@@ -46,6 +46,7 @@ from companion.wire.vehicle import (
     CommandFailed,
     Note,
     VehicleState,
+    heard,
     param_name,
     param_value,
     result_name,
@@ -154,10 +155,7 @@ class MavlinkLink:
         link_timeout (the telemetry at tens of Hz, not only the 1 Hz heartbeat, so that a lossy
         radio link is not declared lost for two heartbeats missed in a row)."""
         now = time.monotonic() if now is None else now
-        st = self.state
-        if st.last_heartbeat == -math.inf:
-            return False
-        return now - max(st.last_heartbeat, st.last_message) <= self.cfg.mavlink.link_timeout
+        return heard(self.state.last_heartbeat, self.state.last_message, self.cfg.mavlink.link_timeout, now)
 
 
     # -- send ----------------------------------------------------------------

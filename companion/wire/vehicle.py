@@ -195,9 +195,7 @@ class VehicleState:
                 and RC_MID_STICK[0] <= self.rc_throttle <= RC_MID_STICK[1])
 
     def in_follow_mode(self) -> bool:
-        if self.autopilot == "px4":
-            return self.mode == "OFFBOARD"
-        return self.mode == "GUIDED"
+        return follow_mode(self.autopilot, self.mode)
 
     def take(self, kind: str, msg: Any, now: float, autopilot_component: int) -> bool:
         """The one reader of the messages that say what the vehicle is and does (the link
@@ -256,6 +254,22 @@ class VehicleState:
             level = sev.name.removeprefix("MAV_SEVERITY_") if sev is not None else str(msg.severity)
             self.notes.append(Note(now, "statustext", str(msg.text), level, words=True))
         return True
+
+
+def follow_mode(autopilot: str | None, mode: str) -> bool:
+    """`mode` is the one in which the autopilot follows our setpoints (OFFBOARD, GUIDED)."""
+    if autopilot == "px4":
+        return mode == "OFFBOARD"
+    return mode == "GUIDED"
+
+
+def heard(last_heartbeat: float, last_message: float, timeout: float, now: float) -> bool:
+    """The autopilot is heard at `now`: a heartbeat once, then any of its messages within
+    `timeout` (the telemetry at tens of Hz, not only the 1 Hz heartbeat, so that a lossy
+    radio link is not declared lost for two heartbeats missed in a row)."""
+    if last_heartbeat == -math.inf:
+        return False
+    return now - max(last_heartbeat, last_message) <= timeout
 
 
 def autopilot_name(code: int) -> str | None:

@@ -15,6 +15,7 @@ import pytest
 from mcap.reader import make_reader
 from recorder_support import Wire, config, plan_call
 
+from companion.autopilot_rules import HeartbeatSeen, WatchRules, WatchState, watch_step
 from companion.recorder import McapSink, Recorder
 from companion.setpoints import Feed, SetpointSender, YawPolicy
 from companion.supervisor import Heartbeat, Supervisor, TakingControl
@@ -62,6 +63,8 @@ def record_a_little_of_everything(rec: Recorder) -> None:
     sup.connect(observe=rec.transition)
     sup.handle(Heartbeat())
     sup.handle(TakingControl("arm command"))
+    ws, reading = WatchState(), HeartbeatSeen("px4", "POSCTL", True, False, 1, 1)
+    rec.autopilot_step(ws, sup.value, reading, now, *watch_step(WatchRules(), ws, sup.value, reading, now))
 
 
 def test_the_file_opens_with_the_mcap_reader_and_every_message_matches_its_schema(tmp_path: Path) -> None:
@@ -74,7 +77,7 @@ def test_the_file_opens_with_the_mcap_reader_and_every_message_matches_its_schem
     for topic in ("/in/mission", "/in/command", "/in/obstacles", "/out/status", "/out/events",
                   "/mavlink/out/SET_POSITION_TARGET_LOCAL_NED", "/mavlink/out/COMMAND_LONG",
                   "/mavlink/in/ATTITUDE", "/mavlink/in/LOCAL_POSITION_NED", "/planner/plan", "/viz/bounds",
-                  "/recorder/stats", "/supervisor/transition", "/inbound/decoded"):
+                  "/recorder/stats", "/supervisor/transition", "/inbound/decoded", "/autopilot/step"):
         schema, channel = channels[topic]
         assert (schema.encoding, channel.message_encoding) == ("jsonschema", "json"), topic
     for topic, kind in (("/viz/vehicle", "foxglove.PoseInFrame"), ("/viz/tf", "foxglove.FrameTransform"),
@@ -101,6 +104,9 @@ def test_the_file_opens_with_the_mcap_reader_and_every_message_matches_its_schem
     assert 0 < by_topic["/viz/bounds"][0]["velocity"] <= rec.cfg.planner.bounds.velocity
     assert [(t["seq"], t["event"]["type"], t["after"]["state"]) for t in by_topic["/supervisor/transition"]] == [
         (1, "Heartbeat", "IDLE"), (2, "TakingControl", "ARMING")]
+    (step,) = by_topic["/autopilot/step"]
+    assert (step["seq"], step["transition"], step["flight"]["state"]) == (1, 3, "ARMING")
+    assert [o["type"] for o in step["outputs"]] == ["Heartbeat", "ModeReport"]
     assert "[recording]" in meta["companion"]["config"] and float(meta["companion"]["monotonic_to_unix"]) > 1e9
     assert json.loads(meta["recorder"]["dropped_total"]) == 0
 

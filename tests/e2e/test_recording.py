@@ -32,7 +32,7 @@ JSON_CHANNELS = ("/in/command", "/in/mission", "/in/change", "/out/status", "/ou
                  "/out/trajectory", SETPOINT, "/mavlink/out/HEARTBEAT", "/mavlink/out/COMMAND_LONG",
                  "/mavlink/in/HEARTBEAT", "/mavlink/in/LOCAL_POSITION_NED", "/mavlink/in/ATTITUDE",
                  "/mavlink/in/COMMAND_ACK", "/planner/plan", "/viz/bounds", "/recorder/stats", "/supervisor/transition",
-                 "/inbound/decoded")
+                 "/inbound/decoded", "/autopilot/step")
 FOXGLOVE_CHANNELS = {"/viz/vehicle": "foxglove.PoseInFrame", "/viz/tf": "foxglove.FrameTransform",
                      "/viz/planned_path": "foxglove.PosesInFrame", "/viz/flown_path": "foxglove.PosesInFrame",
                      "/viz/obstacles": "foxglove.SceneUpdate", "/viz/corridors": "foxglove.SceneUpdate"}
@@ -188,7 +188,7 @@ def test_the_file_holds_every_setpoint_sent_at_50_hz(flight: Any) -> None:
     assert abs(len(sp) - 50.0 * span) <= 0.02 * 50.0 * span
 
 
-def test_every_plan_and_transition_of_the_flight_replays_bit_identically(flight: Any) -> None:
+def test_every_plan_transition_and_step_of_the_flight_replays_bit_identically(flight: Any) -> None:
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     run = subprocess.run([sys.executable, "-m", "companion", "replay", str(flight["path"])], cwd=REPO, env=env,
                          capture_output=True, text=True, timeout=300)
@@ -199,6 +199,10 @@ def test_every_plan_and_transition_of_the_flight_replays_bit_identically(flight:
     _meta, msgs = messages(flight["path"])
     n = sum(1 for _s, c, _m in msgs if c.topic == "/supervisor/transition")
     assert n > 10 and f"transitions: {n} of {n} reproduced" in run.stdout.splitlines()
+    # every call of the autopilot watch's rules reproduced, its events the transitions recorded
+    steps = sum(1 for _s, c, _m in msgs if c.topic == "/autopilot/step")
+    assert steps > 10 and any(ln.startswith(f"autopilot steps: {steps} of {steps} reproduced (")
+                              and ln.endswith(" events, each a recorded transition)") for ln in run.stdout.splitlines())
     # every inbound message the flight took in was read, and reads again the same (none was
     # dropped or refused on arrival in this flight)
     inbound = sum(1 for _s, c, _m in msgs if c.topic.startswith("/in/"))

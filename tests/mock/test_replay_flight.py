@@ -1,12 +1,15 @@
 """Issue 23.4: the companion's decisions replayed. A flight (takeoff, a short mission, land) of
 the in-process service against the in-process mock PX4, recording on; the file replays with
-every supervisor transition and every plan reproduced, and the transitions in it are every
-`Supervisor.handle` call the service made: the ones that announced a state change are the
-`state` events it published, one for one and in order."""
+every supervisor transition, every autopilot step and every plan reproduced, and the
+transitions in it are every `Supervisor.handle` call the service made: the ones that announced
+a state change are the `state` events it published, one for one and in order; every event the
+autopilot watch made is one of them, and each step made from a message came from a MAVLink
+message the file holds."""
 
 from __future__ import annotations
 
 import asyncio
+import collections
 import json
 import time
 from pathlib import Path
@@ -32,7 +35,7 @@ def mission(at: Any) -> bytes:
                                                        [x, y + 1.5, z - 0.3]]}).encode()
 
 
-async def _fly(mock: MockAutopilot, recordings: Path) -> tuple[list[dict[str, Any]], int, FlightState]:
+async def _fly(mock: MockAutopilot, recordings: Path) -> tuple[list[dict[str, Any]], int, FlightState, int]:
     svc = service_for(mock, recording={"path": str(recordings)}, safety={"takeoff_altitude": 1.5})
     events = Events(svc)
     calls = [0]
@@ -43,6 +46,14 @@ async def _fly(mock: MockAutopilot, recordings: Path) -> tuple[list[dict[str, An
         return handle(event)
 
     svc.flight.handle = counted  # type: ignore[method-assign]
+    steps = [0]
+    step = svc.watch._step
+
+    def stepped(*call: Any) -> Any:  # every call of the watch's rules, counted apart
+        steps[0] += 1
+        return step(*call)
+
+    svc.watch._step = stepped  # type: ignore[method-assign,assignment]
     async with serving(svc):
         await until(lambda: svc.link.state.position_problem() is None, 30, "a position estimate")
         await svc.commands.takeoff(1.5)
@@ -66,7 +77,7 @@ async def _fly(mock: MockAutopilot, recordings: Path) -> tuple[list[dict[str, An
         await until(lambda: any(e.get("command") == "land" and e["type"] in ("completed", "refused")
                                 for e in events.all), 60, "land to complete")
         await until(lambda: svc.flight.state is State.IDLE, 30, "the autopilot's disarm after landing")
-    return events.all, calls[0], svc.flight.value
+    return events.all, calls[0], svc.flight.value, steps[0]
 
 
 def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
@@ -74,7 +85,7 @@ def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
     mock = MockAutopilot(MockConfig(autopilot="px4", endpoints=["udpin:127.0.0.1:0"],
                                     log_path=str(tmp_path / "flight.jsonl"), log_rate_hz=20)).start()
     try:
-        published, handled, final = asyncio.run(_fly(mock, tmp_path / "recordings"))
+        published, handled, final, stepped = asyncio.run(_fly(mock, tmp_path / "recordings"))
     finally:
         mock.stop()
     (path,) = sorted((tmp_path / "recordings").glob("*.mcap"))
@@ -82,6 +93,9 @@ def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
         reader = make_reader(fh)
         dropped = json.loads({m.name: dict(m.metadata) for m in reader.iter_metadata()}["recorder"]["dropped"])
         recs = [json.loads(m.data) for _s, _c, m in reader.iter_messages(topics=["/supervisor/transition"])]
+        steps = [json.loads(m.data) for _s, _c, m in reader.iter_messages(topics=["/autopilot/step"])]
+        heard = collections.Counter(c.topic for _s, c, _m in reader.iter_messages(topics=[
+            "/mavlink/in/HEARTBEAT", "/mavlink/in/LOCAL_POSITION_NED", "/mavlink/in/EXTENDED_SYS_STATE"]))
     assert dropped == {}
 
     # every handle call is in the file, numbered without a gap, and the chain ends where the
@@ -104,10 +118,27 @@ def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
     assert [s[1] for s in states] == ["ARMING", "READY", "TAKEOFF", "READY", "STREAMING", "HOLDING", "LANDING",
                                       "IDLE"]
 
-    # replay: every transition and every plan (the climb and the mission at least) reproduced
+    # every call of the autopilot watch's rules is in the file, numbered without a gap; each
+    # reading of a message is one the link received and recorded (a step per message: no more
+    # than the file's messages of that kind), and the supervisor events the steps made are
+    # every transition of the kinds only the watch makes
+    assert [r["seq"] for r in steps] == list(range(1, stepped + 1))
+    kinds = collections.Counter(r["reading"]["type"] for r in steps)
+    assert 0 < kinds["HeartbeatSeen"] <= heard["/mavlink/in/HEARTBEAT"]
+    assert 0 < kinds["PositionSeen"] <= heard["/mavlink/in/LOCAL_POSITION_NED"]
+    assert kinds["LandedStateSeen"] <= heard["/mavlink/in/EXTENDED_SYS_STATE"] and kinds["LinkCheck"] > 0
+    made = [o["type"] for r in steps for o in r["outputs"] if o["type"] not in ("LinkFound", "LinkRestored", "Relay")]
+    watch_kinds = {"Heartbeat", "Disarmed", "ModeReport", "GroundLearnt", "HeightReport", "LandedStateReport",
+                   "LinkLost"}
+    assert made == [r["event"]["type"] for r in recs if r["event"]["type"] in watch_kinds]
+    assert "LinkFound" in [o["type"] for r in steps for o in r["outputs"]]
+
+    # replay: every transition, every step and every plan (the climb and the mission at least) reproduced
     assert replay.main([str(path)]) == 0
     out = capsys.readouterr().out
     assert f"transitions: {handled} of {handled} reproduced" in out.splitlines()
+    assert (f"autopilot steps: {stepped} of {stepped} reproduced ({len(made)} events, each a recorded "
+            "transition)") in out.splitlines()
     plans = [ln for ln in out.splitlines() if ln.startswith("plan ")]
     assert len(plans) >= 2 and all(": identical" in ln for ln in plans)
     assert f"plans: {len(plans)} of {len(plans)} reproduced bit-identically" in out.splitlines()

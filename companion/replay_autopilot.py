@@ -1,0 +1,246 @@
+"""Replay of the autopilot watch's rules: every /autopilot/step record run through
+`companion.autopilot_rules.watch_step` again, and its events found in the supervisor's
+transitions.
+
+Each record holds one call: the watch's state before, the flight state the rules read, the
+reading (a heartbeat, a position, the landed state, a note, a link check), the time, the state
+after and the outputs. Replay runs `watch_step(rules, before, flight, reading, now)` again, the
+rules (the autopilot's ids, the link timeout) from the configuration the recording service ran
+with, and compares the state after and the outputs exactly, and checks:
+- the chain: each record starts from the watch state the one before it ended in, and the
+  numbers have no gap (nor did the recorder count a drop);
+- the readable fields are what the pickle holds;
+- with the transitions of the same file, end to end: the step's supervisor events are the
+  events of the transitions it is numbered with (`transition`: the first, then in order), the
+  first of them starting from the flight state the step read; the flight state each step read
+  is the one the transition before it left; and every transition of an event only the watch
+  makes (Heartbeat, Disarmed, ModeReport, GroundLearnt, HeightReport, LandedStateReport,
+  LinkLost) was made by a recorded step. From MAVLink reading to flight state, the chain is then
+  checked whole.
+
+Step records are unpickled with an allow-list of their own: the watch's state, readings and
+outputs, the flight state and its enum, the supervisor events the watch makes.
+"""
+
+from __future__ import annotations
+
+import base64
+import dataclasses
+import functools
+import io
+import json
+import pickle
+import typing
+from typing import Any
+
+from companion import replay
+
+TOPIC = "/autopilot/step"
+
+
+@functools.cache
+def _step_types() -> frozenset[tuple[str, str]]:
+    from companion import autopilot_rules as rules
+    from companion.flight import FlightState, State
+
+    kinds = (rules.WatchState, rules.WatchRules, FlightState, State, *typing.get_args(rules.Reading), *typing.get_args(rules.Output))
+    return frozenset((k.__module__, k.__qualname__) for k in kinds)
+
+
+class _StepUnpickler(pickle.Unpickler):
+    def find_class(self, module: str, name: str) -> Any:
+        if (module, name) in _step_types():
+            return super().find_class(module, name)
+        raise pickle.UnpicklingError(f"replay does not load {module}.{name} from an autopilot step record")
+
+
+def loads_step(text: str) -> Any:
+    return _StepUnpickler(io.BytesIO(base64.b64decode(text))).load()
+
+
+def step_records(path: str, since: float | None = None,
+                 until: float | None = None) -> tuple[list[dict[str, Any]], int]:
+    """The /autopilot/step records of a file in `seq` order (`since`/`until`: seconds from the
+    recording's start), and how many the recorder said it dropped in the whole run."""
+    found: list[dict[str, Any]] = []
+    dropped = 0
+    for topic, rel, rec in replay.records(path, (TOPIC, "/recorder/stats")):
+        if topic == "/recorder/stats":
+            dropped = max(dropped, int(rec.get("dropped", {}).get("autopilot_step", 0)))
+        elif (since is None or rel >= since) and (until is None or rel <= until):
+            found.append(rec)
+    meta = replay.recorded_metadata(path).get("recorder", {})
+    if "dropped" in meta:
+        dropped = max(dropped, int(json.loads(meta["dropped"]).get("autopilot_step", 0)))
+    return sorted(found, key=lambda r: int(r["seq"])), dropped
+
+
+@dataclasses.dataclass
+class Steps:
+    """What replaying a file's autopilot steps found: `reproduced` of `total` (the records and
+    the numbers missing between them), the supervisor events they made, whether those were
+    checked against the transitions, and every difference."""
+
+    total: int = 0
+    reproduced: int = 0
+    events: int = 0
+    against_transitions: bool = False
+    differences: list[str] = dataclasses.field(default_factory=list)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Step:
+    seq: int
+    transition: int
+    flight: Any
+    events: tuple[Any, ...]
+
+
+def check_step(rec: dict[str, Any], previous: tuple[int, Any] | None,
+               rules: Any) -> tuple[Any, _Step | None, list[str]]:
+    """One record run through `watch_step` again: (its recorded watch state after, for the next
+    record's chain check; what it read and made, for the end-to-end check; what differs)."""
+    from companion import channels as ch
+    from companion.autopilot_rules import WATCH_EVENTS, watch_step
+
+    seq = int(rec["seq"])
+    if rec.get("pickle") is None:
+        return None, None, [f"seq {seq} {rec['reading'].get('type')}: the values were not recorded (not picklable)"]
+    before, flight, reading, now, after, outputs = loads_step(rec["pickle"])
+    label, why = f"seq {seq} {reading!r}", []
+    readable = json.loads(ch.dumps(ch.step_fields(before, flight, reading, now, after, outputs)))
+    for name, value in readable.items():
+        if rec.get(name) != value:
+            why.append(f"{label}: the record's {name} (JSON) is not its pickled value")
+    if previous is not None and replay.fingerprint(before) != replay.fingerprint(previous[1]):
+        where = replay.first_difference(previous[1], before, "before",
+                                        (f"seq {previous[0]} ended in", "this one starts from"))
+        why.append(f"{label}: does not start where seq {previous[0]} ended ({where}): the watch's state was "
+                   "replaced outside its rules, or a record was altered")
+    made = _Step(seq, int(rec["transition"]), flight, tuple(o for o in outputs if isinstance(o, WATCH_EVENTS)))
+    try:
+        new, outs = watch_step(rules, before, flight, reading, now)
+    except Exception as exc:  # the recorded call returned: raising now is a difference
+        why.append(f"{label}: replayed raised {type(exc).__name__}: {exc}")
+        return after, made, why
+    if replay.fingerprint(new) != replay.fingerprint(after):
+        why.append(f"{label}: {replay.first_difference(after, new, 'after')}")
+    if replay.fingerprint(tuple(outs)) != replay.fingerprint(tuple(outputs)):
+        why.append(f"{label}: {replay.first_difference(tuple(outputs), tuple(outs), 'outputs')}")
+    return after, made, why
+
+
+def transitions_by_seq(recs: list[dict[str, Any]]) -> dict[int, tuple[Any, Any, Any]]:
+    """(before, event, after) of each readable transition record, by seq."""
+    out: dict[int, tuple[Any, Any, Any]] = {}
+    for rec in recs:
+        if rec.get("pickle") is not None:
+            before, event, after, _actions = replay.loads_transition(rec["pickle"])
+            out[int(rec["seq"])] = (before, event, after)
+    return out
+
+
+def _end_to_end(made: list[_Step], transitions: dict[int, tuple[Any, Any, Any]]) -> list[str]:
+    """The steps' events against the supervisor's transitions (see the module's docstring)."""
+    from companion.autopilot_rules import WATCH_EVENTS
+
+    fp = replay.fingerprint
+    why: list[str] = []
+    claimed: set[int] = set()
+    for i, step in enumerate(made):
+        label = f"seq {step.seq}"
+        seen = transitions.get(step.transition - 1)
+        if seen is not None and fp(seen[2]) != fp(step.flight):
+            where = replay.first_difference(seen[2], step.flight, "flight",
+                                            (f"transition {step.transition - 1} left", "the step read"))
+            why.append(f"{label}: read another flight state than the supervisor's ({where})")
+        bound = made[i + 1].transition if i + 1 < len(made) else max(transitions, default=0) + 1
+        at = step.transition
+        for k, event in enumerate(step.events):
+            # the first event is handled right after the step; an action of one event may lead
+            # to other handle calls before the next
+            found = next((s for s in range(at, max(bound, at + 1)) if s in transitions and s not in claimed
+                          and fp(transitions[s][1]) == fp(event)), None) if k else \
+                (at if at in transitions and fp(transitions[at][1]) == fp(event) else None)
+            if found is None:
+                if all(s in transitions for s in range(at, max(bound, at + 1))):
+                    why.append(f"{label}: its event {event!r} is not transition {at}"
+                               + ("" if not k else f" nor one after it before {bound}"))
+                break  # a transition record missing: the transitions' own replay names it
+            if k == 0 and fp(transitions[found][0]) != fp(step.flight):
+                why.append(f"{label}: transition {found} did not start from the flight state the step read")
+            claimed.add(found)
+            at = found + 1
+    if made:
+        lo = made[0].transition
+        hi = max([*claimed, made[-1].transition - 1])
+        for s in sorted(transitions):
+            event = transitions[s][1]
+            if lo <= s <= hi and s not in claimed and isinstance(event, WATCH_EVENTS):
+                why.append(f"transition {s} {event!r} was made by no recorded autopilot step")
+    return why
+
+
+def replay_steps(recs: list[dict[str, Any]], rules: Any, dropped: int = 0,
+                 transitions: list[dict[str, Any]] | None = None) -> Steps:
+    """Every step record (in `seq` order) run again with `rules` (the recording's configuration's:
+    companion.autopilot_rules.WatchRules) and chained to the one before it; with the file's
+    transition records, the end-to-end check."""
+    out = Steps(total=len(recs))
+    previous: tuple[int, Any] | None = None
+    last: int | None = None
+    made: list[_Step] = []
+    for rec in recs:
+        seq = int(rec["seq"])
+        if last is not None and seq != last + 1:
+            if seq == last:
+                out.differences.append(f"seq {seq} recorded twice")
+            else:
+                missing = seq - last - 1
+                out.total += missing
+                where = f"seq {last + 1}" if missing == 1 else f"seq {last + 1} to {seq - 1}"
+                out.differences.append(f"{where} missing ({missing} record{'s' * (missing > 1)}: dropped by the "
+                                       "recorder, or removed): the chain is not checkable there")
+            previous = None
+        after, step, why = check_step(rec, previous, rules)
+        out.differences.extend(why)
+        out.reproduced += not why
+        previous = None if after is None else (seq, after)
+        last = seq
+        if step is not None:
+            made.append(step)
+            out.events += len(step.events)
+    if dropped:
+        out.differences.append(f"the recorder dropped {dropped} autopilot step record{'s' * (dropped > 1)} in this "
+                               "run (its queue was full): the chain is not checkable across them")
+    if transitions:
+        out.against_transitions = True
+        out.differences.extend(_end_to_end(made, transitions_by_seq(transitions)))
+    return out
+
+
+def replay_file(path: str, transitions: list[dict[str, Any]], since: float | None = None,
+                until: float | None = None) -> tuple[Steps, bool]:
+    """Replay the file's steps (in the time range), against its `transitions` (the records in
+    the same range); and whether it holds any (a record, or a drop counted)."""
+    from companion.autopilot_rules import WatchRules
+
+    recs, dropped = step_records(path, since, until)
+    if not recs:
+        return replay_steps([], None, dropped, transitions), bool(dropped)
+    cfg = replay.recorded_config(path)
+    if cfg is None:
+        raise ValueError("the recording holds no configuration to run its autopilot steps with")
+    return replay_steps(recs, WatchRules.of(cfg), dropped, transitions), True
+
+
+def said(steps: Steps, recorded: bool) -> str:
+    """The replay's line for the steps."""
+    if not recorded:
+        return "autopilot steps: none recorded"
+    if steps.differences:
+        return (f"autopilot steps: {steps.reproduced} of {steps.total} reproduced; first difference: "
+                f"{steps.differences[0]}")
+    events = (f"{steps.events} events, each a recorded transition" if steps.against_transitions
+              else f"{steps.events} events, not checked against transitions: none recorded")
+    return f"autopilot steps: {steps.total} of {steps.total} reproduced ({events})"
