@@ -77,7 +77,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv and argv[0] == "replay":
-        from companion.replay import main as replay_main
+        from companion.replay_cli import main as replay_main
 
         return replay_main(argv[1:])
     if argv and argv[0] == "router":

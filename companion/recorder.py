@@ -35,6 +35,7 @@ from typing import Any, Protocol
 
 from companion import channels as ch
 from companion.config import Config, config_to_toml
+from companion.record_format import environment
 from companion.tap import Tap
 
 log = logging.getLogger("companion")
@@ -185,7 +186,7 @@ class Recorder(Tap):
         import mcap.writer  # noqa: F401
         import scipy.spatial  # noqa: F401
 
-        from companion import obstacles, replay  # noqa: F401
+        from companion import obstacles, record_format  # noqa: F401
 
         # Neither a recording that cannot be written nor a live port in use stops the service: it
         # says so (log, status `recording.error`) and flies without.
@@ -385,19 +386,6 @@ class Recorder(Tap):
                 self._emit(topic, data, t)
 
 
-def environment() -> dict[str, str]:
-    """What a bit-identical replay depends on besides the recorded inputs: the interpreter, the
-    numerical libraries and the machine (their kernels may round differently elsewhere)."""
-    import platform
-    from importlib import metadata
-
-    env = {"python": platform.python_version(), "machine": platform.machine(), "system": platform.system()}
-    for dist in ("numpy", "scipy", "daqp", "osqp", "numba"):
-        with contextlib.suppress(metadata.PackageNotFoundError):
-            env[dist] = metadata.version(dist)
-    return env
-
-
 # -- planner records ----------------------------------------------------------------------------
 
 
@@ -408,10 +396,10 @@ def plan_record(seq: int, fn: Any, args: tuple[Any, ...], result: Any, submitted
     single C call holds the interpreter lock for long (the setpoint thread needs it every tick):
     pickles are written in 64 kB frames through Python, the base64 text is spliced in, not
     passed through the JSON encoder."""
-    from companion import replay
+    from companion import record_format as fmt
 
-    name = replay.function_name(fn)
-    compiled = replay.compiled_used(result, cfg.planner.compiled if where == "process" else False)
+    name = fmt.function_name(fn)
+    compiled = fmt.compiled_used(result, cfg.planner.compiled if where == "process" else False)
     body: dict[str, Any] = {
         "seq": seq,
         "function": name,
@@ -420,8 +408,8 @@ def plan_record(seq: int, fn: Any, args: tuple[Any, ...], result: Any, submitted
         "submitted": submitted,
         "done": done,
         "latency_ms": round((done - submitted) * 1000, 3),
-        **replay.summary_of(result),
-        "fingerprint": replay.fingerprint(result),
+        **fmt.summary_of(result),
+        "fingerprint": fmt.fingerprint(result),
     }
     call = _pickled((fn, args))
     res = None if isinstance(result, BaseException) else _pickled(result)
@@ -455,10 +443,10 @@ def decoded_record(seq: int, key: str, payload: Any, context: dict[str, Any], re
     """One inbound message read: what it became (readable, and a fingerprint) and the call's
     inputs pickled (base64), which `python -m companion replay` reads again and compares. The
     result is not pickled: a typed message is its fingerprint and the refusal its words."""
-    from companion import replay
+    from companion import record_format as fmt
 
-    body: dict[str, Any] = {"seq": seq, "key": key, "t": t, **replay.decoded_summary(result),
-                            "fingerprint": replay.decoded_fingerprint(result)}
+    body: dict[str, Any] = {"seq": seq, "key": key, "t": t, **fmt.decoded_summary(result),
+                            "fingerprint": fmt.decoded_fingerprint(result)}
     raw = bytes(payload) if isinstance(payload, bytes | bytearray | memoryview) else len(payload)
     call = _pickled((key, raw, context.get("home"), bool(context.get("home_pending")), context.get("fleet")))
     return b"".join([ch.dumps(body)[:-1], b',"call":', b"null" if call is None else b'"' + call + b'"', b"}"])

@@ -40,120 +40,19 @@ import builtins
 import dataclasses
 import enum
 import functools
-import hashlib
 import io
 import pickle
-import sys
 import time
 from collections.abc import Iterator
 from typing import Any
 
-import numpy as np
-
-SKIP_FIELDS = frozenset({"stats"})  # timings; everything else must be identical
-
-
-def function_name(fn: Any) -> str:
-    if isinstance(fn, functools.partial):
-        kw = ", ".join(f"{k}={v!r}" for k, v in fn.keywords.items())
-        return f"{function_name(fn.func)}({kw})" if kw else function_name(fn.func)
-    return f"{getattr(fn, '__module__', '?')}.{getattr(fn, '__qualname__', repr(fn))}"
-
-
-# -- fingerprints -------------------------------------------------------------------------------
-
-
-def leaves(obj: Any, path: str = "result") -> Iterator[tuple[str, str]]:
-    """(path, exact value) of every leaf, in a fixed order."""
-    if obj is None or isinstance(obj, bool | int | str):
-        yield path, repr(obj)
-    elif isinstance(obj, float):
-        yield path, obj.hex()
-    elif isinstance(obj, np.ndarray):
-        data = np.ascontiguousarray(obj).tobytes()
-        yield path, f"{obj.dtype}{obj.shape}:{hashlib.sha256(data).hexdigest()[:24]}"
-    elif isinstance(obj, np.generic):
-        yield from leaves(obj.item(), path)
-    elif isinstance(obj, enum.Enum):
-        yield path, repr(obj)
-    elif isinstance(obj, BaseException):
-        yield path, f"{type(obj).__name__}: {obj}"
-    elif dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        yield path, type(obj).__name__
-        for f in dataclasses.fields(obj):
-            if f.name not in SKIP_FIELDS:
-                yield from leaves(getattr(obj, f.name), f"{path}.{f.name}")
-    elif isinstance(obj, dict):
-        yield path, f"dict of {len(obj)}"
-        for k in sorted(obj, key=str):
-            if k not in SKIP_FIELDS:
-                yield from leaves(obj[k], f"{path}[{k!r}]")
-    elif isinstance(obj, list | tuple):
-        yield path, f"{type(obj).__name__} of {len(obj)}"
-        for i, v in enumerate(obj):
-            yield from leaves(v, f"{path}[{i}]")
-    else:
-        yield path, type(obj).__name__
-
-
-def fingerprint(obj: Any) -> str:
-    h = hashlib.sha256()
-    for p, v in leaves(obj):
-        h.update(f"{p}={v}\n".encode())
-    return h.hexdigest()
-
-
-def first_difference(recorded: Any, replayed: Any, root: str = "result",
-                     names: tuple[str, str] = ("recorded", "replayed")) -> str:
-    """The first leaf (in `leaves` order) where the two differ, said as `names` say them."""
-    ra, rb = names
-    a, b = list(leaves(recorded, root)), list(leaves(replayed, root))
-    for (pa, va), (pb, vb) in zip(a, b, strict=False):
-        if pa != pb or va != vb:
-            return f"{pa}: {ra} {va}, {rb} {vb}" if pa == pb else f"{ra} {pa} = {va}, {rb} {pb} = {vb}"
-    if len(a) != len(b):
-        return f"{ra} {len(a)} values, {rb} {len(b)}"
-    return "no difference found leaf by leaf"
-
-
-def _trajectory(result: Any) -> Any:
-    route = getattr(result, "route", None)
-    return getattr(route, "trajectory", None) if route is not None else getattr(result, "trajectory", None)
-
-
-def compiled_used(result: Any, default: bool) -> bool:
-    """Whether the plan ran the compiled pass (its stats say; the two paths agree to rounding,
-    not bit for bit), else `default` (where the call ran: [planner] compiled in a planner
-    process; the service process never loads it)."""
-    stats = getattr(_trajectory(result), "stats", None) or {}
-    steps = stats.get("n_compiled_steps")
-    return bool(steps) if isinstance(steps, int) else default
-
-
-def _scalars(d: Any) -> dict[str, Any]:
-    """The top-level numbers, strings and flags of a stats dictionary (the rest is in the pickle)."""
-    if not isinstance(d, dict):
-        return {}
-    return {str(k): v for k, v in d.items() if v is None or isinstance(v, bool | int | float | str)}
-
-
-def summary_of(result: Any) -> dict[str, Any]:
-    """Readable fields of a planner result for the record: small on purpose (the writer thread
-    must not hold the interpreter lock for long); the trajectory itself is on /out/trajectory
-    once flown, and everything is in the pickled result."""
-    if isinstance(result, BaseException):
-        return {"ok": None, "status": "error", "message": f"{type(result).__name__}: {result}"}
-    out: dict[str, Any] = {"ok": getattr(result, "ok", None)}
-    status = getattr(result, "status", None)
-    out["status"] = status.value if isinstance(status, enum.Enum) else (None if status is None else str(status))
-    out["message"] = getattr(result, "message", None)
-    out["stats"] = _scalars(getattr(result, "stats", None))
-    traj = _trajectory(result)
-    out["trajectory"] = None if traj is None else {
-        "segments": int(traj.n_segments), "t0": float(traj.t0), "t_end": float(traj.t_end),
-        "corridors": traj.corridors is not None, "stats": _scalars(traj.stats)}
-    return out
-
+from companion.record_format import (
+    decoded_fingerprint,
+    decoded_summary,
+    fingerprint,
+    first_difference,
+    summary_of,
+)
 
 # -- reading calls back -------------------------------------------------------------------------
 
@@ -170,20 +69,8 @@ _PLAIN = {
 }
 
 
-def decoded_summary(result: Any) -> dict[str, Any]:
-    """What an inbound message became, readable: ok, the class, and a refusal's field and reason."""
-    if isinstance(result, BaseException):
-        return {"ok": False, "type": type(result).__name__, "field": getattr(result, "field", None),
-                "reason": getattr(result, "reason", str(result))}
-    return {"ok": True, "type": type(result).__name__, "field": None, "reason": None}
 
 
-def decoded_fingerprint(result: Any) -> str:
-    """A typed message by its every value; a refusal by its class, field and reason."""
-    if isinstance(result, BaseException):
-        return fingerprint(("refused", type(result).__name__, getattr(result, "field", None),
-                            getattr(result, "reason", str(result))))
-    return fingerprint(result)
 
 
 class _SafeUnpickler(pickle.Unpickler):
@@ -464,82 +351,3 @@ def replay_decoded(rec: dict[str, Any], cfg: Any) -> str:
     got = f"{now['type']}" + ("" if now["ok"] else f" ({now['field'] or 'payload'}: {now['reason']})")
     return f"message {rec['seq']} on {key}: recorded {was}, read again {got}" if was != got else \
         f"message {rec['seq']} on {key}: the {got} read again differs in its values"
-
-
-def main(argv: list[str]) -> int:
-    import argparse
-
-    from mcap.exceptions import McapError
-
-    from companion import replay_autopilot
-
-    p = argparse.ArgumentParser(prog="python -m companion replay", description=__doc__.splitlines()[0])
-    p.add_argument("file")
-    p.add_argument("--from", dest="since", type=float, default=None, metavar="T",
-                   help="seconds from the start of the recording")
-    p.add_argument("--until", type=float, default=None, metavar="T")
-    p.add_argument("--keep-going", action="store_true",
-                   help="replay every plan and list every transition difference, not only the first")
-    args = p.parse_args(argv)
-    n = bad = 0
-    try:
-        from companion.recorder import environment
-
-        here, there = environment(), recorded_environment(args.file)
-        differ = {k: (there.get(k), v) for k, v in here.items() if k in there and there[k] != v}
-        if differ:
-            print("note: recorded on another environment (" + ", ".join(f"{k} {a} here {b}" for k, (a, b)
-                  in differ.items()) + "): its numerical kernels may round differently", flush=True)
-        recs, dropped = transition_records(args.file, args.since, args.until)
-        checked = replay_transitions(recs, dropped)
-        if not recs and not dropped:
-            print("transitions: none recorded", flush=True)
-        elif not checked.differences:
-            print(f"transitions: {checked.total} of {checked.total} reproduced", flush=True)
-        else:
-            print(f"transitions: {checked.reproduced} of {checked.total} reproduced; first difference: "
-                  f"{checked.differences[0]}", flush=True)
-            for more in checked.differences[1:] if args.keep_going else ():
-                print(f"  also: {more}")
-        stepped, any_steps = replay_autopilot.replay_file(args.file, recs, args.since, args.until)
-        print(replay_autopilot.said(stepped, any_steps), flush=True)
-        for more in stepped.differences[1:] if args.keep_going else ():
-            print(f"  also: {more}")
-        decoded = decoded_records(args.file, args.since, args.until)
-        decode_bad: list[str] = []
-        if decoded:
-            cfg = recorded_config(args.file)
-            if cfg is None:
-                raise ValueError("the recording holds no configuration to read its messages with")
-            decode_bad = [why for why in (replay_decoded(rec, cfg) for rec in decoded) if why]  # ms each
-            alike = f"messages: {len(decoded) - len(decode_bad)} of {len(decoded)} read again alike"
-            print(alike + (f"; first difference: {decode_bad[0]}" if decode_bad else ""), flush=True)
-            for more in decode_bad[1:] if args.keep_going else ():
-                print(f"  also: {more}")
-        else:
-            print("messages: none recorded", flush=True)
-        for rec in plan_records(args.file, args.since, args.until):
-            r = replay_one(rec)
-            n += 1
-            mark = "identical" if r.identical else "DIFFERS"
-            print(f"plan {r.seq:4d} {r.function}: {mark} (recorded {r.recorded_ms:.1f} ms, "
-                  f"replayed {r.replayed_ms:.1f} ms)", flush=True)
-            if not r.identical:
-                bad += 1
-                print(f"  first difference: {r.difference}")
-                if not args.keep_going:
-                    break
-    except (OSError, ValueError, KeyError, TypeError, pickle.UnpicklingError, McapError) as exc:
-        print(f"replay: {args.file}: {exc}", file=sys.stderr)
-        return 2
-    if n == 0 and not recs and not dropped and not decoded and not any_steps:
-        print("replay: no plan, transition, autopilot step or inbound message in the recording (or in the time "
-              "range)",
-              file=sys.stderr)
-        return 2
-    if n == 0:
-        print("plans: none recorded")
-    else:
-        print(f"plans: {n - bad} of {n} reproduced bit-identically" if bad == 0 or args.keep_going
-              else f"plans: plan {n} is the first that differs")
-    return 0 if bad == 0 and not checked.differences and not stepped.differences and not decode_bad else 1

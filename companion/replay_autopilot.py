@@ -33,7 +33,7 @@ import pickle
 import typing
 from typing import Any
 
-from companion import replay
+from companion import record_format, replay
 
 TOPIC = "/autopilot/step"
 
@@ -112,8 +112,8 @@ def check_step(rec: dict[str, Any], previous: tuple[int, Any] | None,
     for name, value in readable.items():
         if rec.get(name) != value:
             why.append(f"{label}: the record's {name} (JSON) is not its pickled value")
-    if previous is not None and replay.fingerprint(before) != replay.fingerprint(previous[1]):
-        where = replay.first_difference(previous[1], before, "before",
+    if previous is not None and record_format.fingerprint(before) != record_format.fingerprint(previous[1]):
+        where = record_format.first_difference(previous[1], before, "before",
                                         (f"seq {previous[0]} ended in", "this one starts from"))
         why.append(f"{label}: does not start where seq {previous[0]} ended ({where}): the watch's state was "
                    "replaced outside its rules, or a record was altered")
@@ -123,10 +123,10 @@ def check_step(rec: dict[str, Any], previous: tuple[int, Any] | None,
     except Exception as exc:  # the recorded call returned: raising now is a difference
         why.append(f"{label}: replayed raised {type(exc).__name__}: {exc}")
         return after, made, why
-    if replay.fingerprint(new) != replay.fingerprint(after):
-        why.append(f"{label}: {replay.first_difference(after, new, 'after')}")
-    if replay.fingerprint(tuple(outs)) != replay.fingerprint(tuple(outputs)):
-        why.append(f"{label}: {replay.first_difference(tuple(outputs), tuple(outs), 'outputs')}")
+    if record_format.fingerprint(new) != record_format.fingerprint(after):
+        why.append(f"{label}: {record_format.first_difference(after, new, 'after')}")
+    if record_format.fingerprint(tuple(outs)) != record_format.fingerprint(tuple(outputs)):
+        why.append(f"{label}: {record_format.first_difference(tuple(outputs), tuple(outs), 'outputs')}")
     return after, made, why
 
 
@@ -144,14 +144,14 @@ def _end_to_end(made: list[_Step], transitions: dict[int, tuple[Any, Any, Any]])
     """The steps' events against the supervisor's transitions (see the module's docstring)."""
     from companion.autopilot_rules import WATCH_EVENTS
 
-    fp = replay.fingerprint
+    fp = record_format.fingerprint
     why: list[str] = []
     claimed: set[int] = set()
     for i, step in enumerate(made):
         label = f"seq {step.seq}"
         seen = transitions.get(step.transition - 1)
         if seen is not None and fp(seen[2]) != fp(step.flight):
-            where = replay.first_difference(seen[2], step.flight, "flight",
+            where = record_format.first_difference(seen[2], step.flight, "flight",
                                             (f"transition {step.transition - 1} left", "the step read"))
             why.append(f"{label}: read another flight state than the supervisor's ({where})")
         bound = made[i + 1].transition if i + 1 < len(made) else max(transitions, default=0) + 1

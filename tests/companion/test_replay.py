@@ -15,7 +15,7 @@ import pytest
 from mcap.reader import make_reader
 from recorder_support import config, plan_call
 
-from companion import replay
+from companion import record_format, replay, replay_cli
 from companion.recorder import Recorder
 
 DATA = Path(__file__).resolve().parents[1] / "data"
@@ -39,7 +39,7 @@ def plan_records(path: Path) -> list[dict[str, Any]]:
 def test_a_recorded_plan_replays_bit_identically(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     cfg = config(tmp_path)
     path = record(tmp_path, [plan_call(cfg), plan_call(cfg, waypoints=[[0.0, 0.0, -1.0], [3.0, 1.0, -2.0]])])
-    assert replay.main([str(path)]) == 0
+    assert replay_cli.main([str(path)]) == 0
     out = capsys.readouterr().out
     assert out.count(": identical") == 2 and "plans: 2 of 2 reproduced bit-identically" in out
     assert "transitions: none recorded" in out  # no supervisor here: judged by the plans
@@ -65,13 +65,13 @@ def test_the_fingerprint_ignores_timings_and_sees_every_bit() -> None:
     assert out.route is not None
     again = pickle.loads(pickle.dumps(out))
     again.stats["took"] = 123.0  # timings differ from run to run
-    assert replay.fingerprint(again) == replay.fingerprint(out)
+    assert record_format.fingerprint(again) == record_format.fingerprint(out)
     cp = out.route.trajectory.control_points.copy()
     cp.flat[17] = np.nextafter(cp.flat[17], np.inf)
     changed = pickle.loads(pickle.dumps(out))
     object.__setattr__(changed.route.trajectory, "control_points", cp)
-    assert replay.fingerprint(changed) != replay.fingerprint(out)
-    assert "control_points" in replay.first_difference(out, changed)
+    assert record_format.fingerprint(changed) != record_format.fingerprint(out)
+    assert "control_points" in record_format.first_difference(out, changed)
 
 
 class _Evil:
@@ -93,7 +93,7 @@ def test_the_recorded_flight_in_tests_data_replays_bit_identically(capsys: pytes
     flight), its planner calls kept (tests/data/README.md): the regression test a field
     recording becomes."""
     path = DATA / "flight-plans.mcap"
-    assert replay.main([str(path)]) == 0
+    assert replay_cli.main([str(path)]) == 0
     out = capsys.readouterr().out
     n = out.count(": identical")
     assert n >= 3 and f"plans: {n} of {n} reproduced bit-identically" in out

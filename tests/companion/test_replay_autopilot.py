@@ -27,7 +27,7 @@ from recorder_support import config
 from test_replay_transitions import rewrite
 
 from companion import channels as ch
-from companion import replay, replay_autopilot
+from companion import replay, replay_autopilot, replay_cli
 from companion.autopilot import AutopilotWatch
 from companion.flight import FlightState, State
 from companion.recorder import Recorder
@@ -163,7 +163,7 @@ def with_values(rec: dict[str, Any], *values: Any) -> dict[str, Any]:
 
 
 def run(path: Path, capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str]:
-    code = replay.main([str(path), *args])
+    code = replay_cli.main([str(path), *args])
     return code, capsys.readouterr().out
 
 
@@ -327,7 +327,7 @@ def test_a_step_record_cannot_name_anything_else(tmp_path: Path, capsys: pytest.
     def edit(r: dict[str, Any]) -> dict[str, Any]:
         return {**r, "pickle": base64.b64encode(pickle.dumps((None, FlightState(), _Evil(), 0.0, None, ()))).decode()}
 
-    assert replay.main([str(rewrite(path, tmp_path / "evil.mcap", edit, topic=TOPIC))]) == 2
+    assert replay_cli.main([str(rewrite(path, tmp_path / "evil.mcap", edit, topic=TOPIC))]) == 2
     assert "replay does not load posix.system from an autopilot step record" in capsys.readouterr().err
     assert not (tmp_path / "pwned.txt").exists()
 

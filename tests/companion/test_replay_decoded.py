@@ -16,7 +16,7 @@ from mcap.reader import make_reader
 from recorder_support import config
 from test_replay_transitions import rewrite
 
-from companion import replay
+from companion import record_format, replay_cli
 from companion.geodesy import Placement
 from companion.recorder import Recorder
 from companion.wire.errors import Oversized
@@ -70,7 +70,7 @@ def test_every_message_is_read_again_alike(tmp_path: Path, capsys: pytest.Captur
     assert not recs[1]["ok"] and recs[1]["field"] == "waypoints[1][1]", recs[1]
     assert not recs[3]["ok"] and "home" in recs[3]["reason"], recs[3]
     assert recs[2]["ok"] and recs[6]["ok"] and recs[7]["type"] == "Command"
-    assert replay.main([str(path)]) == 0
+    assert replay_cli.main([str(path)]) == 0
     out = capsys.readouterr().out
     assert f"messages: {len(MESSAGES)} of {len(MESSAGES)} read again alike" in out, out
 
@@ -84,11 +84,11 @@ def test_a_message_read_differently_now_is_named(tmp_path: Path, capsys: pytest.
     def as_refused(rec: dict[str, Any]) -> dict[str, Any]:
         if rec["seq"] == 3:
             rec = {**rec, "ok": False, "type": "MessageError", "field": "origin", "reason": "no home yet",
-                   "fingerprint": replay.decoded_fingerprint(ValueError("no home yet"))}
+                   "fingerprint": record_format.decoded_fingerprint(ValueError("no home yet"))}
         return rec
 
     edited = rewrite(path, tmp_path / "edited.mcap", as_refused, topic=TOPIC)
-    assert replay.main([str(edited)]) == 1
+    assert replay_cli.main([str(edited)]) == 1
     out = capsys.readouterr().out
     assert "messages: 7 of 8 read again alike; first difference: message 3 on mission: recorded MessageError " \
            "(origin: no home yet), read again MissionSpec" in out, out
@@ -105,7 +105,7 @@ def test_the_recorded_configuration_is_the_one_read_with(tmp_path: Path, capsys:
         return md
 
     edited = rewrite(path, tmp_path / "edited.mcap", meta=fewer)
-    assert replay.main([str(edited)]) == 1
+    assert replay_cli.main([str(edited)]) == 1
     out = capsys.readouterr().out
     assert "first difference: message 1 on mission: recorded MissionSpec, read again MessageError" in out, out
 
@@ -115,5 +115,5 @@ def test_an_oversized_message_is_read_again_as_one(tmp_path: Path, capsys: pytes
     assert isinstance(made[0], Exception)
     (rec,) = decoded(path)
     assert not rec["ok"] and "bytes" in rec["reason"], rec
-    assert replay.main([str(path)]) == 0
+    assert replay_cli.main([str(path)]) == 0
     assert "messages: 1 of 1 read again alike" in capsys.readouterr().out

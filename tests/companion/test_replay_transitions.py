@@ -23,7 +23,7 @@ from mcap.writer import Writer
 from recorder_support import config
 
 from companion import channels as ch
-from companion import replay
+from companion import replay, replay_cli
 from companion.flight import FlightState, State
 from companion.recorder import Recorder
 from companion.supervisor import (
@@ -148,7 +148,7 @@ def with_values(rec: dict[str, Any], before: Any, event: Any, after: Any, action
 
 
 def run(path: Path, capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str]:
-    code = replay.main([str(path), *args])
+    code = replay_cli.main([str(path), *args])
     return code, capsys.readouterr().out
 
 
@@ -301,7 +301,7 @@ def test_a_transition_record_cannot_name_anything_else(tmp_path: Path, capsys: p
         return {**r, "pickle": base64.b64encode(pickle.dumps((FlightState(), _Evil(), FlightState(), ()))).decode()}
 
     bad = rewrite(path, tmp_path / "evil.mcap", edit)
-    assert replay.main([str(bad)]) == 2
+    assert replay_cli.main([str(bad)]) == 2
     assert "replay does not load posix.system" in capsys.readouterr().err
     assert not (tmp_path / "pwned.txt").exists()
     # a planner function is allowed in a plan record, not in a transition record

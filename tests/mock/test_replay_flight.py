@@ -19,7 +19,7 @@ import pytest
 from companionkit import Events, service_for, serving, until
 from mcap.reader import make_reader
 
-from companion import replay
+from companion import replay_cli
 from companion.flight import FlightState, State
 from companion.report import clip
 from companion.supervisor import Event
@@ -134,7 +134,7 @@ def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
     assert "LinkFound" in [o["type"] for r in steps for o in r["outputs"]]
 
     # replay: every transition, every step and every plan (the climb and the mission at least) reproduced
-    assert replay.main([str(path)]) == 0
+    assert replay_cli.main([str(path)]) == 0
     out = capsys.readouterr().out
     assert f"transitions: {handled} of {handled} reproduced" in out.splitlines()
     assert (f"autopilot steps: {stepped} of {stepped} reproduced ({len(made)} events, each a recorded "

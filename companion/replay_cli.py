@@ -1,0 +1,98 @@
+"""`python -m companion replay FILE.mcap`: run every recorded transition, autopilot step, inbound
+read and plan again and say whether each reproduces (exit 0), where the first differs (exit 1),
+or why the file cannot be replayed (exit 2). What each check covers: companion/replay.py and
+companion/replay_autopilot.py.
+"""
+
+from __future__ import annotations
+
+import pickle
+import sys
+
+from companion import replay_autopilot
+from companion.record_format import environment
+from companion.replay import (
+    decoded_records,
+    plan_records,
+    recorded_config,
+    recorded_environment,
+    replay_decoded,
+    replay_one,
+    replay_transitions,
+    transition_records,
+)
+
+
+def main(argv: list[str]) -> int:
+    import argparse
+
+    from mcap.exceptions import McapError
+
+    p = argparse.ArgumentParser(prog="python -m companion replay", description=(__doc__ or "").splitlines()[0])
+    p.add_argument("file")
+    p.add_argument("--from", dest="since", type=float, default=None, metavar="T",
+                   help="seconds from the start of the recording")
+    p.add_argument("--until", type=float, default=None, metavar="T")
+    p.add_argument("--keep-going", action="store_true",
+                   help="replay every plan and list every transition difference, not only the first")
+    args = p.parse_args(argv)
+    n = bad = 0
+    try:
+        here, there = environment(), recorded_environment(args.file)
+        differ = {k: (there.get(k), v) for k, v in here.items() if k in there and there[k] != v}
+        if differ:
+            print("note: recorded on another environment (" + ", ".join(f"{k} {a} here {b}" for k, (a, b)
+                  in differ.items()) + "): its numerical kernels may round differently", flush=True)
+        recs, dropped = transition_records(args.file, args.since, args.until)
+        checked = replay_transitions(recs, dropped)
+        if not recs and not dropped:
+            print("transitions: none recorded", flush=True)
+        elif not checked.differences:
+            print(f"transitions: {checked.total} of {checked.total} reproduced", flush=True)
+        else:
+            print(f"transitions: {checked.reproduced} of {checked.total} reproduced; first difference: "
+                  f"{checked.differences[0]}", flush=True)
+            for more in checked.differences[1:] if args.keep_going else ():
+                print(f"  also: {more}")
+        stepped, any_steps = replay_autopilot.replay_file(args.file, recs, args.since, args.until)
+        print(replay_autopilot.said(stepped, any_steps), flush=True)
+        for more in stepped.differences[1:] if args.keep_going else ():
+            print(f"  also: {more}")
+        decoded = decoded_records(args.file, args.since, args.until)
+        decode_bad: list[str] = []
+        if decoded:
+            cfg = recorded_config(args.file)
+            if cfg is None:
+                raise ValueError("the recording holds no configuration to read its messages with")
+            decode_bad = [why for why in (replay_decoded(rec, cfg) for rec in decoded) if why]  # ms each
+            alike = f"messages: {len(decoded) - len(decode_bad)} of {len(decoded)} read again alike"
+            print(alike + (f"; first difference: {decode_bad[0]}" if decode_bad else ""), flush=True)
+            for more in decode_bad[1:] if args.keep_going else ():
+                print(f"  also: {more}")
+        else:
+            print("messages: none recorded", flush=True)
+        for rec in plan_records(args.file, args.since, args.until):
+            r = replay_one(rec)
+            n += 1
+            mark = "identical" if r.identical else "DIFFERS"
+            print(f"plan {r.seq:4d} {r.function}: {mark} (recorded {r.recorded_ms:.1f} ms, "
+                  f"replayed {r.replayed_ms:.1f} ms)", flush=True)
+            if not r.identical:
+                bad += 1
+                print(f"  first difference: {r.difference}")
+                if not args.keep_going:
+                    break
+    except (OSError, ValueError, KeyError, TypeError, pickle.UnpicklingError, McapError) as exc:
+        print(f"replay: {args.file}: {exc}", file=sys.stderr)
+        return 2
+    if n == 0 and not recs and not dropped and not decoded and not any_steps:
+        print("replay: no plan, transition, autopilot step or inbound message in the recording (or in the time "
+              "range)",
+              file=sys.stderr)
+        return 2
+    if n == 0:
+        print("plans: none recorded")
+    else:
+        print(f"plans: {n - bad} of {n} reproduced bit-identically" if bad == 0 or args.keep_going
+              else f"plans: plan {n} is the first that differs")
+    return 0 if bad == 0 and not checked.differences and not stepped.differences and not decode_bad else 1
