@@ -148,7 +148,7 @@ _POSITIVE = {
 
 _NON_NEGATIVE = {"fleet.clock_tolerance", "fleet.separation", "fleet.max_delay", "planner.fallback_delay", "planner.reserve", "autopilot_limits.retries",
                  "safety.tracking_brake", "safety.exit_timeout", "safety.hold_confirm",
-                 "safety.hold_altitude_tolerance", "safety.hold_speed_tolerance", "safety.hold_settle"}
+                 "safety.hold_altitude_tolerance", "safety.hold_speed_tolerance", "safety.hold_settle", "safety.hold_rest_speed"}
 
 # Keys that were replaced: what to set instead (a safety option must not be dropped silently).
 _REPLACED = {

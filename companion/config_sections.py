@@ -303,6 +303,10 @@ class SafetyConfig:
     hold_altitude_tolerance: float = 0.0
     hold_speed_tolerance: float = 0.0
     hold_settle: float = 0.0
+    # The speed (m/s) the braking before the hand-over waits for, at most `hold_settle` s past
+    # the verified stop's end; 0: the autopilot's profile (PX4 0.7 m/s: its estimate strays in
+    # OFFBOARD and is rarely under 0.2 m/s; ArduPilot `rest_speed` above).
+    hold_rest_speed: float = 0.0
 
 
 @dataclass(frozen=True)
