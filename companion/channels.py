@@ -125,7 +125,7 @@ DECODED = _obj("bezier.DecodedMessage", "An inbound message as the companion rea
     "type": {"type": "string", "description": "the typed message's class, or the error's"},
     "field": {"type": ["string", "null"]}, "reason": {"type": ["string", "null"]},
     "fingerprint": {"type": "string", "description": "sha256 of the typed message (or of the refusal)"},
-    "call": {"type": ["string", "null"], "description": "pickle (base64) of (key, payload, home, home_pending, fleet)"},
+    "call": {"type": ["string", "null"], "description": "pickle (base64) of (key, payload, home, home_pending, fleet, autopilot)"},
 }, ("seq", "key", "t", "ok", "type", "fingerprint"))
 
 NUM_OR_NULL = {"type": ["number", "null"], "description": "null: unbounded"}

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any, get_type_hints
 
 from companion.config_sections import (
+    TRACKING_ALLOWANCES,
     AutopilotLimitsConfig,
     BoundsConfig,
     FleetConfig,
@@ -31,10 +32,12 @@ from companion.config_sections import (
     SetpointConfig,
     VehicleConfig,
     ZenohConfig,
+    tracking_allowance,
 )
 
 __all__ = [
     "LEAD_MAX",
+    "TRACKING_ALLOWANCES",
     "AutopilotLimitsConfig",
     "BoundsConfig",
     "Config",
@@ -53,6 +56,7 @@ __all__ = [
     "config_from_dict",
     "config_to_toml",
     "load_config",
+    "tracking_allowance",
 ]
 
 
@@ -142,9 +146,9 @@ _POSITIVE = {
 }
 
 
-_NON_NEGATIVE = {"fleet.clock_tolerance", "fleet.separation", "fleet.max_delay", "planner.fallback_delay", "planner.reserve", "autopilot_limits.retries", "planner.tracking_allowance",
+_NON_NEGATIVE = {"fleet.clock_tolerance", "fleet.separation", "fleet.max_delay", "planner.fallback_delay", "planner.reserve", "autopilot_limits.retries",
                  "safety.tracking_brake", "safety.exit_timeout", "safety.hold_confirm",
-                 "safety.hold_altitude_tolerance", "safety.hold_speed_tolerance", "safety.hold_settle"}
+                 "safety.hold_altitude_tolerance", "safety.hold_speed_tolerance", "safety.hold_settle", "safety.hold_rest_speed"}
 
 # Keys that were replaced: what to set instead (a safety option must not be dropped silently).
 _REPLACED = {
@@ -163,6 +167,12 @@ def _convert(key: str, hint: Any, value: Any, default: Any) -> Any:
             return value
         if isinstance(value, bool) or not isinstance(value, int | float) or not 0.0 <= value <= 2.0:
             raise ConfigError(key, f"expected \"autopilot\" or seconds in [0, [setpoints] lead_max], got {value!r}")
+        return float(value)
+    if key == "planner.tracking_allowance":
+        if value == "autopilot":
+            return value
+        if isinstance(value, bool) or not isinstance(value, int | float) or not (math.isfinite(value) and value >= 0):
+            raise ConfigError(key, f"expected \"autopilot\" (the autopilot's own) or metres >= 0, got {value!r}")
         return float(value)
     if key == "setpoints.lead":
         if value == "auto":

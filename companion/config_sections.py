@@ -167,12 +167,33 @@ class PlannerConfig:
     # inflated by vehicle_radius + tracking_allowance, and a tracking error above it for
     # 3 samples in a row brakes to a stop (it replaces [safety] max_tracking_error). Compared
     # in flight with the tracking measured (event `tracking_margin` when the RMS or max nears
-    # it). 0: neither the inflation nor the brake (planning tests and benches only, not flight).
-    tracking_allowance: float = 0.4
+    # it). "autopilot" (the default): the autopilot's own (TRACKING_ALLOWANCES: PX4 1.0 m, its
+    # estimate strays ~0.4 m from a held setpoint; ArduPilot 0.4 m; ArduPilot's before the
+    # autopilot is known). 0: neither the inflation nor the brake (planning tests and benches
+    # only, not flight).
+    tracking_allowance: float | str = "autopilot"
     # Fault injection for tests and drills: hold back the result of the full-replan fallback
     # (after a failed local replan) this many seconds, as on an overloaded computer. The
     # braking deadline must then stop the vehicle. 0 in flight.
     fallback_delay: float = 0.0
+
+
+# `[planner] tracking_allowance = "autopilot"`: the allowance per autopilot (m), from flights on
+# the simulators with stock parameters (docs/autopilot-limits.md). PX4 SIH (9ececfdd, 2026-12-03):
+# at 0.40 m missions braked themselves 2.4-4.6 s after their start (its estimate went 0.41 m off
+# a held setpoint); at 1.0 m they flew, tracking RMS 0.35-0.36 m, max 0.80 m (a 15 m square).
+# ArduCopter 4.6 SITL (issue 20): tracking RMS 0.14-0.21 m in the paper's scenarios, within 0.40 m.
+TRACKING_ALLOWANCES = {"px4": 1.0, "ardupilot": 0.4}
+
+
+def tracking_allowance(planner: PlannerConfig, autopilot: str | None) -> tuple[float, str]:
+    """(the tracking allowance in use, where it comes from): `[planner] tracking_allowance` when
+    set to a number, else the autopilot's (ArduPilot's while the autopilot is not known)."""
+    if not isinstance(planner.tracking_allowance, str):
+        return float(planner.tracking_allowance), "[planner] tracking_allowance"
+    ap = "px4" if autopilot == "px4" else "ardupilot"
+    return TRACKING_ALLOWANCES[ap], f"{'PX4' if ap == 'px4' else 'ArduPilot'}'s default" + (
+        "" if autopilot is not None else " (the autopilot not yet known)")
 
 
 @dataclass(frozen=True)
@@ -284,6 +305,10 @@ class SafetyConfig:
     hold_altitude_tolerance: float = 0.0
     hold_speed_tolerance: float = 0.0
     hold_settle: float = 0.0
+    # The speed (m/s) the braking before the hand-over waits for, at most `hold_settle` s past
+    # the verified stop's end; 0: the autopilot's profile (PX4 0.7 m/s: its estimate strays in
+    # OFFBOARD and is rarely under 0.2 m/s; ArduPilot `rest_speed` above).
+    hold_rest_speed: float = 0.0
 
 
 @dataclass(frozen=True)

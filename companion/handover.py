@@ -51,6 +51,11 @@ class HoldProfile:
     altitude_tolerance: float  # m from where the hold began, judged throughout
     confirm: float  # s watched after the hold began (at least until settled)
     exit_timeout: float  # s for the whole hand-over (keep it below systemd's TimeoutStopSec, 10 s)
+    # m/s: the braking before the hand-over waits (at most `settle` s past the verified stop's end)
+    # for the estimate's speed under this; 0: [safety] rest_speed
+    rest_speed: float = 0.0
+    # s past the verified stop's end before the speed is judged: the autopilot trails its setpoints
+    trail: float = 0.0
 
 
 # Measured on the real simulators (2026-12-02, docs/handover.md):
@@ -59,8 +64,15 @@ class HoldProfile:
 # estimated altitude within 0.41 m for 10 s (truth: 0.17 m, <= 0.31 m/s). ArduCopter 4.6 (ap_1..4):
 # under 0.3 m/s within 2.2-2.6 s, altitude within 0.04 m, speed <= 0.19 m/s. Both catch a
 # pilot-mode descent (2.5 m/s) within 0.4 s on the altitude alone.
+# PX4's rest speed (2026-12-03, PX4 SIH at 9ececfdd, SIGTERM at 2.89 m/s): waiting for its estimate
+# under [safety] rest_speed (0.2 m/s) ran out (its estimate strays in OFFBOARD, and in AUTO.LOITER
+# at rest moves at up to 0.47-0.65 m/s), and the exit took 8.76 s of the 9.5; it is under 1 m/s
+# soon after the stop's end (above). 0.7 m/s: above what PX4's estimate shows at rest; judged from
+# 0.35 s after the stop's end (PX4 follows plans 0.31-0.38 s late, best fit), so that the vehicle
+# itself, not only the plan, has nearly stopped when AUTO.LOITER takes over.
 HOLD_PROFILES: dict[str, HoldProfile] = {
-    "px4": HoldProfile(settle=2.0, speed_tolerance=1.0, altitude_tolerance=1.0, confirm=3.0, exit_timeout=9.5),
+    "px4": HoldProfile(settle=2.0, speed_tolerance=1.0, altitude_tolerance=1.0, confirm=3.0, exit_timeout=9.5,
+                       rest_speed=0.7, trail=0.35),
     "ardupilot": HoldProfile(settle=3.0, speed_tolerance=0.5, altitude_tolerance=0.5, confirm=3.0, exit_timeout=8.0),
 }
 
@@ -75,6 +87,8 @@ def hold_profile(safety: SafetyConfig, autopilot: str | None) -> HoldProfile:
         altitude_tolerance=safety.hold_altitude_tolerance or base.altitude_tolerance,
         confirm=safety.hold_confirm or base.confirm,
         exit_timeout=safety.exit_timeout or base.exit_timeout,
+        rest_speed=safety.hold_rest_speed or base.rest_speed or safety.rest_speed,
+        trail=base.trail,
     )
 
 
@@ -149,14 +163,16 @@ class HandOver:
             log.warning("braking for the hand-over timed out; holding at the measured position")
             if self.control.flying:
                 self.control.hold_here(self.link.state.position)
-        ctl, rest = self.control, self.cfg.safety.rest_speed
+        pr = self.hold_profile()
+        ctl, rest = self.control, pr.rest_speed  # PX4's estimate is rarely under 0.2 m/s: its own
         end = ctl.active.t_end if ctl.active is not None else 0.0
+        judged_from = end + pr.trail  # the autopilot trails the stop's end by its lag
         left = max(0.0, end - (ctl.now() if ctl.flying else 0.0))
         # the autopilot's own braking trails the stop (PX4 ~0.3 s late): `settle` s are allowed
         self._settle_by = asyncio.get_running_loop().time() + left + self.hold_profile().settle
         try:
             await self.link.wait_for(
-                lambda s: not ctl.flying or (ctl.now() >= end and at_rest(s.velocity, rest)),
+                lambda s: not ctl.flying or (ctl.now() >= judged_from and at_rest(s.velocity, rest)),
                 left + self.hold_profile().settle, "the vehicle to stop")
         except CommandFailed:
             return False
@@ -260,7 +276,7 @@ class HandOver:
         fields = {"mode": st.mode, "reason": reason, "altitude_change": round(worst_dz, 3),
                   "speed_max": round(worst_v, 3), "watched_s": watched,
                   "limits": {"altitude": pr.altitude_tolerance, "speed": pr.speed_tolerance,
-                             "settle_s": pr.settle, "confirm_s": pr.confirm}}
+                             "settle_s": pr.settle, "confirm_s": pr.confirm, "rest_speed": pr.rest_speed}}
         if problem is not None:
             msg = (f"{reason}: the hand-over to {mode_now} does not hold: {problem} (limits "
                    f"{pr.altitude_tolerance:g} m, {pr.speed_tolerance:g} m/s after {pr.settle:g} s to settle, "

@@ -75,8 +75,10 @@ class Inbound:
                 self.tap.inbound(kind, payload, arrived)
                 if kind == "obstacles" and len(payload) <= INLINE_DECODE_BYTES:
                     context: dict[str, Any] = {"home": self.link.state.home, "home_pending": False,
-                                               "fleet": self.fleet.for_messages()}
-                    msg = read(kind, payload, self.cfg, context["home"], fleet=context["fleet"])
+                                               "fleet": self.fleet.for_messages(),
+                                               "autopilot": self.link.state.autopilot}
+                    msg = read(kind, payload, self.cfg, context["home"], fleet=context["fleet"],
+                               autopilot=context["autopilot"])
                     self.tap.decoded(kind, payload, context, msg, arrived)
                     self.dispatch(kind, payload, arrived, msg)
                 elif self._ordered.qsize() >= self.cfg.limits.max_queued_messages:
@@ -98,9 +100,11 @@ class Inbound:
             try:
                 context: dict[str, Any] = {"home": self.link.state.home,
                                            "home_pending": self.link.state.home_pending,
-                                           "fleet": self.fleet.for_messages()}
+                                           "fleet": self.fleet.for_messages(),
+                                           "autopilot": self.link.state.autopilot}
                 job = functools.partial(read, kind, payload, self.cfg, context["home"],
-                                        home_pending=context["home_pending"], fleet=context["fleet"])
+                                        home_pending=context["home_pending"], fleet=context["fleet"],
+                                        autopilot=context["autopilot"])
                 msg = job() if len(payload) <= INLINE_DECODE_BYTES else \
                     await asyncio.get_running_loop().run_in_executor(self.runtime.decode_pool, job)
                 self.tap.decoded(kind, payload, context, msg, arrived)

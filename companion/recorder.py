@@ -448,7 +448,8 @@ def decoded_record(seq: int, key: str, payload: Any, context: dict[str, Any], re
     body: dict[str, Any] = {"seq": seq, "key": key, "t": t, **fmt.decoded_summary(result),
                             "fingerprint": fmt.decoded_fingerprint(result)}
     raw = bytes(payload) if isinstance(payload, bytes | bytearray | memoryview) else len(payload)
-    call = _pickled((key, raw, context.get("home"), bool(context.get("home_pending")), context.get("fleet")))
+    call = _pickled((key, raw, context.get("home"), bool(context.get("home_pending")), context.get("fleet"),
+                     context.get("autopilot")))
     return b"".join([ch.dumps(body)[:-1], b',"call":', b"null" if call is None else b'"' + call + b'"', b"}"])
 
 

@@ -341,9 +341,11 @@ def replay_decoded(rec: dict[str, Any], cfg: Any) -> str:
 
     if rec.get("call") is None:
         return f"message {rec['seq']} on {rec['key']}: its inputs could not be recorded"
-    key, raw, home, home_pending, fleet = loads(rec["call"])
+    call = loads(rec["call"])
+    key, raw, home, home_pending, fleet = call[:5]
+    autopilot = call[5] if len(call) > 5 else None  # recorded before the per-autopilot allowance: not said
     payload = Oversized(raw) if isinstance(raw, int) else raw
-    result = read(key, payload, cfg, home, home_pending=home_pending, fleet=fleet)
+    result = read(key, payload, cfg, home, home_pending=home_pending, fleet=fleet, autopilot=autopilot)
     if decoded_fingerprint(result) == rec["fingerprint"]:
         return ""
     now = decoded_summary(result)

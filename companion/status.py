@@ -80,7 +80,9 @@ class StatusReport:
             "tracking_error_max": enc.num(self.tracking.tracking_error_max),
             "lead_ms": round(self.sender.lead * 1000, 1),
             "lag_estimate_ms": enc.ms(self.tracking.lag_estimate),
-            "tracking_allowance": self.cfg.planner.tracking_allowance,
+            # the allowance in use, and whose: `[planner] tracking_allowance` or the autopilot's default
+            "tracking_allowance": self.tracking.allowance()[0],
+            "tracking_allowance_from": self.tracking.allowance()[1],
             **self._limits_status(),
             "message_to_setpoint_ms": enc.ms(ctl.setpoint_latency),
             "setpoints_sent": self.link.sent_setpoints,

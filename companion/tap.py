@@ -25,7 +25,7 @@ class Tap:
 
     def decoded(self, key: str, payload: Any, context: dict[str, Any], result: Any, t: float) -> None:
         """An inbound message read (companion.wire.messages.read): its key's last part, the bytes
-        (or `Oversized`), what else `read` was given (`home`, `home_pending`, `fleet`), and what
+        (or `Oversized`), what else `read` was given (`home`, `home_pending`, `fleet`, `autopilot`), and what
         it made of them (a typed message or the MessageError that refuses it); its arrival time."""
 
     def mavlink_sent(self, msg: Any, t: float | None = None) -> None:

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.config import Config
+from companion.config import Config, tracking_allowance
 from companion.control import Control
 from companion.flight import State
 from companion.lag import LagEstimator, initial_lead
@@ -51,6 +51,7 @@ class Tracking:
         self._tracking_stop: asyncio.Task[None] | None = None
         self._recent_errors: collections.deque[float] = collections.deque(maxlen=TRACKING_WINDOW)
         self._nearing_said = False  # the tracking measured nears the allowance: said once per flight phase
+        self._allowance_said: str | None = None  # the autopilot whose default allowance was said
         # lag compensation: the vehicle's lag behind the setpoints it is sent, from telemetry
         self.lag = LagEstimator(cap=cfg.setpoints.lead_max)
         self._leads: collections.deque[tuple[float, float]] = collections.deque()  # (t, lead) sampled
@@ -61,8 +62,16 @@ class Tracking:
     def lag_estimate(self) -> float | None:
         return self.lag.estimate
 
+    def allowance(self) -> tuple[float, str]:
+        """(the tracking allowance in use, where it comes from): `[planner] tracking_allowance`,
+        or with "autopilot" the linked autopilot's (companion.config.TRACKING_ALLOWANCES)."""
+        return tracking_allowance(self.cfg.planner, self.link.state.autopilot)
+
     def _brake_name(self) -> str:
-        return "[safety] tracking_brake" if self.cfg.safety.tracking_brake else "[planner] tracking_allowance"
+        if self.cfg.safety.tracking_brake:
+            return "[safety] tracking_brake"
+        source = self.allowance()[1]
+        return "[planner] tracking_allowance" + ("" if source.startswith("[planner]") else f" ({source})")
 
     def check_tracking(self, measured_at: float) -> None:
         """Each position sample: the time-aligned tracking error; above `[planner]
@@ -85,7 +94,7 @@ class Tracking:
             return
         self.tracking_error_max = max(self.tracking_error_max, err)
         self._estimate_lag(measured_at)
-        limit = self.cfg.safety.tracking_brake or self.cfg.planner.tracking_allowance
+        limit = self.cfg.safety.tracking_brake or self.allowance()[0]
         if limit <= 0.0:  # no allowance: no inflation and no brake (planning tests, benches)
             return
         self._check_nearing(err, limit)
@@ -121,7 +130,7 @@ class Tracking:
         if rms < TRACKING_RMS_SHARE * limit and worst < TRACKING_MAX_SHARE * limit:
             return
         self._nearing_said = True
-        allowance = self.cfg.planner.tracking_allowance
+        allowance = self.allowance()[0]
         if self.cfg.safety.tracking_brake:  # the brake is set apart from the allowance: name both
             near = "the brake"
             advice = (f"[planner] tracking_allowance {allowance:.2f} m is what the obstacles are inflated by, "
@@ -193,6 +202,13 @@ class Tracking:
         if (self.cfg.setpoints.lead == "auto" and self.lag.estimate is None and self.lead_target is not None
                 and not self.control.streaming):
             self._set_lead(self.initial_lead())
+        allowance, source = self.allowance()
+        if source.startswith("[planner]") or self._allowance_said == self.link.state.autopilot:
+            return
+        self._allowance_said = self.link.state.autopilot
+        self.report.event("limits", f"tracking allowance {allowance:.2f} m ({source}; [planner] tracking_allowance "
+                          "sets another): obstacles are inflated by vehicle_radius + it, and a tracking error above "
+                          "it brakes", tracking_allowance=allowance, tracking_allowance_from=source)
 
     def _set_lead(self, lead: float) -> None:
         """The one writer of the setpoints' lead."""

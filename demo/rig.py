@@ -196,8 +196,9 @@ class Rig:
 
 def demo_config(zenoh_port: int, mav_port: int, rate_hz: float = 50.0, workers: int | None = None,
                 lead: float | str = "auto", recording: Path | None = None, read_limits: bool = True,
-                search_time: float | None = None) -> Config:
+                search_time: float | None = None, autopilot: str | None = None) -> Config:
     from companion.config import (
+        TRACKING_ALLOWANCES,
         AutopilotLimitsConfig,
         PlannerConfig,
         RecordingConfig,
@@ -221,8 +222,11 @@ def demo_config(zenoh_port: int, mav_port: int, rate_hz: float = 50.0, workers: 
         setpoints=SetpointConfig(rate_hz=rate_hz, lead=lead),
         geofence=GeofenceConfig(min=(-60.0, -60.0, -20.0), max=(60.0, 60.0, 0.5)),
         # the 0.15 m allowance is what scenario 2's gap leaves; the mock's responses peak ~0.25 m
-        # from the plan on the transit legs: brake only well beyond (docs/autopilot-limits.md)
-        safety=SafetyConfig(auto_arm=True, takeoff_altitude=TAKEOFF_ALTITUDE, tracking_brake=0.5),
+        # from the plan on the transit legs: brake only well beyond (docs/autopilot-limits.md).
+        # PX4's estimate strays ~0.4 m more from the setpoint (as PX4 SIH's did; sitl_mock.px4
+        # OFFBOARD_WANDER_M): brake at PX4's own allowance there
+        safety=SafetyConfig(auto_arm=True, takeoff_altitude=TAKEOFF_ALTITUDE,
+                            tracking_brake=TRACKING_ALLOWANCES["px4"] if autopilot == "px4" else 0.5),
         recording=RecordingConfig(path=str(recording) if recording is not None else ""),
         autopilot_limits=AutopilotLimitsConfig(read=read_limits),
     )
@@ -240,7 +244,7 @@ def rig(out: Path, autopilot: str, rate_hz: float = 50.0, mock_args: tuple[str, 
     control_port, zenoh_port = free_port(), free_port()
     flight_log = out / "flight.jsonl"
     cfg = demo_config(zenoh_port, companion_mav_port or mav_port, rate_hz, workers, lead, recording, read_limits,
-                      search_time)
+                      search_time, autopilot)
     cfg_path = out / "companion.toml"
     cfg_path.write_text(config_to_toml(cfg))
     py = sys.executable

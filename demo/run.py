@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from companion.config import tracking_allowance
 from demo import report as rep
 from demo.analysis import analyse, figures, sim_clock
 from demo.flying import Action, Progress, after, fly
@@ -231,7 +232,7 @@ def main(argv: list[str] | None = None, prog: str = "python -m demo") -> int:
                 s1 = lifted_mission(load_example("scenario1.json"), "scenario1")
                 s2 = lifted_mission(load_example("scenario2.json"), "scenario2")
                 popup = lifted_obstacles(clear_of_route(load_example("scenario2_popup.json"), s2,
-                                                        r.config.planner.tracking_allowance))
+                                                        tracking_allowance(r.config.planner, args.autopilot)[0]))
                 change = lifted_change(load_example("scenario2_move.json"))
                 acts = [Action(after(1.5), "change", change, "waypoint move"),
                         Action(after(3.0), "obstacles", popup, "pop-up obstacle")]

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.config import Config, LimitsConfig
+from companion.config import Config, LimitsConfig, tracking_allowance
 from companion.geodesy import Placement
 from companion.wire.decode import check_durations, check_geofence, check_point, decode, validator
 from companion.wire.errors import (
@@ -78,7 +78,7 @@ class MissionSpec:
     obstacles: tuple[tuple[str, Polytope], ...]
     map_lo: FloatArray
     map_hi: FloatArray
-    radius: float  # obstacles are inflated by this: the vehicle's radius + [planner] tracking_allowance
+    radius: float  # obstacles are inflated by this: the vehicle's radius + the tracking allowance in use
     start: str  # "current" | "first_waypoint"
     autostart: bool
     initial: FloatArray | None  # (5, 3) for start == "first_waypoint"
@@ -243,8 +243,10 @@ def _regions(items: list[dict[str, Any]], where: str, lim: LimitsConfig, unnamed
     return tuple(out)
 
 
-def mission_from_message(obj: dict[str, Any], cfg: Config, frame: str = "ned") -> MissionSpec:
-    """A schema-valid mission dict, already in NED, to a MissionSpec (or MessageError)."""
+def mission_from_message(obj: dict[str, Any], cfg: Config, frame: str = "ned",
+                         autopilot: str | None = None) -> MissionSpec:
+    """A schema-valid mission dict, already in NED, to a MissionSpec (or MessageError).
+    `autopilot`: whose tracking allowance `[planner] tracking_allowance = "autopilot"` means."""
     wps = np.asarray(obj["waypoints"], dtype=float)
     lo_g, hi_g = np.asarray(cfg.geofence.min, dtype=float), np.asarray(cfg.geofence.max, dtype=float)
     check_geofence(wps, lo_g, hi_g, "waypoints", frame)
@@ -271,7 +273,8 @@ def mission_from_message(obj: dict[str, Any], cfg: Config, frame: str = "ned") -
             if name in obj.get("initial", {}):
                 initial[row] = obj["initial"][name]
     # obstacles are inflated by the vehicle's radius and by how far it may stray from the plan
-    radius = max(cfg.planner.vehicle_radius, float(obj.get("vehicle_radius", 0.0))) + cfg.planner.tracking_allowance
+    allowance = tracking_allowance(cfg.planner, autopilot)[0]
+    radius = max(cfg.planner.vehicle_radius, float(obj.get("vehicle_radius", 0.0))) + allowance
     bounds = bounds_from(obj.get("bounds"), cfg)
     if durations is not None:
         speed = np.minimum(-bounds.lo[0], bounds.hi[0])
@@ -281,7 +284,7 @@ def mission_from_message(obj: dict[str, Any], cfg: Config, frame: str = "ned") -
         id=str(obj["id"]), waypoints=wps, durations=durations, bounds=bounds,
         obstacles=obstacles, map_lo=map_lo, map_hi=map_hi, radius=radius, start=start,
         autostart=bool(obj.get("autostart", True)), initial=initial, frame=frame, raw=obj,
-        allowance=cfg.planner.tracking_allowance,
+        allowance=allowance,
     )
 
 
@@ -368,11 +371,14 @@ NOT_READY = ("the autopilot is not ready: its position estimate has not settled 
 
 
 def read(kind: str, payload: bytes | Oversized, cfg: Config, home: FloatArray | None = None, *,
-         home_pending: bool = False, fleet: Placement | str | None = None) -> Message | MessageError:
+         home_pending: bool = False, fleet: Placement | str | None = None,
+         autopilot: str | None = None) -> Message | MessageError:
     """Bytes -> a typed NED message in the autopilot's local frame, or the MessageError that
     says why not. `home`: HOME_POSITION's local position, for messages with `"origin":
     "home"`; `fleet`: where the local frame sits in the fleet frame, for `"origin": "fleet"`
-    (companion.fleet.FleetFrame.for_messages). Never raises: anything unforeseen comes back as an `InternalError` (a rejection
+    (companion.fleet.FleetFrame.for_messages); `autopilot`: the one linked ("px4", "ardupilot"),
+    whose tracking allowance a mission's obstacles are inflated by when `[planner]
+    tracking_allowance` is "autopilot". Never raises: anything unforeseen comes back as an `InternalError` (a rejection
     the service also reports as an `error` event)."""
     try:
         obj = decode(kind, payload, limits=cfg.limits)
@@ -383,7 +389,7 @@ def read(kind: str, payload: bytes | Oversized, cfg: Config, home: FloatArray | 
         cfg = fence_at_home(cfg, home)
         try:
             if kind == "mission":
-                return mission_from_message(to_local(kind, scenario_to_ned(obj), home, fleet), cfg, frame)
+                return mission_from_message(to_local(kind, scenario_to_ned(obj), home, fleet), cfg, frame, autopilot)
             if kind == "obstacles":
                 return obstacles_from_message(to_local(kind, obstacles_to_ned(obj), home, fleet), frame, cfg.limits)
             if kind == "change":

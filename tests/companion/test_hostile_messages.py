@@ -174,7 +174,7 @@ def test_loop_boundary_guard_reports_and_goes_on() -> None:
     stop = asyncio.Event()
     fake = SimpleNamespace(
         zio=SimpleNamespace(inbox=inbox, on_dropped=None), stop=stop, cfg=CFG, report=report,
-        link=SimpleNamespace(state=SimpleNamespace(home=None)), _ordered=asyncio.Queue(), dispatch=dispatch, _dropped=lambda *a: None,
+        link=SimpleNamespace(state=SimpleNamespace(home=None, autopilot=None)), _ordered=asyncio.Queue(), dispatch=dispatch, _dropped=lambda *a: None,
         tap=NO_TAP, fleet=SimpleNamespace(for_messages=lambda: None))
     fake._unforeseen = lambda kind, payload, exc: Inbound._unforeseen(fake, kind, payload, exc)  # type: ignore[arg-type]
 

@@ -6,16 +6,17 @@ from __future__ import annotations
 
 import math
 import struct
+import tomllib
 
 import numpy as np
 import pytest
 
-from companion.config import ConfigError, config_from_dict
+from companion.config import ConfigError, config_from_dict, config_to_toml, tracking_allowance
 from companion.limits import clip_bounds, clips_text, limit_box, limits_from_params, refusal_note
 from companion.report import MAX_TEXT
 from companion.wire.limits_params import names_to_read
 from companion.wire.mavlink import mavlink
-from companion.wire.messages import bounds_from, read
+from companion.wire.messages import MissionSpec, bounds_from, read
 from companion.wire.vehicle import param_value
 from planner_core import Bounds
 
@@ -115,7 +116,7 @@ def test_configuration_keys() -> None:
     cfg = config_from_dict({})
     assert cfg.autopilot_limits.read and cfg.autopilot_limits.headroom == 0.9
     assert cfg.setpoints.lead == "auto" and cfg.setpoints.lead_max == 0.5
-    assert cfg.planner.tracking_allowance == 0.4
+    assert cfg.planner.tracking_allowance == "autopilot"
     with pytest.raises(ConfigError, match=r"autopilot_limits\.headroom.*<= 1"):
         config_from_dict({"autopilot_limits": {"headroom": 1.2}})
     with pytest.raises(ConfigError, match=r"autopilot_limits\.headroom"):
@@ -138,3 +139,27 @@ def test_tracking_allowance_inflates_obstacles_not_the_fence() -> None:
     # the corridors shrink the map by `radius`: the fence keeps its vehicle_radius margin
     assert np.allclose(lo + spec.radius, spec.map_lo + 0.3) and np.allclose(hi - spec.radius, spec.map_hi - 0.3)
     assert bounds_from(None, cfg).hi[0, 0] == 3.0
+
+
+def test_tracking_allowance_is_the_autopilot_s_unless_set() -> None:
+    """Issue 20: "autopilot" (the default) is PX4's 1.0 m (PX4 SIH braked at 0.40 m: its estimate
+    strays ~0.4 m from a held setpoint) and ArduPilot's 0.40 m (ArduPilot's while the autopilot is
+    unknown); a number set wins, 0 still turns the inflation and the brake off."""
+    wp = b'{"id": "m", "waypoints": [[5, 0, -2]]}'
+    default = config_from_dict({"planner": {"vehicle_radius": 0.3}})
+    px4, ap = tracking_allowance(default.planner, "px4"), tracking_allowance(default.planner, "ardupilot")
+    assert px4[0] > ap[0] == tracking_allowance(default.planner, None)[0]
+    assert "PX4" in px4[1] and "ArduPilot" in ap[1] and "not yet known" in tracking_allowance(default.planner, None)[1]
+    for autopilot, allowance in (("px4", px4[0]), ("ardupilot", ap[0])):
+        spec = read("mission", wp, default, autopilot=autopilot)
+        assert isinstance(spec, MissionSpec) and spec.radius == pytest.approx(0.3 + allowance) and spec.allowance == allowance
+    for value in (0.0, 0.25):
+        cfg = config_from_dict({"planner": {"vehicle_radius": 0.3, "tracking_allowance": value}})
+        assert tracking_allowance(cfg.planner, "px4") == (value, "[planner] tracking_allowance")
+        spec = read("mission", wp, cfg, autopilot="px4")
+        assert isinstance(spec, MissionSpec) and spec.radius == pytest.approx(0.3 + value)
+    for bad in (-0.1, "px4", True):
+        with pytest.raises(ConfigError, match=r"planner\.tracking_allowance"):
+            config_from_dict({"planner": {"tracking_allowance": bad}})
+    # written out and read back: the default survives as "autopilot"
+    assert config_from_dict(tomllib.loads(config_to_toml(default))).planner.tracking_allowance == "autopilot"

@@ -71,10 +71,11 @@ def test_demo_scenarios_are_flyable_after_lifting_and_moving() -> None:
 
     raw = demo.load_example("scenario2.json")
     mission = demo.lifted_mission(raw, "s2")
+    from companion.config import tracking_allowance
     from demo.rig import demo_config
 
     # the companion inflates obstacles by the radius plus its tracking allowance
-    allowance = demo_config(7447, 14540).planner.tracking_allowance
+    allowance = tracking_allowance(demo_config(7447, 14540).planner, "px4")[0]
     assert allowance > 0.0
     popup = demo.lifted_obstacles(demo.clear_of_route(demo.load_example("scenario2_popup.json"), mission, allowance))
     original = demo.lifted_obstacles(demo.load_example("scenario2_popup.json"))

@@ -7,6 +7,7 @@ service against the in-process mock, stopped as SIGTERM stops it (`requested`), 
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import threading
 import time
 from pathlib import Path
@@ -107,6 +108,9 @@ def test_profiles_rest_on_the_measured_figures() -> None:
     px4, ap = HOLD_PROFILES["px4"], HOLD_PROFILES["ardupilot"]
     # PX4 SIH 1.15 (five hand-overs): estimate speed while holding up to 0.65 m/s, altitude within 0.41 m
     assert px4.speed_tolerance > 0.65 and px4.altitude_tolerance > 0.41
+    # the braking before the hand-over waits for a speed PX4's estimate reaches at rest (issue 20:
+    # 0.47-0.65 m/s in AUTO.LOITER; the wait for 0.2 m/s ran out, the exit took 8.76 of 9.5 s)
+    assert 0.65 < px4.rest_speed < px4.speed_tolerance
     # ArduCopter 4.6 (four hand-overs): speed <= 0.19 m/s, altitude change <= 0.04 m
     assert ap.speed_tolerance > 0.19 and ap.altitude_tolerance > 0.04
     for p in (px4, ap):
@@ -123,7 +127,12 @@ def test_safety_keys_override_the_profile() -> None:
     assert (p.speed_tolerance, p.exit_timeout) == (0.7, 6.0)
     assert p.altitude_tolerance == HOLD_PROFILES["px4"].altitude_tolerance
     assert hold_profile(cfg.safety, "ardupilot").confirm == HOLD_PROFILES["ardupilot"].confirm
-    assert hold_profile(config_from_dict({}).safety, None) == HOLD_PROFILES["ardupilot"]
+    # ArduPilot's rest speed is [safety] rest_speed's (0 in its profile), PX4's its own
+    ap = hold_profile(config_from_dict({}).safety, None)
+    assert ap == dataclasses.replace(HOLD_PROFILES["ardupilot"], rest_speed=config_from_dict({}).safety.rest_speed)
+    assert hold_profile(config_from_dict({"safety": {"rest_speed": 0.3}}).safety, "ardupilot").rest_speed == 0.3
+    assert hold_profile(config_from_dict({"safety": {"rest_speed": 0.3}}).safety, "px4").rest_speed == 0.7
+    assert hold_profile(config_from_dict({"safety": {"hold_rest_speed": 0.5}}).safety, "px4").rest_speed == 0.5
 
 
 def _nothing(mock: MockAutopilot, mode: str, stop: threading.Event) -> None:

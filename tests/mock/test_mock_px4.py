@@ -261,8 +261,6 @@ def test_loiter_after_offboard_reports_a_wandering_estimate(make_mock) -> None: 
     mock, c = make_mock("px4", speed=2.0)
     streamer = fly_offboard(mock, c, mock.addresses[0][1])
     time.sleep(1.0)
-    calm = [m for m in c.collect(1.0) if m.get_type() == "LOCAL_POSITION_NED"]
-    assert calm and max(math.hypot(m.vx, m.vy) for m in calm) < 0.2  # hovering in OFFBOARD: no wander
     assert c.command(176, *LOITER) == ACCEPTED
     streamer.stop()
     held = mock.snapshot()["position"]
@@ -276,3 +274,24 @@ def test_loiter_after_offboard_reports_a_wandering_estimate(make_mock) -> None: 
     assert 0.1 <= max(zs) - min(zs) <= 0.2
     truth = mock.snapshot()["position"]
     assert math.dist(truth, held) < 0.2  # the vehicle holds; its estimate wanders
+
+
+def test_offboard_hover_reports_an_estimate_off_the_setpoint(make_mock) -> None:  # type: ignore[no-untyped-def]
+    """PX4 SIH holding a setpoint in OFFBOARD (measured 2026-12-03): its estimate went 0.41 m off
+    the setpoint (missions braked at a 0.40 m tracking allowance), 0.26-0.28 m RMS off the truth
+    in flight. The mock's LOCAL_POSITION_NED strays out to ~0.42 m and back (sitl_mock.px4
+    OFFBOARD_WANDER_*) while the vehicle itself holds the setpoint."""
+    mock, c = make_mock("px4", speed=2.0)
+    with fly_offboard(mock, c, mock.addresses[0][1], z=-2.0):  # the setpoint: x = y = 0
+        time.sleep(0.5)
+        seen = [m for m in c.collect(4.5) if m.get_type() == "LOCAL_POSITION_NED"]  # 9 s simulated: 2 excursions
+        truth = mock.snapshot()["position"]
+    off = [math.hypot(m.x, m.y) for m in seen]
+    assert 0.38 <= max(off) <= 0.46, max(off)  # 0.41 m measured
+    assert min(off) < 0.1  # out and back
+    rms = math.sqrt(sum(o * o for o in off) / len(off))
+    assert 0.2 <= rms <= 0.32, rms  # 0.26-0.28 m off the truth
+    assert sum(o > 0.4 for o in off) >= 3  # long enough for the companion's 3-sample brake at 0.40 m
+    speeds = [math.hypot(m.vx, m.vy) for m in seen]
+    assert min(speeds) < 0.2 < max(speeds) <= 0.45  # at rest only near an excursion's return
+    assert math.hypot(truth[0], truth[1]) < 0.1  # the vehicle holds; its estimate strays
