@@ -44,7 +44,7 @@ typecheck: $(STAMP)
 # files at a time (they mostly wait on the simulated clock; a CPU-bound file beside a flight
 # would starve its planning); then the timing/memory measurements alone (tests/conftest.py SERIAL).
 # Every pass runs even when one fails, so that CI shows all.
-UNIT := tests/planner tests/companion tests/test_systemd.py
+UNIT := tests/planner tests/companion tests/test_systemd.py tests/test_structure.py
 FLIGHTS := tests/mock tests/e2e
 pytest: setup
 	$(PY) -m pytest -q -n 2 --dist loadfile -m "not serial" $(UNIT); a=$$?; \
