@@ -146,7 +146,7 @@ _POSITIVE = {
 }
 
 
-_NON_NEGATIVE = {"fleet.clock_tolerance", "fleet.separation", "fleet.max_delay", "planner.fallback_delay", "planner.reserve", "autopilot_limits.retries",
+_NON_NEGATIVE = {"setpoints.accel_lead_tc", "fleet.clock_tolerance", "fleet.separation", "fleet.max_delay", "planner.fallback_delay", "planner.reserve", "autopilot_limits.retries",
                  "safety.tracking_brake", "safety.exit_timeout", "safety.hold_confirm",
                  "safety.hold_altitude_tolerance", "safety.hold_speed_tolerance", "safety.hold_settle", "safety.hold_rest_speed"}
 
@@ -173,6 +173,12 @@ def _convert(key: str, hint: Any, value: Any, default: Any) -> Any:
             return value
         if isinstance(value, bool) or not isinstance(value, int | float) or not (math.isfinite(value) and value >= 0):
             raise ConfigError(key, f"expected \"autopilot\" (the autopilot's own) or metres >= 0, got {value!r}")
+        return float(value)
+    if key == "setpoints.accel_lead":
+        if value == "autopilot":
+            return value
+        if isinstance(value, bool) or not isinstance(value, int | float) or not 0.0 <= value <= 1.0:
+            raise ConfigError(key, f"expected \"autopilot\" or s² in [0, 1], got {value!r}")
         return float(value)
     if key == "setpoints.lead":
         if value == "auto":

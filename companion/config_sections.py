@@ -104,6 +104,16 @@ class SetpointConfig:
     # 0.25 m from 0.33 s). "autopilot" is not the default yet: the PX4 test kits and the demo
     # fly the mock's ArduCopter-like response on the PX4 flavour (issue 26.5), which it would over-lead.
     lead_initial: float | str = 0.06
+    # The aim beyond the plan: each setpoint is the jet of p + k F, F the plan's acceleration
+    # low-passed with time constant accel_lead_tc (0: as it is), k = accel_lead (s²). A lead puts
+    # the vehicle on time; what is left is its response's shape: ArduCopter uses the
+    # acceleration feed-forward only in part and its velocity integrator gives back over a
+    # second or two what it gathered, so it trails by ~k F (companion.setpoints.sample;
+    # docs/autopilot-limits.md). "autopilot": what was measured on the autopilot found at
+    # link-up (companion.lag MEASURED_AIM: ArduCopter k 0.09 s², 1.0 s; PX4 none, not
+    # measured); 0: the plan's own jet.
+    accel_lead: float | str = "autopilot"
+    accel_lead_tc: float = 1.0
     # The event loop not running for this long (s) is a stall of the companion: the setpoint
     # thread withholds setpoints from then on (it does so too when it itself wakes 0.5 s late).
     # Awake again, the companion holds (setpoints silent under 0.5 s: the autopilot still flies

@@ -39,6 +39,21 @@ MEASURED_LAG = {"ardupilot": 0.06, "px4": 0.33}
 UNKNOWN_AUTOPILOT = "ardupilot"  # whose lag is assumed before an autopilot is found (the shorter)
 
 
+# The aim beyond the plan (`[setpoints] accel_lead = "autopilot"`, companion.setpoints.sample):
+# (k s², time constant s) measured per autopilot. ArduCopter 4.6-dev SITL, stock parameters,
+# trailed the paper's scenarios by ~0.09 x the plan's acceleration low-passed over ~1 s beyond
+# its time lag (docs/autopilot-limits.md). PX4 was not measured: no aim.
+MEASURED_AIM = {"ardupilot": (0.09, 1.0), "px4": (0.0, 0.0)}
+
+
+def initial_aim(setting: float | str, tc: float, autopilot: str | None) -> tuple[float, float]:
+    """(accel_lead, accel_lead_tc) the setpoints aim with: `[setpoints] accel_lead` (s², with
+    `accel_lead_tc`), or "autopilot": MEASURED_AIM of the autopilot found (none before one is)."""
+    if setting == "autopilot":
+        return MEASURED_AIM.get(autopilot or "", (0.0, 0.0))
+    return float(setting), tc
+
+
 def initial_lead(setting: float | str, autopilot: str | None, cap: float) -> float:
     """The lead before an estimate: `[setpoints] lead_initial` (seconds, or "autopilot": the
     lag measured on that autopilot), at most `cap` ([setpoints] lead_max)."""

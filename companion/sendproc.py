@@ -125,6 +125,8 @@ class SetpointProcess:
         self._transport = transport  # (descriptor, is a datagram socket, encoding), once the link is open
         self._feed: Feed | None = None
         self._lead = 0.0
+        self._accel_lead = 0.0  # s²: setpoints.sample
+        self._accel_lead_tc = 0.0  # s
         self._feeds: dict[int, Feed] = {}
         self._segments: list[str] = []  # shared memory handed to the child, newest last
         self._next_id = 0
@@ -182,6 +184,26 @@ class SetpointProcess:
         if lead != self._lead:
             self._lead = lead
             self._post(("lead", float(lead)))
+
+    @property
+    def accel_lead(self) -> float:
+        return self._accel_lead
+
+    @accel_lead.setter
+    def accel_lead(self, k: float) -> None:
+        if k != self._accel_lead:
+            self._accel_lead = k
+            self._post(("accel_lead", float(k)))
+
+    @property
+    def accel_lead_tc(self) -> float:
+        return self._accel_lead_tc
+
+    @accel_lead_tc.setter
+    def accel_lead_tc(self, tc: float) -> None:
+        if tc != self._accel_lead_tc:
+            self._accel_lead_tc = tc
+            self._post(("accel_lead_tc", float(tc)))
 
     def route(self, addresses: tuple[Any, ...]) -> None:
         """Where datagrams go (the autopilot's address), whenever the link learns or changes it."""
@@ -269,6 +291,8 @@ class SetpointProcess:
         # while the parent believes otherwise, and the first change of the lead makes the
         # stream jump along the plan by the whole lead
         self._post(("lead", self._lead))
+        self._post(("accel_lead", self._accel_lead))
+        self._post(("accel_lead_tc", self._accel_lead_tc))
 
     def stop(self, timeout: float = 2.0) -> None:
         if self._proc is None:
@@ -445,10 +469,12 @@ def _child_main(start: _Start, inbox: multiprocessing.connection.Connection, rec
     live: Liveness | None = start.liveness
     feed: tuple[int, Feed] | None = None
     lead = 0.0
+    accel_lead = 0.0
+    accel_lead_tc = 0.0
 
     def handle(kind: str, body: Any) -> bool:
         """One item from the parent; False: stop."""
-        nonlocal feed, lead
+        nonlocal feed, lead, accel_lead, accel_lead_tc
         if kind == "feed":
             if body is None:
                 feed = None
@@ -458,6 +484,10 @@ def _child_main(start: _Start, inbox: multiprocessing.connection.Connection, rec
                 yaw.last = yaw_last
         elif kind == "lead":
             lead = body
+        elif kind == "accel_lead":
+            accel_lead = body
+        elif kind == "accel_lead_tc":
+            accel_lead_tc = body
         elif kind == "route":
             writer.route = body
         elif kind == "fd":
@@ -509,7 +539,7 @@ def _child_main(start: _Start, inbox: multiprocessing.connection.Connection, rec
         following = sched.deadline(sched.k + 1)
         if current is not None:
             fid, f = current
-            sp = sample(f.trajectory, now - f.t_base + lead, yaw)
+            sp = sample(f.trajectory, now - f.t_base + lead, yaw, accel_lead, accel_lead_tc)
             err = 0
             try:
                 writer.write(writer.setpoint(sp))

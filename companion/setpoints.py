@@ -20,6 +20,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 from planner_core import FloatArray, Trajectory, sampler
 
 # The default asyncio selector rounds timeouts to 1 ms; sleeping to slightly
@@ -79,10 +81,63 @@ class YawPolicy:
         return self.last
 
 
-def sample(traj: Trajectory, t: float, yaw: YawPolicy) -> Setpoint:
-    """Position, velocity and acceleration at trajectory time t (clamped to its span)."""
-    jet = sampler(traj).jet3(t)
-    return Setpoint(jet[0], jet[1], jet[2], yaw(jet[1]))
+# [setpoints] accel_lead_tc > 0: the plan's acceleration low-passed over this many time
+# constants of its past, in steps of FILTER_STEP s (a Riemann sum of the exponential kernel: the
+# acceleration is smooth, bounded snap, so 40 ms steps are exact to well under a millimetre of aim)
+FILTER_SPAN = 4.0
+FILTER_STEP = 0.04
+
+
+def filter_weights(tc: float) -> tuple[FloatArray, FloatArray]:
+    """(lags s, weights) of the first-order low-pass with time constant tc as a sum over the past:
+    F(t) = sum_i w_i a(t - s_i); the last weight carries the kernel's tail (exact for a constant)."""
+    n = max(1, math.ceil(FILTER_SPAN * tc / FILTER_STEP))
+    edges: FloatArray = np.arange(n + 1, dtype=float) * FILTER_STEP
+    # each step's share of the kernel, taken at its middle; the tail beyond the span at its start
+    w: FloatArray = np.exp(-edges / tc) * (1.0 - math.exp(-FILTER_STEP / tc))
+    w[-1] = math.exp(-edges[-1] / tc)
+    lags: FloatArray = edges + 0.5 * FILTER_STEP
+    lags[-1] = edges[-1]
+    return lags, w
+
+
+def filtered_accel(traj: Trajectory, t: float, tc: float) -> FloatArray:
+    """The plan's acceleration low-passed with time constant tc at trajectory time t: a function
+    of the plan alone (a replan equals its predecessor before its split, so the value does not
+    jump at a swap); before the plan's start its start value, past its end rest."""
+    lags, w = filter_weights(tc)
+    times = np.clip(t - lags, traj.t0, traj.t_end)
+    acc = np.asarray(traj.evaluate(times, 2), dtype=float)
+    acc[t - lags >= traj.t_end] = 0.0
+    out: FloatArray = w @ acc
+    return out
+
+
+def sample(traj: Trajectory, t: float, yaw: YawPolicy, accel_lead: float = 0.0, accel_lead_tc: float = 0.0) -> Setpoint:
+    """Position, velocity and acceleration at trajectory time t (clamped to its span).
+
+    `accel_lead` k (s², `[setpoints] accel_lead`): the setpoint is the jet of p + k F instead of
+    p, F the plan's acceleration, low-passed with time constant `accel_lead_tc` (0: as it is:
+    position + k acceleration, velocity + k jerk, acceleration + k snap). ArduCopter trails the
+    plan by about k F beyond its time lag: the acceleration feed-forward is not all used at
+    once, and the velocity loop's integrator gives back what it gathered over the following
+    second or two (docs/autopilot-limits.md); aiming k F beyond the plan puts it back on it. At
+    rest (past the end) the jet is the end point, plus what F has left."""
+    if accel_lead == 0.0:
+        jet = sampler(traj).jet3(t)
+        return Setpoint(jet[0], jet[1], jet[2], yaw(jet[1]))
+    sm = sampler(traj)
+    full = sm.jet(t)
+    if t >= sm.t_end:
+        full[1:] = 0.0
+    p, v, a, j, s = full
+    if accel_lead_tc <= 0.0:
+        f, df, ddf = a, j, s
+    else:
+        f = filtered_accel(traj, t, accel_lead_tc)
+        df = (a - f) / accel_lead_tc
+        ddf = (j - df) / accel_lead_tc
+    return Setpoint(p + accel_lead * f, v + accel_lead * df, a + accel_lead * ddf, yaw(v))
 
 
 # -- the setpoint thread ---------------------------------------------------------------
@@ -233,6 +288,8 @@ class SetpointSender:
         self.feed: Feed | None = None
         self.liveness: Liveness | None = None  # None: no stall check (unit tests)
         self.lead = 0.0  # s: setpoints are sampled this far ahead on the trajectory (lag compensation)
+        self.accel_lead = 0.0  # s²: see `sample`
+        self.accel_lead_tc = 0.0  # s: see `sample`
         self.scheduling = "normal"  # as the thread found or set it, for the logs and status
         self.native_id: int | None = None
         self._stop = threading.Event()
@@ -286,7 +343,7 @@ class SetpointSender:
                 feed = None
             gap = error = sp = None
             if feed is not None:
-                sp = sample(feed.trajectory, now - feed.t_base + self.lead, self.yaw)
+                sp = sample(feed.trajectory, now - feed.t_base + self.lead, self.yaw, self.accel_lead, self.accel_lead_tc)
                 try:
                     self.send(sp)
                 except OSError as exc:  # reported on the loop; the next tick tries again

@@ -18,7 +18,7 @@ import numpy as np
 from companion.config import Config, tracking_allowance
 from companion.control import Control
 from companion.flight import State
-from companion.lag import LagEstimator, initial_lead
+from companion.lag import LagEstimator, initial_aim, initial_lead
 from companion.navigator import Navigator
 from companion.report import Reporter
 from companion.supervisor import Supervisor
@@ -187,6 +187,7 @@ class Tracking:
         sp = self.cfg.setpoints
         self.lead_target = target
         self._set_lead(self.initial_lead() if sp.lead == "auto" else float(sp.lead))
+        self._set_aim()
 
     def initial_lead(self) -> float:
         """The auto lead before the estimate has seen motion: `[setpoints] lead_initial`, by
@@ -202,6 +203,8 @@ class Tracking:
         if (self.cfg.setpoints.lead == "auto" and self.lag.estimate is None and self.lead_target is not None
                 and not self.control.streaming):
             self._set_lead(self.initial_lead())
+        if self.lead_target is not None and not self.control.streaming:
+            self._set_aim()
         allowance, source = self.allowance()
         if source.startswith("[planner]") or self._allowance_said == self.link.state.autopilot:
             return
@@ -209,6 +212,14 @@ class Tracking:
         self.report.event("limits", f"tracking allowance {allowance:.2f} m ({source}; [planner] tracking_allowance "
                           "sets another): obstacles are inflated by vehicle_radius + it, and a tracking error above "
                           "it brakes", tracking_allowance=allowance, tracking_allowance_from=source)
+
+    def _set_aim(self) -> None:
+        """The aim beyond the plan (`[setpoints] accel_lead`, per autopilot with "autopilot"):
+        set when the sender is built and at link-up, never while streaming (it would move the
+        setpoints by up to k F in one tick)."""
+        sp = self.cfg.setpoints
+        k, tc = initial_aim(sp.accel_lead, sp.accel_lead_tc, self.link.state.autopilot)
+        self.lead_target.accel_lead, self.lead_target.accel_lead_tc = k, tc
 
     def _set_lead(self, lead: float) -> None:
         """The one writer of the setpoints' lead."""

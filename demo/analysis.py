@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from companion.lag import initial_aim
 from companion.wire.frames import swap_points
 from demo import report as rep
 from demo.flying import FlightOutcome
@@ -145,7 +146,10 @@ def analyse(name: str, mission: dict[str, Any], outcome: FlightOutcome, r: Rig,
     window = (sp_t >= s_stream) & (sp_t <= s_first_change)
     if window.sum() < 10:
         window = sp_t >= s_stream
-    offset = rep.align_offset(first, sp_t[window], sp_p[window], s_stream - first.t_end, s_stream - first.t0)
+    # the setpoints are points of the plan, or with [setpoints] accel_lead k of p + k p''
+    k_acc, tc_acc = initial_aim(r.config.setpoints.accel_lead, r.config.setpoints.accel_lead_tc, r.autopilot)
+    offset = rep.align_offset(first, sp_t[window], sp_p[window], s_stream - first.t_end, s_stream - first.t0, k_acc,
+                              tc_acc)
     starts = replan_starts(samples, outcome.events, mono_to_sim, offset)
     tau_end = (mono_to_sim(outcome.t_done) - offset) if outcome.t_done is not None else final.t_end
     flying = (sp_t >= s_stream) & (sp_t <= offset + tau_end)
@@ -154,7 +158,8 @@ def analyse(name: str, mission: dict[str, Any], outcome: FlightOutcome, r: Rig,
         return result
     sp_t, sp_p, sp_c = sp_t[flying], sp_p[flying], sp_c[flying]
     # (an auto lead moves the setpoints up to [setpoints] lead_max along the plan in flight)
-    sp_raw, sp_off = rep.local_offsets(result.trajectories, starts, sp_t, sp_p, offset, search=0.6)
+    sp_raw, sp_off = rep.local_offsets(result.trajectories, starts, sp_t, sp_p, offset, search=0.6,
+                                         accel_lead=k_acc, accel_lead_tc=tc_acc)
     # A setpoint sampled `lead` ahead matches the plan `lead` later than its own time: the
     # flown position is compared with the plan at its own time, not with the setpoint, with
     # each setpoint's own lead (the auto lead changes in flight).
@@ -168,7 +173,7 @@ def analyse(name: str, mission: dict[str, Any], outcome: FlightOutcome, r: Rig,
                                          result.tau_stream, tau_end)
     # every setpoint the mock received must be a point of the planned trajectory (float32 on
     # the wire): checks frames, splicing and sampling end to end
-    dev = np.linalg.norm(sp_p - rep.stitched(result.trajectories, starts, sp_t - sp_raw), axis=1)
+    dev = np.linalg.norm(sp_p - rep.aimed(result.trajectories, starts, sp_t - sp_raw, k_acc, tc_acc), axis=1)
     result.setpoint_deviation = float(dev.max())
     offset = result.tracking.offset
     result.peaks_flown = rep.flown_peaks(flown, s_stream, offset + tau_end)

@@ -118,7 +118,8 @@ def region_vertices_enu(region: dict[str, Any], frame: str) -> FloatArray:
 # --- tracking and peaks ----------------------------------------------------------------------
 
 
-def align_offset(traj: Trajectory, t: FloatArray, pos: FloatArray, lo: float, hi: float) -> float:
+def align_offset(traj: Trajectory, t: FloatArray, pos: FloatArray, lo: float, hi: float,
+                 accel_lead: float = 0.0, accel_lead_tc: float = 0.0) -> float:
     """Mock-clock time of trajectory time 0 that best matches the commanded positions.
 
     The setpoints the mock logged are samples of the trajectory, so the right offset makes them
@@ -130,7 +131,7 @@ def align_offset(traj: Trajectory, t: FloatArray, pos: FloatArray, lo: float, hi
         t, pos = t[idx], pos[idx]
 
     def cost(off: float) -> float:
-        d = traj.evaluate(t - off) - pos
+        d = aimed([traj], [-np.inf], t - off, accel_lead, accel_lead_tc) - pos
         return float(np.mean(np.sum(d * d, axis=1)))
 
     grid = np.linspace(lo, hi, int(min(max((hi - lo) / 0.05, 20), 2000)))
@@ -162,25 +163,62 @@ def stitched(trajs: Sequence[Trajectory], starts: Sequence[float], tau: FloatArr
     return out
 
 
+def aimed(trajs: Sequence[Trajectory], starts: Sequence[float], tau: FloatArray, accel_lead: float = 0.0,
+          accel_lead_tc: float = 0.0) -> FloatArray:
+    """What the setpoints of trajectory times tau aimed at: the plan's position, plus
+    `[setpoints] accel_lead` times its acceleration, low-passed with `accel_lead_tc`
+    (companion.setpoints.sample)."""
+    out = stitched(trajs, starts, tau)
+    if not accel_lead:
+        return out
+    if accel_lead_tc <= 0.0:
+        return out + accel_lead * stitched(trajs, starts, tau, 2)
+    grid, f = _filtered_accel(tuple(trajs), tuple(float(x) for x in starts), accel_lead_tc)
+    return out + accel_lead * np.stack([np.interp(tau, grid, f[:, c]) for c in range(3)], axis=1)
+
+
+_FILTERED: dict[tuple[Any, ...], tuple[FloatArray, FloatArray, tuple[Trajectory, ...]]] = {}
+
+
+def _filtered_accel(trajs: tuple[Trajectory, ...], starts: tuple[float, ...], tc: float) -> tuple[FloatArray, FloatArray]:
+    """The stitched plan's acceleration low-passed as companion.setpoints.filtered_accel does,
+    on a 10 ms grid over the whole plan and the filter's tail after it (computed once)."""
+    key = (tuple(id(t) for t in trajs), starts, tc)
+    if key not in _FILTERED:
+        from companion.setpoints import FILTER_SPAN, filter_weights
+
+        lags, w = filter_weights(tc)
+        t0, t_end = trajs[0].t0, trajs[-1].t_end
+        grid = np.arange(t0 - 0.02, t_end + FILTER_SPAN * tc + 0.02, 0.01)
+        times = (grid[:, None] - lags[None, :]).ravel()
+        acc = stitched(trajs, starts, np.clip(times, t0, t_end), 2)
+        acc[times >= t_end] = 0.0
+        f = np.einsum("j,ijc->ic", w, acc.reshape(len(grid), len(lags), 3))
+        _FILTERED.clear()  # one flight at a time: keep the trajectories alive no longer than that
+        _FILTERED[key] = (grid, f, trajs)  # (holding trajs keeps their ids from being reused)
+    grid, f, _ = _FILTERED[key]
+    return grid, f
+
+
 def local_offsets(trajs: Sequence[Trajectory], starts: Sequence[float], t: FloatArray, pos: FloatArray,
                   offset: float, search: float = 0.3, step: float = 0.002,
-                  smooth: int = 51) -> tuple[FloatArray, FloatArray]:
+                  smooth: int = 51, accel_lead: float = 0.0, accel_lead_tc: float = 0.0) -> tuple[FloatArray, FloatArray]:
     """Mock-clock time of trajectory time 0, per setpoint, smoothed.
 
     The mock's simulated clock slips against wall time when the machine is busy (it catches up
     at most a few steps at a time), so one global offset would read a scheduling hiccup as
     tracking error. Each setpoint is matched to the nearest planned point within +-search s of
     the global estimate; a running median removes the ambiguity of hovering stretches.
-    Returns (raw, smoothed) offsets.
+    Returns (raw, smoothed) offsets. `accel_lead`: the setpoints aimed beyond the plan (`aimed`).
     """
     grid = np.arange(-search, search + step / 2, step)
     tau = (t - offset)[:, None] + grid[None, :]
-    pts = stitched(trajs, starts, tau.ravel()).reshape(len(t), len(grid), 3)
+    pts = aimed(trajs, starts, tau.ravel(), accel_lead, accel_lead_tc).reshape(len(t), len(grid), 3)
     best = grid[np.argmin(np.sum((pts - pos[:, None, :]) ** 2, axis=2), axis=1)]
     # refine to 0.05 ms around the coarse match: the deviation check wants ~1e-5 m resolution
     fine = np.linspace(-step, step, 81)
     tau = (t - offset + best)[:, None] + fine[None, :]
-    pts = stitched(trajs, starts, tau.ravel()).reshape(len(t), len(fine), 3)
+    pts = aimed(trajs, starts, tau.ravel(), accel_lead, accel_lead_tc).reshape(len(t), len(fine), 3)
     best = best + fine[np.argmin(np.sum((pts - pos[:, None, :]) ** 2, axis=2), axis=1)]
     raw = offset - best
     half = smooth // 2

@@ -65,8 +65,10 @@ def mock_lag(log: list[dict[str, Any]], t0: float, t1: float) -> float:
 
 async def _fly(mock: MockAutopilot) -> dict[str, Any]:
     # lead = "auto" by default; a wide tracking allowance: a stall of this busy test machine
-    # must not brake the flight this test judges the lag on
-    svc = service_for(mock, planner={"tracking_allowance": 5.0})
+    # must not brake the flight this test judges the lag on. No aim beyond the plan (its default
+    # on ArduPilot is ArduCopter's, tests/mock/test_aim.py): the truth here is the lag behind the
+    # setpoints the mock applied, which the aim moves off the plan
+    svc = service_for(mock, planner={"tracking_allowance": 5.0}, setpoints={"accel_lead": 0.0})
     assert svc.cfg.setpoints.lead == "auto"
     events = Events(svc)
     samples: list[tuple[float, float | None, float, str, float]] = []

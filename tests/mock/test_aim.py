@@ -1,0 +1,86 @@
+"""The aim beyond the plan (`[setpoints] accel_lead`) per autopilot, flown on the mock.
+
+With "autopilot" (the default) the companion aims ArduCopter's measured k F once an ArduPilot
+autopilot is found at link-up, and nothing for PX4 (not measured); flown through the mock's
+calibrated response (half of the acceleration feed-forward used, like ArduCopter) it lowers the
+tracking error the companion itself measures against the plan.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import pytest
+from companionkit import Events, service_for, serving, until
+
+from companion.config import ConfigError, config_from_dict
+from companion.lag import MEASURED_AIM, initial_aim
+from companion.wire.messages import read
+from sitl_mock import MockAutopilot, MockConfig
+from sitl_mock.vehicle import RESPONSES
+
+MISSION = (b'{"id": "curve", "waypoints": [[4, 0, -1.5], [4, 4, -1.5], [0, 4, -1.5], [0, 0, -1.5]],'
+           b' "durations": [2.5, 2.5, 2.5]}')
+
+
+def test_aim_option() -> None:
+    assert config_from_dict({}).setpoints.accel_lead == "autopilot"
+    assert config_from_dict({"setpoints": {"accel_lead": 0.05, "accel_lead_tc": 0.5}}).setpoints.accel_lead == 0.05
+    for bad in (-0.01, 1.5, "more", True):
+        with pytest.raises(ConfigError, match=r"setpoints\.accel_lead"):
+            config_from_dict({"setpoints": {"accel_lead": bad}})
+    assert initial_aim("autopilot", 1.0, "ardupilot") == MEASURED_AIM["ardupilot"] == (0.09, 1.0)
+    assert initial_aim("autopilot", 1.0, "px4") == (0.0, 0.0)
+    assert initial_aim("autopilot", 1.0, None) == (0.0, 0.0)  # before an autopilot is found
+    assert initial_aim(0.03, 0.5, "px4") == (0.03, 0.5)
+
+
+async def _fly(mock: MockAutopilot, aim: Any) -> tuple[float, float, float]:
+    svc = service_for(mock, setpoints={"accel_lead": aim, "lead": 0.06})
+    Events(svc)
+    errors: list[float] = []
+    sample = svc.watch.on_position_sample
+    assert sample is not None
+
+    def record(now: float) -> None:
+        sample(now)
+        if svc.flight.state.value == "STREAMING" and svc.tracking.tracking_error is not None:
+            errors.append(svc.tracking.tracking_error)
+
+    svc.watch.on_position_sample = record
+    async with serving(svc):
+        await until(lambda: svc.link.state.position_problem() is None, 10, "position")
+        await svc.commands.takeoff(1.5)
+        await svc.navigator.on_mission(read("mission", MISSION, svc.cfg), time.monotonic())  # type: ignore[arg-type]
+        await until(lambda: svc.flight.state.value == "STREAMING", 10, "streaming")
+        k, tc = svc.sender.accel_lead, svc.sender.accel_lead_tc
+        await until(lambda: svc.flight.state.value == "HOLDING", 40, "mission complete")
+    rms = math.sqrt(sum(e * e for e in errors) / len(errors))
+    return rms, k, tc
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("autopilot", ["ardupilot", "px4"])
+def test_the_autopilot_aim_is_set_at_link_up_and_lowers_the_tracking_error(tmp_path: Path, autopilot: str) -> None:
+    figures = {}
+    for aim in (0.0, "autopilot"):
+        mock = MockAutopilot(MockConfig(autopilot=autopilot, endpoints=["udpin:127.0.0.1:0"],
+                                        vehicle=RESPONSES["calibrated"], px4_ready_s=0.0,
+                                        log_path=str(tmp_path / f"{aim}.jsonl"))).start()
+        try:
+            figures[aim] = asyncio.run(_fly(mock, aim))
+        finally:
+            mock.stop()
+    rms0, k0, _ = figures[0.0]
+    rms_aim, k, tc = figures["autopilot"]
+    print(f"{autopilot}: tracking RMS without aim {rms0:.3f} m, with the autopilot's aim {rms_aim:.3f} m (k {k}, tc {tc})")
+    assert k0 == 0.0
+    if autopilot == "px4":
+        assert (k, tc) == (0.0, 0.0)
+        return
+    assert (k, tc) == MEASURED_AIM["ardupilot"]
+    assert rms_aim < 0.8 * rms0
