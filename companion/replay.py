@@ -111,15 +111,26 @@ def _supervisor_types() -> frozenset[tuple[str, str]]:
     return frozenset((k.__module__, k.__qualname__) for k in kinds)
 
 
-class _TransitionUnpickler(pickle.Unpickler):
+class _Narrow(pickle.Unpickler):
+    """Loads only the classes named in `allowed` (module, qualified name)."""
+
+    def __init__(self, data: bytes, allowed: frozenset[tuple[str, str]], what: str) -> None:
+        super().__init__(io.BytesIO(data))
+        self.allowed, self.what = allowed, what
+
     def find_class(self, module: str, name: str) -> Any:
-        if (module, name) in _supervisor_types():
+        if (module, name) in self.allowed:
             return super().find_class(module, name)
-        raise pickle.UnpicklingError(f"replay does not load {module}.{name} from a transition record")
+        raise pickle.UnpicklingError(f"replay does not load {module}.{name} from {self.what}")
+
+
+def loads_narrow(text: str, allowed: frozenset[tuple[str, str]], what: str) -> Any:
+    """A record's pickle (base64) with only the `allowed` classes (a record of `what`)."""
+    return _Narrow(base64.b64decode(text), allowed, what).load()
 
 
 def loads_transition(text: str) -> Any:
-    return _TransitionUnpickler(io.BytesIO(base64.b64decode(text))).load()
+    return loads_narrow(text, _supervisor_types(), "a transition record")
 
 
 # -- the replay ---------------------------------------------------------------------------------

@@ -24,12 +24,9 @@ outputs, the flight state and its enum, the supervisor events the watch makes.
 
 from __future__ import annotations
 
-import base64
 import dataclasses
 import functools
-import io
 import json
-import pickle
 import typing
 from typing import Any
 
@@ -47,15 +44,8 @@ def _step_types() -> frozenset[tuple[str, str]]:
     return frozenset((k.__module__, k.__qualname__) for k in kinds)
 
 
-class _StepUnpickler(pickle.Unpickler):
-    def find_class(self, module: str, name: str) -> Any:
-        if (module, name) in _step_types():
-            return super().find_class(module, name)
-        raise pickle.UnpicklingError(f"replay does not load {module}.{name} from an autopilot step record")
-
-
 def loads_step(text: str) -> Any:
-    return _StepUnpickler(io.BytesIO(base64.b64decode(text))).load()
+    return replay.loads_narrow(text, _step_types(), "an autopilot step record")
 
 
 def step_records(path: str, since: float | None = None,
