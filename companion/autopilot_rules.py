@@ -105,6 +105,10 @@ class HeartbeatSeen(_Compact):
     stalled: bool  # the companion is stalled or just woke from a stall (companion/stalls.py)
     sysid: int
     compid: int
+    # the heartbeat's MAV_AUTOPILOT, MAV_TYPE, base_mode and custom_mode as received, which
+    # autopilot, mode and armed were read from (companion.wire.vehicle.read_heartbeat); the rules
+    # do not use it, replay reads it again. None: not known (a reading built without a message)
+    wire: tuple[int, int, int, int] | None = None
 
 
 @dataclass(frozen=True)

@@ -58,6 +58,9 @@ def main(argv: list[str]) -> int:
         print(replay_autopilot.said(stepped, any_steps), flush=True)
         for more in stepped.differences[1:] if args.keep_going else ():
             print(f"  also: {more}")
+        heard = replay_autopilot.said_heartbeats(stepped)
+        if heard is not None:
+            print(heard, flush=True)
         decoded = decoded_records(args.file, args.since, args.until)
         decode_bad: list[str] = []
         if decoded:
