@@ -157,6 +157,7 @@ OUT_PROPERTIES: dict[str, dict[str, Any]] = {
         "streaming": {"type": "boolean"}, "mission": _maybe("string"), "progress": _maybe("number"),
         "time_to_go": _maybe("number"), "tracking_error": _maybe("number"),
         "tracking_error_max": _maybe("number"), "lag_estimate_ms": _maybe("number"),
+        "accel_lead": NUM, "accel_lead_tc": NUM,
         "message_to_setpoint_ms": _maybe("number"), "plan_latency_ms": _maybe("number"),
         "replan_latency_ms": _maybe("number"), "setpoints_sent": {"type": "integer"},
         "setpoint_gap_max_ms": NUM, "gc_pause_max_ms": NUM, "setpoints_stalled": {"type": "boolean"},

@@ -80,6 +80,10 @@ class StatusReport:
             "tracking_error_max": enc.num(self.tracking.tracking_error_max),
             "lead_ms": round(self.sender.lead * 1000, 1),
             "lag_estimate_ms": enc.ms(self.tracking.lag_estimate),
+            # the aim beyond the plan ([setpoints] accel_lead, per autopilot with "autopilot"): k, s²
+            # and its low-pass time constant, s; 0 and 0: none
+            "accel_lead": self.sender.accel_lead,
+            "accel_lead_tc": self.sender.accel_lead_tc,
             # the allowance in use, and whose: `[planner] tracking_allowance` or the autopilot's default
             "tracking_allowance": self.tracking.allowance()[0],
             "tracking_allowance_from": self.tracking.allowance()[1],

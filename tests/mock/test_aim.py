@@ -59,6 +59,8 @@ async def _fly(mock: MockAutopilot, aim: Any) -> tuple[float, float, float]:
         await svc.navigator.on_mission(read("mission", MISSION, svc.cfg), time.monotonic())  # type: ignore[arg-type]
         await until(lambda: svc.flight.state.value == "STREAMING", 10, "streaming")
         k, tc = svc.sender.accel_lead, svc.sender.accel_lead_tc
+        status = svc.status()
+        assert (status["accel_lead"], status["accel_lead_tc"]) == (k, tc)  # the aim flown, as status says it
         await until(lambda: svc.flight.state.value == "HOLDING", 40, "mission complete")
     rms = math.sqrt(sum(e * e for e in errors) / len(errors))
     return rms, k, tc
@@ -69,6 +71,8 @@ async def _linked(mock: MockAutopilot) -> tuple[float, float]:
     async with serving(svc):
         await until(lambda: svc.link.state.autopilot == "px4" and svc.link.state.position_problem() is None, 10,
                     "link-up")
+        status = svc.status()
+        assert (status["accel_lead"], status["accel_lead_tc"]) == (svc.sender.accel_lead, svc.sender.accel_lead_tc)
         return svc.sender.accel_lead, svc.sender.accel_lead_tc
 
 
