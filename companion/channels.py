@@ -116,6 +116,21 @@ STEP = _obj("bezier.AutopilotStep", "One call of the autopilot watch's rules (co
                "outputs)"},
 }, ("seq", "t", "transition", "reading", "flight", "before", "after", "outputs", "pickle"))
 
+_TRAJ = {"type": "object", "description": "a trajectory's span (trajectory time, s) and segment count",
+         "properties": {"t0": NUM, "t_end": NUM, "segments": {"type": "integer"}}}
+SWAP = _obj("bezier.ControlSwap", "One decision of the swap's rule (companion/control.py swap_refusal): whether a "
+            "new plan replaced the flown one from its split, decided from these values alone", {
+    "seq": {"type": "integer", "description": "1, 2, ... per run, numbered as the rule ran: a gap is a record the "
+            "recorder dropped"},
+    "t": T_MONO, "what": {"type": "string", "description": "what asked for the swap"},
+    "now": {"type": "number", "description": "trajectory time (s) when decided"},
+    "lead": {"type": "number", "description": "s the setpoints were sampled ahead"},
+    "rate_hz": NUM, "t_split": {"type": "number", "description": "trajectory time the new plan flies from"},
+    "refusal": {"type": "string", "description": "why the swap was refused; empty: swapped in"},
+    "old": _TRAJ, "new": _TRAJ,
+    "pickle": {"type": ["string", "null"], "description": "pickle (base64) of (the flown trajectory, the new one)"},
+}, ("seq", "t", "what", "now", "lead", "rate_hz", "t_split", "refusal", "pickle"))
+
 DECODED = _obj("bezier.DecodedMessage", "An inbound message as the companion read it (companion.wire.messages.read): "
                "the typed message (local_ned) or the refusal, and what read was given besides the bytes", {
     "seq": {"type": "integer", "description": "1, 2, ... per run, numbered as the message was read: a gap is a "
@@ -212,6 +227,8 @@ def spec(topic: str) -> Spec:
         return _json(TRANSITION)
     if topic == "/autopilot/step":
         return _json(STEP)
+    if topic == "/control/swap":
+        return _json(SWAP)
     if topic == "/inbound/decoded":
         return _json(DECODED)
     if topic == "/recorder/stats":
@@ -316,6 +333,17 @@ def step_fields(before: Any, flight: Any, reading: Any, now: float, after: Any,
     """The readable part of an /autopilot/step record (replay checks it against the pickle)."""
     return {"t": now, "reading": _tagged(reading), "flight": _plain(flight), "before": _plain(before),
             "after": _plain(after), "outputs": [_tagged(o) for o in outputs]}
+
+
+def traj_span(traj: Any) -> dict[str, Any]:
+    return {"t0": float(traj.t0), "t_end": float(traj.t_end), "segments": int(len(traj.times) - 1)}
+
+
+def swap_fields(what: str, now: float, lead: float, rate_hz: float, t_split: float, old: Any, new: Any,
+                refusal: str) -> dict[str, Any]:
+    """The readable part of a /control/swap record (replay checks it against the pickle)."""
+    return {"what": what, "now": now, "lead": lead, "rate_hz": rate_hz, "t_split": t_split, "refusal": refusal,
+            "old": traj_span(old), "new": traj_span(new)}
 
 
 ORDERS = ("velocity", "acceleration", "jerk", "snap")

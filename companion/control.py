@@ -43,6 +43,27 @@ SWAP_DIFFERS = ("internal check failed: the new trajectory differs from the flow
 SWAP_JETS = "internal check failed: the new plan's start does not match the flown plan's state at the split"
 
 
+def swap_refusal(old: Trajectory, new: Trajectory, now: float, lead: float, rate_hz: float, t_split: float) -> str:
+    """Why `new` may not replace the flown `old` from trajectory time `t_split`, decided at
+    trajectory time `now` with the setpoints `lead` s ahead at `rate_hz`; "" when it may. The
+    swap's one rule, a function of these values alone: the flight recorder keeps each call
+    (/control/swap) and replay decides it again (companion.replay_swaps)."""
+    if t_split <= now + lead + 0.5 / rate_hz:  # setpoints up to now + lead are sent
+        return SWAP_LATE
+    # single-time samplers: Trajectory.evaluate/jet cost ~0.5 ms a call, on the pop-up's
+    # critical path
+    so, sn = sampler(old), sampler(new)
+    ts = np.linspace(now, t_split, 8)
+    if not np.allclose([so.jet(t)[0] for t in ts], [sn.jet(t)[0] for t in ts], atol=1e-6):
+        return SWAP_DIFFERS
+    if not np.allclose(so.jet(t_split), sn.jet(t_split), rtol=1e-6, atol=1e-6):
+        return SWAP_JETS
+    return ""
+
+
+SwapObserver = Callable[[str, float, float, float, float, Trajectory, Trajectory, str], None]
+
+
 class FeedTarget(Protocol):
     feed: Feed | None  # and, optionally, `lead` (s): setpoints are sampled that far ahead
 
@@ -69,6 +90,9 @@ class Control:
         self._pending: MissionSpec | None = None  # loaded (or left by a release), for `start`
         self._latency_mark: tuple[float, Trajectory, str] | None = None
         self.refusal = ""  # why the last swap was refused ("" after one that was not)
+        # each swap decided, shown to the flight recorder: (what, now, lead, rate_hz, t_split,
+        # the flown trajectory, the new one, the refusal), trajectory times
+        self.observe_swap: SwapObserver = lambda *_call: None
         # the stream, as sent
         self.last_sp: Setpoint | None = None
         self.last_sp_time = 0.0
@@ -192,23 +216,16 @@ class Control:
         if old is None or self._t_base is None:
             self.refusal = SWAP_NOTHING
             return False
-        now = self.now()
-        if t_split <= now + self.lead() + 0.5 / self.rate_hz:  # setpoints up to now + lead are sent
-            self.refusal = SWAP_LATE
+        now, lead = self.now(), self.lead()
+        self.refusal = swap_refusal(old, new, now, lead, self.rate_hz, t_split)
+        try:
+            self.observe_swap(what, now, lead, self.rate_hz, t_split, old, new, self.refusal)
+        except Exception:  # a recorder's fault must never change what is flown
+            log.exception("control: the swap observer failed")
+        if self.refusal in (SWAP_DIFFERS, SWAP_JETS):
+            log.error("swap refused: %s", self.refusal)
+        if self.refusal:
             return False
-        # single-time samplers: Trajectory.evaluate/jet cost ~0.5 ms a call, on the pop-up's
-        # critical path
-        so, sn = sampler(old), sampler(new)
-        ts = np.linspace(now, t_split, 8)
-        if not np.allclose([so.jet(t)[0] for t in ts], [sn.jet(t)[0] for t in ts], atol=1e-6):
-            log.error("swap refused: new trajectory differs from the flown one before the split")
-            self.refusal = SWAP_DIFFERS
-            return False
-        if not np.allclose(so.jet(t_split), sn.jet(t_split), rtol=1e-6, atol=1e-6):
-            log.error("swap refused: jets differ at the split")
-            self.refusal = SWAP_JETS
-            return False
-        self.refusal = ""
         self._set(trim_before(new, now - 1.0), self._t_base, self._streaming)
         if route is not None:
             self._route, self._route_with, self._interrupted = route, self._active, None

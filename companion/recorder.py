@@ -168,6 +168,7 @@ class Recorder(Tap):
         self._transition_seq = itertools.count(1)
         self._decoded_seq = itertools.count(1)
         self._step_seq = itertools.count(1)
+        self._swap_seq = itertools.count(1)
         self._transitions = 0  # transitions numbered so far (on the loop, as both taps are called)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -268,6 +269,11 @@ class Recorder(Tap):
         # replay can find the transitions each step caused
         self._put(self._decisions, ("autopilot_step", next(self._step_seq), self._transitions + 1, before, flight,
                                     reading, now, after, outputs))
+
+    def swap(self, what: str, now: float, lead: float, rate_hz: float, t_split: float, old: Any, new: Any,
+             refusal: str) -> None:
+        self._put(self._decisions, ("swap", next(self._swap_seq), what, now, lead, rate_hz, t_split, old, new,
+                                    refusal, self.clock()))
 
     def flown(self, trajectory: Any, t_base: float | None, t: float) -> None:
         self._put(self._rest, ("flown", trajectory, t_base, t))
@@ -380,6 +386,9 @@ class Recorder(Tap):
             # the record holds once, as `t`
             _, seq, first, before, flight, reading, now, after, outputs = item
             self._emit("/autopilot/step", step_record(seq, first, before, flight, reading, now, after, outputs), now)
+        elif kind == "swap":
+            _, seq, what, now, lead, rate_hz, t_split, old, new, refusal, t = item
+            self._emit("/control/swap", swap_record(seq, t, what, now, lead, rate_hz, t_split, old, new, refusal), t)
         elif kind == "flown":
             _, traj, t_base, t = item
             for topic, data in self._viz.on_flown(traj, t_base, t):
@@ -480,3 +489,17 @@ def tap_for(cfg: Config) -> Tap:
     if cfg.recording.path or cfg.live.foxglove:
         return Recorder(cfg)
     return Tap()
+
+
+def swap_record(seq: int, t: float, what: str, now: float, lead: float, rate_hz: float, t_split: float,
+                old: Any, new: Any, refusal: str) -> bytes:
+    """One decision of the swap's rule: readable fields (companion.channels.swap_fields) and the
+    two trajectories pickled together (base64), which `python -m companion replay` decides again
+    with companion.control.swap_refusal."""
+    from planner_core import Trajectory
+
+    body = ch.swap_fields(what, now, lead, rate_hz, t_split, old, new, refusal)
+    # the curves alone: what the rule reads (the corridors and statistics are in the plan records)
+    blob = _pickled(tuple(Trajectory(t.times, t.control_points) for t in (old, new)))
+    return b"".join([ch.dumps({"seq": seq, "t": t, **body})[:-1],
+                     b',"pickle":', b"null" if blob is None else b'"' + blob + b'"', b"}"])

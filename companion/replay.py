@@ -41,6 +41,7 @@ import dataclasses
 import enum
 import functools
 import io
+import itertools
 import pickle
 import time
 from collections.abc import Iterator
@@ -122,6 +123,25 @@ class _Narrow(pickle.Unpickler):
         if (module, name) in self.allowed:
             return super().find_class(module, name)
         raise pickle.UnpicklingError(f"replay does not load {module}.{name} from {self.what}")
+
+
+NUMPY_CLASSES = frozenset(_NUMPY)  # what a pickled numpy array names
+
+
+def numbering_gaps(seqs: list[int], noun: str) -> tuple[list[str], int]:
+    """Records numbered 1, 2, ... by the recorder, in order: (what is wrong with the numbering,
+    how many numbers are missing). A gap is a record the recorder dropped, or one removed."""
+    why: list[str] = []
+    missing_all = 0
+    for last, seq in itertools.pairwise(seqs):
+        if seq == last:
+            why.append(f"{noun} {seq} recorded twice")
+        elif seq != last + 1:
+            missing = seq - last - 1
+            missing_all += missing
+            where = f"{noun} {last + 1}" if missing == 1 else f"{noun} {last + 1} to {seq - 1}"
+            why.append(f"{where} missing ({missing} record{'s' * (missing > 1)}: dropped by the recorder, or removed)")
+    return why, missing_all
 
 
 def loads_narrow(text: str, allowed: frozenset[tuple[str, str]], what: str) -> Any:

@@ -9,7 +9,7 @@ from __future__ import annotations
 import pickle
 import sys
 
-from companion import replay_autopilot
+from companion import replay_autopilot, replay_swaps
 from companion.record_format import environment
 from companion.replay import (
     decoded_records,
@@ -61,6 +61,10 @@ def main(argv: list[str]) -> int:
         heard = replay_autopilot.said_heartbeats(stepped)
         if heard is not None:
             print(heard, flush=True)
+        swaps, any_swaps = replay_swaps.replay_file(args.file, args.since, args.until)
+        print(replay_swaps.said(swaps, any_swaps), flush=True)
+        for more in swaps.differences[1:] if args.keep_going else ():
+            print(f"  also: {more}")
         decoded = decoded_records(args.file, args.since, args.until)
         decode_bad: list[str] = []
         if decoded:
@@ -88,7 +92,7 @@ def main(argv: list[str]) -> int:
     except (OSError, ValueError, KeyError, TypeError, pickle.UnpicklingError, McapError) as exc:
         print(f"replay: {args.file}: {exc}", file=sys.stderr)
         return 2
-    if n == 0 and not recs and not dropped and not decoded and not any_steps:
+    if n == 0 and not recs and not dropped and not decoded and not any_steps and not any_swaps:
         print("replay: no plan, transition, autopilot step or inbound message in the recording (or in the time "
               "range)",
               file=sys.stderr)
@@ -98,4 +102,5 @@ def main(argv: list[str]) -> int:
     else:
         print(f"plans: {n - bad} of {n} reproduced bit-identically" if bad == 0 or args.keep_going
               else f"plans: plan {n} is the first that differs")
-    return 0 if bad == 0 and not checked.differences and not stepped.differences and not decode_bad else 1
+    clean = not (checked.differences or stepped.differences or decode_bad or swaps.differences)
+    return 0 if bad == 0 and clean else 1

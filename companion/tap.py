@@ -51,6 +51,12 @@ class Tap:
         watch's state before, the flight state read, the reading, its time, the state after and
         the outputs, as immutable values; on the loop."""
 
+    def swap(self, what: str, now: float, lead: float, rate_hz: float, t_split: float, old: Any, new: Any,
+             refusal: str) -> None:
+        """A decision of the swap's rule (companion.control.swap_refusal): what asked, the
+        trajectory time now, the lead and the rate, the split, the flown and the new trajectory,
+        and the refusal ("" swapped in); on the loop, so no time: the tap takes it."""
+
     def flown(self, trajectory: Any, t_base: float | None, t: float) -> None:
         """What the setpoint thread flies from now on (a new plan, a swap, a hold)."""
 

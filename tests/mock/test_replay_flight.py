@@ -35,7 +35,8 @@ def mission(at: Any) -> bytes:
                                                        [x, y + 1.5, z - 0.3]]}).encode()
 
 
-async def _fly(mock: MockAutopilot, recordings: Path) -> tuple[list[dict[str, Any]], int, FlightState, int]:
+async def _fly(mock: MockAutopilot,
+               recordings: Path) -> tuple[list[dict[str, Any]], int, FlightState, int, list[str]]:
     svc = service_for(mock, recording={"path": str(recordings)}, safety={"takeoff_altitude": 1.5})
     events = Events(svc)
     calls = [0]
@@ -54,6 +55,14 @@ async def _fly(mock: MockAutopilot, recordings: Path) -> tuple[list[dict[str, An
         return step(*call)
 
     svc.watch._step = stepped  # type: ignore[method-assign,assignment]
+    decided: list[str] = []  # every swap the control decided: its refusal ("" swapped in)
+    observe = svc.control.observe_swap
+
+    def swap_seen(*call: Any) -> None:
+        decided.append(call[-1])
+        observe(*call)
+
+    svc.control.observe_swap = swap_seen
     async with serving(svc):
         await until(lambda: svc.link.state.position_problem() is None, 30, "a position estimate")
         await svc.commands.takeoff(1.5)
@@ -77,7 +86,7 @@ async def _fly(mock: MockAutopilot, recordings: Path) -> tuple[list[dict[str, An
         await until(lambda: any(e.get("command") == "land" and e["type"] in ("completed", "refused")
                                 for e in events.all), 60, "land to complete")
         await until(lambda: svc.flight.state is State.IDLE, 30, "the autopilot's disarm after landing")
-    return events.all, calls[0], svc.flight.value, steps[0]
+    return events.all, calls[0], svc.flight.value, steps[0], decided
 
 
 def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
@@ -85,7 +94,7 @@ def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
     mock = MockAutopilot(MockConfig(autopilot="px4", endpoints=["udpin:127.0.0.1:0"],
                                     log_path=str(tmp_path / "flight.jsonl"), log_rate_hz=20)).start()
     try:
-        published, handled, final, stepped = asyncio.run(_fly(mock, tmp_path / "recordings"))
+        published, handled, final, stepped, decided = asyncio.run(_fly(mock, tmp_path / "recordings"))
     finally:
         mock.stop()
     (path,) = sorted((tmp_path / "recordings").glob("*.mcap"))
@@ -94,6 +103,7 @@ def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
         dropped = json.loads({m.name: dict(m.metadata) for m in reader.iter_metadata()}["recorder"]["dropped"])
         recs = [json.loads(m.data) for _s, _c, m in reader.iter_messages(topics=["/supervisor/transition"])]
         steps = [json.loads(m.data) for _s, _c, m in reader.iter_messages(topics=["/autopilot/step"])]
+        swaps = [json.loads(m.data) for _s, _c, m in reader.iter_messages(topics=["/control/swap"])]
         heard = collections.Counter(c.topic for _s, c, _m in reader.iter_messages(topics=[
             "/mavlink/in/HEARTBEAT", "/mavlink/in/LOCAL_POSITION_NED", "/mavlink/in/EXTENDED_SYS_STATE"]))
     assert dropped == {}
@@ -139,6 +149,13 @@ def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
     assert f"transitions: {handled} of {handled} reproduced" in out.splitlines()
     assert (f"autopilot steps: {stepped} of {stepped} reproduced ({len(made)} events, each a recorded "
             "transition)") in out.splitlines()
+    # every swap the control decided is in the file, in order, and decided alike again: at least
+    # the climb's and the mission's plans swapped in
+    assert [r["refusal"] for r in swaps] == decided and [r["seq"] for r in swaps] == list(range(1, len(decided) + 1))
+    n_in = decided.count("")
+    assert n_in >= 2
+    assert f"swaps: {len(decided)} of {len(decided)} decided alike ({n_in} swapped in, {len(decided) - n_in} refused)" \
+        in out.splitlines()
     # each heartbeat's mode and armed state read again from its fields as the mock sent them
     beats = kinds["HeartbeatSeen"]
     assert (f"heartbeats: {beats} of {beats} read again alike (mode and armed from each one's fields as "
