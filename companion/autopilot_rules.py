@@ -17,13 +17,13 @@ write it; the supervisor's `transition` decides what each event does to it.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields, replace
-from typing import Any
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from companion.config import Config
 from companion.flight import FlightState, State
+from companion.record_format import Compact
 from companion.supervisor import (
     Disarmed,
     GroundLearnt,
@@ -50,26 +50,8 @@ GROUND_SPEED = 0.2  # m/s
 GROUND_FOR = 1.0  # ... for this long
 
 
-_NAMES: dict[type, tuple[str, ...]] = {}
-
-
-def _names(kind: type) -> tuple[str, ...]:
-    names = _NAMES.get(kind)
-    if names is None:
-        names = _NAMES[kind] = tuple(f.name for f in fields(kind))
-    return names
-
-
-class _Compact:
-    """Pickled as its class and its fields in order, without their names: half the bytes of a
-    data class's own pickle, in records written tens of times a second (/autopilot/step)."""
-
-    def __reduce__(self) -> tuple[Any, tuple[Any, ...]]:
-        return type(self), tuple(getattr(self, n) for n in _names(type(self)))
-
-
 @dataclass(frozen=True)
-class WatchRules(_Compact):
+class WatchRules(Compact):
     """The configuration the rules use (from [vehicle] and [mavlink]; the recording's
     configuration gives it to replay)."""
 
@@ -83,7 +65,7 @@ class WatchRules(_Compact):
 
 
 @dataclass(frozen=True)
-class WatchState(_Compact):
+class WatchState(Compact):
     """What the watch remembers between readings."""
 
     # since when the vehicle has been at rest near the ground (height rule; inf: it is not)
@@ -96,7 +78,7 @@ class WatchState(_Compact):
 
 
 @dataclass(frozen=True)
-class HeartbeatSeen(_Compact):
+class HeartbeatSeen(Compact):
     """The autopilot's heartbeat, as the link decoded it."""
 
     autopilot: str | None  # "px4" | "ardupilot"
@@ -108,7 +90,7 @@ class HeartbeatSeen(_Compact):
 
 
 @dataclass(frozen=True)
-class PositionSeen(_Compact):
+class PositionSeen(Compact):
     """LOCAL_POSITION_NED, with the link's armed state and when EXTENDED_SYS_STATE last came."""
 
     x: float
@@ -124,7 +106,7 @@ class PositionSeen(_Compact):
 
 
 @dataclass(frozen=True)
-class LandedStateSeen(_Compact):
+class LandedStateSeen(Compact):
     """EXTENDED_SYS_STATE's landed_state (MAV_LANDED_STATE)."""
 
     landed_state: int
@@ -133,7 +115,7 @@ class LandedStateSeen(_Compact):
 
 
 @dataclass(frozen=True)
-class NoteSeen(_Compact):
+class NoteSeen(Compact):
     """A STATUSTEXT, or a PX4 EVENT with its sequence number."""
 
     kind: str  # "STATUSTEXT" | "EVENT"
@@ -143,7 +125,7 @@ class NoteSeen(_Compact):
 
 
 @dataclass(frozen=True)
-class LinkCheck(_Compact):
+class LinkCheck(Compact):
     """The link's timer check (the heartbeat and telemetry loops): when the autopilot was last heard."""
 
     last_heartbeat: float  # -inf: never
@@ -157,7 +139,7 @@ Reading = HeartbeatSeen | PositionSeen | LandedStateSeen | NoteSeen | LinkCheck
 
 
 @dataclass(frozen=True)
-class LinkFound(_Compact):
+class LinkFound(Compact):
     """The first heartbeat: say so, ask for telemetry, read the autopilot's limits."""
 
     autopilot: str | None
@@ -165,7 +147,7 @@ class LinkFound(_Compact):
 
 
 @dataclass(frozen=True)
-class LinkRestored(_Compact):
+class LinkRestored(Compact):
     """A heartbeat after the link was declared lost (the autopilot may have rebooted)."""
 
     silence_s: float  # about how long nothing was heard
@@ -174,7 +156,7 @@ class LinkRestored(_Compact):
 
 
 @dataclass(frozen=True)
-class Relay(_Compact):
+class Relay(Compact):
     """Relay the autopilot's last note as an `autopilot` event."""
 
     kind: str

@@ -116,6 +116,29 @@ STEP = _obj("bezier.AutopilotStep", "One call of the autopilot watch's rules (co
                "outputs)"},
 }, ("seq", "t", "transition", "reading", "flight", "before", "after", "outputs", "pickle"))
 
+TRACKING_STATE = {"type": "object", "description": "companion.tracking_rules.TrackingState as recorded (StateSeen): "
+                  "the samples in a row over the limit, whether the tracking event and the margin warning were "
+                  "made, the window of recent errors by its length and a CRC-32 (the errors are the readings of "
+                  "the records before)", "properties": {
+                      "over": {"type": "integer"}, "said": {"type": "boolean"}, "nearing_said": {"type": "boolean"},
+                      "errors": {"type": "integer"}, "digest": {"type": "string"}},
+                  "required": ["over", "said", "nearing_said", "errors", "digest"]}
+TRACKING_STEP = _obj("bezier.TrackingStep", "One call of the tracking error's rules (companion/tracking_rules.py "
+                     "tracking_step) that changed their state or said something: a position sample's error and the "
+                     "moment's facts, the state before and after, the outputs (events, a brake)", {
+    "seq": {"type": "integer", "description": "1, 2, ... per run, numbered as the rules ran: a gap is a record "
+            "the recorder dropped"},
+    "t": T_MONO,
+    "transition": {"type": "integer", "description": "the /supervisor/transition seq next after the call: a brake's "
+                   "Braking transition comes at or after it"},
+    "reading": TAGGED, "before": TRACKING_STATE, "after": TRACKING_STATE,
+    "outputs": {"type": "array", "items": TAGGED},
+    "window": {"type": ["array", "null"], "items": NUM, "description": "the errors before, in full, in the first "
+               "record of a file or after a gap (null: the readings before make them)"},
+    "pickle": {"type": ["string", "null"], "description": "pickle (base64) of (before, reading, after, outputs, "
+               "window)"},
+}, ("seq", "t", "transition", "reading", "before", "after", "outputs", "window", "pickle"))
+
 DECODED = _obj("bezier.DecodedMessage", "An inbound message as the companion read it (companion.wire.messages.read): "
                "the typed message (local_ned) or the refusal, and what read was given besides the bytes", {
     "seq": {"type": "integer", "description": "1, 2, ... per run, numbered as the message was read: a gap is a "
@@ -211,6 +234,8 @@ def spec(topic: str) -> Spec:
         return _json(TRANSITION)
     if topic == "/autopilot/step":
         return _json(STEP)
+    if topic == "/tracking/step":
+        return _json(TRACKING_STEP)
     if topic == "/inbound/decoded":
         return _json(DECODED)
     if topic == "/recorder/stats":
@@ -315,6 +340,13 @@ def step_fields(before: Any, flight: Any, reading: Any, now: float, after: Any,
     """The readable part of an /autopilot/step record (replay checks it against the pickle)."""
     return {"t": now, "reading": _tagged(reading), "flight": _plain(flight), "before": _plain(before),
             "after": _plain(after), "outputs": [_tagged(o) for o in outputs]}
+
+
+def tracking_fields(before: Any, reading: Any, after: Any, outputs: tuple[Any, ...],
+                    window: tuple[float, ...] | None) -> dict[str, Any]:
+    """The readable part of a /tracking/step record (replay checks it against the pickle)."""
+    return {"reading": _tagged(reading), "before": _plain(before), "after": _plain(after),
+            "outputs": [_tagged(o) for o in outputs], "window": None if window is None else list(window)}
 
 
 ORDERS = ("velocity", "acceleration", "jerk", "snap")

@@ -43,7 +43,7 @@ import functools
 import io
 import pickle
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 from companion.record_format import (
@@ -194,24 +194,30 @@ def plan_records(path: str, since: float | None = None, until: float | None = No
             yield rec
 
 
-def transition_records(path: str, since: float | None = None,
-                       until: float | None = None) -> tuple[list[dict[str, Any]], int]:
-    """The /supervisor/transition records of a file (in `seq` order; `since`/`until` as for
-    plans), and how many transition records the recorder said it dropped: its `recorder`
+def numbered_records(path: str, topic: str, kind: str, since: float | None = None,
+                     until: float | None = None) -> tuple[list[dict[str, Any]], int]:
+    """The records on `topic` (each numbered by `seq`) of a file, in `seq` order (`since`/`until`
+    as for plans), and how many records of `kind` the recorder said it dropped: its `recorder`
     metadata, or the last /recorder/stats of a file cut short; counted over the whole run."""
     import json
 
     found: list[dict[str, Any]] = []
     dropped = 0
-    for topic, rel, rec in records(path, ("/supervisor/transition", "/recorder/stats")):
-        if topic == "/recorder/stats":
-            dropped = max(dropped, int(rec.get("dropped", {}).get("transition", 0)))
+    for name, rel, rec in records(path, (topic, "/recorder/stats")):
+        if name == "/recorder/stats":
+            dropped = max(dropped, int(rec.get("dropped", {}).get(kind, 0)))
         elif _within(rel, since, until):
             found.append(rec)
     meta = recorded_metadata(path).get("recorder", {})
     if "dropped" in meta:
-        dropped = max(dropped, int(json.loads(meta["dropped"]).get("transition", 0)))
+        dropped = max(dropped, int(json.loads(meta["dropped"]).get(kind, 0)))
     return sorted(found, key=lambda r: int(r["seq"])), dropped
+
+
+def transition_records(path: str, since: float | None = None,
+                       until: float | None = None) -> tuple[list[dict[str, Any]], int]:
+    """The /supervisor/transition records of a file and the transition records dropped (numbered_records)."""
+    return numbered_records(path, "/supervisor/transition", "transition", since, until)
 
 
 def replay_one(rec: dict[str, Any]) -> Replayed:
@@ -250,13 +256,48 @@ def replay_one(rec: dict[str, Any]) -> Replayed:
 
 
 @dataclasses.dataclass
-class Transitions:
-    """What replaying a file's transitions found: `reproduced` of `total` (the records, and the
-    numbers missing between them), and every difference in `seq` order."""
+class Chain:
+    """What replaying a chain of numbered records found: `reproduced` of `total` (the records,
+    and the numbers missing between them), and every difference in `seq` order."""
 
     total: int = 0
     reproduced: int = 0
     differences: list[str] = dataclasses.field(default_factory=list)
+
+
+Transitions = Chain
+Check = Callable[[dict[str, Any], "tuple[int, Any] | None"], "tuple[Any, list[str]]"]
+
+
+def replay_chain(out: Chain, recs: list[dict[str, Any]], check: Check, dropped: int, what: str) -> Chain:
+    """Every record (in `seq` order) through `check(record, previous)` -> (its recorded state
+    after, or None if unreadable; what differs), `previous` the seq and state after of the
+    record just before it (None: nothing to chain to). A gap in the numbers, and records of
+    `what` the recorder counted as dropped, are differences: the chain cannot be checked across them."""
+    out.total += len(recs)
+    previous: tuple[int, Any] | None = None
+    last: int | None = None
+    for rec in recs:
+        seq = int(rec["seq"])
+        if last is not None and seq != last + 1:
+            if seq == last:
+                out.differences.append(f"seq {seq} recorded twice")
+            else:
+                missing = seq - last - 1
+                out.total += missing
+                where = f"seq {last + 1}" if missing == 1 else f"seq {last + 1} to {seq - 1}"
+                out.differences.append(f"{where} missing ({missing} record{'s' * (missing > 1)}: dropped by the "
+                                       "recorder, or removed): the chain is not checkable there")
+            previous = None
+        after, why = check(rec, previous)
+        out.differences.extend(why)
+        out.reproduced += not why
+        previous = None if after is None else (seq, after)
+        last = seq
+    if dropped:
+        out.differences.append(f"the recorder dropped {dropped} {what} record{'s' * (dropped > 1)} in this run "
+                               "(its queue was full): the chain is not checkable across them")
+    return out
 
 
 def _label(seq: int, event: Any) -> str:
@@ -299,32 +340,17 @@ def check_transition(rec: dict[str, Any], previous: tuple[int, Any] | None) -> t
 
 
 def replay_transitions(recs: list[dict[str, Any]], dropped: int = 0) -> Transitions:
-    """Every record (in `seq` order) run again and chained to the one before it; a gap in the
-    numbers, and records the recorder counted as dropped, are differences: the chain cannot be
-    checked across them."""
-    out = Transitions(total=len(recs))
-    previous: tuple[int, Any] | None = None
-    last: int | None = None
+    """Every record (in `seq` order) run again and chained to the one before it (replay_chain)."""
+    return replay_chain(Chain(), recs, check_transition, dropped, "transition")
+
+
+def transitions_by_seq(recs: list[dict[str, Any]]) -> dict[int, tuple[Any, Any, Any]]:
+    """(before, event, after) of each readable transition record, by seq."""
+    out: dict[int, tuple[Any, Any, Any]] = {}
     for rec in recs:
-        seq = int(rec["seq"])
-        if last is not None and seq != last + 1:
-            if seq == last:
-                out.differences.append(f"seq {seq} recorded twice")
-            else:
-                missing = seq - last - 1
-                out.total += missing
-                where = f"seq {last + 1}" if missing == 1 else f"seq {last + 1} to {seq - 1}"
-                out.differences.append(f"{where} missing ({missing} record{'s' * (missing > 1)}: dropped by the "
-                                       "recorder, or removed): the chain is not checkable there")
-            previous = None
-        after, why = check_transition(rec, previous)
-        out.differences.extend(why)
-        out.reproduced += not why
-        previous = None if after is None else (seq, after)
-        last = seq
-    if dropped:
-        out.differences.append(f"the recorder dropped {dropped} transition record{'s' * (dropped > 1)} in this run "
-                               "(its queue was full): the chain is not checkable across them")
+        if rec.get("pickle") is not None:
+            before, event, after, _actions = loads_transition(rec["pickle"])
+            out[int(rec["seq"])] = (before, event, after)
     return out
 
 

@@ -50,32 +50,17 @@ def loads_step(text: str) -> Any:
 
 def step_records(path: str, since: float | None = None,
                  until: float | None = None) -> tuple[list[dict[str, Any]], int]:
-    """The /autopilot/step records of a file in `seq` order (`since`/`until`: seconds from the
-    recording's start), and how many the recorder said it dropped in the whole run."""
-    found: list[dict[str, Any]] = []
-    dropped = 0
-    for topic, rel, rec in replay.records(path, (TOPIC, "/recorder/stats")):
-        if topic == "/recorder/stats":
-            dropped = max(dropped, int(rec.get("dropped", {}).get("autopilot_step", 0)))
-        elif (since is None or rel >= since) and (until is None or rel <= until):
-            found.append(rec)
-    meta = replay.recorded_metadata(path).get("recorder", {})
-    if "dropped" in meta:
-        dropped = max(dropped, int(json.loads(meta["dropped"]).get("autopilot_step", 0)))
-    return sorted(found, key=lambda r: int(r["seq"])), dropped
+    """The /autopilot/step records of a file and the step records dropped (replay.numbered_records)."""
+    return replay.numbered_records(path, TOPIC, "autopilot_step", since, until)
 
 
 @dataclasses.dataclass
-class Steps:
-    """What replaying a file's autopilot steps found: `reproduced` of `total` (the records and
-    the numbers missing between them), the supervisor events they made, whether those were
-    checked against the transitions, and every difference."""
+class Steps(replay.Chain):
+    """What replaying a file's autopilot steps found (replay.Chain), and the supervisor events
+    they made and whether those were checked against the transitions."""
 
-    total: int = 0
-    reproduced: int = 0
     events: int = 0
     against_transitions: bool = False
-    differences: list[str] = dataclasses.field(default_factory=list)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -118,16 +103,6 @@ def check_step(rec: dict[str, Any], previous: tuple[int, Any] | None,
     if record_format.fingerprint(tuple(outs)) != record_format.fingerprint(tuple(outputs)):
         why.append(f"{label}: {record_format.first_difference(tuple(outputs), tuple(outs), 'outputs')}")
     return after, made, why
-
-
-def transitions_by_seq(recs: list[dict[str, Any]]) -> dict[int, tuple[Any, Any, Any]]:
-    """(before, event, after) of each readable transition record, by seq."""
-    out: dict[int, tuple[Any, Any, Any]] = {}
-    for rec in recs:
-        if rec.get("pickle") is not None:
-            before, event, after, _actions = replay.loads_transition(rec["pickle"])
-            out[int(rec["seq"])] = (before, event, after)
-    return out
 
 
 def _end_to_end(made: list[_Step], transitions: dict[int, tuple[Any, Any, Any]]) -> list[str]:
@@ -176,36 +151,20 @@ def replay_steps(recs: list[dict[str, Any]], rules: Any, dropped: int = 0,
     """Every step record (in `seq` order) run again with `rules` (the recording's configuration's:
     companion.autopilot_rules.WatchRules) and chained to the one before it; with the file's
     transition records, the end-to-end check."""
-    out = Steps(total=len(recs))
-    previous: tuple[int, Any] | None = None
-    last: int | None = None
     made: list[_Step] = []
-    for rec in recs:
-        seq = int(rec["seq"])
-        if last is not None and seq != last + 1:
-            if seq == last:
-                out.differences.append(f"seq {seq} recorded twice")
-            else:
-                missing = seq - last - 1
-                out.total += missing
-                where = f"seq {last + 1}" if missing == 1 else f"seq {last + 1} to {seq - 1}"
-                out.differences.append(f"{where} missing ({missing} record{'s' * (missing > 1)}: dropped by the "
-                                       "recorder, or removed): the chain is not checkable there")
-            previous = None
+
+    def check(rec: dict[str, Any], previous: tuple[int, Any] | None) -> tuple[Any, list[str]]:
         after, step, why = check_step(rec, previous, rules)
-        out.differences.extend(why)
-        out.reproduced += not why
-        previous = None if after is None else (seq, after)
-        last = seq
         if step is not None:
             made.append(step)
-            out.events += len(step.events)
-    if dropped:
-        out.differences.append(f"the recorder dropped {dropped} autopilot step record{'s' * (dropped > 1)} in this "
-                               "run (its queue was full): the chain is not checkable across them")
+        return after, why
+
+    out = replay.replay_chain(Steps(), recs, check, dropped, "autopilot step")
+    assert isinstance(out, Steps)
+    out.events = sum(len(step.events) for step in made)
     if transitions:
         out.against_transitions = True
-        out.differences.extend(_end_to_end(made, transitions_by_seq(transitions)))
+        out.differences.extend(_end_to_end(made, replay.transitions_by_seq(transitions)))
     return out
 
 

@@ -1,7 +1,7 @@
 """`python -m companion replay FILE.mcap`: run every recorded transition, autopilot step, inbound
-read and plan again and say whether each reproduces (exit 0), where the first differs (exit 1),
-or why the file cannot be replayed (exit 2). What each check covers: companion/replay.py and
-companion/replay_autopilot.py.
+read, tracking step and plan again and say whether each reproduces (exit 0), where the first
+differs (exit 1), or why the file cannot be replayed (exit 2). What each check covers:
+companion/replay.py, companion/replay_autopilot.py and companion/replay_tracking.py.
 """
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from __future__ import annotations
 import pickle
 import sys
 
-from companion import replay_autopilot
+from companion import replay_autopilot, replay_tracking
 from companion.record_format import environment
 from companion.replay import (
     decoded_records,
@@ -58,6 +58,10 @@ def main(argv: list[str]) -> int:
         print(replay_autopilot.said(stepped, any_steps), flush=True)
         for more in stepped.differences[1:] if args.keep_going else ():
             print(f"  also: {more}")
+        tracked, any_tracking = replay_tracking.replay_file(args.file, recs, args.since, args.until)
+        print(replay_tracking.said(tracked, any_tracking), flush=True)
+        for more in tracked.differences[1:] if args.keep_going else ():
+            print(f"  also: {more}")
         decoded = decoded_records(args.file, args.since, args.until)
         decode_bad: list[str] = []
         if decoded:
@@ -85,14 +89,14 @@ def main(argv: list[str]) -> int:
     except (OSError, ValueError, KeyError, TypeError, pickle.UnpicklingError, McapError) as exc:
         print(f"replay: {args.file}: {exc}", file=sys.stderr)
         return 2
-    if n == 0 and not recs and not dropped and not decoded and not any_steps:
-        print("replay: no plan, transition, autopilot step or inbound message in the recording (or in the time "
-              "range)",
-              file=sys.stderr)
+    if n == 0 and not recs and not dropped and not decoded and not any_steps and not any_tracking:
+        print("replay: no plan, transition, autopilot or tracking step or inbound message in the recording (or in "
+              "the time range)", file=sys.stderr)
         return 2
     if n == 0:
         print("plans: none recorded")
     else:
         print(f"plans: {n - bad} of {n} reproduced bit-identically" if bad == 0 or args.keep_going
               else f"plans: plan {n} is the first that differs")
-    return 0 if bad == 0 and not checked.differences and not stepped.differences and not decode_bad else 1
+    return 0 if bad == 0 and not checked.differences and not stepped.differences and not tracked.differences \
+        and not decode_bad else 1

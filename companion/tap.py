@@ -51,6 +51,11 @@ class Tap:
         watch's state before, the flight state read, the reading, its time, the state after and
         the outputs, as immutable values; on the loop."""
 
+    def tracking_step(self, before: Any, reading: Any, after: Any, outputs: tuple[Any, ...], t: float) -> None:
+        """A call of the tracking error's rules (companion.tracking_rules.tracking_step) that
+        changed their state or said something: the state before, the reading, the state after
+        and the outputs, as immutable values, and the sample's time; on the loop."""
+
     def flown(self, trajectory: Any, t_base: float | None, t: float) -> None:
         """What the setpoint thread flies from now on (a new plan, a swap, a hold)."""
 
