@@ -17,13 +17,13 @@ write it; the supervisor's `transition` decides what each event does to it.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
+from typing import Any
 
 import numpy as np
 
 from companion.config import Config
 from companion.flight import FlightState, State
-from companion.record_format import Compact
 from companion.supervisor import (
     Disarmed,
     GroundLearnt,
@@ -50,8 +50,26 @@ GROUND_SPEED = 0.2  # m/s
 GROUND_FOR = 1.0  # ... for this long
 
 
+_NAMES: dict[type, tuple[str, ...]] = {}
+
+
+def _names(kind: type) -> tuple[str, ...]:
+    names = _NAMES.get(kind)
+    if names is None:
+        names = _NAMES[kind] = tuple(f.name for f in fields(kind))
+    return names
+
+
+class _Compact:
+    """Pickled as its class and its fields in order, without their names: half the bytes of a
+    data class's own pickle, in records written tens of times a second (/autopilot/step)."""
+
+    def __reduce__(self) -> tuple[Any, tuple[Any, ...]]:
+        return type(self), tuple(getattr(self, n) for n in _names(type(self)))
+
+
 @dataclass(frozen=True)
-class WatchRules(Compact):
+class WatchRules(_Compact):
     """The configuration the rules use (from [vehicle] and [mavlink]; the recording's
     configuration gives it to replay)."""
 
@@ -65,7 +83,7 @@ class WatchRules(Compact):
 
 
 @dataclass(frozen=True)
-class WatchState(Compact):
+class WatchState(_Compact):
     """What the watch remembers between readings."""
 
     # since when the vehicle has been at rest near the ground (height rule; inf: it is not)
@@ -78,7 +96,7 @@ class WatchState(Compact):
 
 
 @dataclass(frozen=True)
-class HeartbeatSeen(Compact):
+class HeartbeatSeen(_Compact):
     """The autopilot's heartbeat, as the link decoded it."""
 
     autopilot: str | None  # "px4" | "ardupilot"
@@ -87,10 +105,14 @@ class HeartbeatSeen(Compact):
     stalled: bool  # the companion is stalled or just woke from a stall (companion/stalls.py)
     sysid: int
     compid: int
+    # the heartbeat's MAV_AUTOPILOT, MAV_TYPE, base_mode and custom_mode as received, which
+    # autopilot, mode and armed were read from (companion.wire.vehicle.read_heartbeat); the rules
+    # do not use it, replay reads it again. None: not known (a reading built without a message)
+    wire: tuple[int, int, int, int] | None = None
 
 
 @dataclass(frozen=True)
-class PositionSeen(Compact):
+class PositionSeen(_Compact):
     """LOCAL_POSITION_NED, with the link's armed state and when EXTENDED_SYS_STATE last came."""
 
     x: float
@@ -106,7 +128,7 @@ class PositionSeen(Compact):
 
 
 @dataclass(frozen=True)
-class LandedStateSeen(Compact):
+class LandedStateSeen(_Compact):
     """EXTENDED_SYS_STATE's landed_state (MAV_LANDED_STATE)."""
 
     landed_state: int
@@ -115,7 +137,7 @@ class LandedStateSeen(Compact):
 
 
 @dataclass(frozen=True)
-class NoteSeen(Compact):
+class NoteSeen(_Compact):
     """A STATUSTEXT, or a PX4 EVENT with its sequence number."""
 
     kind: str  # "STATUSTEXT" | "EVENT"
@@ -125,7 +147,7 @@ class NoteSeen(Compact):
 
 
 @dataclass(frozen=True)
-class LinkCheck(Compact):
+class LinkCheck(_Compact):
     """The link's timer check (the heartbeat and telemetry loops): when the autopilot was last heard."""
 
     last_heartbeat: float  # -inf: never
@@ -139,7 +161,7 @@ Reading = HeartbeatSeen | PositionSeen | LandedStateSeen | NoteSeen | LinkCheck
 
 
 @dataclass(frozen=True)
-class LinkFound(Compact):
+class LinkFound(_Compact):
     """The first heartbeat: say so, ask for telemetry, read the autopilot's limits."""
 
     autopilot: str | None
@@ -147,7 +169,7 @@ class LinkFound(Compact):
 
 
 @dataclass(frozen=True)
-class LinkRestored(Compact):
+class LinkRestored(_Compact):
     """A heartbeat after the link was declared lost (the autopilot may have rebooted)."""
 
     silence_s: float  # about how long nothing was heard
@@ -156,7 +178,7 @@ class LinkRestored(Compact):
 
 
 @dataclass(frozen=True)
-class Relay(Compact):
+class Relay(_Compact):
     """Relay the autopilot's last note as an `autopilot` event."""
 
     kind: str

@@ -125,7 +125,8 @@ TRACKING_STATE = {"type": "object", "description": "companion.tracking_rules.Tra
                   "required": ["over", "said", "nearing_said", "errors", "digest"]}
 TRACKING_STEP = _obj("bezier.TrackingStep", "One call of the tracking error's rules (companion/tracking_rules.py "
                      "tracking_step) that changed their state or said something: a position sample's error and the "
-                     "moment's facts, the state before and after, the outputs (events, a brake)", {
+                     "moment's facts, the state before and after, the outputs (events, a brake); every value exact, as "
+                     "JSON holds it (no pickle)", {
     "seq": {"type": "integer", "description": "1, 2, ... per run, numbered as the rules ran: a gap is a record "
             "the recorder dropped"},
     "t": T_MONO,
@@ -135,9 +136,7 @@ TRACKING_STEP = _obj("bezier.TrackingStep", "One call of the tracking error's ru
     "outputs": {"type": "array", "items": TAGGED},
     "window": {"type": ["array", "null"], "items": NUM, "description": "the errors before, in full, in the first "
                "record of a file or after a gap (null: the readings before make them)"},
-    "pickle": {"type": ["string", "null"], "description": "pickle (base64) of (before, reading, after, outputs, "
-               "window)"},
-}, ("seq", "t", "transition", "reading", "before", "after", "outputs", "window", "pickle"))
+}, ("seq", "t", "transition", "reading", "before", "after", "outputs", "window"))
 
 DECODED = _obj("bezier.DecodedMessage", "An inbound message as the companion read it (companion.wire.messages.read): "
                "the typed message (local_ned) or the refusal, and what read was given besides the bytes", {

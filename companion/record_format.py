@@ -19,25 +19,6 @@ import numpy as np
 SKIP_FIELDS = frozenset({"stats"})  # timings; everything else must be identical
 
 
-_NAMES: dict[type, tuple[str, ...]] = {}
-
-
-def _names(kind: type) -> tuple[str, ...]:
-    names = _NAMES.get(kind)
-    if names is None:
-        names = _NAMES[kind] = tuple(f.name for f in dataclasses.fields(kind))
-    return names
-
-
-class Compact:
-    """A data class pickled as its class and its fields in order, without their names: half the
-    bytes of a data class's own pickle, in records written tens of times a second
-    (/autopilot/step, /tracking/step)."""
-
-    def __reduce__(self) -> tuple[Any, tuple[Any, ...]]:
-        return type(self), tuple(getattr(self, n) for n in _names(type(self)))
-
-
 def function_name(fn: Any) -> str:
     if isinstance(fn, functools.partial):
         kw = ", ".join(f"{k}={v!r}" for k, v in fn.keywords.items())

@@ -458,19 +458,17 @@ def step_record(seq: int, transition: int, before: Any, flight: Any, reading: An
 
 def tracking_record(seq: int, transition: int, t: float, before: Any, reading: Any, after: Any,
                     outputs: tuple[Any, ...], keyframe: bool) -> bytes:
-    """One call of the tracking error's rules: readable fields (companion.channels.tracking_fields)
-    and the values pickled together (base64), which `python -m companion replay` runs through
-    `tracking_step` again. The states are recorded as `StateSeen` (the window of errors by its
+    """One call of the tracking error's rules (companion.channels.tracking_fields), which
+    `python -m companion replay` runs through `tracking_step` again. JSON only, no pickle: every
+    value is a number, a flag or a string, which JSON holds exactly (a float by its shortest
+    repr), at half the bytes. The states are recorded as `StateSeen` (the window of errors by its
     length and digest: the errors are the readings of the records before); a `keyframe` (the
     first record of a file, or after a gap) holds the window before in full, for replay to start from."""
     from companion.tracking_rules import StateSeen
 
     window = before.errors if keyframe and before.errors else None
-    values = (StateSeen.of(before), reading, StateSeen.of(after), outputs, window)
-    body = ch.tracking_fields(*values)
-    blob = _pickled(values)
-    return b"".join([ch.dumps({"seq": seq, "transition": transition, "t": t, **body})[:-1],
-                     b',"pickle":', b"null" if blob is None else b'"' + blob + b'"', b"}"])
+    body = ch.tracking_fields(StateSeen.of(before), reading, StateSeen.of(after), outputs, window)
+    return ch.dumps({"seq": seq, "transition": transition, "t": t, **body})
 
 
 def decoded_record(seq: int, key: str, payload: Any, context: dict[str, Any], result: Any, t: float) -> bytes:

@@ -12,21 +12,20 @@ after a gap (a `keyframe`), so that replay can start there. Replay runs
 `tracking_step(rules, before, reading)` again, the rules from the configuration the recording
 service ran with, compares the state after and the outputs exactly, and checks:
 - the chain, the numbering and the drops the recorder counted (`tracking_step`; these share the
-  transitions' queue), as for transitions; the readable fields against the pickle;
+  transitions' queue), as for transitions;
 - with the file's transitions: each `Brake` is followed by the `Braking` transition of the same
   reason (at or after the transition number the step was recorded with; a brake may come to
   nothing, when the plan stopped meanwhile, so one without is counted, not a difference), and
   every `Braking` transition of a tracking reason was asked for by a recorded step.
 
-Step records are unpickled with an allow-list of their own: the rules' recorded state, reading
-and outputs.
+A record is JSON only (every value a number, a flag or a string, exact as JSON holds it): it is
+read back into the rules' own classes, named in it; a record naming any other is refused.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
-import json
 import typing
 from typing import Any
 
@@ -36,15 +35,27 @@ TOPIC = "/tracking/step"
 
 
 @functools.cache
-def _step_types() -> frozenset[tuple[str, str]]:
+def _kinds() -> dict[str, type]:
     from companion import tracking_rules as rules
 
-    kinds = (rules.StateSeen, rules.TrackingSample, *typing.get_args(rules.Output))
-    return frozenset((k.__module__, k.__qualname__) for k in kinds)
+    return {k.__name__: k for k in (rules.TrackingSample, *typing.get_args(rules.Output))}
 
 
-def loads_step(text: str) -> Any:
-    return replay.loads_narrow(text, _step_types(), "a tracking step record")
+def _typed(tagged: dict[str, Any]) -> Any:
+    kind = _kinds().get(tagged["type"])
+    if kind is None:
+        raise ValueError(f"{tagged['type']!r} is not a tracking reading or output")
+    return kind(**tagged["fields"])
+
+
+def step_values(rec: dict[str, Any]) -> tuple[Any, Any, Any, tuple[Any, ...], tuple[float, ...] | None]:
+    """(before, reading, after, outputs, window) of a record, typed again from its JSON: the
+    rules' own classes only (a record naming another is refused: TypeError, ValueError)."""
+    from companion.tracking_rules import StateSeen
+
+    window = rec["window"]
+    return (StateSeen(**rec["before"]), _typed(rec["reading"]), StateSeen(**rec["after"]),
+            tuple(_typed(o) for o in rec["outputs"]), None if window is None else tuple(window))
 
 
 @dataclasses.dataclass
@@ -70,23 +81,16 @@ class _Replayer:
     def __init__(self, rules: Any) -> None:
         self.rules = rules
         self.window: tuple[float, ...] | None = ()  # before the next record; None: not known
+        self.last: int | None = None  # the seq of the record run last
         self.brakes: list[_Brake] = []
 
     def check(self, rec: dict[str, Any], previous: tuple[int, Any] | None) -> tuple[Any, list[str]]:
-        from companion import channels as ch
         from companion.tracking_rules import Brake, StateSeen, TrackingState, tracking_step
 
         fp = record_format.fingerprint
         seq = int(rec["seq"])
-        if rec.get("pickle") is None:
-            self.window = None
-            return None, [f"seq {seq} {rec['reading'].get('type')}: the values were not recorded (not picklable)"]
-        before, reading, after, outputs, window = loads_step(rec["pickle"])
+        before, reading, after, outputs, window = step_values(rec)
         label, why = f"seq {seq} {reading!r}", []
-        readable = json.loads(ch.dumps(ch.tracking_fields(before, reading, after, outputs, window)))
-        for name, value in readable.items():
-            if rec.get(name) != value:
-                why.append(f"{label}: the record's {name} (JSON) is not its pickled value")
         if previous is not None and fp(before) != fp(previous[1]):
             where = record_format.first_difference(previous[1], before, "before",
                                                    (f"seq {previous[0]} ended in", "this one starts from"))
@@ -95,8 +99,11 @@ class _Replayer:
         self.brakes.extend(_Brake(seq, int(rec["transition"]), o.reason) for o in outputs if isinstance(o, Brake))
         if window is not None:
             self.window = tuple(window)
-        elif previous is None or before.errors == 0:
-            self.window = () if before.errors == 0 else None
+        elif before.errors == 0:
+            self.window = ()
+        elif self.last != seq - 1:  # the first record read, or after a gap
+            self.window = None
+        self.last = seq
         if self.window is None:
             return after, [*why, f"{label}: not checkable: the errors before it are unknown (after a gap, until "
                                  "their window empties or the recorder writes it again)"]

@@ -20,7 +20,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from companion.config import Config
-from companion.record_format import Compact
 
 TRACKING_SAMPLES = 3  # position samples in a row above the limit (0.1 s at 30 Hz) before acting
 # The tracking measured in flight against [planner] tracking_allowance: an event when the RMS
@@ -32,7 +31,7 @@ BRAKE_REASON = "tracking error "  # how every brake of this module's reasons beg
 
 
 @dataclass(frozen=True)
-class TrackingRules(Compact):
+class TrackingRules:
     """The thresholds (this module's constants) and, from the configuration, whether the brake
     is set apart from the allowance (`[safety] tracking_brake`: the warning names both)."""
 
@@ -48,7 +47,7 @@ class TrackingRules(Compact):
 
 
 @dataclass(frozen=True)
-class TrackingState(Compact):
+class TrackingState:
     """What the rules remember between samples."""
 
     over: int = 0  # samples in a row above the limit
@@ -58,7 +57,7 @@ class TrackingState(Compact):
 
 
 @dataclass(frozen=True)
-class TrackingSample(Compact):
+class TrackingSample:
     """One position sample, and what the rules need to know of the moment."""
 
     error: float | None  # m, to the setpoint of the measurement's time; None: no plan streamed
@@ -71,7 +70,7 @@ class TrackingSample(Compact):
 
 
 @dataclass(frozen=True)
-class TrackingEvent(Compact):
+class TrackingEvent:
     """Over the limit for `samples` samples in a row: the `tracking` event."""
 
     error: float
@@ -87,7 +86,7 @@ class TrackingEvent(Compact):
 
 
 @dataclass(frozen=True)
-class MarginEvent(Compact):
+class MarginEvent:
     """The recent RMS or largest error near the limit: the `tracking_margin` event."""
 
     rms: float
@@ -111,7 +110,7 @@ class MarginEvent(Compact):
 
 
 @dataclass(frozen=True)
-class Brake(Compact):
+class Brake:
     """Brake to a verified stop and hold, for `reason`."""
 
     reason: str
@@ -160,7 +159,7 @@ def tracking_step(rules: TrackingRules, ts: TrackingState, r: TrackingSample) ->
 
 
 @dataclass(frozen=True)
-class StateSeen(Compact):
+class StateSeen:
     """A TrackingState as recorded: the window of errors by its length and a digest (the
     errors themselves are the readings of the records before), not the 150 numbers."""
 

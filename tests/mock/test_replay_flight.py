@@ -35,7 +35,7 @@ def mission(at: Any) -> bytes:
                                                        [x, y + 1.5, z - 0.3]]}).encode()
 
 
-async def _fly(mock: MockAutopilot, recordings: Path) -> tuple[list[dict[str, Any]], int, FlightState, int]:
+async def _fly(mock: MockAutopilot, recordings: Path) -> tuple[list[dict[str, Any]], int, FlightState, int, int]:
     svc = service_for(mock, recording={"path": str(recordings)}, safety={"takeoff_altitude": 1.5})
     events = Events(svc)
     calls = [0]
@@ -54,6 +54,14 @@ async def _fly(mock: MockAutopilot, recordings: Path) -> tuple[list[dict[str, An
         return step(*call)
 
     svc.watch._step = stepped  # type: ignore[method-assign,assignment]
+    tracked = [0]
+    record = svc.tap.tracking_step
+
+    def tracking(*call: Any) -> None:  # every call of the tracking rules shown to the recorder, counted apart
+        tracked[0] += 1
+        record(*call)
+
+    svc.tracking.connect(observe=tracking)
     async with serving(svc):
         await until(lambda: svc.link.state.position_problem() is None, 30, "a position estimate")
         await svc.commands.takeoff(1.5)
@@ -77,7 +85,7 @@ async def _fly(mock: MockAutopilot, recordings: Path) -> tuple[list[dict[str, An
         await until(lambda: any(e.get("command") == "land" and e["type"] in ("completed", "refused")
                                 for e in events.all), 60, "land to complete")
         await until(lambda: svc.flight.state is State.IDLE, 30, "the autopilot's disarm after landing")
-    return events.all, calls[0], svc.flight.value, steps[0]
+    return events.all, calls[0], svc.flight.value, steps[0], tracked[0]
 
 
 def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
@@ -85,7 +93,7 @@ def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
     mock = MockAutopilot(MockConfig(autopilot="px4", endpoints=["udpin:127.0.0.1:0"],
                                     log_path=str(tmp_path / "flight.jsonl"), log_rate_hz=20)).start()
     try:
-        published, handled, final, stepped = asyncio.run(_fly(mock, tmp_path / "recordings"))
+        published, handled, final, stepped, tracked = asyncio.run(_fly(mock, tmp_path / "recordings"))
     finally:
         mock.stop()
     (path,) = sorted((tmp_path / "recordings").glob("*.mcap"))
@@ -94,6 +102,7 @@ def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
         dropped = json.loads({m.name: dict(m.metadata) for m in reader.iter_metadata()}["recorder"]["dropped"])
         recs = [json.loads(m.data) for _s, _c, m in reader.iter_messages(topics=["/supervisor/transition"])]
         steps = [json.loads(m.data) for _s, _c, m in reader.iter_messages(topics=["/autopilot/step"])]
+        tracking = [json.loads(m.data) for _s, _c, m in reader.iter_messages(topics=["/tracking/step"])]
         heard = collections.Counter(c.topic for _s, c, _m in reader.iter_messages(topics=[
             "/mavlink/in/HEARTBEAT", "/mavlink/in/LOCAL_POSITION_NED", "/mavlink/in/EXTENDED_SYS_STATE"]))
     assert dropped == {}
@@ -133,12 +142,20 @@ def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
     assert made == [r["event"]["type"] for r in recs if r["event"]["type"] in watch_kinds]
     assert "LinkFound" in [o["type"] for r in steps for o in r["outputs"]]
 
+    # every call of the tracking error's rules that changed or said something is in the file,
+    # numbered without a gap: one a position sample while a plan of ours is flown (the samples
+    # of the mission and the hovers around it), and no brake in this flight
+    assert [r["seq"] for r in tracking] == list(range(1, tracked + 1))
+    assert 0 < tracked <= heard["/mavlink/in/LOCAL_POSITION_NED"]
+    assert not any(o["type"] == "Brake" for r in tracking for o in r["outputs"])
+
     # replay: every transition, every step and every plan (the climb and the mission at least) reproduced
     assert replay_cli.main([str(path)]) == 0
     out = capsys.readouterr().out
     assert f"transitions: {handled} of {handled} reproduced" in out.splitlines()
     assert (f"autopilot steps: {stepped} of {stepped} reproduced ({len(made)} events, each a recorded "
             "transition)") in out.splitlines()
+    assert f"tracking steps: {tracked} of {tracked} reproduced (0 brakes)" in out.splitlines()
     plans = [ln for ln in out.splitlines() if ln.startswith("plan ")]
     assert len(plans) >= 2 and all(": identical" in ln for ln in plans)
     assert f"plans: {len(plans)} of {len(plans)} reproduced bit-identically" in out.splitlines()
