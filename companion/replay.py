@@ -11,6 +11,10 @@ Autopilot steps: each `/autopilot/step` record holds one call of the autopilot w
 (companion/autopilot_rules.py: a MAVLink reading or a link check to supervisor events), run
 again and matched to the transitions its events caused (companion/replay_autopilot.py).
 
+Tracking steps: each `/tracking/step` record holds one call of the tracking error's rules
+(companion/tracking_rules.py: when it brakes and when it warns), run again and each brake it
+asked for found among the transitions (companion/replay_tracking.py).
+
 Inbound messages: each `/inbound/decoded` record is read again with the recorded configuration.
 
 Plans: each `/planner/plan` record holds the planner call the service made (the function and
@@ -22,15 +26,17 @@ bit, every number by its exact binary value, every string, leaving out only the 
 dictionaries (timings).
 
 What it does not cover: how inbound messages and commands became supervisor events and
-planner calls, the autopilot watch's telemetry advice, and the navigator's, the brakes' and the
-command sequences' own decisions (which plan to swap in and when, when to brake) are not re-run;
-they are in the file (inbound messages, events, what was flown) to be read.
+planner calls, the autopilot watch's telemetry advice, and the navigator's, the brakes' (but the
+tracking error's) and the command sequences' own decisions (which plan to swap in and when, when
+to brake for an obstacle) are not re-run; they are in the file (inbound messages, events, what
+was flown) to be read.
 
 A recording comes from a companion you trust: the calls are pickled. Plan records are read with
 an allow-list (planner_core and companion data classes and planner functions, numpy arrays,
 plain containers), transition and autopilot step records with narrower ones (the flight state,
-its enum, the supervisor's events and actions; the watch's state, readings and outputs), so a file cannot name any other function to call; still, do
-not replay files from unknown sources.
+its enum, the supervisor's events and actions; the watch's state, readings and outputs); tracking
+step records are JSON, typed again into the rules' own classes by name. So a file cannot name any
+other function to call; still, do not replay files from unknown sources.
 """
 
 from __future__ import annotations
@@ -67,10 +73,6 @@ _PLAIN = {
     ("builtins", "frozenset"), ("builtins", "slice"), ("builtins", "complex"),
     ("functools", "partial"), ("collections", "OrderedDict"),
 }
-
-
-
-
 
 
 class _SafeUnpickler(pickle.Unpickler):

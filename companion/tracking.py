@@ -2,7 +2,9 @@
 
 Each position sample is measured against the setpoint of the measurement's own time: above
 `[planner] tracking_allowance` (the margin the obstacles are inflated by) for a few samples in
-a row while a plan is flown, the vehicle brakes to a verified stop and holds. The lag behind the
+a row while a plan is flown, the vehicle brakes to a verified stop and holds: decided by the pure
+rules of companion/tracking_rules.py, each call shown to the flight recorder (/tracking/step) and
+re-run by replay, and carried out here. The lag behind the
 setpoints is estimated from the same samples (companion.lag); with `[setpoints] lead = "auto"`
 the setpoints lead by it. This module is the one writer of the setpoints' lead.
 """
