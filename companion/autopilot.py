@@ -359,8 +359,8 @@ class AutopilotWatch:
 
     def on_heartbeat(self, msg: Any = None) -> None:
         st = self.link.state
-        if self._step(HeartbeatSeen(st.autopilot, st.mode, st.armed, self.stalled(), *self._ids(msg)),
-                      time.monotonic()):
+        if self._step(HeartbeatSeen(st.autopilot, st.mode, st.armed, self.stalled(), *self._ids(msg),
+                                    st.heartbeat_wire), time.monotonic()):
             self.report.dirty = True
 
     def _link_up(self, out: LinkFound | LinkRestored) -> None:

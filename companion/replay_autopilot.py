@@ -60,6 +60,8 @@ class Steps(replay.Chain):
     they made and whether those were checked against the transitions."""
 
     events: int = 0
+    heartbeats: int = 0  # heartbeat readings recorded with the fields they were read from
+    heartbeats_alike: int = 0  # ... that read the same again (companion.wire.vehicle.read_heartbeat)
     against_transitions: bool = False
 
 
@@ -69,6 +71,7 @@ class _Step:
     transition: int
     flight: Any
     events: tuple[Any, ...]
+    wire: bool = False  # a heartbeat recorded with the fields it was read from
 
 
 def check_step(rec: dict[str, Any], previous: tuple[int, Any] | None,
@@ -92,7 +95,9 @@ def check_step(rec: dict[str, Any], previous: tuple[int, Any] | None,
                                         (f"seq {previous[0]} ended in", "this one starts from"))
         why.append(f"{label}: does not start where seq {previous[0]} ended ({where}): the watch's state was "
                    "replaced outside its rules, or a record was altered")
-    made = _Step(seq, int(rec["transition"]), flight, tuple(o for o in outputs if isinstance(o, WATCH_EVENTS)))
+    made = _Step(seq, int(rec["transition"]), flight, tuple(o for o in outputs if isinstance(o, WATCH_EVENTS)),
+                 getattr(reading, "wire", None) is not None)
+    why.extend(_read_again(label, reading))
     try:
         new, outs = watch_step(rules, before, flight, reading, now)
     except Exception as exc:  # the recorded call returned: raising now is a difference
@@ -103,6 +108,23 @@ def check_step(rec: dict[str, Any], previous: tuple[int, Any] | None,
     if record_format.fingerprint(tuple(outs)) != record_format.fingerprint(tuple(outputs)):
         why.append(f"{label}: {record_format.first_difference(tuple(outputs), tuple(outs), 'outputs')}")
     return after, made, why
+
+
+def _read_again(label: str, reading: Any) -> list[str]:
+    """A heartbeat's reading against its fields as received, read again as the link reads them
+    (the mode's name from PX4's or ArduPilot's custom mode, armed from base_mode)."""
+    from companion.autopilot_rules import HeartbeatSeen
+    from companion.wire.vehicle import read_heartbeat
+
+    if not isinstance(reading, HeartbeatSeen) or reading.wire is None:
+        return []
+    again = read_heartbeat(reading.autopilot, *reading.wire)
+    if again == (reading.autopilot, reading.mode, reading.armed):
+        return []
+    a, t, b, c = reading.wire
+    return [f"{label}: the heartbeat as received (MAV_AUTOPILOT {a}, MAV_TYPE {t}, base_mode {b}, custom_mode {c}) "
+            f"reads as {again[0]} {again[1]!r} {'armed' if again[2] else 'disarmed'}, recorded {reading.autopilot} "
+            f"{reading.mode!r} {'armed' if reading.armed else 'disarmed'}"]
 
 
 def _end_to_end(made: list[_Step], transitions: dict[int, tuple[Any, Any, Any]]) -> list[str]:
@@ -152,15 +174,18 @@ def replay_steps(recs: list[dict[str, Any]], rules: Any, dropped: int = 0,
     companion.autopilot_rules.WatchRules) and chained to the one before it; with the file's
     transition records, the end-to-end check."""
     made: list[_Step] = []
+    out = Steps()
 
     def check(rec: dict[str, Any], previous: tuple[int, Any] | None) -> tuple[Any, list[str]]:
         after, step, why = check_step(rec, previous, rules)
+        if step is not None and step.wire:
+            out.heartbeats += 1
+            out.heartbeats_alike += not any("the heartbeat as received" in w for w in why)
         if step is not None:
             made.append(step)
         return after, why
 
-    out = replay.replay_chain(Steps(), recs, check, dropped, "autopilot step")
-    assert isinstance(out, Steps)
+    replay.replay_chain(out, recs, check, dropped, "autopilot step")
     out.events = sum(len(step.events) for step in made)
     if transitions:
         out.against_transitions = True
@@ -181,6 +206,14 @@ def replay_file(path: str, transitions: list[dict[str, Any]], since: float | Non
     if cfg is None:
         raise ValueError("the recording holds no configuration to run its autopilot steps with")
     return replay_steps(recs, WatchRules.of(cfg), dropped, transitions), True
+
+
+def said_heartbeats(steps: Steps) -> str | None:
+    """The replay's line for the heartbeats read again (None: none recorded with their fields)."""
+    if not steps.heartbeats:
+        return None
+    return (f"heartbeats: {steps.heartbeats_alike} of {steps.heartbeats} read again alike (mode and armed from "
+            "each one's fields as received)")
 
 
 def said(steps: Steps, recorded: bool) -> str:

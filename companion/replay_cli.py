@@ -58,6 +58,9 @@ def main(argv: list[str]) -> int:
         print(replay_autopilot.said(stepped, any_steps), flush=True)
         for more in stepped.differences[1:] if args.keep_going else ():
             print(f"  also: {more}")
+        heard = replay_autopilot.said_heartbeats(stepped)
+        if heard is not None:
+            print(heard, flush=True)
         tracked, any_tracking = replay_tracking.replay_file(args.file, recs, args.since, args.until)
         print(replay_tracking.said(tracked, any_tracking), flush=True)
         for more in tracked.differences[1:] if args.keep_going else ():

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import logging
 import math
 import multiprocessing
@@ -88,6 +89,7 @@ FILTER_SPAN = 4.0
 FILTER_STEP = 0.04
 
 
+@functools.lru_cache(maxsize=8)
 def filter_weights(tc: float) -> tuple[FloatArray, FloatArray]:
     """(lags s, weights) of the first-order low-pass with time constant tc as a sum over the past:
     F(t) = sum_i w_i a(t - s_i); the last weight carries the kernel's tail (exact for a constant)."""
@@ -98,6 +100,8 @@ def filter_weights(tc: float) -> tuple[FloatArray, FloatArray]:
     w[-1] = math.exp(-edges[-1] / tc)
     lags: FloatArray = edges + 0.5 * FILTER_STEP
     lags[-1] = edges[-1]
+    lags.setflags(write=False)  # shared: built once per time constant, not every tick
+    w.setflags(write=False)
     return lags, w
 
 
@@ -106,8 +110,7 @@ def filtered_accel(traj: Trajectory, t: float, tc: float) -> FloatArray:
     of the plan alone (a replan equals its predecessor before its split, so the value does not
     jump at a swap); before the plan's start its start value, past its end rest."""
     lags, w = filter_weights(tc)
-    times = np.clip(t - lags, traj.t0, traj.t_end)
-    acc = np.asarray(traj.evaluate(times, 2), dtype=float)
+    acc = sampler(traj).many(t - lags, 2)
     acc[t - lags >= traj.t_end] = 0.0
     out: FloatArray = w @ acc
     return out

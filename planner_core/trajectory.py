@@ -175,6 +175,26 @@ class Sampler:
         out: FloatArray = (basis @ self._segment(s)[:, :cols]).reshape(cols // 3, 3)
         return out
 
+    def many(self, ts: FloatArray, order: int) -> FloatArray:
+        """(len(ts), 3): derivative `order` (0-4) at each of the times ts, clamped to the span,
+        as `Trajectory.evaluate` (the setpoints' low-passed acceleration takes ~100 a tick:
+        ~10x cheaper here, from the same segment matrices as `jet`)."""
+        tc = np.clip(np.asarray(ts, dtype=float), self.t0, self.t_end)
+        seg = np.clip(np.searchsorted(self.times, tc, side="right") - 1, 0, self._last)
+        lo, hi = self.times[seg], self.times[seg + 1]
+        u = np.clip((tc - lo) / (hi - lo), 0.0, 1.0)[:, None]
+        basis = _BINOM * u**_POW * (1.0 - u) ** (_DEG - _POW)
+        cols = slice(3 * order, 3 * order + 3)
+        out: FloatArray
+        if len(seg) and seg.min() == seg.max():  # one segment (the usual case): one product
+            out = basis @ self._segment(int(seg[0]))[:, cols]
+            return out
+        out = np.empty((len(tc), 3))
+        for s in np.unique(seg):
+            rows = seg == s
+            out[rows] = basis[rows] @ self._segment(int(s))[:, cols]
+        return out
+
     def jet(self, t: float) -> FloatArray:
         """(5, 3) position .. snap at t clamped to the span, as `Trajectory.jet`."""
         return self._eval(t, 15)

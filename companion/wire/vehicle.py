@@ -134,6 +134,9 @@ class VehicleState:
     """What the autopilot last told us (NED, SI units, monotonic times)."""
 
     autopilot: str | None = None  # "px4" | "ardupilot"
+    # the last heartbeat taken, as received (MAV_AUTOPILOT, MAV_TYPE, base_mode, custom_mode):
+    # what `autopilot`, `mode` and `armed` were read from (recorded with the watch's readings)
+    heartbeat_wire: tuple[int, int, int, int] | None = None
     mav_type: int = 0
     base_mode: int = 0
     custom_mode: int = 0
@@ -210,10 +213,10 @@ class VehicleState:
                 return False
             if msg.get_srcComponent() != autopilot_component:
                 return False
-            self.autopilot = autopilot_name(msg.autopilot) or self.autopilot
-            self.mav_type, self.base_mode, self.custom_mode = msg.type, msg.base_mode, msg.custom_mode
-            self.mode = decode_mode(self.autopilot, msg.type, msg.base_mode, msg.custom_mode)
-            self.armed = bool(msg.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
+            wire = (int(msg.autopilot), int(msg.type), int(msg.base_mode), int(msg.custom_mode))
+            self.heartbeat_wire = wire
+            self.autopilot, self.mode, self.armed = read_heartbeat(self.autopilot, *wire)
+            self.mav_type, self.base_mode, self.custom_mode = wire[1:]
             self.system_status = msg.system_status
             self.last_heartbeat = now
         elif kind == "LOCAL_POSITION_NED":
@@ -278,6 +281,15 @@ def autopilot_name(code: int) -> str | None:
     if code == mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA:
         return "ardupilot"
     return None
+
+
+def read_heartbeat(known: str | None, autopilot: int, mav_type: int, base_mode: int,
+                   custom_mode: int) -> tuple[str | None, str, bool]:
+    """A heartbeat's (autopilot, mode name, armed) from its fields as received; `known`: the
+    autopilot named before, kept when this one's MAV_AUTOPILOT names none. The link's one
+    reading of a heartbeat, which replay runs again on the recorded fields."""
+    name = autopilot_name(autopilot) or known
+    return name, decode_mode(name, mav_type, base_mode, custom_mode), bool(base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED)
 
 
 def decode_mode(autopilot: str | None, mav_type: int, base_mode: int, custom_mode: int) -> str:

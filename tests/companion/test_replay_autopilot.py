@@ -23,6 +23,8 @@ import jsonschema
 import numpy as np
 import pytest
 from mcap.reader import make_reader
+from pymavlink import mavutil
+from pymavlink.dialects.v20 import common as mavlink2
 from recorder_support import config
 from test_replay_transitions import rewrite
 
@@ -85,10 +87,16 @@ class Flight:
         self.watch.check_link()
 
     def heartbeat(self, mode: str, armed: bool) -> None:
+        """PX4's heartbeat in `mode`, as the link's one reader takes it (the fields as received)."""
         self.settle()
-        self.st.mode, self.st.armed = mode, armed
-        self.st.last_heartbeat = time.monotonic()
-        self.watch.on_message("HEARTBEAT", msg())
+        base, main, sub = mavutil.px4_map[mode]
+        hb = mavlink2.MAVLink_heartbeat_message(mavlink2.MAV_TYPE_QUADROTOR, mavlink2.MAV_AUTOPILOT_PX4,
+                                                base | (mavlink2.MAV_MODE_FLAG_SAFETY_ARMED if armed else 0),
+                                                (main << 16) | (sub << 24), 4, 3)
+        hb._header = mavlink2.MAVLink_header(0, srcSystem=1, srcComponent=1)
+        assert self.st.take("HEARTBEAT", hb, time.monotonic(), 1)
+        assert (self.st.mode, self.st.armed) == (mode, armed)
+        self.watch.on_message("HEARTBEAT", hb)
 
     def position(self, z: float, vz: float = 0.0) -> None:
         self.settle()
@@ -198,6 +206,9 @@ def test_every_step_is_recorded_and_replays_with_its_events_the_transitions(
     code, out = run(path, capsys)
     assert code == 0, out
     assert f"autopilot steps: {len(recs)} of {len(recs)} reproduced ({events} events, each a recorded transition)" \
+        in out.splitlines()
+    beats = kinds.count("HeartbeatSeen")
+    assert f"heartbeats: {beats} of {beats} read again alike (mode and armed from each one's fields as received)" \
         in out.splitlines()
 
 
@@ -342,3 +353,47 @@ def test_an_observer_that_fails_never_keeps_an_event_from_the_supervisor() -> No
     f.watch.connect(observe=broken)
     f.heartbeat("LOITER", armed=False)
     assert f.sup.seen_link
+
+
+def test_a_heartbeat_read_otherwise_than_its_fields_say_is_found(tmp_path: Path,
+                                                                 capsys: pytest.CaptureFixture[str]) -> None:
+    """A reading whose mode is not what its heartbeat's custom mode says (the link's decoding
+    at the time of the flight, or a record altered): named with its seq and the fields."""
+    path, _rec, _f = recorded(tmp_path / "rec")
+    recs = steps(path)
+    seq = seq_of(recs, lambda r: r["reading"]["type"] == "HeartbeatSeen" and r["reading"]["fields"]["mode"] == "OFFBOARD")
+
+    def edit(r: dict[str, Any]) -> dict[str, Any]:
+        if r["seq"] != seq:
+            return r
+        before, flight, reading, now, after, outputs = replay_autopilot.loads_step(r["pickle"])
+        return with_values(r, before, flight, replace(reading, mode="POSCTL"), now, after, outputs)
+
+    code, out = run(rewrite(path, tmp_path / "misread.mcap", edit, topic=TOPIC), capsys)
+    assert code == 1, out
+    base, main, sub = mavutil.px4_map["OFFBOARD"]
+    assert (f"first difference: seq {seq} HeartbeatSeen(autopilot='px4', mode='POSCTL'" in line(out)
+            and f"(MAV_AUTOPILOT 12, MAV_TYPE 2, base_mode {base | 128}, custom_mode {(main << 16) | (sub << 24)}) "
+            "reads as px4 'OFFBOARD' armed, recorded px4 'POSCTL' armed" in line(out)), line(out)
+    beats = sum(r["reading"]["type"] == "HeartbeatSeen" for r in recs)
+    assert f"heartbeats: {beats - 1} of {beats} read again alike" in out
+
+
+def test_todays_decoding_of_a_recorded_heartbeat_is_checked(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    """Replay reads each recorded heartbeat with today's code: a decoding that changed (here PX4's
+    AUTO.LOITER sub-mode no longer known) makes the flight's recorded readings differ."""
+    path, _rec, _f = recorded(tmp_path / "rec")
+    from companion.wire import vehicle
+
+    real = vehicle.decode_mode
+
+    def changed(autopilot: str | None, mav_type: int, base_mode: int, custom_mode: int) -> str:
+        name = real(autopilot, mav_type, base_mode, custom_mode)
+        return "AUTO" if name == "LOITER" else name
+
+    monkeypatch.setattr(vehicle, "decode_mode", changed)
+    code, out = run(path, capsys)
+    assert code == 1, out
+    assert "first difference: seq 1 HeartbeatSeen(autopilot='px4', mode='LOITER'" in line(out)
+    assert "reads as px4 'AUTO' disarmed, recorded px4 'LOITER' disarmed" in line(out)

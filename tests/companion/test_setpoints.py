@@ -93,6 +93,14 @@ def test_sampler_agrees_with_trajectory_jet_and_is_at_rest_past_the_end() -> Non
             assert not three[1:].any()  # exactly at rest past the end
         else:
             assert np.all(np.abs(three[1:] - got[1:3]) <= 1e-12 * (1.0 + scale[1:3, None]))
+    # many times at once (the aim's low-passed acceleration), every order, across segments
+    for order in range(5):
+        ref = traj.evaluate(np.clip(ts, traj.t0, traj.t_end), order)
+        got = s.many(ts, order)
+        assert got.shape == ref.shape
+        assert np.all(np.abs(got - ref) <= 1e-12 * (1.0 + scale[order])), order
+        inner = ts[(ts > traj.times[1]) & (ts < traj.times[2])]  # within one segment: the one-product path
+        assert np.all(np.abs(s.many(inner, order) - traj.evaluate(inner, order)) <= 1e-12 * (1.0 + scale[order]))
     yaw = YawPolicy("hold", 0.0, 0.3)
     sp = sample(traj, 3.0, yaw)
     assert np.array_equal(sp.position, s.jet3(3.0)[0]) and np.array_equal(sp.acceleration, s.jet3(3.0)[2])

@@ -23,7 +23,8 @@ from companion.wire.messages import read
 from sitl_mock import MockAutopilot, MockConfig
 from sitl_mock.vehicle import RESPONSES
 
-MISSION = (b'{"id": "curve", "waypoints": [[4, 0, -1.5], [4, 4, -1.5], [0, 4, -1.5], [0, 0, -1.5]],'
+# From the hover the takeoff leaves (no transit leg to a first waypoint elsewhere: ~9 s of CI each)
+MISSION = (b'{"id": "curve", "waypoints": [[0, 0, -1.5], [4, 0, -1.5], [4, 4, -1.5], [0, 4, -1.5]],'
            b' "durations": [2.5, 2.5, 2.5]}')
 
 

@@ -155,6 +155,10 @@ def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
     assert f"transitions: {handled} of {handled} reproduced" in out.splitlines()
     assert (f"autopilot steps: {stepped} of {stepped} reproduced ({len(made)} events, each a recorded "
             "transition)") in out.splitlines()
+    # each heartbeat's mode and armed state read again from its fields as the mock sent them
+    beats = kinds["HeartbeatSeen"]
+    assert (f"heartbeats: {beats} of {beats} read again alike (mode and armed from each one's fields as "
+            "received)") in out.splitlines()
     assert f"tracking steps: {tracked} of {tracked} reproduced (0 brakes)" in out.splitlines()
     plans = [ln for ln in out.splitlines() if ln.startswith("plan ")]
     assert len(plans) >= 2 and all(": identical" in ln for ln in plans)
