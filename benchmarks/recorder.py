@@ -31,6 +31,7 @@ import json
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -139,8 +140,6 @@ def watch_cost(calls: int, record: bool) -> dict[str, float]:
     ground it learnt, no landed state: the height rule runs to its end) and a link check (heard),
     alternately, as the service's telemetry arrives; with `record`, the supervisor and the watch
     connected to a Recorder writing a file, as the service connects them."""
-    import gc
-
     from recorder_support import config
 
     from companion.autopilot import AutopilotWatch
@@ -164,25 +163,38 @@ def watch_cost(calls: int, record: bool) -> dict[str, float]:
             watch.connect(observe=rec.autopilot_step)
         st = link.state
         st.position, st.velocity = np.array([1.0, 2.0, -2.0]), np.array([0.5, 0.0, 0.0])
-        times = np.empty(calls)
-        gc.collect()
-        gc.disable()
-        try:
-            for k in range(calls):
-                now = time.monotonic()
-                st.last_heartbeat = st.last_message = now
-                t0 = time.perf_counter()
-                if k % 2:
-                    watch.check_link()
-                else:
-                    watch.on_position(now)
-                times[k] = time.perf_counter() - t0
-                if k % 500 == 0:
-                    time.sleep(0.002)  # the writer thread takes what was queued, as between loop steps
-        finally:
-            gc.enable()
-            if rec is not None:
-                rec.close()
+
+        def one(k: int) -> float:
+            now = time.monotonic()
+            st.last_heartbeat = st.last_message = now
+            t0 = time.perf_counter()
+            if k % 2:
+                watch.check_link()
+            else:
+                watch.on_position(now)
+            return time.perf_counter() - t0
+
+        return _timed(calls, one, rec)
+
+
+def _timed(calls: int, one: Callable[[int], float], rec: Any = None) -> dict[str, float]:
+    """`one(k)` (which returns the seconds it timed) for k < `calls`, automatic garbage collection
+    off (the service paces it), 2 ms off every 500 calls: the writer thread takes what was
+    queued, as between loop steps; then `rec` (a Recorder) closed."""
+    import gc
+
+    times = np.empty(calls)
+    gc.collect()
+    gc.disable()
+    try:
+        for k in range(calls):
+            times[k] = one(k)
+            if k % 500 == 0:
+                time.sleep(0.002)
+    finally:
+        gc.enable()
+        if rec is not None:
+            rec.close()
     us = times * 1e6
     return {"median_us": float(np.median(us)), "p99_us": float(np.percentile(us, 99)), "max_us": float(us.max())}
 
@@ -191,8 +203,6 @@ def tracking_cost(calls: int, record: bool) -> dict[str, float]:
     """Tracking.check_tracking calls back to back while a plan of ours is flown (the error
     scripted, under the limit: the rules run to their end, the window full; no lag estimate),
     with `record` the rules' observer a Recorder writing a file, as the service connects it."""
-    import gc
-
     from recorder_support import BrakingNavigator, ScriptedControl, TrackingLink, config
 
     from companion.flight import FlightState, State
@@ -213,24 +223,15 @@ def tracking_cost(calls: int, record: bool) -> dict[str, float]:
             tracking.connect(observe=rec.tracking_step)
         rng = np.random.default_rng(1)
         errors = np.abs(rng.normal(0.05, 0.03, calls))
-        times = np.empty(calls)
-        gc.collect()
-        gc.disable()
-        try:
-            for k in range(calls):
-                control.error = float(errors[k])
-                now = time.monotonic()
-                t0 = time.perf_counter()
-                tracking.check_tracking(now)
-                times[k] = time.perf_counter() - t0
-                if k % 500 == 0:
-                    time.sleep(0.002)  # the writer thread takes what was queued, as between loop steps
-        finally:
-            gc.enable()
-            if rec is not None:
-                rec.close()
-    us = times * 1e6
-    return {"median_us": float(np.median(us)), "p99_us": float(np.percentile(us, 99)), "max_us": float(us.max())}
+
+        def one(k: int) -> float:
+            control.error = float(errors[k])
+            now = time.monotonic()
+            t0 = time.perf_counter()
+            tracking.check_tracking(now)
+            return time.perf_counter() - t0
+
+        return _timed(calls, one, rec)
 
 
 def tracking_record_cost(seconds: float = 60.0) -> dict[str, float]:

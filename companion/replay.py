@@ -325,20 +325,28 @@ def check_transition(rec: dict[str, Any], previous: tuple[int, Any] | None) -> t
     for name, value in readable.items():
         if rec.get(name) != value:
             why.append(f"{label}: the record's {name} (JSON) is not its pickled value")
-    if previous is not None and fingerprint(before) != fingerprint(previous[1]):
-        where = first_difference(previous[1], before, "before", (f"seq {previous[0]} ended in", "this one starts from"))
-        why.append(f"{label}: does not start where seq {previous[0]} ended ({where}): the state was replaced "
-                   "outside Supervisor.handle, or a record was altered")
+    why += chained(label, before, previous, "the state was replaced outside Supervisor.handle")
     try:
         new, acts = transition(before, event)
     except Exception as exc:  # the recorded call returned: raising now is a difference
         why.append(f"{label}: replayed raised {type(exc).__name__}: {exc}")
         return after, why
-    if fingerprint(new) != fingerprint(after):
-        why.append(f"{label}: {first_difference(after, new, 'after')}")
-    if fingerprint(tuple(acts)) != fingerprint(tuple(actions)):
-        why.append(f"{label}: {first_difference(tuple(actions), tuple(acts), 'actions')}")
-    return after, why
+    return after, why + compared(label, ("after", after, new), ("actions", tuple(actions), tuple(acts)))
+
+
+def chained(label: str, before: Any, previous: tuple[int, Any] | None, replaced: str) -> list[str]:
+    """A record's state `before` against the state after of the record before it (`previous`:
+    its seq and that state; None: nothing to chain to); `replaced`: what it means if they differ."""
+    if previous is None or fingerprint(before) == fingerprint(previous[1]):
+        return []
+    where = first_difference(previous[1], before, "before", (f"seq {previous[0]} ended in", "this one starts from"))
+    return [f"{label}: does not start where seq {previous[0]} ended ({where}): {replaced}, or a record was altered"]
+
+
+def compared(label: str, *values: tuple[str, Any, Any]) -> list[str]:
+    """(name, recorded, replayed) compared exactly: where each pair differs first."""
+    return [f"{label}: {first_difference(was, now, name)}" for name, was, now in values
+            if fingerprint(was) != fingerprint(now)]
 
 
 def replay_transitions(recs: list[dict[str, Any]], dropped: int = 0) -> Transitions:
@@ -364,6 +372,15 @@ def recorded_config(path: str) -> Any:
 
     text = recorded_metadata(path).get("companion", {}).get("config")
     return None if text is None else config_from_dict(tomllib.loads(text))
+
+
+def required_config(path: str, to: str) -> Any:
+    """The recording's configuration (recorded_config), which it needs `to` do something: its
+    absence is the file's fault (ValueError)."""
+    cfg = recorded_config(path)
+    if cfg is None:
+        raise ValueError(f"the recording holds no configuration to {to}")
+    return cfg
 
 
 def decoded_records(path: str, since: float | None = None, until: float | None = None) -> list[dict[str, Any]]:

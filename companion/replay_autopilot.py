@@ -90,11 +90,7 @@ def check_step(rec: dict[str, Any], previous: tuple[int, Any] | None,
     for name, value in readable.items():
         if rec.get(name) != value:
             why.append(f"{label}: the record's {name} (JSON) is not its pickled value")
-    if previous is not None and record_format.fingerprint(before) != record_format.fingerprint(previous[1]):
-        where = record_format.first_difference(previous[1], before, "before",
-                                        (f"seq {previous[0]} ended in", "this one starts from"))
-        why.append(f"{label}: does not start where seq {previous[0]} ended ({where}): the watch's state was "
-                   "replaced outside its rules, or a record was altered")
+    why += replay.chained(label, before, previous, "the watch's state was replaced outside its rules")
     made = _Step(seq, int(rec["transition"]), flight, tuple(o for o in outputs if isinstance(o, WATCH_EVENTS)),
                  getattr(reading, "wire", None) is not None)
     why.extend(_read_again(label, reading))
@@ -103,11 +99,7 @@ def check_step(rec: dict[str, Any], previous: tuple[int, Any] | None,
     except Exception as exc:  # the recorded call returned: raising now is a difference
         why.append(f"{label}: replayed raised {type(exc).__name__}: {exc}")
         return after, made, why
-    if record_format.fingerprint(new) != record_format.fingerprint(after):
-        why.append(f"{label}: {record_format.first_difference(after, new, 'after')}")
-    if record_format.fingerprint(tuple(outs)) != record_format.fingerprint(tuple(outputs)):
-        why.append(f"{label}: {record_format.first_difference(tuple(outputs), tuple(outs), 'outputs')}")
-    return after, made, why
+    return after, made, why + replay.compared(label, ("after", after, new), ("outputs", tuple(outputs), tuple(outs)))
 
 
 def _read_again(label: str, reading: Any) -> list[str]:
@@ -202,9 +194,7 @@ def replay_file(path: str, transitions: list[dict[str, Any]], since: float | Non
     recs, dropped = step_records(path, since, until)
     if not recs:
         return replay_steps([], None, dropped, transitions), bool(dropped)
-    cfg = replay.recorded_config(path)
-    if cfg is None:
-        raise ValueError("the recording holds no configuration to run its autopilot steps with")
+    cfg = replay.required_config(path, "run its autopilot steps with")
     return replay_steps(recs, WatchRules.of(cfg), dropped, transitions), True
 
 

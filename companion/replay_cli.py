@@ -14,11 +14,11 @@ from companion.record_format import environment
 from companion.replay import (
     decoded_records,
     plan_records,
-    recorded_config,
     recorded_environment,
     replay_decoded,
     replay_one,
     replay_transitions,
+    required_config,
     transition_records,
 )
 
@@ -68,9 +68,7 @@ def main(argv: list[str]) -> int:
         decoded = decoded_records(args.file, args.since, args.until)
         decode_bad: list[str] = []
         if decoded:
-            cfg = recorded_config(args.file)
-            if cfg is None:
-                raise ValueError("the recording holds no configuration to read its messages with")
+            cfg = required_config(args.file, "read its messages with")
             decode_bad = [why for why in (replay_decoded(rec, cfg) for rec in decoded) if why]  # ms each
             alike = f"messages: {len(decoded) - len(decode_bad)} of {len(decoded)} read again alike"
             print(alike + (f"; first difference: {decode_bad[0]}" if decode_bad else ""), flush=True)

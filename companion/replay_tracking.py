@@ -87,15 +87,10 @@ class _Replayer:
     def check(self, rec: dict[str, Any], previous: tuple[int, Any] | None) -> tuple[Any, list[str]]:
         from companion.tracking_rules import Brake, StateSeen, TrackingState, tracking_step
 
-        fp = record_format.fingerprint
         seq = int(rec["seq"])
         before, reading, after, outputs, window = step_values(rec)
-        label, why = f"seq {seq} {reading!r}", []
-        if previous is not None and fp(before) != fp(previous[1]):
-            where = record_format.first_difference(previous[1], before, "before",
-                                                   (f"seq {previous[0]} ended in", "this one starts from"))
-            why.append(f"{label}: does not start where seq {previous[0]} ended ({where}): the rules' state was "
-                       "replaced outside them, or a record was altered")
+        label = f"seq {seq} {reading!r}"
+        why = replay.chained(label, before, previous, "the rules' state was replaced outside them")
         self.brakes.extend(_Brake(seq, int(rec["transition"]), o.reason) for o in outputs if isinstance(o, Brake))
         if window is not None:
             self.window = tuple(window)
@@ -108,7 +103,7 @@ class _Replayer:
             return after, [*why, f"{label}: not checkable: the errors before it are unknown (after a gap, until "
                                  "their window empties or the recorder writes it again)"]
         state = TrackingState(before.over, before.said, before.nearing_said, self.window)
-        if fp(StateSeen.of(state)) != fp(before):
+        if record_format.fingerprint(StateSeen.of(state)) != record_format.fingerprint(before):
             why.append(f"{label}: " + record_format.first_difference(
                 before, StateSeen.of(state), "before", ("recorded", "the records before make")))
         try:
@@ -117,11 +112,8 @@ class _Replayer:
             self.window = None
             return after, [*why, f"{label}: replayed raised {type(exc).__name__}: {exc}"]
         self.window = new.errors
-        if fp(StateSeen.of(new)) != fp(after):
-            why.append(f"{label}: {record_format.first_difference(after, StateSeen.of(new), 'after')}")
-        if fp(tuple(outs)) != fp(tuple(outputs)):
-            why.append(f"{label}: {record_format.first_difference(tuple(outputs), tuple(outs), 'outputs')}")
-        return after, why
+        return after, why + replay.compared(label, ("after", after, StateSeen.of(new)),
+                                            ("outputs", tuple(outputs), tuple(outs)))
 
 
 def _brakes_against(out: TrackingSteps, brakes: list[_Brake], first: int,
@@ -174,9 +166,7 @@ def replay_file(path: str, transitions: list[dict[str, Any]], since: float | Non
     recs, dropped = replay.numbered_records(path, TOPIC, "tracking_step")
     if not recs:
         return replay_steps([], None, dropped, transitions), bool(dropped)
-    cfg = replay.recorded_config(path)
-    if cfg is None:
-        raise ValueError("the recording holds no configuration to run its tracking steps with")
+    cfg = replay.required_config(path, "run its tracking steps with")
     inside = None if since is None and until is None else \
         {int(r["seq"]) for r in replay.numbered_records(path, TOPIC, "tracking_step", since, until)[0]}
     return replay_steps(recs, TrackingRules.of(cfg), dropped, transitions, inside), True
