@@ -116,21 +116,22 @@ class _Replayer:
                                             ("outputs", tuple(outputs), tuple(outs)))
 
 
-def _brakes_against(out: TrackingSteps, brakes: list[_Brake], first: int,
+def _brakes_against(out: TrackingSteps, earlier: list[_Brake], brakes: list[_Brake], first: int,
                     transitions: dict[int, tuple[Any, Any, Any]]) -> None:
-    """Each brake tied to the first unclaimed Braking transition of its reason at or after the
-    step's number; every Braking transition of a tracking reason from `first` on claimed."""
+    """Each brake (those `earlier` than the range first, not counted) tied to the first
+    unclaimed Braking transition of its reason at or after the step's number; every Braking
+    transition of a tracking reason from `first` on claimed."""
     from companion.supervisor import Braking
     from companion.tracking_rules import BRAKE_REASON
 
     braking = sorted(s for s, (_b, event, _a) in transitions.items() if isinstance(event, Braking))
     claimed: set[int] = set()
-    for brake in brakes:
+    for brake in [*earlier, *brakes]:
         found = next((s for s in braking if s >= brake.transition and s not in claimed
                       and transitions[s][1].reason == brake.reason), None)
         if found is not None:
             claimed.add(found)
-            out.tied += 1
+            out.tied += brake in brakes
     for s in braking:
         event = transitions[s][1]
         if s >= first and s not in claimed and event.reason.startswith(BRAKE_REASON):
@@ -145,15 +146,16 @@ def replay_steps(recs: list[dict[str, Any]], rules: Any, dropped: int = 0,
     window of errors."""
     run = _Replayer(rules)
     body = recs if inside is None else [r for r in recs if int(r["seq"]) in inside]
+    earlier: list[_Brake] = []  # asked for before the range: their Braking transitions may be in it
     if body and body[0] is not recs[0]:
         replay.replay_chain(TrackingSteps(), recs[:recs.index(body[0])], run.check, 0, "tracking step")
-        run.brakes.clear()
+        earlier, run.brakes = run.brakes, []
     out = TrackingSteps()
     replay.replay_chain(out, body, run.check, dropped, "tracking step")
     out.brakes = len(run.brakes)
     if transitions and body:
         out.against_transitions = True
-        _brakes_against(out, run.brakes, int(body[0]["transition"]), replay.transitions_by_seq(transitions))
+        _brakes_against(out, earlier, run.brakes, int(body[0]["transition"]), replay.transitions_by_seq(transitions))
     return out
 
 

@@ -102,10 +102,10 @@ async def fly(r: Rig, meddle: Callable[[Rig], Any] | None = None, up: bool = Tru
 
 
 def recorded(tmp_path: Path, queue: int = 4096, early: int = 0,
-             meddle: Callable[[Rig], Any] | None = None) -> tuple[Path, Recorder, Rig]:
+             meddle: Callable[[Rig], Any] | None = None, **rec: Any) -> tuple[Path, Recorder, Rig]:
     """`early`: the vehicle up and as many samples before the writer thread starts (they wait in
-    the queue, or are dropped)."""
-    cfg = config(tmp_path, queue=queue)
+    the queue, or are dropped); `rec`: more of [recording]."""
+    cfg = config(tmp_path, queue=queue, **rec)
     rec = Recorder(replace(cfg, planner=replace(cfg.planner, tracking_allowance=ALLOWANCE)))
     rig = Rig(rec)
 
@@ -119,7 +119,7 @@ def recorded(tmp_path: Path, queue: int = 4096, early: int = 0,
 
     asyncio.run(go())
     rec.close()
-    (path,) = tmp_path.glob("*.mcap")
+    path = min(tmp_path.glob("*.mcap"), key=lambda p: len(p.name))  # the first part: no -001
     return path, rec, rig
 
 
@@ -245,6 +245,23 @@ def test_steps_the_recorder_dropped_are_counted_and_replay_goes_on_from_the_next
     n = len(recs) + 6
     assert f"tracking steps: {n - 6} of {n} reproduced; first difference: seq 3 to 8 missing (6 records" in line(out)
     assert "also: the recorder dropped 6 tracking step records in this run" in out
+
+
+def test_each_file_of_a_rotated_recording_replays_from_its_first_step(tmp_path: Path,
+                                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    """Files of 6 kB: the flight's steps in several, each after the first starting mid-flight
+    with the window of errors in full (no gap in the numbers: the recorder's writer knows)."""
+    _path, _rec, _rig = recorded(tmp_path, max_bytes=6_000, keep_bytes=10**9)
+    parts = sorted(tmp_path.glob("*.mcap"), key=lambda p: (len(p.name), p.name))
+    assert len(parts) >= 3
+    firsts = [steps(p)[0] for p in parts if steps(p)]
+    assert firsts[0]["window"] is None and any(f["window"] for f in firsts[1:])
+    seqs = [r["seq"] for p in parts for r in steps(p)]
+    assert seqs == list(range(1, len(seqs) + 1))
+    for part in parts:
+        n = len(steps(part))
+        code, out = run(part, capsys)
+        assert (code, line(out).split(" (")[0]) == (0, f"tracking steps: {n} of {n} reproduced"), out
 
 
 def test_a_file_without_tracking_steps_says_so(tmp_path: Path, flown: Path, capsys: pytest.CaptureFixture[str]) -> None:
