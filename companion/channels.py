@@ -130,6 +130,27 @@ SWAP = _obj("bezier.ControlSwap", "One decision of the swap's rule (companion/co
     "old": _TRAJ, "new": _TRAJ,
     "pickle": {"type": ["string", "null"], "description": "pickle (base64) of (the flown trajectory, the new one)"},
 }, ("seq", "t", "what", "now", "lead", "rate_hz", "t_split", "refusal", "pickle"))
+TRACKING_STATE = {"type": "object", "description": "companion.tracking_rules.TrackingState as recorded (StateSeen): "
+                  "the samples in a row over the limit, whether the tracking event and the margin warning were "
+                  "made, the window of recent errors by its length and a CRC-32 (the errors are the readings of "
+                  "the records before)", "properties": {
+                      "over": {"type": "integer"}, "said": {"type": "boolean"}, "nearing_said": {"type": "boolean"},
+                      "errors": {"type": "integer"}, "digest": {"type": "string"}},
+                  "required": ["over", "said", "nearing_said", "errors", "digest"]}
+TRACKING_STEP = _obj("bezier.TrackingStep", "One call of the tracking error's rules (companion/tracking_rules.py "
+                     "tracking_step) that changed their state or said something: a position sample's error and the "
+                     "moment's facts, the state before and after, the outputs (events, a brake); every value exact, as "
+                     "JSON holds it (no pickle)", {
+    "seq": {"type": "integer", "description": "1, 2, ... per run, numbered as the rules ran: a gap is a record "
+            "the recorder dropped"},
+    "t": T_MONO,
+    "transition": {"type": "integer", "description": "the /supervisor/transition seq next after the call: a brake's "
+                   "Braking transition comes at or after it"},
+    "reading": TAGGED, "before": TRACKING_STATE, "after": TRACKING_STATE,
+    "outputs": {"type": "array", "items": TAGGED},
+    "window": {"type": ["array", "null"], "items": NUM, "description": "the errors before, in full, in the first "
+               "record of a file or after a gap (null: the readings before make them)"},
+}, ("seq", "t", "transition", "reading", "before", "after", "outputs", "window"))
 
 DECODED = _obj("bezier.DecodedMessage", "An inbound message as the companion read it (companion.wire.messages.read): "
                "the typed message (local_ned) or the refusal, and what read was given besides the bytes", {
@@ -229,6 +250,8 @@ def spec(topic: str) -> Spec:
         return _json(STEP)
     if topic == "/control/swap":
         return _json(SWAP)
+    if topic == "/tracking/step":
+        return _json(TRACKING_STEP)
     if topic == "/inbound/decoded":
         return _json(DECODED)
     if topic == "/recorder/stats":
@@ -344,6 +367,11 @@ def swap_fields(what: str, now: float, lead: float, rate_hz: float, t_split: flo
     """The readable part of a /control/swap record (replay checks it against the pickle)."""
     return {"what": what, "now": now, "lead": lead, "rate_hz": rate_hz, "t_split": t_split, "refusal": refusal,
             "old": traj_span(old), "new": traj_span(new)}
+def tracking_fields(before: Any, reading: Any, after: Any, outputs: tuple[Any, ...],
+                    window: tuple[float, ...] | None) -> dict[str, Any]:
+    """The readable part of a /tracking/step record (replay checks it against the pickle)."""
+    return {"reading": _tagged(reading), "before": _plain(before), "after": _plain(after),
+            "outputs": [_tagged(o) for o in outputs], "window": None if window is None else list(window)}
 
 
 ORDERS = ("velocity", "acceleration", "jerk", "snap")

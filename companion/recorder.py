@@ -10,8 +10,9 @@ server). A record that finds its queue full is dropped and counted: in status
 (`recording.dropped`), in the `/recorder/stats` channel every second and in the file's
 `recorder` metadata record. Setpoints (every MAVLink message sent) have a queue of their own,
 so a burst of other traffic never drops one; so have the decisions replay checks as unbroken
-chains: the supervisor's transitions (every `Supervisor.handle` call) and the autopilot watch's
-steps (every call of companion.autopilot_rules.watch_step).
+chains: the supervisor's transitions (every `Supervisor.handle` call), the autopilot watch's
+steps (every call of companion.autopilot_rules.watch_step) and the tracking error's (every call
+of companion.tracking_rules.tracking_step that changed or said something).
 
 Channels, schemas and frames: companion/channels.py and docs/recording.md.
 """
@@ -169,6 +170,10 @@ class Recorder(Tap):
         self._decoded_seq = itertools.count(1)
         self._step_seq = itertools.count(1)
         self._swap_seq = itertools.count(1)
+        self._tracking_seq = itertools.count(1)
+        # the writer's: the last /tracking/step seq written and the file part it went to; a
+        # record after a gap, or the first of a part, carries its window of errors in full
+        self._tracking_written: tuple[int, int] = (0, 0)
         self._transitions = 0  # transitions numbered so far (on the loop, as both taps are called)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -274,6 +279,11 @@ class Recorder(Tap):
              refusal: str) -> None:
         self._put(self._decisions, ("swap", next(self._swap_seq), what, now, lead, rate_hz, t_split, old, new,
                                     refusal, self.clock()))
+    def tracking_step(self, before: Any, reading: Any, after: Any, outputs: tuple[Any, ...], t: float) -> None:
+        # numbered as autopilot steps are, with the next transition's number: the brake it asks
+        # for is a transition after it, which replay finds
+        self._put(self._decisions, ("tracking_step", next(self._tracking_seq), self._transitions + 1, before, reading,
+                                    after, outputs, t))
 
     def flown(self, trajectory: Any, t_base: float | None, t: float) -> None:
         self._put(self._rest, ("flown", trajectory, t_base, t))
@@ -389,6 +399,12 @@ class Recorder(Tap):
         elif kind == "swap":
             _, seq, what, now, lead, rate_hz, t_split, old, new, refusal, t = item
             self._emit("/control/swap", swap_record(seq, t, what, now, lead, rate_hz, t_split, old, new, refusal), t)
+        elif kind == "tracking_step":
+            _, seq, first, before, reading, after, outputs, t = item
+            part = self.mcap.part if self.mcap is not None else 0
+            keyframe = self._tracking_written != (seq - 1, part)
+            self._tracking_written = (seq, part)
+            self._emit("/tracking/step", tracking_record(seq, first, t, before, reading, after, outputs, keyframe), t)
         elif kind == "flown":
             _, traj, t_base, t = item
             for topic, data in self._viz.on_flown(traj, t_base, t):
@@ -446,6 +462,21 @@ def step_record(seq: int, transition: int, before: Any, flight: Any, reading: An
     blob = _pickled((before, flight, reading, now, after, outputs))
     return b"".join([ch.dumps({"seq": seq, "transition": transition, **body})[:-1],
                      b',"pickle":', b"null" if blob is None else b'"' + blob + b'"', b"}"])
+
+
+def tracking_record(seq: int, transition: int, t: float, before: Any, reading: Any, after: Any,
+                    outputs: tuple[Any, ...], keyframe: bool) -> bytes:
+    """One call of the tracking error's rules (companion.channels.tracking_fields), which
+    `python -m companion replay` runs through `tracking_step` again. JSON only, no pickle: every
+    value is a number, a flag or a string, which JSON holds exactly (a float by its shortest
+    repr), at half the bytes. The states are recorded as `StateSeen` (the window of errors by its
+    length and digest: the errors are the readings of the records before); a `keyframe` (the
+    first record of a file, or after a gap) holds the window before in full, for replay to start from."""
+    from companion.tracking_rules import StateSeen
+
+    window = before.errors if keyframe and before.errors else None
+    body = ch.tracking_fields(StateSeen.of(before), reading, StateSeen.of(after), outputs, window)
+    return ch.dumps({"seq": seq, "transition": transition, "t": t, **body})
 
 
 def decoded_record(seq: int, key: str, payload: Any, context: dict[str, Any], result: Any, t: float) -> bytes:

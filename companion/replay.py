@@ -11,6 +11,10 @@ Autopilot steps: each `/autopilot/step` record holds one call of the autopilot w
 (companion/autopilot_rules.py: a MAVLink reading or a link check to supervisor events), run
 again and matched to the transitions its events caused (companion/replay_autopilot.py).
 
+Tracking steps: each `/tracking/step` record holds one call of the tracking error's rules
+(companion/tracking_rules.py: when it brakes and when it warns), run again and each brake it
+asked for found among the transitions (companion/replay_tracking.py).
+
 Inbound messages: each `/inbound/decoded` record is read again with the recorded configuration.
 
 Plans: each `/planner/plan` record holds the planner call the service made (the function and
@@ -22,15 +26,17 @@ bit, every number by its exact binary value, every string, leaving out only the 
 dictionaries (timings).
 
 What it does not cover: how inbound messages and commands became supervisor events and
-planner calls, the autopilot watch's telemetry advice, and the navigator's, the brakes' and the
-command sequences' own decisions (which plan to swap in and when, when to brake) are not re-run;
-they are in the file (inbound messages, events, what was flown) to be read.
+planner calls, the autopilot watch's telemetry advice, and the navigator's, the brakes' (but the
+tracking error's) and the command sequences' own decisions (which plan to swap in and when, when
+to brake for an obstacle) are not re-run; they are in the file (inbound messages, events, what
+was flown) to be read.
 
 A recording comes from a companion you trust: the calls are pickled. Plan records are read with
 an allow-list (planner_core and companion data classes and planner functions, numpy arrays,
 plain containers), transition and autopilot step records with narrower ones (the flight state,
-its enum, the supervisor's events and actions; the watch's state, readings and outputs), so a file cannot name any other function to call; still, do
-not replay files from unknown sources.
+its enum, the supervisor's events and actions; the watch's state, readings and outputs); tracking
+step records are JSON, typed again into the rules' own classes by name. So a file cannot name any
+other function to call; still, do not replay files from unknown sources.
 """
 
 from __future__ import annotations
@@ -41,10 +47,9 @@ import dataclasses
 import enum
 import functools
 import io
-import itertools
 import pickle
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from typing import Any
 
 from companion.record_format import (
@@ -68,10 +73,6 @@ _PLAIN = {
     ("builtins", "frozenset"), ("builtins", "slice"), ("builtins", "complex"),
     ("functools", "partial"), ("collections", "OrderedDict"),
 }
-
-
-
-
 
 
 class _SafeUnpickler(pickle.Unpickler):
@@ -126,22 +127,6 @@ class _Narrow(pickle.Unpickler):
 
 
 NUMPY_CLASSES = frozenset(_NUMPY)  # what a pickled numpy array names
-
-
-def numbering_gaps(seqs: list[int], noun: str) -> tuple[list[str], int]:
-    """Records numbered 1, 2, ... by the recorder, in order: (what is wrong with the numbering,
-    how many numbers are missing). A gap is a record the recorder dropped, or one removed."""
-    why: list[str] = []
-    missing_all = 0
-    for last, seq in itertools.pairwise(seqs):
-        if seq == last:
-            why.append(f"{noun} {seq} recorded twice")
-        elif seq != last + 1:
-            missing = seq - last - 1
-            missing_all += missing
-            where = f"{noun} {last + 1}" if missing == 1 else f"{noun} {last + 1} to {seq - 1}"
-            why.append(f"{where} missing ({missing} record{'s' * (missing > 1)}: dropped by the recorder, or removed)")
-    return why, missing_all
 
 
 def loads_narrow(text: str, allowed: frozenset[tuple[str, str]], what: str) -> Any:
@@ -214,24 +199,30 @@ def plan_records(path: str, since: float | None = None, until: float | None = No
             yield rec
 
 
-def transition_records(path: str, since: float | None = None,
-                       until: float | None = None) -> tuple[list[dict[str, Any]], int]:
-    """The /supervisor/transition records of a file (in `seq` order; `since`/`until` as for
-    plans), and how many transition records the recorder said it dropped: its `recorder`
+def numbered_records(path: str, topic: str, kind: str, since: float | None = None,
+                     until: float | None = None) -> tuple[list[dict[str, Any]], int]:
+    """The records on `topic` (each numbered by `seq`) of a file, in `seq` order (`since`/`until`
+    as for plans), and how many records of `kind` the recorder said it dropped: its `recorder`
     metadata, or the last /recorder/stats of a file cut short; counted over the whole run."""
     import json
 
     found: list[dict[str, Any]] = []
     dropped = 0
-    for topic, rel, rec in records(path, ("/supervisor/transition", "/recorder/stats")):
-        if topic == "/recorder/stats":
-            dropped = max(dropped, int(rec.get("dropped", {}).get("transition", 0)))
+    for name, rel, rec in records(path, (topic, "/recorder/stats")):
+        if name == "/recorder/stats":
+            dropped = max(dropped, int(rec.get("dropped", {}).get(kind, 0)))
         elif _within(rel, since, until):
             found.append(rec)
     meta = recorded_metadata(path).get("recorder", {})
     if "dropped" in meta:
-        dropped = max(dropped, int(json.loads(meta["dropped"]).get("transition", 0)))
+        dropped = max(dropped, int(json.loads(meta["dropped"]).get(kind, 0)))
     return sorted(found, key=lambda r: int(r["seq"])), dropped
+
+
+def transition_records(path: str, since: float | None = None,
+                       until: float | None = None) -> tuple[list[dict[str, Any]], int]:
+    """The /supervisor/transition records of a file and the transition records dropped (numbered_records)."""
+    return numbered_records(path, "/supervisor/transition", "transition", since, until)
 
 
 def replay_one(rec: dict[str, Any]) -> Replayed:
@@ -270,13 +261,48 @@ def replay_one(rec: dict[str, Any]) -> Replayed:
 
 
 @dataclasses.dataclass
-class Transitions:
-    """What replaying a file's transitions found: `reproduced` of `total` (the records, and the
-    numbers missing between them), and every difference in `seq` order."""
+class Chain:
+    """What replaying a chain of numbered records found: `reproduced` of `total` (the records,
+    and the numbers missing between them), and every difference in `seq` order."""
 
     total: int = 0
     reproduced: int = 0
     differences: list[str] = dataclasses.field(default_factory=list)
+
+
+Transitions = Chain
+Check = Callable[[dict[str, Any], "tuple[int, Any] | None"], "tuple[Any, list[str]]"]
+
+
+def replay_chain(out: Chain, recs: list[dict[str, Any]], check: Check, dropped: int, what: str) -> Chain:
+    """Every record (in `seq` order) through `check(record, previous)` -> (its recorded state
+    after, or None if unreadable; what differs), `previous` the seq and state after of the
+    record just before it (None: nothing to chain to). A gap in the numbers, and records of
+    `what` the recorder counted as dropped, are differences: the chain cannot be checked across them."""
+    out.total += len(recs)
+    previous: tuple[int, Any] | None = None
+    last: int | None = None
+    for rec in recs:
+        seq = int(rec["seq"])
+        if last is not None and seq != last + 1:
+            if seq == last:
+                out.differences.append(f"seq {seq} recorded twice")
+            else:
+                missing = seq - last - 1
+                out.total += missing
+                where = f"seq {last + 1}" if missing == 1 else f"seq {last + 1} to {seq - 1}"
+                out.differences.append(f"{where} missing ({missing} record{'s' * (missing > 1)}: dropped by the "
+                                       "recorder, or removed): the chain is not checkable there")
+            previous = None
+        after, why = check(rec, previous)
+        out.differences.extend(why)
+        out.reproduced += not why
+        previous = None if after is None else (seq, after)
+        last = seq
+    if dropped:
+        out.differences.append(f"the recorder dropped {dropped} {what} record{'s' * (dropped > 1)} in this run "
+                               "(its queue was full): the chain is not checkable across them")
+    return out
 
 
 def _label(seq: int, event: Any) -> str:
@@ -302,49 +328,42 @@ def check_transition(rec: dict[str, Any], previous: tuple[int, Any] | None) -> t
     for name, value in readable.items():
         if rec.get(name) != value:
             why.append(f"{label}: the record's {name} (JSON) is not its pickled value")
-    if previous is not None and fingerprint(before) != fingerprint(previous[1]):
-        where = first_difference(previous[1], before, "before", (f"seq {previous[0]} ended in", "this one starts from"))
-        why.append(f"{label}: does not start where seq {previous[0]} ended ({where}): the state was replaced "
-                   "outside Supervisor.handle, or a record was altered")
+    why += chained(label, before, previous, "the state was replaced outside Supervisor.handle")
     try:
         new, acts = transition(before, event)
     except Exception as exc:  # the recorded call returned: raising now is a difference
         why.append(f"{label}: replayed raised {type(exc).__name__}: {exc}")
         return after, why
-    if fingerprint(new) != fingerprint(after):
-        why.append(f"{label}: {first_difference(after, new, 'after')}")
-    if fingerprint(tuple(acts)) != fingerprint(tuple(actions)):
-        why.append(f"{label}: {first_difference(tuple(actions), tuple(acts), 'actions')}")
-    return after, why
+    return after, why + compared(label, ("after", after, new), ("actions", tuple(actions), tuple(acts)))
+
+
+def chained(label: str, before: Any, previous: tuple[int, Any] | None, replaced: str) -> list[str]:
+    """A record's state `before` against the state after of the record before it (`previous`:
+    its seq and that state; None: nothing to chain to); `replaced`: what it means if they differ."""
+    if previous is None or fingerprint(before) == fingerprint(previous[1]):
+        return []
+    where = first_difference(previous[1], before, "before", (f"seq {previous[0]} ended in", "this one starts from"))
+    return [f"{label}: does not start where seq {previous[0]} ended ({where}): {replaced}, or a record was altered"]
+
+
+def compared(label: str, *values: tuple[str, Any, Any]) -> list[str]:
+    """(name, recorded, replayed) compared exactly: where each pair differs first."""
+    return [f"{label}: {first_difference(was, now, name)}" for name, was, now in values
+            if fingerprint(was) != fingerprint(now)]
 
 
 def replay_transitions(recs: list[dict[str, Any]], dropped: int = 0) -> Transitions:
-    """Every record (in `seq` order) run again and chained to the one before it; a gap in the
-    numbers, and records the recorder counted as dropped, are differences: the chain cannot be
-    checked across them."""
-    out = Transitions(total=len(recs))
-    previous: tuple[int, Any] | None = None
-    last: int | None = None
+    """Every record (in `seq` order) run again and chained to the one before it (replay_chain)."""
+    return replay_chain(Chain(), recs, check_transition, dropped, "transition")
+
+
+def transitions_by_seq(recs: list[dict[str, Any]]) -> dict[int, tuple[Any, Any, Any]]:
+    """(before, event, after) of each readable transition record, by seq."""
+    out: dict[int, tuple[Any, Any, Any]] = {}
     for rec in recs:
-        seq = int(rec["seq"])
-        if last is not None and seq != last + 1:
-            if seq == last:
-                out.differences.append(f"seq {seq} recorded twice")
-            else:
-                missing = seq - last - 1
-                out.total += missing
-                where = f"seq {last + 1}" if missing == 1 else f"seq {last + 1} to {seq - 1}"
-                out.differences.append(f"{where} missing ({missing} record{'s' * (missing > 1)}: dropped by the "
-                                       "recorder, or removed): the chain is not checkable there")
-            previous = None
-        after, why = check_transition(rec, previous)
-        out.differences.extend(why)
-        out.reproduced += not why
-        previous = None if after is None else (seq, after)
-        last = seq
-    if dropped:
-        out.differences.append(f"the recorder dropped {dropped} transition record{'s' * (dropped > 1)} in this run "
-                               "(its queue was full): the chain is not checkable across them")
+        if rec.get("pickle") is not None:
+            before, event, after, _actions = loads_transition(rec["pickle"])
+            out[int(rec["seq"])] = (before, event, after)
     return out
 
 
@@ -356,6 +375,15 @@ def recorded_config(path: str) -> Any:
 
     text = recorded_metadata(path).get("companion", {}).get("config")
     return None if text is None else config_from_dict(tomllib.loads(text))
+
+
+def required_config(path: str, to: str) -> Any:
+    """The recording's configuration (recorded_config), which it needs `to` do something: its
+    absence is the file's fault (ValueError)."""
+    cfg = recorded_config(path)
+    if cfg is None:
+        raise ValueError(f"the recording holds no configuration to {to}")
+    return cfg
 
 
 def decoded_records(path: str, since: float | None = None, until: float | None = None) -> list[dict[str, Any]]:

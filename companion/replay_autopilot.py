@@ -50,34 +50,19 @@ def loads_step(text: str) -> Any:
 
 def step_records(path: str, since: float | None = None,
                  until: float | None = None) -> tuple[list[dict[str, Any]], int]:
-    """The /autopilot/step records of a file in `seq` order (`since`/`until`: seconds from the
-    recording's start), and how many the recorder said it dropped in the whole run."""
-    found: list[dict[str, Any]] = []
-    dropped = 0
-    for topic, rel, rec in replay.records(path, (TOPIC, "/recorder/stats")):
-        if topic == "/recorder/stats":
-            dropped = max(dropped, int(rec.get("dropped", {}).get("autopilot_step", 0)))
-        elif (since is None or rel >= since) and (until is None or rel <= until):
-            found.append(rec)
-    meta = replay.recorded_metadata(path).get("recorder", {})
-    if "dropped" in meta:
-        dropped = max(dropped, int(json.loads(meta["dropped"]).get("autopilot_step", 0)))
-    return sorted(found, key=lambda r: int(r["seq"])), dropped
+    """The /autopilot/step records of a file and the step records dropped (replay.numbered_records)."""
+    return replay.numbered_records(path, TOPIC, "autopilot_step", since, until)
 
 
 @dataclasses.dataclass
-class Steps:
-    """What replaying a file's autopilot steps found: `reproduced` of `total` (the records and
-    the numbers missing between them), the supervisor events they made, whether those were
-    checked against the transitions, and every difference."""
+class Steps(replay.Chain):
+    """What replaying a file's autopilot steps found (replay.Chain), and the supervisor events
+    they made and whether those were checked against the transitions."""
 
-    total: int = 0
-    reproduced: int = 0
     events: int = 0
     heartbeats: int = 0  # heartbeat readings recorded with the fields they were read from
     heartbeats_alike: int = 0  # ... that read the same again (companion.wire.vehicle.read_heartbeat)
     against_transitions: bool = False
-    differences: list[str] = dataclasses.field(default_factory=list)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -105,11 +90,7 @@ def check_step(rec: dict[str, Any], previous: tuple[int, Any] | None,
     for name, value in readable.items():
         if rec.get(name) != value:
             why.append(f"{label}: the record's {name} (JSON) is not its pickled value")
-    if previous is not None and record_format.fingerprint(before) != record_format.fingerprint(previous[1]):
-        where = record_format.first_difference(previous[1], before, "before",
-                                        (f"seq {previous[0]} ended in", "this one starts from"))
-        why.append(f"{label}: does not start where seq {previous[0]} ended ({where}): the watch's state was "
-                   "replaced outside its rules, or a record was altered")
+    why += replay.chained(label, before, previous, "the watch's state was replaced outside its rules")
     made = _Step(seq, int(rec["transition"]), flight, tuple(o for o in outputs if isinstance(o, WATCH_EVENTS)),
                  getattr(reading, "wire", None) is not None)
     why.extend(_read_again(label, reading))
@@ -118,11 +99,7 @@ def check_step(rec: dict[str, Any], previous: tuple[int, Any] | None,
     except Exception as exc:  # the recorded call returned: raising now is a difference
         why.append(f"{label}: replayed raised {type(exc).__name__}: {exc}")
         return after, made, why
-    if record_format.fingerprint(new) != record_format.fingerprint(after):
-        why.append(f"{label}: {record_format.first_difference(after, new, 'after')}")
-    if record_format.fingerprint(tuple(outs)) != record_format.fingerprint(tuple(outputs)):
-        why.append(f"{label}: {record_format.first_difference(tuple(outputs), tuple(outs), 'outputs')}")
-    return after, made, why
+    return after, made, why + replay.compared(label, ("after", after, new), ("outputs", tuple(outputs), tuple(outs)))
 
 
 def _read_again(label: str, reading: Any) -> list[str]:
@@ -140,16 +117,6 @@ def _read_again(label: str, reading: Any) -> list[str]:
     return [f"{label}: the heartbeat as received (MAV_AUTOPILOT {a}, MAV_TYPE {t}, base_mode {b}, custom_mode {c}) "
             f"reads as {again[0]} {again[1]!r} {'armed' if again[2] else 'disarmed'}, recorded {reading.autopilot} "
             f"{reading.mode!r} {'armed' if reading.armed else 'disarmed'}"]
-
-
-def transitions_by_seq(recs: list[dict[str, Any]]) -> dict[int, tuple[Any, Any, Any]]:
-    """(before, event, after) of each readable transition record, by seq."""
-    out: dict[int, tuple[Any, Any, Any]] = {}
-    for rec in recs:
-        if rec.get("pickle") is not None:
-            before, event, after, _actions = replay.loads_transition(rec["pickle"])
-            out[int(rec["seq"])] = (before, event, after)
-    return out
 
 
 def _end_to_end(made: list[_Step], transitions: dict[int, tuple[Any, Any, Any]]) -> list[str]:
@@ -198,39 +165,23 @@ def replay_steps(recs: list[dict[str, Any]], rules: Any, dropped: int = 0,
     """Every step record (in `seq` order) run again with `rules` (the recording's configuration's:
     companion.autopilot_rules.WatchRules) and chained to the one before it; with the file's
     transition records, the end-to-end check."""
-    out = Steps(total=len(recs))
-    previous: tuple[int, Any] | None = None
-    last: int | None = None
     made: list[_Step] = []
-    for rec in recs:
-        seq = int(rec["seq"])
-        if last is not None and seq != last + 1:
-            if seq == last:
-                out.differences.append(f"seq {seq} recorded twice")
-            else:
-                missing = seq - last - 1
-                out.total += missing
-                where = f"seq {last + 1}" if missing == 1 else f"seq {last + 1} to {seq - 1}"
-                out.differences.append(f"{where} missing ({missing} record{'s' * (missing > 1)}: dropped by the "
-                                       "recorder, or removed): the chain is not checkable there")
-            previous = None
+    out = Steps()
+
+    def check(rec: dict[str, Any], previous: tuple[int, Any] | None) -> tuple[Any, list[str]]:
         after, step, why = check_step(rec, previous, rules)
         if step is not None and step.wire:
             out.heartbeats += 1
             out.heartbeats_alike += not any("the heartbeat as received" in w for w in why)
-        out.differences.extend(why)
-        out.reproduced += not why
-        previous = None if after is None else (seq, after)
-        last = seq
         if step is not None:
             made.append(step)
-            out.events += len(step.events)
-    if dropped:
-        out.differences.append(f"the recorder dropped {dropped} autopilot step record{'s' * (dropped > 1)} in this "
-                               "run (its queue was full): the chain is not checkable across them")
+        return after, why
+
+    replay.replay_chain(out, recs, check, dropped, "autopilot step")
+    out.events = sum(len(step.events) for step in made)
     if transitions:
         out.against_transitions = True
-        out.differences.extend(_end_to_end(made, transitions_by_seq(transitions)))
+        out.differences.extend(_end_to_end(made, replay.transitions_by_seq(transitions)))
     return out
 
 
@@ -243,9 +194,7 @@ def replay_file(path: str, transitions: list[dict[str, Any]], since: float | Non
     recs, dropped = step_records(path, since, until)
     if not recs:
         return replay_steps([], None, dropped, transitions), bool(dropped)
-    cfg = replay.recorded_config(path)
-    if cfg is None:
-        raise ValueError("the recording holds no configuration to run its autopilot steps with")
+    cfg = replay.required_config(path, "run its autopilot steps with")
     return replay_steps(recs, WatchRules.of(cfg), dropped, transitions), True
 
 

@@ -1,7 +1,7 @@
 """`python -m companion replay FILE.mcap`: run every recorded transition, autopilot step, inbound
-read and plan again and say whether each reproduces (exit 0), where the first differs (exit 1),
-or why the file cannot be replayed (exit 2). What each check covers: companion/replay.py and
-companion/replay_autopilot.py.
+read, tracking step and plan again and say whether each reproduces (exit 0), where the first
+differs (exit 1), or why the file cannot be replayed (exit 2). What each check covers:
+companion/replay.py, companion/replay_autopilot.py and companion/replay_tracking.py.
 """
 
 from __future__ import annotations
@@ -9,16 +9,16 @@ from __future__ import annotations
 import pickle
 import sys
 
-from companion import replay_autopilot, replay_swaps
+from companion import replay_autopilot, replay_swaps, replay_tracking
 from companion.record_format import environment
 from companion.replay import (
     decoded_records,
     plan_records,
-    recorded_config,
     recorded_environment,
     replay_decoded,
     replay_one,
     replay_transitions,
+    required_config,
     transition_records,
 )
 
@@ -61,6 +61,10 @@ def main(argv: list[str]) -> int:
         heard = replay_autopilot.said_heartbeats(stepped)
         if heard is not None:
             print(heard, flush=True)
+        tracked, any_tracking = replay_tracking.replay_file(args.file, recs, args.since, args.until)
+        print(replay_tracking.said(tracked, any_tracking), flush=True)
+        for more in tracked.differences[1:] if args.keep_going else ():
+            print(f"  also: {more}")
         swaps, any_swaps = replay_swaps.replay_file(args.file, args.since, args.until)
         print(replay_swaps.said(swaps, any_swaps), flush=True)
         for more in swaps.differences[1:] if args.keep_going else ():
@@ -68,9 +72,7 @@ def main(argv: list[str]) -> int:
         decoded = decoded_records(args.file, args.since, args.until)
         decode_bad: list[str] = []
         if decoded:
-            cfg = recorded_config(args.file)
-            if cfg is None:
-                raise ValueError("the recording holds no configuration to read its messages with")
+            cfg = required_config(args.file, "read its messages with")
             decode_bad = [why for why in (replay_decoded(rec, cfg) for rec in decoded) if why]  # ms each
             alike = f"messages: {len(decoded) - len(decode_bad)} of {len(decoded)} read again alike"
             print(alike + (f"; first difference: {decode_bad[0]}" if decode_bad else ""), flush=True)
@@ -92,15 +94,15 @@ def main(argv: list[str]) -> int:
     except (OSError, ValueError, KeyError, TypeError, pickle.UnpicklingError, McapError) as exc:
         print(f"replay: {args.file}: {exc}", file=sys.stderr)
         return 2
-    if n == 0 and not recs and not dropped and not decoded and not any_steps and not any_swaps:
-        print("replay: no plan, transition, autopilot step or inbound message in the recording (or in the time "
-              "range)",
-              file=sys.stderr)
+    if n == 0 and not recs and not dropped and not decoded and not any_steps and not any_tracking and not any_swaps:
+        print("replay: no plan, transition, autopilot or tracking step, swap or inbound message in the recording "
+              "(or in the time range)", file=sys.stderr)
         return 2
     if n == 0:
         print("plans: none recorded")
     else:
         print(f"plans: {n - bad} of {n} reproduced bit-identically" if bad == 0 or args.keep_going
               else f"plans: plan {n} is the first that differs")
-    clean = not (checked.differences or stepped.differences or decode_bad or swaps.differences)
+    clean = not (checked.differences or stepped.differences or tracked.differences or decode_bad
+                 or swaps.differences)
     return 0 if bad == 0 and clean else 1

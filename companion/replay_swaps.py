@@ -39,31 +39,11 @@ def loads_swap(text: str) -> Any:
 
 
 @dataclasses.dataclass
-class Swaps:
-    """What replaying a file's swap decisions found: `alike` of `total` (the records and the
-    numbers missing between them), how many swapped a plan in, and every difference."""
+class Swaps(replay.Chain):
+    """What replaying a file's swap decisions found (replay.Chain: `reproduced` of `total`, the
+    differences), and how many of those decided alike swapped a plan in."""
 
-    total: int = 0
-    alike: int = 0
     swapped: int = 0
-    differences: list[str] = dataclasses.field(default_factory=list)
-
-
-def swap_records(path: str, since: float | None = None,
-                 until: float | None = None) -> tuple[list[dict[str, Any]], int]:
-    """The /control/swap records of a file in `seq` order (`since`/`until`: seconds from the
-    recording's start), and how many the recorder said it dropped in the whole run."""
-    found: list[dict[str, Any]] = []
-    dropped = 0
-    for topic, rel, rec in replay.records(path, (TOPIC, "/recorder/stats")):
-        if topic == "/recorder/stats":
-            dropped = max(dropped, int(rec.get("dropped", {}).get("swap", 0)))
-        elif (since is None or rel >= since) and (until is None or rel <= until):
-            found.append(rec)
-    meta = replay.recorded_metadata(path).get("recorder", {})
-    if "dropped" in meta:
-        dropped = max(dropped, int(json.loads(meta["dropped"]).get("swap", 0)))
-    return sorted(found, key=lambda r: int(r["seq"])), dropped
 
 
 def decide_again(rec: dict[str, Any]) -> list[str]:
@@ -98,17 +78,15 @@ def _decision(refusal: str) -> str:
 
 def replay_swaps(recs: list[dict[str, Any]], dropped: int = 0) -> Swaps:
     """Every swap record (in `seq` order) decided again; gaps in the numbers and the drops the
-    recorder counted are differences."""
-    gaps, missing = replay.numbering_gaps([int(r["seq"]) for r in recs], "swap")
-    out = Swaps(total=len(recs) + missing, differences=gaps)
-    for rec in recs:
+    recorder counted are differences (replay.replay_chain; no state runs from one to the next)."""
+    out = Swaps()
+
+    def check(rec: dict[str, Any], _previous: tuple[int, Any] | None) -> tuple[Any, list[str]]:
         why = decide_again(rec)
-        out.differences.extend(why)
-        out.alike += not why
         out.swapped += not why and rec["refusal"] == ""
-    if dropped:
-        out.differences.append(f"the recorder dropped {dropped} swap record{'s' * (dropped > 1)} in this run (its "
-                               "queue was full): those decisions are not checkable")
+        return None, why
+
+    replay.replay_chain(out, recs, check, dropped, "swap")
     return out
 
 
@@ -117,7 +95,7 @@ def said(swaps: Swaps, recorded: bool) -> str:
     if not recorded:
         return "swaps: none recorded"
     if swaps.differences:
-        return f"swaps: {swaps.alike} of {swaps.total} decided alike; first difference: {swaps.differences[0]}"
+        return f"swaps: {swaps.reproduced} of {swaps.total} decided alike; first difference: {swaps.differences[0]}"
     refused = swaps.total - swaps.swapped
     return (f"swaps: {swaps.total} of {swaps.total} decided alike ({swaps.swapped} swapped in, {refused} refused)")
 
@@ -125,5 +103,5 @@ def said(swaps: Swaps, recorded: bool) -> str:
 def replay_file(path: str, since: float | None = None, until: float | None = None) -> tuple[Swaps, bool]:
     """Replay the file's swap decisions (in the time range); and whether it holds any (a record,
     or a drop counted)."""
-    recs, dropped = swap_records(path, since, until)
+    recs, dropped = replay.numbered_records(path, TOPIC, "swap", since, until)
     return replay_swaps(recs, dropped), bool(recs) or bool(dropped)

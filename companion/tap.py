@@ -56,6 +56,10 @@ class Tap:
         """A decision of the swap's rule (companion.control.swap_refusal): what asked, the
         trajectory time now, the lead and the rate, the split, the flown and the new trajectory,
         and the refusal ("" swapped in); on the loop, so no time: the tap takes it."""
+    def tracking_step(self, before: Any, reading: Any, after: Any, outputs: tuple[Any, ...], t: float) -> None:
+        """A call of the tracking error's rules (companion.tracking_rules.tracking_step) that
+        changed their state or said something: the state before, the reading, the state after
+        and the outputs, as immutable values, and the sample's time; on the loop."""
 
     def flown(self, trajectory: Any, t_base: float | None, t: float) -> None:
         """What the setpoint thread flies from now on (a new plan, a swap, a hold)."""

@@ -2,7 +2,9 @@
 
 Each position sample is measured against the setpoint of the measurement's own time: above
 `[planner] tracking_allowance` (the margin the obstacles are inflated by) for a few samples in
-a row while a plan is flown, the vehicle brakes to a verified stop and holds. The lag behind the
+a row while a plan is flown, the vehicle brakes to a verified stop and holds: decided by the pure
+rules of companion/tracking_rules.py, each call shown to the flight recorder (/tracking/step) and
+re-run by replay, and carried out here. The lag behind the
 setpoints is estimated from the same samples (companion.lag); with `[setpoints] lead = "auto"`
 the setpoints lead by it. This module is the one writer of the setpoints' lead.
 """
@@ -11,6 +13,8 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import logging
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -22,16 +26,33 @@ from companion.lag import LagEstimator, initial_aim, initial_lead
 from companion.navigator import Navigator
 from companion.report import Reporter
 from companion.supervisor import Supervisor
+from companion.tracking_rules import (
+    TRACKING_MAX_SHARE,
+    TRACKING_RMS_SHARE,
+    TRACKING_SAMPLES,
+    TRACKING_WINDOW,
+    MarginEvent,
+    Output,
+    TrackingEvent,
+    TrackingRules,
+    TrackingSample,
+    TrackingState,
+    tracking_step,
+)
 from companion.wire.mavlink import MavlinkLink
 
 S = State
 LEAD_SLEW = 0.1  # s per s: how fast the auto lead follows the lag estimate (the setpoints run 10 % fast or slow)
-TRACKING_SAMPLES = 3  # position samples in a row above the limit (0.1 s at 30 Hz) before acting
-# The tracking measured in flight against [planner] tracking_allowance: an event when the RMS
-# over the last TRACKING_WINDOW samples (or the largest error) passes this share of it.
-TRACKING_WINDOW = 150  # position samples (~5 s at 30 Hz)
-TRACKING_RMS_SHARE = 0.5
-TRACKING_MAX_SHARE = 0.8
+__all__ = ["TRACKING_MAX_SHARE", "TRACKING_RMS_SHARE", "TRACKING_SAMPLES", "TRACKING_WINDOW", "StepObserver",
+           "Tracking"]
+log = logging.getLogger("companion")
+# what an observer of the rules is shown, once per call that changed or said something: the
+# state before, the reading, the state after, the outputs and the sample's time
+StepObserver = Callable[[TrackingState, TrackingSample, TrackingState, tuple[Output, ...], float], None]
+
+
+def _unobserved(*_call: Any) -> None:
+    pass
 
 
 class Tracking:
@@ -46,11 +67,11 @@ class Tracking:
         # tracking: measured position against the setpoint of the measurement's time
         self.tracking_error: float | None = None
         self.tracking_error_max = 0.0  # since the service started
-        self._over = 0  # consecutive samples above [planner] tracking_allowance
-        self._tracking_said = False
-        self._tracking_stop: asyncio.Task[None] | None = None
-        self._recent_errors: collections.deque[float] = collections.deque(maxlen=TRACKING_WINDOW)
-        self._nearing_said = False  # the tracking measured nears the allowance: said once per flight phase
+        # what the rules (companion.tracking_rules) remember between samples; replaced by _step only
+        self.rules = TrackingRules.of(cfg)
+        self.state = TrackingState()
+        self._observe: StepObserver = _unobserved
+        self._tracking_stop: asyncio.Task[None] | None = None  # the hold the rules asked for last
         self._allowance_said: str | None = None  # the autopilot whose default allowance was said
         # lag compensation: the vehicle's lag behind the setpoints it is sent, from telemetry
         self.lag = LagEstimator(cap=cfg.setpoints.lead_max)
@@ -62,87 +83,65 @@ class Tracking:
     def lag_estimate(self) -> float | None:
         return self.lag.estimate
 
+    def connect(self, observe: StepObserver) -> None:
+        """Who is shown the calls of the rules (the recorder's tap: it must return at once)."""
+        self._observe = observe
+
     def allowance(self) -> tuple[float, str]:
         """(the tracking allowance in use, where it comes from): `[planner] tracking_allowance`,
         or with "autopilot" the linked autopilot's (companion.config.TRACKING_ALLOWANCES)."""
         return tracking_allowance(self.cfg.planner, self.link.state.autopilot)
 
-    def _brake_name(self) -> str:
-        if self.cfg.safety.tracking_brake:
-            return "[safety] tracking_brake"
-        source = self.allowance()[1]
-        return "[planner] tracking_allowance" + ("" if source.startswith("[planner]") else f" ({source})")
-
     def check_tracking(self, measured_at: float) -> None:
-        """Each position sample: the time-aligned tracking error; above `[planner]
-        tracking_allowance` (the margin the obstacles are inflated by) for TRACKING_SAMPLES
-        samples in a row while a plan is flown: brake to a verified stop and hold (holding
-        already: say so once), with the figures. The measured RMS or max nearing the allowance
-        is said too (once per flight phase): the certificate assumes the allowance holds."""
+        """Each position sample: the time-aligned tracking error, judged by the pure rules
+        (companion.tracking_rules.tracking_step: above the limit for TRACKING_SAMPLES samples in
+        a row while a plan is flown, brake to a verified stop and hold, or say so once when
+        holding already; the measured RMS or max nearing it, said once per flight phase: the
+        certificate assumes the allowance holds), and the lag estimated from it."""
         st, ctl, fl = self.link.state, self.control, self.flight
         err = ctl.tracking_error(st.position, measured_at) if fl.controlling else None
         self.tracking_error = err
-        # Judged only in the air, flying or holding a plan of ours after the takeoff's climb
-        # (`flying_ours`: READY, STREAMING, HOLDING, BRAKING and airborne): on the ground and
-        # while arming, an estimate not yet settled (PX4 before ready: z wandering by up to 2 m)
-        # is no tracking error, and the climb is PX4's to shape (it trails by up to 2.5 m).
-        if err is None or not fl.flying_ours:
-            self._over = 0
-            self._recent_errors.clear()
-            self._nearing_said = False
+        ours = fl.flying_ours
+        if err is None or not ours:
+            self._step(self._reading(err, ours), measured_at)
             self.lag.hold()
             return
         self.tracking_error_max = max(self.tracking_error_max, err)
         self._estimate_lag(measured_at)
-        limit = self.cfg.safety.tracking_brake or self.allowance()[0]
-        if limit <= 0.0:  # no allowance: no inflation and no brake (planning tests, benches)
-            return
-        self._check_nearing(err, limit)
-        self._over = self._over + 1 if err > limit else 0
-        if self._over == 0:
-            self._tracking_said = False
-            return
-        if self._over < TRACKING_SAMPLES or self._tracking_said:
-            return
-        if self._tracking_stop is not None and not self._tracking_stop.done():
-            return
-        self._tracking_said = True
-        ref = ctl.reference(measured_at)
-        flying = fl.state is S.STREAMING and fl.airborne
-        what = "braking to a stop and holding" if flying else "holding already"
-        self.report.event("tracking", f"tracking error {err:.2f} m over {self._brake_name()} {limit:.2f} m "
-                          f"for {self._over} samples: {what}",
-                          error=round(err, 3), limit=limit, samples=self._over,
-                          position=[round(float(x), 3) for x in st.position],
-                          setpoint=None if ref is None else [round(float(x), 3) for x in ref])
-        if flying:
-            self._tracking_stop = asyncio.get_running_loop().create_task(
-                self.nav.hold(f"tracking error {err:.2f} m > {self._brake_name()} {limit:.2f} m", None))
+        self._step(self._reading(err, ours), measured_at)
 
-    def _check_nearing(self, err: float, limit: float) -> None:
-        if not self.flight.flying_ours:
-            return
-        self._recent_errors.append(err)
-        if self._nearing_said or len(self._recent_errors) < TRACKING_WINDOW // 3:
-            return
-        e = np.asarray(self._recent_errors)
-        rms, worst = float(np.sqrt(np.mean(e * e))), float(e.max())
-        if rms < TRACKING_RMS_SHARE * limit and worst < TRACKING_MAX_SHARE * limit:
-            return
-        self._nearing_said = True
-        allowance = self.allowance()[0]
-        if self.cfg.safety.tracking_brake:  # the brake is set apart from the allowance: name both
-            near = "the brake"
-            advice = (f"[planner] tracking_allowance {allowance:.2f} m is what the obstacles are inflated by, "
-                      "the track beyond it is outside what was certified: lower the bounds, or raise the "
-                      "allowance")
-        else:
-            near, advice = "the allowance", "raise the allowance or lower the bounds"
-        self.report.event("tracking_margin", f"tracking measured near {near}: RMS {rms:.2f} m, max {worst:.2f} m over "
-                          f"the last {len(e)} samples, {self._brake_name()} {limit:.2f} m (warned at "
-                          f"{TRACKING_RMS_SHARE:.0%} RMS / {TRACKING_MAX_SHARE:.0%} max): {advice}",
-                          rms=round(rms, 3), max=round(worst, 3), limit=limit, limit_name=self._brake_name(),
-                          tracking_allowance=allowance, samples=len(e))
+    def _reading(self, err: float | None, ours: bool) -> TrackingSample:
+        fl, stop = self.flight, self._tracking_stop
+        brake = self.cfg.safety.tracking_brake
+        allowance, source = self.allowance()
+        name = "[safety] tracking_brake" if brake else \
+            "[planner] tracking_allowance" + ("" if source.startswith("[planner]") else f" ({source})")
+        return TrackingSample(err, ours, fl.state is S.STREAMING and fl.airborne, brake or allowance, name, allowance,
+                              stop is not None and not stop.done())
+
+    def _step(self, reading: TrackingSample, measured_at: float) -> None:
+        """One call of the pure rules: the state replaced, the call shown to the observer (the
+        recorder: not a call that changed nothing and said nothing, most of them on the ground),
+        then the outputs carried out in order."""
+        before = self.state
+        self.state, outputs = tracking_step(self.rules, before, reading)
+        if outputs or self.state is not before:
+            try:  # shown before the hold is asked for: numbered before the transitions it causes
+                self._observe(before, reading, self.state, outputs, measured_at)
+            except Exception:  # a recorder's fault must never keep the vehicle from braking
+                log.exception("tracking: the step observer failed")
+        for out in outputs:
+            if isinstance(out, MarginEvent):
+                self.report.event("tracking_margin", out.message(), rms=round(out.rms, 3), max=round(out.worst, 3),
+                                  limit=out.limit, limit_name=out.limit_name, tracking_allowance=out.allowance,
+                                  samples=out.samples)
+            elif isinstance(out, TrackingEvent):
+                ref = self.control.reference(measured_at)
+                self.report.event("tracking", out.message(), error=round(out.error, 3), limit=out.limit,
+                                  samples=out.samples, position=[round(float(x), 3) for x in self.link.state.position],
+                                  setpoint=None if ref is None else [round(float(x), 3) for x in ref])
+            else:
+                self._tracking_stop = asyncio.get_running_loop().create_task(self.nav.hold(out.reason, None))
 
     def _estimate_lag(self, measured_at: float) -> None:
         """The vehicle's lag behind its setpoints (companion.lag: a least-squares fit over a

@@ -65,3 +65,46 @@ def plan_call(cfg: Config, **changes: Any) -> tuple[Any, tuple[Any, ...], Outcom
     out = start_mission(*args)
     assert out.ok, out.message
     return start_mission, args, out
+
+
+# -- the tracking error's stand-ins (tests/companion/test_replay_tracking.py, benchmarks/recorder.py) --
+
+
+class ScriptedControl:
+    """companion.control.Control as companion.tracking.Tracking reads it: the error of each sample
+    is `error` (scripted), the setpoint a fixed point, no plan streamed for the lag estimate."""
+
+    def __init__(self) -> None:
+        self.error = 0.0
+        self.streaming, self.active, self.t_base = False, None, None
+
+    def tracking_error(self, _position: Any, _at: float) -> float:
+        return self.error
+
+    def reference(self, _at: float) -> Any:
+        return np.array([1.0, 2.0, -1.5])
+
+
+class BrakingNavigator:
+    """companion.navigator.Navigator.hold as the brakes carry it out: a stop planned, Braking
+    with the reason, then stopped and holding."""
+
+    def __init__(self, sup: Any) -> None:
+        self.sup = sup
+
+    async def hold(self, reason: str, _arrived: float | None) -> None:
+        import asyncio
+
+        from companion.supervisor import Braking, StoppedAfterBraking
+
+        await asyncio.sleep(0.01)
+        self.sup.handle(Braking(reason))
+        await asyncio.sleep(0.01)
+        self.sup.handle(StoppedAfterBraking())
+
+
+class TrackingLink:
+    def __init__(self) -> None:
+        from companion.wire.vehicle import VehicleState
+
+        self.state = VehicleState(autopilot="px4")

@@ -32,7 +32,7 @@ JSON_CHANNELS = ("/in/command", "/in/mission", "/in/change", "/out/status", "/ou
                  "/out/trajectory", SETPOINT, "/mavlink/out/HEARTBEAT", "/mavlink/out/COMMAND_LONG",
                  "/mavlink/in/HEARTBEAT", "/mavlink/in/LOCAL_POSITION_NED", "/mavlink/in/ATTITUDE",
                  "/mavlink/in/COMMAND_ACK", "/planner/plan", "/viz/bounds", "/recorder/stats", "/supervisor/transition",
-                 "/inbound/decoded", "/autopilot/step", "/control/swap")
+                 "/inbound/decoded", "/autopilot/step", "/tracking/step", "/control/swap")
 FOXGLOVE_CHANNELS = {"/viz/vehicle": "foxglove.PoseInFrame", "/viz/tf": "foxglove.FrameTransform",
                      "/viz/planned_path": "foxglove.PosesInFrame", "/viz/flown_path": "foxglove.PosesInFrame",
                      "/viz/obstacles": "foxglove.SceneUpdate", "/viz/corridors": "foxglove.SceneUpdate"}
@@ -203,6 +203,10 @@ def test_every_plan_transition_and_step_of_the_flight_replays_bit_identically(fl
     steps = sum(1 for _s, c, _m in msgs if c.topic == "/autopilot/step")
     assert steps > 10 and any(ln.startswith(f"autopilot steps: {steps} of {steps} reproduced (")
                               and ln.endswith(" events, each a recorded transition)") for ln in run.stdout.splitlines())
+    # every call of the tracking error's rules that changed or said something reproduced (a
+    # record for each position sample of the flight's plans of ours; no brake in this flight)
+    tracked = sum(1 for _s, c, _m in msgs if c.topic == "/tracking/step")
+    assert tracked > 10 and f"tracking steps: {tracked} of {tracked} reproduced (0 brakes)" in run.stdout.splitlines()
     # every swap decision decided alike again (the climb, the mission and the replan swapped in)
     swapped = sum(1 for _s, c, _m in msgs if c.topic == "/control/swap")
     assert swapped >= 3 and any(ln.startswith(f"swaps: {swapped} of {swapped} decided alike (")

@@ -36,7 +36,7 @@ def mission(at: Any) -> bytes:
 
 
 async def _fly(mock: MockAutopilot,
-               recordings: Path) -> tuple[list[dict[str, Any]], int, FlightState, int, list[str]]:
+               recordings: Path) -> tuple[list[dict[str, Any]], int, FlightState, int, int, list[str]]:
     svc = service_for(mock, recording={"path": str(recordings)}, safety={"takeoff_altitude": 1.5})
     events = Events(svc)
     calls = [0]
@@ -55,6 +55,14 @@ async def _fly(mock: MockAutopilot,
         return step(*call)
 
     svc.watch._step = stepped  # type: ignore[method-assign,assignment]
+    tracked = [0]
+    record = svc.tap.tracking_step
+
+    def tracking(*call: Any) -> None:  # every call of the tracking rules shown to the recorder, counted apart
+        tracked[0] += 1
+        record(*call)
+
+    svc.tracking.connect(observe=tracking)
     decided: list[str] = []  # every swap the control decided: its refusal ("" swapped in)
     observe = svc.control.observe_swap
 
@@ -86,7 +94,7 @@ async def _fly(mock: MockAutopilot,
         await until(lambda: any(e.get("command") == "land" and e["type"] in ("completed", "refused")
                                 for e in events.all), 60, "land to complete")
         await until(lambda: svc.flight.state is State.IDLE, 30, "the autopilot's disarm after landing")
-    return events.all, calls[0], svc.flight.value, steps[0], decided
+    return events.all, calls[0], svc.flight.value, steps[0], tracked[0], decided
 
 
 def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
@@ -94,7 +102,7 @@ def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
     mock = MockAutopilot(MockConfig(autopilot="px4", endpoints=["udpin:127.0.0.1:0"],
                                     log_path=str(tmp_path / "flight.jsonl"), log_rate_hz=20)).start()
     try:
-        published, handled, final, stepped, decided = asyncio.run(_fly(mock, tmp_path / "recordings"))
+        published, handled, final, stepped, tracked, decided = asyncio.run(_fly(mock, tmp_path / "recordings"))
     finally:
         mock.stop()
     (path,) = sorted((tmp_path / "recordings").glob("*.mcap"))
@@ -104,6 +112,7 @@ def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
         recs = [json.loads(m.data) for _s, _c, m in reader.iter_messages(topics=["/supervisor/transition"])]
         steps = [json.loads(m.data) for _s, _c, m in reader.iter_messages(topics=["/autopilot/step"])]
         swaps = [json.loads(m.data) for _s, _c, m in reader.iter_messages(topics=["/control/swap"])]
+        tracking = [json.loads(m.data) for _s, _c, m in reader.iter_messages(topics=["/tracking/step"])]
         heard = collections.Counter(c.topic for _s, c, _m in reader.iter_messages(topics=[
             "/mavlink/in/HEARTBEAT", "/mavlink/in/LOCAL_POSITION_NED", "/mavlink/in/EXTENDED_SYS_STATE"]))
     assert dropped == {}
@@ -143,6 +152,13 @@ def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
     assert made == [r["event"]["type"] for r in recs if r["event"]["type"] in watch_kinds]
     assert "LinkFound" in [o["type"] for r in steps for o in r["outputs"]]
 
+    # every call of the tracking error's rules that changed or said something is in the file,
+    # numbered without a gap: one a position sample while a plan of ours is flown (the samples
+    # of the mission and the hovers around it), and no brake in this flight
+    assert [r["seq"] for r in tracking] == list(range(1, tracked + 1))
+    assert 0 < tracked <= heard["/mavlink/in/LOCAL_POSITION_NED"]
+    assert not any(o["type"] == "Brake" for r in tracking for o in r["outputs"])
+
     # replay: every transition, every step and every plan (the climb and the mission at least) reproduced
     assert replay_cli.main([str(path)]) == 0
     out = capsys.readouterr().out
@@ -160,6 +176,7 @@ def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
     beats = kinds["HeartbeatSeen"]
     assert (f"heartbeats: {beats} of {beats} read again alike (mode and armed from each one's fields as "
             "received)") in out.splitlines()
+    assert f"tracking steps: {tracked} of {tracked} reproduced (0 brakes)" in out.splitlines()
     plans = [ln for ln in out.splitlines() if ln.startswith("plan ")]
     assert len(plans) >= 2 and all(": identical" in ln for ln in plans)
     assert f"plans: {len(plans)} of {len(plans)} reproduced bit-identically" in out.splitlines()

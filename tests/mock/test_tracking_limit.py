@@ -1,26 +1,32 @@
 """`[planner] tracking_allowance` (which replaced `[safety] max_tracking_error`) is acted on: a vehicle that falls behind its setpoints by
-more than the limit is braked to a verified stop and held, with an event carrying the figures."""
+more than the limit is braked to a verified stop and held, with an event carrying the figures; the
+flight is recorded, and replay reproduces every decision of the tracking rules, the brake among
+them tied to its Braking transition (issue 23)."""
 
 from __future__ import annotations
 
 import asyncio
+import re
 import time
 from pathlib import Path
 
+import pytest
 from companionkit import Events, service_for, serving, until
 
+from companion import replay_cli
 from companion.wire.messages import read
 from sitl_mock import MockAutopilot, MockConfig
 from sitl_mock.vehicle import RESPONSES
 
 
-def test_tracking_error_over_the_limit_brakes_and_holds(tmp_path: Path) -> None:
+def test_tracking_error_over_the_limit_brakes_and_holds(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     # until the companion's lead estimate settles on PX4's lag (issue 26.5): the response before px4_sih
     mock = MockAutopilot(MockConfig(autopilot="px4", endpoints=["udpin:127.0.0.1:0"], vehicle=RESPONSES["calibrated"],
                                     log_path=str(tmp_path / "f.jsonl"))).start()
 
     async def go() -> None:
-        svc = service_for(mock, planner={"tracking_allowance": 0.2}, safety={"takeoff_altitude": 1.0})
+        svc = service_for(mock, planner={"tracking_allowance": 0.2}, safety={"takeoff_altitude": 1.0},
+                          recording={"path": str(tmp_path / "recordings")})
         events = Events(svc)
         async with serving(svc, before_stop=mock.link_faults.heal):
             await until(lambda: svc.link.state.position_problem() is None, 10, "position")
@@ -49,3 +55,14 @@ def test_tracking_error_over_the_limit_brakes_and_holds(tmp_path: Path) -> None:
         asyncio.run(go())
     finally:
         mock.stop()
+    # replayed: every tracking step reproduced, the brake among them, followed by its Braking
+    # transition (and every transition, autopilot step and plan of the flight reproduced)
+    (path,) = (tmp_path / "recordings").glob("*.mcap")
+    capsys.readouterr()
+    code = replay_cli.main([str(path)])
+    out = capsys.readouterr().out
+    assert code == 0, out
+    said = next(ln for ln in out.splitlines() if ln.startswith("tracking steps:"))
+    got = re.fullmatch(r"tracking steps: (\d+) of \1 reproduced \((\d+) brakes?, \2 followed by its Braking transition\)",
+                       said)
+    assert got is not None and int(got[2]) >= 1, said
