@@ -61,6 +61,17 @@ def swap_refusal(old: Trajectory, new: Trajectory, now: float, lead: float, rate
     return ""
 
 
+def swap_span(traj: Trajectory, now: float, t_split: float) -> Trajectory:
+    """The segments of `traj` that `swap_refusal` reads deciding at `now` for a split at
+    `t_split` (those from `now` to `t_split`, clamped to its span), the curve alone: the rule
+    decides the same on it, and a recorded decision of a long mission stays small."""
+    times = traj.times
+    last = len(times) - 2
+    lo, hi = (min(max(t, float(times[0])), float(times[-1])) for t in (min(now, t_split), t_split))
+    i0, i1 = (min(max(int(np.searchsorted(times, t, side="right")) - 1, 0), last) for t in (lo, hi))
+    return Trajectory(times[i0:i1 + 2], traj.control_points[i0:i1 + 1])
+
+
 SwapObserver = Callable[[str, float, float, float, float, Trajectory, Trajectory, str], None]
 
 

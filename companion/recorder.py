@@ -527,10 +527,12 @@ def swap_record(seq: int, t: float, what: str, now: float, lead: float, rate_hz:
     """One decision of the swap's rule: readable fields (companion.channels.swap_fields) and the
     two trajectories pickled together (base64), which `python -m companion replay` decides again
     with companion.control.swap_refusal."""
-    from planner_core import Trajectory
+    from companion.control import swap_span
 
+    # what the rule reads: the segments from now to the split, the curves alone (a 1000-waypoint
+    # mission's two trajectories would be ~0.6 MB a swap; the corridors are in the plan records)
+    old, new = swap_span(old, now, t_split), swap_span(new, now, t_split)
     body = ch.swap_fields(what, now, lead, rate_hz, t_split, old, new, refusal)
-    # the curves alone: what the rule reads (the corridors and statistics are in the plan records)
-    blob = _pickled(tuple(Trajectory(t.times, t.control_points) for t in (old, new)))
+    blob = _pickled((old, new))
     return b"".join([ch.dumps({"seq": seq, "t": t, **body})[:-1],
                      b',"pickle":', b"null" if blob is None else b'"' + blob + b'"', b"}"])

@@ -171,3 +171,41 @@ def test_a_swap_record_cannot_name_anything_else(tmp_path: Path, capsys: pytest.
     assert replay_cli.main([str(rewrite(path, tmp_path / "evil.mcap", edit, topic=TOPIC))]) == 2
     assert "replay does not load posix.system from a swap record" in capsys.readouterr().err
     assert not (tmp_path / "pwned.txt").exists()
+
+
+def test_the_recorded_span_decides_as_the_whole_curves() -> None:
+    """The recorder keeps only the segments from now to the split (`swap_span`): on them the rule
+    decides as on the whole trajectories, for any moment and split, swapped in or refused."""
+    from hypothesis import given, settings
+    from hypothesis import strategies as st
+
+    from companion.control import swap_refusal, swap_span
+
+    route = fly([[3.0, 0.0, -1.5], [3.0, 3.0, -2.0], [0.0, 3.0, -1.5], [0.0, 0.0, -1.5]], HERE.tolist(), t0=0.0)
+    old = route.trajectory
+    assert old.n_segments >= 4
+    bent = old.control_points.copy()
+    bent[2, 5:] += 0.2  # differs from the third segment's middle on
+    news = [old, type(old)(old.times, bent), hold(HERE, 0.0)]
+    span = (old.t0 - 1.0, old.t_end + 1.0)
+    seen: set[str] = set()
+
+    @settings(max_examples=300, deadline=None)
+    @given(now=st.floats(*span), ahead=st.floats(-0.5, 8.0), which=st.sampled_from([0, 1, 2]),
+           lead=st.sampled_from([0.0, 0.06, 0.34]))
+    def same(now: float, ahead: float, which: int, lead: float) -> None:
+        new, t_split = news[which], now + ahead
+        whole = swap_refusal(old, new, now, lead, 50.0, t_split)
+        cut_old, cut_new = swap_span(old, now, t_split), swap_span(new, now, t_split)
+        assert swap_refusal(cut_old, cut_new, now, lead, 50.0, t_split) == whole
+        seen.add(whole)
+        assert cut_old.n_segments <= old.n_segments
+
+    same()
+    assert {"", SWAP_LATE, SWAP_DIFFERS} <= seen, seen  # every outcome was decided on both
+    # and a boundary: the split exactly where a segment starts
+    t_b = float(old.times[2])
+    for which in (0, 1):
+        whole = swap_refusal(old, news[which], t_b - 0.5, 0.06, 50.0, t_b)
+        assert swap_refusal(swap_span(old, t_b - 0.5, t_b), swap_span(news[which], t_b - 0.5, t_b), t_b - 0.5, 0.06,
+                            50.0, t_b) == whole
