@@ -18,6 +18,23 @@ from companion.wire.messages import MissionSpec, read
 from planner_core import rest_jet
 
 
+def schema_checked(path: Path, topic: str, schema_name: str) -> list[dict[str, Any]]:
+    """The records on `topic`, each valid against the JSON schema the file carries for it, which
+    must be `schema_name` (a viewer reads the channel by it)."""
+    import jsonschema
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as fh:
+        found = list(make_reader(fh).iter_messages(topics=[topic]))
+    assert found, f"no record on {topic}"
+    schema, channel, _m = found[0]
+    assert schema is not None and (schema.name, channel.message_encoding) == (schema_name, "json")
+    recs = [json.loads(m.data) for _s, _c, m in found]
+    for r in recs:
+        jsonschema.validate(r, json.loads(schema.data))
+    return recs
+
+
 def config(path: Path | str = "", queue: int = 4096, live: str = "", **rec: Any) -> Config:
     # a cold process checks its first obstacle slowly (imports): no decode deadline here
     # the mission's box was placed for the vehicle radius alone (planning tests set no tracking

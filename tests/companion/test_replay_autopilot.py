@@ -19,13 +19,12 @@ from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
 
-import jsonschema
 import numpy as np
 import pytest
 from mcap.reader import make_reader
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import common as mavlink2
-from recorder_support import config
+from recorder_support import config, schema_checked
 from test_replay_transitions import rewrite
 
 from companion import channels as ch
@@ -197,11 +196,7 @@ def test_every_step_is_recorded_and_replays_with_its_events_the_transitions(
     assert outputs.count("Relay") == 1  # the resent event is not relayed again
     assert f.sup.state is State.IDLE  # the pilot's flight, landed and disarmed
     # the readable part validates against the channel's schema, which the file carries
-    with open(path, "rb") as fh:
-        (schema, channel, _m), *_ = make_reader(fh).iter_messages(topics=[TOPIC])
-    assert schema is not None and (schema.name, channel.message_encoding) == ("bezier.AutopilotStep", "json")
-    for r in recs:
-        jsonschema.validate(r, json.loads(schema.data))
+    assert schema_checked(path, TOPIC, "bezier.AutopilotStep") == recs
     events = sum(1 for o in outputs if o not in ("LinkFound", "LinkRestored", "Relay"))
     code, out = run(path, capsys)
     assert code == 0, out

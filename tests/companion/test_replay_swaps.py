@@ -14,11 +14,10 @@ import time
 from pathlib import Path
 from typing import Any
 
-import jsonschema
 import numpy as np
 import pytest
 from mcap.reader import make_reader
-from recorder_support import config
+from recorder_support import config, schema_checked
 from test_replay_transitions import rewrite
 
 from companion import replay_cli, replay_swaps
@@ -91,11 +90,7 @@ def test_every_swap_is_recorded_and_decided_alike_again(tmp_path: Path, capsys: 
     assert rec.dropped == {} and [r["seq"] for r in recs] == [1, 2, 3]
     assert [r["refusal"] for r in recs] == decided and [r["what"] for r in recs] == ["mission m", "late", "elsewhere"]
     assert all(r["lead"] == Target.lead and r["rate_hz"] == 50.0 for r in recs)
-    with open(path, "rb") as fh:
-        (schema, channel, _m), *_ = make_reader(fh).iter_messages(topics=[TOPIC])
-    assert schema is not None and (schema.name, channel.message_encoding) == ("bezier.ControlSwap", "json")
-    for r in recs:
-        jsonschema.validate(r, json.loads(schema.data))
+    assert schema_checked(path, TOPIC, "bezier.ControlSwap") == recs
     code, out = run(path, capsys)
     assert code == 0, out
     assert "swaps: 3 of 3 decided alike (1 swapped in, 2 refused)" in out.splitlines()

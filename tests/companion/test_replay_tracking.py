@@ -16,10 +16,9 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-import jsonschema
 import pytest
 from mcap.reader import make_reader
-from recorder_support import BrakingNavigator, ScriptedControl, TrackingLink, config
+from recorder_support import BrakingNavigator, ScriptedControl, TrackingLink, config, schema_checked
 from test_replay_transitions import rewrite
 
 from companion import replay, replay_cli
@@ -161,11 +160,7 @@ def test_every_step_is_recorded_and_replays_with_its_brake_a_braking_transition(
     said = [e["type"] for e in rig.events if e["type"] in ("tracking", "tracking_margin", "braking")]
     assert said == ["tracking_margin", "tracking"]  # the braking event is the brakes', not this stand-in's
     assert recs[0]["window"] is None and recs[-1]["after"]["errors"] == 0  # landed: the window emptied
-    with open(path, "rb") as fh:
-        (schema, channel, _m), *_ = make_reader(fh).iter_messages(topics=[TOPIC])
-    assert schema is not None and (schema.name, channel.message_encoding) == ("bezier.TrackingStep", "json")
-    for r in recs:
-        jsonschema.validate(r, json.loads(schema.data))
+    assert schema_checked(path, TOPIC, "bezier.TrackingStep") == recs
     code, out = run(path, capsys)
     assert code == 0, out
     assert f"tracking steps: {len(recs)} of {len(recs)} reproduced (1 brake, 1 followed by its Braking transition)" \
