@@ -31,7 +31,7 @@ from companion.mission import remaining
 from companion.route import Route
 from companion.setpoints import Feed, Setpoint, Tick, YawPolicy, sample
 from companion.wire.messages import MissionSpec
-from planner_core import FloatArray, Trajectory, hold, sampler, trim_before
+from planner_core import Bounds, FloatArray, Trajectory, hold, sampler, trim_before
 
 log = logging.getLogger("companion")
 
@@ -100,6 +100,10 @@ class Control:
         self._interrupted: MissionSpec | None = None  # what a stop left of the mission, for `resume`
         self._pending: MissionSpec | None = None  # loaded (or left by a release), for `start`
         self._latency_mark: tuple[float, Trajectory, str] | None = None
+        # the bounds the flown trajectory keeps within: its mission's, from the swap that brought
+        # the mission in, kept through its stops (a stop is verified within them) and an abort
+        # (the trajectory flies on); None after a fresh hold or a release
+        self._flown_bounds: Bounds | None = None
         self.refusal = ""  # why the last swap was refused ("" after one that was not)
         # each swap decided, shown to the flight recorder: (what, now, lead, rate_hz, t_split,
         # the flown trajectory, the new one, the refusal), trajectory times
@@ -154,6 +158,13 @@ class Control:
         """Trajectory time now."""
         assert self._t_base is not None
         return time.monotonic() - self._t_base
+
+    @property
+    def flown_bounds(self) -> Bounds | None:
+        """The bounds the flown trajectory keeps within (its mission's, also after a stop or an
+        abort ended the mission: the stop still flies from the mission's speed); None: not known
+        (a hold from rest, a climb, nothing flown)."""
+        return self._flown_bounds
 
     def lead(self) -> float:
         """How far ahead of now the setpoint thread samples the plan (lag compensation)."""
@@ -213,6 +224,7 @@ class Control:
         self._end_route(self.now() if self.flying else None, interrupted=False)
         self._set(self._active, self._t_base, False)  # no tick may pair the old plan with the new base
         self.yaw.reset(measured_yaw)
+        self._flown_bounds = None
         self._set(hold(position, 0.0), time.monotonic(), True)
         self.on_new_plan(self._active)  # type: ignore[arg-type]
         log.info("taking control: %s", reason)
@@ -240,6 +252,7 @@ class Control:
         self._set(trim_before(new, now - 1.0), self._t_base, self._streaming)
         if route is not None:
             self._route, self._route_with, self._interrupted = route, self._active, None
+            self._flown_bounds = route.mission.bounds
         else:
             self._end_route(t_split, interrupted=True)
         if arrived is not None:
@@ -266,6 +279,7 @@ class Control:
         elif self._interrupted is not None:
             self._pending = self._interrupted
         self._interrupted = None
+        self._flown_bounds = None
         self._set(None, None, False)
 
     def forget(self) -> None:

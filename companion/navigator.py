@@ -88,7 +88,11 @@ class Navigator:
     def stop_context(self) -> StopContext:
         mission = self.route.mission if self.route is not None else None
         every = self.known() + (Known.of(mission.obstacles) if mission is not None else Known())
-        bounds = mission.bounds if mission is not None else self.default_bounds()
+        # without a mission flown (a stop or an abort ended it) the trajectory still flies
+        # within its mission's bounds, beyond the configured ones maybe: a stop from there is
+        # verified within them (within the configured ones it may not exist: a hold at speed)
+        flown = self.control.flown_bounds
+        bounds = mission.bounds if mission is not None else flown if flown is not None else self.default_bounds()
         # in a fleet the stop (and the hold at its end) is chosen separated from the others
         nb = neighbours(self.fleet, bounds)
         names = tuple(self.fleet.order) if nb is not None else ()
