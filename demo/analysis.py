@@ -57,27 +57,28 @@ def read_flown_sent(log: Path) -> tuple[rep.Flown, np.ndarray, np.ndarray, np.nd
 
 def read_truth(log: Path) -> rep.Flown | None:
     """An external autopilot's ground truth (the tap's "truth" records, PX4 SIH's
-    HIL_STATE_QUATERNION) in its local NED frame, placed by its GPS_GLOBAL_ORIGIN (the last one
-    logged); None without either. Over a few hundred metres the local tangent plane is exact to
-    millimetres."""
+    HIL_STATE_QUATERNION) in its local NED frame, placed by its home (the last HOME_POSITION
+    logged: where it is globally and in the local frame); None without either. Over a few
+    hundred metres the local tangent plane is exact to millimetres."""
     truth: list[dict[str, Any]] = []
-    origin: dict[str, Any] | None = None
+    home: dict[str, Any] | None = None
     with open(log, encoding="utf-8") as fh:
         for line in fh:
-            if '"truth"' in line or '"origin"' in line:
+            if '"truth"' in line or '"home"' in line:
                 rec = json.loads(line)
                 if rec.get("type") == "truth":
                     truth.append(rec)
-                elif rec.get("type") == "origin":
-                    origin = rec
-    if origin is None or len(truth) < 10:
+                elif rec.get("type") == "home":
+                    home = rec
+    if home is None or len(truth) < 10:
         return None
-    lat0, lon0, alt0 = math.radians(origin["lat"]), math.radians(origin["lon"]), float(origin["alt"])
+    lat0, lon0 = math.radians(home["lat"]), math.radians(home["lon"])
     lat = np.radians([r["lat"] for r in truth])
     lon = np.radians([r["lon"] for r in truth])
     pos = np.stack([(lat - lat0) * EARTH_RADIUS, (lon - lon0) * EARTH_RADIUS * math.cos(lat0),
-                    -(np.array([r["alt"] for r in truth], float) - alt0)], axis=1)
-    return rep.Flown(np.array([r["t"] for r in truth], float), pos, np.array([r["vel"] for r in truth], float))
+                    -(np.array([r["alt"] for r in truth], float) - float(home["alt"]))], axis=1)
+    return rep.Flown(np.array([r["t"] for r in truth], float), pos + np.asarray(home["pos"], float),
+                     np.array([r["vel"] for r in truth], float))
 
 
 def setpoint_leads(sp_t: np.ndarray, tau_sp: np.ndarray, sent: np.ndarray, leads: list[tuple[float, float]],

@@ -14,7 +14,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -194,6 +194,14 @@ class Rig:
                 raise RuntimeError(f"the companion reported no home within {timeout:.0f} s (status {status})")
             time.sleep(0.2)
 
+    def refresh_home(self) -> None:
+        """Home as the companion has it now, before a mission is put: PX4 sets it again where
+        the vehicle arms (0.1-0.2 m from the home before it, on PX4 SIH), and a mission put in
+        the air has its "origin": "home" positions resolved against that one."""
+        home = (self.peer.query("status", timeout=1.0) or {}).get("home")
+        if isinstance(home, list) and len(home) == 3:
+            self.home = np.asarray(home, dtype=float)
+
     def check_alive(self) -> str | None:
         for child in (self.mock, self.companion):
             if not child.alive():
@@ -204,7 +212,7 @@ class Rig:
 def demo_config(zenoh_port: int, mav_port: int, rate_hz: float = 50.0, workers: int | None = None,
                 lead: float | str = "auto", recording: Path | None = None, read_limits: bool = True,
                 search_time: float | None = None, autopilot: str | None = None,
-                arrival_tolerance: float | None = None) -> Config:
+                arrival_tolerance: float | None = None, lead_initial: float | str | None = None) -> Config:
     from companion.config import (
         TRACKING_ALLOWANCES,
         AutopilotLimitsConfig,
@@ -227,7 +235,8 @@ def demo_config(zenoh_port: int, mav_port: int, rate_hz: float = 50.0, workers: 
         vehicle=VehicleConfig(id=VEHICLE),
         zenoh=ZenohConfig(listen=(f"tcp/127.0.0.1:{zenoh_port}",), multicast_scouting=False),
         mavlink=MavlinkConfig(url=f"udpout:127.0.0.1:{mav_port}"),
-        setpoints=SetpointConfig(rate_hz=rate_hz, lead=lead),
+        setpoints=SetpointConfig(rate_hz=rate_hz, lead=lead,
+                                 lead_initial=SetpointConfig.lead_initial if lead_initial is None else lead_initial),
         geofence=GeofenceConfig(min=(-60.0, -60.0, -20.0), max=(60.0, 60.0, 0.5)),
         # the 0.15 m allowance is what scenario 2's gap leaves; the mock's responses peak ~0.25 m
         # from the plan on the transit legs: brake only well beyond (docs/autopilot-limits.md).
@@ -242,16 +251,40 @@ def demo_config(zenoh_port: int, mav_port: int, rate_hz: float = 50.0, workers: 
     )
 
 
+def with_settings(cfg: Config, settings: Sequence[str]) -> Config:
+    """`cfg` with "section.key=value" changes (value in TOML: 0.6, "autopilot", true; a bare
+    word is a string), checked as the companion checks its config file."""
+    import tomllib
+
+    from companion.config import config_from_dict
+
+    if not settings:
+        return cfg
+    table = tomllib.loads(config_to_toml(cfg))
+    for item in settings:
+        key, sep, text = item.partition("=")
+        section, dot, name = key.strip().partition(".")
+        if not sep or not dot or not section or not name:
+            raise ValueError(f"--set: expected SECTION.KEY=VALUE, got {item!r}")
+        try:
+            value = tomllib.loads(f"v = {text.strip()}")["v"]
+        except tomllib.TOMLDecodeError:
+            value = text.strip()
+        table.setdefault(section, {})[name] = value
+    return config_from_dict(table)
+
+
 @contextlib.contextmanager
 def rig(out: Path, autopilot: str, rate_hz: float = 50.0, mock_args: tuple[str, ...] = (),
         mav_port: int | None = None, companion_mav_port: int | None = None,
         workers: int | None = None, lead: float | str = "auto", recording: Path | None = None,
         read_limits: bool = True, search_time: float | None = None,
-        autopilot_url: str | None = None) -> Iterator[Rig]:
+        autopilot_url: str | None = None, settings: Sequence[str] = ()) -> Iterator[Rig]:
     """Mock + companion + our peer. `companion_mav_port` lets a relay sit between the two;
     `recording`: the companion's [recording] path (its MCAP file is complete once the rig closes).
     `autopilot_url`: fly a running autopilot there instead (no mock): the companion talks to it
-    through the demo's tap (demo.tap), which writes the flight log from what the autopilot reports."""
+    through the demo's tap (demo.tap), which writes the flight log from what the autopilot reports.
+    `settings`: "section.key=value" changes to the companion's config (`with_settings`)."""
     out.mkdir(parents=True, exist_ok=True)
     mav_port = mav_port or free_port(socket.SOCK_DGRAM)
     control_port, zenoh_port = free_port(), free_port()
@@ -260,8 +293,13 @@ def rig(out: Path, autopilot: str, rate_hz: float = 50.0, mock_args: tuple[str, 
     # transit leg that ended at rest was 0.27 m from the next leg's waypoint 0 by its estimate and
     # the next leg was refused at the 0.2 m default (measured 2026-12-03, PX4 main 5b6e4416)
     tolerance = PX4_ARRIVAL_TOLERANCE if autopilot_url is not None and autopilot == "px4" else None
+    # a real autopilot lags as measured on it (companion.lag MEASURED_LAG: PX4 SIH 0.33 s) until the
+    # estimate has seen motion; the default (ArduCopter's 0.06 s) is for the mock's kits. From
+    # 0.06 s, PX4 SIH's first horizontal transit leg braked at 1.06 m > 1.00 m (2026-12-03)
+    initial = "autopilot" if autopilot_url is not None else None
     cfg = demo_config(zenoh_port, companion_mav_port or mav_port, rate_hz, workers, lead, recording, read_limits,
-                      search_time, autopilot, tolerance)
+                      search_time, autopilot, tolerance, initial)
+    cfg = with_settings(cfg, settings)
     cfg_path = out / "companion.toml"
     cfg_path.write_text(config_to_toml(cfg))
     py = sys.executable

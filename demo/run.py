@@ -186,6 +186,8 @@ def build_parser(prog: str = "python -m demo") -> argparse.ArgumentParser:
                    help="the fleet demo instead: one router, N mocks and companions, crossing missions (demo.fleet)")
     p.add_argument("--timeout", type=float, default=120.0, help="per mission, seconds")
     p.add_argument("--no-plots", action="store_true")
+    p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE", dest="settings",
+                   help="change the companion's config for this run (repeatable), e.g. autopilot_limits.headroom=0.6")
     p.add_argument("--no-limits", action="store_true",
                    help="do not read the autopilot's speed and acceleration limits (plan at the configured bounds "
                         "only; docs/autopilot-limits.md): to compare the tracking with and without them")
@@ -228,7 +230,7 @@ def main(argv: list[str] | None = None, prog: str = "python -m demo") -> int:
     try:
         recordings = out / "recordings"
         with rig(out, args.autopilot, lead=args.lead, recording=None if args.no_recording else recordings,
-                 read_limits=not args.no_limits, autopilot_url=url) as r:
+                 read_limits=not args.no_limits, autopilot_url=url, settings=args.settings) as r:
             print(f"  companion pid {r.companion.pid}, {r.mock.name} pid {r.mock.pid}, logs in {out}/")
             if url:
                 print("  tracking is measured against the autopilot's own position estimate (LOCAL_POSITION_NED), "
@@ -263,6 +265,7 @@ def main(argv: list[str] | None = None, prog: str = "python -m demo") -> int:
                         results.append(rep.MissionResult(name=name, ok=False, reason=f"transit: {failed}"))
                         break
                 print(f"- {title}: {len(mission['waypoints'])} waypoints")
+                r.refresh_home()  # what the mission's "origin": "home" is resolved against
                 outcome = fly(r, mission, actions, args.timeout, progress)
                 here = np.asarray(mission["waypoints"][-1], dtype=float)
                 result = analyse(name, mission, outcome, r, to_sim,
@@ -273,7 +276,7 @@ def main(argv: list[str] | None = None, prog: str = "python -m demo") -> int:
                 print(f"  {name}: {'OK' if result.ok else 'FAILED: ' + result.reason}", flush=True)
                 if not result.ok and not outcome.trajectories:
                     break
-    except (RuntimeError, OSError) as exc:
+    except (RuntimeError, OSError, ValueError) as exc:
         print(f"demo failed: {exc}", file=sys.stderr)
         return 1
     if not args.no_recording:

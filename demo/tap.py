@@ -7,14 +7,18 @@ this machine's time.monotonic(), which the demo shares) so that demo.analysis re
 reads the mock's:
 
 - "state": the autopilot's LOCAL_POSITION_NED, its own estimate, not the truth. Its time is the
-  autopilot's time_boot_ms mapped onto time.monotonic() by a sliding minimum of arrival minus
-  boot time over STATE_CLOCK_WINDOW_S (transport jitter out, a simulator running slower than
-  real time followed), so a state carries the time it describes, not when it arrived.
+  autopilot's time_boot_ms mapped onto time.monotonic() by the lower envelope of the arrivals
+  over STATE_CLOCK_WINDOW_S, sloped as the autopilot's clock runs against ours there
+  (`state_time`): transport jitter out, and a simulator that runs slower than real time
+  followed (PX4 SIH in lockstep ran at 0.69-0.98 x real time on a loaded 2-core machine; a plain
+  sliding minimum then put states up to 0.6 s early), so a state carries the time it
+  describes, not when it arrived.
 - "setpoint": each SET_POSITION_TARGET_LOCAL_NED the companion sent, at the time it was
   forwarded (what the autopilot received, not what it applied: a real autopilot does not say).
 - "truth": HIL_STATE_QUATERNION if the autopilot sends it (PX4 SIH's ground truth, on request),
   at its arrival: the message carries no time of its own there.
-- "origin": GPS_GLOBAL_ORIGIN (to put the truth's latitude and longitude in the local frame).
+- "home": HOME_POSITION, global and local (to put the truth's latitude, longitude and altitude
+  in the local frame; PX4 sends it every few seconds, GPS_GLOBAL_ORIGIN only once at boot).
 - "mode": the autopilot's HEARTBEAT whenever its mode or armed state changes.
 """
 
@@ -31,9 +35,10 @@ import time
 from types import FrameType
 from typing import Any, TextIO
 
+import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mav  # MAVLink 2 framing, the superset dialect
 
-STATE_CLOCK_WINDOW_S = 2.0
+STATE_CLOCK_WINDOW_S = 0.5
 POS_IGNORED = 0b111  # type_mask bits: x, y, z ignored
 FLUSH_EVERY_S = 0.2
 UDP_CHUNK = 1400  # bytes per datagram when a TCP read is passed on over UDP
@@ -109,12 +114,25 @@ class Autopilot:
             pass  # a lost link: the companion sees it as the autopilot's silence
 
 
+def state_time(arrivals: collections.deque[tuple[float, float]]) -> float:
+    """Our time of the newest of `arrivals` ((arrival on our clock, time on the autopilot's),
+    oldest first): the earliest any of them says it could have been, each carried forward at
+    the rate the autopilot's clock ran against ours over the window (a least-squares slope; 1
+    over less than a third of the window)."""
+    ours = np.array([a for a, _ in arrivals])
+    theirs = np.array([b for _, b in arrivals])
+    rate = 1.0
+    if theirs[-1] - theirs[0] >= STATE_CLOCK_WINDOW_S / 3:
+        rate = float(np.polyfit(theirs, ours, 1)[0])
+    return float(np.min(ours + (theirs[-1] - theirs) * rate))
+
+
 class FlightLog:
     """The records (module docstring); flushed every FLUSH_EVERY_S for the demo to read."""
 
     def __init__(self, out: TextIO) -> None:
         self.out = out
-        self.offsets: collections.deque[tuple[float, float]] = collections.deque()
+        self.arrivals: collections.deque[tuple[float, float]] = collections.deque()  # (ours, autopilot's)
         self.last_mode: tuple[int, int] | None = None
         self.last_flush = time.monotonic()
 
@@ -131,18 +149,17 @@ class FlightLog:
         kind = msg.get_type()
         if kind == "LOCAL_POSITION_NED":
             boot = msg.time_boot_ms / 1000.0
-            self.offsets.append((now, now - boot))
-            while self.offsets[0][0] < now - STATE_CLOCK_WINDOW_S:
-                self.offsets.popleft()
-            offset = min(o for _, o in self.offsets)
-            self.write({"type": "state", "t": boot + offset, "arr": now, "tb": boot,
+            self.arrivals.append((now, boot))
+            while self.arrivals[0][0] < now - STATE_CLOCK_WINDOW_S:
+                self.arrivals.popleft()
+            self.write({"type": "state", "t": state_time(self.arrivals), "arr": now, "tb": boot,
                         "pos": [msg.x, msg.y, msg.z], "vel": [msg.vx, msg.vy, msg.vz]})
         elif kind == "HIL_STATE_QUATERNION":
             self.write({"type": "truth", "t": now, "lat": msg.lat * 1e-7, "lon": msg.lon * 1e-7,
                         "alt": msg.alt / 1000.0, "vel": [msg.vx / 100.0, msg.vy / 100.0, msg.vz / 100.0]})
-        elif kind == "GPS_GLOBAL_ORIGIN":
-            self.write({"type": "origin", "t": now, "lat": msg.latitude * 1e-7, "lon": msg.longitude * 1e-7,
-                        "alt": msg.altitude / 1000.0})
+        elif kind == "HOME_POSITION":
+            self.write({"type": "home", "t": now, "lat": msg.latitude * 1e-7, "lon": msg.longitude * 1e-7,
+                        "alt": msg.altitude / 1000.0, "pos": [msg.x, msg.y, msg.z]})
         elif kind == "HEARTBEAT" and msg.autopilot != mav.MAV_AUTOPILOT_INVALID:
             mode = (int(msg.custom_mode), int(msg.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED))
             if mode != self.last_mode:
