@@ -208,3 +208,21 @@ def test_tap_state_times_follow_a_simulator_slower_than_real_time() -> None:
         errors.append(state_time(window) - s)
     late = np.asarray(errors[30:])  # after the first window
     assert np.all(np.abs(late) <= 0.012), (late.min(), late.max())
+
+
+def test_demo_set_changes_the_companion_config_as_its_file_would() -> None:
+    """`python -m demo --set section.key=value`: TOML values (numbers, strings, bare words as
+    strings) land in the companion's config, and what the companion would refuse in its file
+    is refused here too."""
+    from companion.config import ConfigError
+    from demo.rig import demo_config, with_settings
+
+    base = demo_config(7447, 14540, autopilot="px4")
+    cfg = with_settings(base, ["autopilot_limits.headroom=0.6", "setpoints.lead_initial=autopilot",
+                               'safety.tracking_brake = 1.5'])
+    assert (cfg.autopilot_limits.headroom, cfg.setpoints.lead_initial, cfg.safety.tracking_brake) == (0.6, "autopilot", 1.5)
+    assert cfg.planner == base.planner and cfg.mavlink == base.mavlink  # the rest as the demo set it
+    with pytest.raises(ConfigError):
+        with_settings(base, ["autopilot_limits.headroom=1.5"])
+    with pytest.raises(ValueError):
+        with_settings(base, ["headroom=0.6"])
