@@ -1,6 +1,6 @@
-"""The demo's analysis of a flight: the plans published, the mock's flight log and the
-companion's events turned into a `report.MissionResult` (latencies, tracking error, peaks
-against bounds), and its figures.
+"""The demo's analysis of a flight: the plans published, the flight log (the mock's, or with an
+external autopilot the demo's tap's, demo.tap) and the companion's events turned into a
+`report.MissionResult` (latencies, tracking error, peaks against bounds), and its figures.
 """
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ from demo.rig import Rig, Sample
 from planner_core import Trajectory
 
 MAX_TRACKING_ERROR = 1.0  # m: beyond this the flight is not "as planned"
+EARTH_RADIUS = 6371000.0  # m, as PX4's map projection (lib/geo)
 
 
 def read_flown(log: Path) -> tuple[rep.Flown, np.ndarray, np.ndarray]:
@@ -52,6 +53,32 @@ def read_flown_sent(log: Path) -> tuple[rep.Flown, np.ndarray, np.ndarray, np.nd
     flown = rep.Flown(np.asarray(st_t, float), np.asarray(st_p, float).reshape(-1, 3),
                       np.asarray(st_v, float).reshape(-1, 3))
     return flown, np.asarray(sp_t, float), np.asarray(sp_p, float).reshape(-1, 3), np.asarray(sp_c, float)
+
+
+def read_truth(log: Path) -> rep.Flown | None:
+    """An external autopilot's ground truth (the tap's "truth" records, PX4 SIH's
+    HIL_STATE_QUATERNION) in its local NED frame, placed by its home (the last HOME_POSITION
+    logged: where it is globally and in the local frame); None without either. Over a few
+    hundred metres the local tangent plane is exact to millimetres."""
+    truth: list[dict[str, Any]] = []
+    home: dict[str, Any] | None = None
+    with open(log, encoding="utf-8") as fh:
+        for line in fh:
+            if '"truth"' in line or '"home"' in line:
+                rec = json.loads(line)
+                if rec.get("type") == "truth":
+                    truth.append(rec)
+                elif rec.get("type") == "home":
+                    home = rec
+    if home is None or len(truth) < 10:
+        return None
+    lat0, lon0 = math.radians(home["lat"]), math.radians(home["lon"])
+    lat = np.radians([r["lat"] for r in truth])
+    lon = np.radians([r["lon"] for r in truth])
+    pos = np.stack([(lat - lat0) * EARTH_RADIUS, (lon - lon0) * EARTH_RADIUS * math.cos(lat0),
+                    -(np.array([r["alt"] for r in truth], float) - float(home["alt"]))], axis=1)
+    return rep.Flown(np.array([r["t"] for r in truth], float), pos + np.asarray(home["pos"], float),
+                     np.array([r["vel"] for r in truth], float))
 
 
 def setpoint_leads(sp_t: np.ndarray, tau_sp: np.ndarray, sent: np.ndarray, leads: list[tuple[float, float]],
@@ -135,10 +162,10 @@ def analyse(name: str, mission: dict[str, Any], outcome: FlightOutcome, r: Rig,
         return result
     first, final = result.trajectories[0], result.trajectories[-1]
     result.peaks_planned = np.max([rep.planned_peaks(t) for t in result.trajectories], axis=0)
-    time.sleep(0.7)  # the mock flushes its log every 0.5 s
+    time.sleep(0.7)  # the mock flushes its log every 0.5 s (the tap every 0.2 s)
     flown, sp_t, sp_p, sp_c = read_flown_sent(r.flight_log)
     if len(sp_t) < 10 or len(flown.t) < 10:
-        result.ok, result.reason = False, "the mock logged no applied setpoints"
+        result.ok, result.reason = False, "the flight log has no applied setpoints"
         return result
     s_stream = mono_to_sim(outcome.t_stream if outcome.t_stream is not None else outcome.t_put)
     s_first_change = mono_to_sim(samples[1].mono) if len(samples) > 1 else (
@@ -154,7 +181,7 @@ def analyse(name: str, mission: dict[str, Any], outcome: FlightOutcome, r: Rig,
     tau_end = (mono_to_sim(outcome.t_done) - offset) if outcome.t_done is not None else final.t_end
     flying = (sp_t >= s_stream) & (sp_t <= offset + tau_end)
     if flying.sum() < 10:
-        result.ok, result.reason = False, "no setpoints of this mission in the mock's log"
+        result.ok, result.reason = False, "no setpoints of this mission in the flight log"
         return result
     sp_t, sp_p, sp_c = sp_t[flying], sp_p[flying], sp_c[flying]
     # (an auto lead moves the setpoints up to [setpoints] lead_max along the plan in flight)
@@ -171,6 +198,13 @@ def analyse(name: str, mission: dict[str, Any], outcome: FlightOutcome, r: Rig,
     result.tau_stream = s_stream - offset
     result.tracking = rep.tracking_error(result.trajectories, starts, flown, sp_t, sp_off,
                                          result.tau_stream, tau_end)
+    if r.external:
+        # the tap's states are what the autopilot believes (LOCAL_POSITION_NED), not the truth
+        result.tracked = "the autopilot's estimate"
+        truth = read_truth(r.flight_log)
+        if truth is not None:
+            result.tracking_truth = rep.tracking_error(result.trajectories, starts, truth, sp_t, sp_off,
+                                                       result.tau_stream, tau_end)
     # every setpoint the mock received must be a point of the planned trajectory (float32 on
     # the wire): checks frames, splicing and sampling end to end
     dev = np.linalg.norm(sp_p - rep.aimed(result.trajectories, starts, sp_t - sp_raw, k_acc, tc_acc), axis=1)
@@ -272,7 +306,8 @@ def figures(name: str, title: str, mission: dict[str, Any], result: rep.MissionR
         flown_enu = swap_points(flown.pos[mask])
         flown_tau = flown.t[mask] - off
     path_png = r.out / f"{name}_path.png"
-    rep.plot_path(path_png, title, scene, planned, flown_enu, flown_tau, result.tau_stream)
+    rep.plot_path(path_png, title, scene, planned, flown_enu, flown_tau, result.tau_stream,
+                  "flown (autopilot's estimate)" if r.external else "flown (mock log)")
     deriv_png = r.out / f"{name}_derivatives.png"
     rep.plot_derivatives(deriv_png, f"{title}: derivatives against bounds", result.trajectories,
                          result.starts, result.bounds, flown,

@@ -36,10 +36,11 @@ class Flown:
 
 @dataclass
 class Tracking:
-    offset: float  # mock clock time of trajectory time 0
+    offset: float  # flight log clock time of trajectory time 0
     rms: float
     max: float
     n: int
+    span: tuple[float, float] = (float("nan"), float("nan"))  # trajectory times measured over
 
 
 @dataclass
@@ -58,6 +59,9 @@ class MissionResult:
     stats: dict[str, Any] = field(default_factory=dict)
     flight_time: float | None = None
     tracking: Tracking | None = None
+    # what `tracking` measured: the mock's truth, or an external autopilot's own estimate
+    tracked: str = "the mock's vehicle"
+    tracking_truth: Tracking | None = None  # an external autopilot's ground truth, where it sends it
     # s, per applied setpoint: how far ahead of its own time it was sampled (the lead)
     leads: FloatArray | None = None
     peaks_planned: FloatArray | None = None  # (4, 3) max |derivative| per axis
@@ -243,12 +247,13 @@ def tracking_error(trajs: Sequence[Trajectory], starts: Sequence[float], flown: 
     """Flown position against the planned one, from the first mission trajectory to tau_end (m)."""
     offsets = np.interp(flown.t, sp_t, sp_offsets)
     tau = flown.t - offsets
-    mask = (tau >= max(tau_start, trajs[0].t0)) & (tau <= min(tau_end, trajs[-1].t_end))
+    span = (max(tau_start, trajs[0].t0), min(tau_end, trajs[-1].t_end))
+    mask = (tau >= span[0]) & (tau <= span[1])
     if not mask.any():
-        return Tracking(float(np.median(sp_offsets)), float("nan"), float("nan"), 0)
+        return Tracking(float(np.median(sp_offsets)), float("nan"), float("nan"), 0, span)
     err = np.linalg.norm(flown.pos[mask] - stitched(trajs, starts, tau[mask]), axis=1)
     return Tracking(float(np.median(sp_offsets)), float(np.sqrt(np.mean(err**2))), float(err.max()),
-                    int(mask.sum()))
+                    int(mask.sum()), span)
 
 
 def planned_peaks(traj: Trajectory, samples_per_segment: int = 400) -> FloatArray:
@@ -339,6 +344,10 @@ def summary_rows(result: MissionResult) -> list[tuple[str, str]]:
     rows.append(("flight time", "-" if result.flight_time is None else f"{result.flight_time:.1f} s"))
     if result.tracking is not None:
         rows.append(("tracking error RMS / max", f"{result.tracking.rms:.3f} / {result.tracking.max:.3f} m"))
+        rows.append(("tracking measured on", result.tracked))
+    if result.tracking_truth is not None:
+        rows.append(("tracking vs truth RMS / max",
+                     f"{result.tracking_truth.rms:.3f} / {result.tracking_truth.max:.3f} m"))
     if result.leads is not None and len(result.leads):
         # the flight is compared with the plan at its own time: each setpoint's lead taken off
         rows.append(("setpoint lead, first / last", f"{result.leads[0] * 1000:.0f} / {result.leads[-1] * 1000:.0f} ms"))
@@ -358,6 +367,19 @@ def summary_rows(result: MissionResult) -> list[tuple[str, str]]:
 
 def _num(x: Any) -> float | None:
     return float(x) if isinstance(x, int | float) else None
+
+
+def tracking_record(result: MissionResult) -> dict[str, Any] | None:
+    """The tracking figures as numbers (summary.json), with what a check needs to redo them:
+    the flight log clock's time of trajectory time 0, the trajectory times measured over and
+    each replan's start (the plans are in NAME_trajectories.json)."""
+    tr = result.tracking
+    if tr is None:
+        return None
+    truth = result.tracking_truth
+    return {"rms": tr.rms, "max": tr.max, "n": tr.n, "measured_on": result.tracked, "offset": tr.offset,
+            "span": list(tr.span), "starts": [float(s) if np.isfinite(s) else None for s in result.starts],
+            "truth": None if truth is None else {"rms": truth.rms, "max": truth.max, "n": truth.n}}
 
 
 def format_table(results: Sequence[MissionResult]) -> str:
@@ -396,6 +418,7 @@ def plot_path(
     flown_enu: FloatArray | None,
     flown_tau: FloatArray | None = None,
     tau_start: float = -np.inf,
+    flown_label: str = "flown (mock log)",
 ) -> None:
     """Top view with obstacles and corridors, and altitude against trajectory time."""
     import matplotlib
@@ -427,9 +450,9 @@ def plot_path(
         top.plot(pts[:, 0], pts[:, 1], **style)
         side.plot(t - t_zero, pts[:, 2], **style)
     if flown_enu is not None and len(flown_enu):
-        top.plot(flown_enu[:, 0], flown_enu[:, 1], "--", color="tab:orange", lw=1.5, label="flown (mock log)")
+        top.plot(flown_enu[:, 0], flown_enu[:, 1], "--", color="tab:orange", lw=1.5, label=flown_label)
         if flown_tau is not None:
-            side.plot(flown_tau - t_zero, flown_enu[:, 2], "--", color="tab:orange", lw=1.5, label="flown (mock log)")
+            side.plot(flown_tau - t_zero, flown_enu[:, 2], "--", color="tab:orange", lw=1.5, label=flown_label)
     wp = scene.waypoints
     top.plot(wp[:, 0], wp[:, 1], "o", ms=6, mfc="white", mec="k", label="waypoints", zorder=5)
     for i, p in enumerate(wp):

@@ -175,12 +175,19 @@ def keep_recording(recordings: Path, flight: Path) -> Path | None:
 def build_parser(prog: str = "python -m demo") -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog=prog, description=__doc__.splitlines()[0].split(": ", 1)[-1])
     p.add_argument("--autopilot", choices=["px4", "ardupilot"], default="px4")
+    p.add_argument("--autopilot-url", metavar="URL",
+                   help="fly a running autopilot (PX4 or ArduPilot SITL, say which with --autopilot) at this "
+                        "MAVLink URL instead of starting the mock: udpin:HOST:PORT (PX4 SITL: "
+                        "udpin:127.0.0.1:14540), udpout:, tcp: (ArduPilot SITL: tcp:127.0.0.1:5760) or tcpin:. "
+                        "The tracking figures are then against the autopilot's own position estimate")
     p.add_argument("--out", type=Path, default=Path("out/demo"))
     p.add_argument("--quick", action="store_true", help="one short mission only (smoke test)")
     p.add_argument("--fleet", type=int, metavar="N", default=0,
                    help="the fleet demo instead: one router, N mocks and companions, crossing missions (demo.fleet)")
     p.add_argument("--timeout", type=float, default=120.0, help="per mission, seconds")
     p.add_argument("--no-plots", action="store_true")
+    p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE", dest="settings",
+                   help="change the companion's config for this run (repeatable), e.g. autopilot_limits.headroom=0.6")
     p.add_argument("--no-limits", action="store_true",
                    help="do not read the autopilot's speed and acceleration limits (plan at the configured bounds "
                         "only; docs/autopilot-limits.md): to compare the tracking with and without them")
@@ -199,6 +206,9 @@ def _lead(text: str) -> float | str:
 def main(argv: list[str] | None = None, prog: str = "python -m demo") -> int:
     args = build_parser(prog).parse_args(argv)
     out: Path = args.out
+    if args.fleet and args.autopilot_url:
+        print("--fleet flies mocks only: not with --autopilot-url", file=sys.stderr)
+        return 2
     if args.fleet:
         from demo.fleet import run as run_fleet
 
@@ -214,17 +224,24 @@ def main(argv: list[str] | None = None, prog: str = "python -m demo") -> int:
     progress = Progress()
     results: list[rep.MissionResult] = []
     pngs: list[Path] = []
-    print(f"bezier-companion demo: mock {args.autopilot} autopilot + companion service + Zenoh peer")
+    url = args.autopilot_url
+    where = f"{args.autopilot} autopilot at {url}" if url else f"mock {args.autopilot} autopilot"
+    print(f"bezier-companion demo: {where} + companion service + Zenoh peer")
     try:
         recordings = out / "recordings"
         with rig(out, args.autopilot, lead=args.lead, recording=None if args.no_recording else recordings,
-                 read_limits=not args.no_limits) as r:
-            print(f"  companion pid {r.companion.pid}, mock pid {r.mock.pid}, logs in {out}/")
+                 read_limits=not args.no_limits, autopilot_url=url, settings=args.settings) as r:
+            print(f"  companion pid {r.companion.pid}, {r.mock.name} pid {r.mock.pid}, logs in {out}/")
+            if url:
+                print("  tracking is measured against the autopilot's own position estimate (LOCAL_POSITION_NED), "
+                      "not the truth; against the truth too where the autopilot sends it (HIL_STATE_QUATERNION)")
             print("  waiting for the autopilot to be ready (a valid home)", flush=True)
-            home = r.wait_home()
+            # PX4 SITL is ready ~40 s after boot, ArduCopter SITL reports a position ~60 s after
+            home = r.wait_home(90.0 if url is None else 300.0)
             print(f"  home (the ground where the vehicle stands) at local NED {home.round(2).tolist()}: "
                   "the demo's missions and the positions it prints are ENU from home")
-            to_sim = sim_clock(r)
+            # the tap logs on this machine's monotonic clock; the mock on its simulated one
+            to_sim = (lambda mono: mono) if url else sim_clock(r)
             plans: list[tuple[str, str, dict[str, Any], list[Action], dict[str, Any] | None, dict[str, Any] | None]] = []
             if args.quick:
                 plans.append(("quick", "Quick mission", _quick_mission(), [], None, None))
@@ -248,6 +265,7 @@ def main(argv: list[str] | None = None, prog: str = "python -m demo") -> int:
                         results.append(rep.MissionResult(name=name, ok=False, reason=f"transit: {failed}"))
                         break
                 print(f"- {title}: {len(mission['waypoints'])} waypoints")
+                r.refresh_home()  # what the mission's "origin": "home" is resolved against
                 outcome = fly(r, mission, actions, args.timeout, progress)
                 here = np.asarray(mission["waypoints"][-1], dtype=float)
                 result = analyse(name, mission, outcome, r, to_sim,
@@ -258,7 +276,7 @@ def main(argv: list[str] | None = None, prog: str = "python -m demo") -> int:
                 print(f"  {name}: {'OK' if result.ok else 'FAILED: ' + result.reason}", flush=True)
                 if not result.ok and not outcome.trajectories:
                     break
-    except (RuntimeError, OSError) as exc:
+    except (RuntimeError, OSError, ValueError) as exc:
         print(f"demo failed: {exc}", file=sys.stderr)
         return 1
     if not args.no_recording:
@@ -280,7 +298,8 @@ def main(argv: list[str] | None = None, prog: str = "python -m demo") -> int:
     if pngs:
         print("\nfigures: " + ", ".join(str(p) for p in pngs))
     summary = {"ok": bool(results) and all(x.ok for x in results),
-               "missions": [dict(rep.summary_rows(x)) for x in results]}
+               "missions": [dict(rep.summary_rows(x)) for x in results],
+               "tracking": {x.name: rep.tracking_record(x) for x in results}}
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     return 0 if summary["ok"] else 1
 
