@@ -27,13 +27,12 @@ from companion.split_rules import (
     Again,
     Attempt,
     CheckHeld,
-    Commit,
     Committed,
     Done,
     GiveUp,
     Held,
-    MoveLater,
     Moved,
+    MoveLater,
     PlanAt,
     Planned,
     Refused,
@@ -345,7 +344,7 @@ def test_the_rules_do_what_the_loop_did(world: _World) -> None:
     new, new_notes, new_did = now.run(swapmod.SplitSwap.at_split)
     assert new_notes == old_notes and new_did == old_did
     assert (new.ok, new.reason, new.outcome is None) == (old.ok, old.reason, old.outcome is None)
-    assert new.t_split == old.t_split or math.isnan(new.t_split) and math.isnan(old.t_split)
+    assert new.t_split == old.t_split or (math.isnan(new.t_split) and math.isnan(old.t_split))
     if new.outcome is not None and old.outcome is not None:
         assert getattr(new.outcome.route, "dt", None) == getattr(old.outcome.route, "dt", None)
 
