@@ -100,11 +100,13 @@ TRANSITION = _obj("bezier.SupervisorTransition", "One Supervisor.handle call (co
     "pickle": {"type": ["string", "null"], "description": "pickle (base64) of (before, event, after, actions)"},
 }, ("seq", "t", "event", "before", "after", "actions", "pickle"))
 
+# the numbering of a decision's records (a rules' call, each recorded)
+SEQ_RULES = {"type": "integer", "description": "1, 2, ... per run, numbered as the rules ran: a gap is a record the "
+             "recorder dropped"}
 STEP = _obj("bezier.AutopilotStep", "One call of the autopilot watch's rules (companion/autopilot_rules.py "
             "watch_step): a reading of what the autopilot reported (or a link check), the watch's state before and "
             "after, the flight state the rules read, the supervisor events and other outputs", {
-    "seq": {"type": "integer", "description": "1, 2, ... per run, numbered as the rules ran: a gap is a record "
-            "the recorder dropped"},
+    "seq": SEQ_RULES,
     "t": {"type": "number", "description": "the time the rules were given: the companion's monotonic clock (s), "
           "an input of the rules"},
     "transition": {"type": "integer", "description": "the /supervisor/transition seq its first event got (the "
@@ -141,8 +143,7 @@ TRACKING_STEP = _obj("bezier.TrackingStep", "One call of the tracking error's ru
                      "tracking_step) that changed their state or said something: a position sample's error and the "
                      "moment's facts, the state before and after, the outputs (events, a brake); every value exact, as "
                      "JSON holds it (no pickle)", {
-    "seq": {"type": "integer", "description": "1, 2, ... per run, numbered as the rules ran: a gap is a record "
-            "the recorder dropped"},
+    "seq": SEQ_RULES,
     "t": T_MONO,
     "transition": {"type": "integer", "description": "the /supervisor/transition seq next after the call: a brake's "
                    "Braking transition comes at or after it"},
@@ -156,8 +157,7 @@ SPLIT_STEP = _obj("bezier.SplitStep", "One call of the split-and-swap loop's rul
                   "split_step): for one plan made in flight, what was observed (the time committed, the plan's "
                   "outcome and how long it took, the fleet's answer, the swap's refusal, ...), the state before and "
                   "after, and what the loop did next; every value exact, as JSON holds it (no pickle)", {
-    "seq": {"type": "integer", "description": "1, 2, ... per run, numbered as the rules ran: a gap is a record "
-            "the recorder dropped"},
+    "seq": SEQ_RULES,
     "t": T_MONO,
     "swap": {"type": "integer", "description": "the /control/swap seq of the last swap decided then (a step "
              "that observed a swap: its record)"},

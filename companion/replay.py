@@ -275,6 +275,17 @@ class Chain:
     differences: list[str] = dataclasses.field(default_factory=list)
 
 
+
+
+def said_of(name: str, chain: Chain, recorded: bool, detail: str, alike: str = "reproduced") -> str:
+    """The replay's line for a file's `name` records: none recorded, the first difference, or
+    every one `alike` (`detail`: what they did)."""
+    if not recorded:
+        return f"{name}: none recorded"
+    if chain.differences:
+        return f"{name}: {chain.reproduced} of {chain.total} {alike}; first difference: {chain.differences[0]}"
+    return f"{name}: {chain.total} of {chain.total} {alike} ({detail})"
+
 Transitions = Chain
 Check = Callable[[dict[str, Any], "tuple[int, Any] | None"], "tuple[Any, list[str]]"]
 

@@ -147,10 +147,4 @@ def replay_file(path: str, since: float | None = None, until: float | None = Non
 
 def said(splits: Splits, recorded: bool) -> str:
     """The replay's line for the split steps."""
-    if not recorded:
-        return "splits: none recorded"
-    if splits.differences:
-        return (f"splits: {splits.reproduced} of {splits.total} reproduced; first difference: "
-                f"{splits.differences[0]}")
-    return (f"splits: {splits.total} of {splits.total} reproduced ({splits.swapped} swapped in, "
-            f"{splits.given_up} given up)")
+    return replay.said_of("splits", splits, recorded, f"{splits.swapped} swapped in, {splits.given_up} given up")

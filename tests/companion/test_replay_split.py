@@ -20,9 +20,10 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 from recorder_support import config
+from test_replay_swaps import run
 from test_replay_transitions import rewrite
 
-from companion import replay_cli, replay_split
+from companion import replay_split
 from companion.control import SWAP_LATE, Control
 from companion.recorder import Recorder
 from companion.route import Outcome
@@ -91,11 +92,6 @@ def recorded(tmp_path: Path, queue: int = 4096, early: int = 0) -> tuple[Path, R
 def steps(path: Path, topic: str = TOPIC) -> list[dict[str, Any]]:
     with open(path, "rb") as fh:
         return [json.loads(m.data) for _s, _c, m in make_reader(fh).iter_messages(topics=[topic])]
-
-
-def run(path: Path, capsys: pytest.CaptureFixture[str]) -> tuple[int, str]:
-    code = replay_cli.main([str(path)])
-    return code, capsys.readouterr().out
 
 
 def line(out: str) -> str:
