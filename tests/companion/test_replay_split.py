@@ -15,11 +15,10 @@ from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
 
-import jsonschema
 import numpy as np
 import pytest
 from mcap.reader import make_reader
-from recorder_support import config
+from recorder_support import config, schema_checked
 from test_replay_swaps import run
 from test_replay_transitions import rewrite
 
@@ -113,11 +112,7 @@ def test_every_step_is_recorded_and_reproduced(tmp_path: Path, capsys: pytest.Ca
     late = next(r for r in recs if r["observation"]["type"] == "SwapDecided")
     assert late["observation"]["fields"]["refusal"] == SWAP_LATE
     assert done[1].t_split == next(r for r in recs if r["action"]["type"] == "Done")["action"]["fields"]["t_split"]
-    with open(path, "rb") as fh:
-        (schema, channel, _m), *_ = make_reader(fh).iter_messages(topics=[TOPIC])
-    assert schema is not None and (schema.name, channel.message_encoding) == ("bezier.SplitStep", "json")
-    for r in recs:
-        jsonschema.validate(r, json.loads(schema.data))
+    assert schema_checked(path, TOPIC, "bezier.SplitStep") == recs
     code, out = run(path, capsys)
     assert code == 0, out
     assert f"splits: {len(recs)} of {len(recs)} reproduced (2 swapped in, 1 given up)" in out.splitlines()
