@@ -100,11 +100,13 @@ TRANSITION = _obj("bezier.SupervisorTransition", "One Supervisor.handle call (co
     "pickle": {"type": ["string", "null"], "description": "pickle (base64) of (before, event, after, actions)"},
 }, ("seq", "t", "event", "before", "after", "actions", "pickle"))
 
+# the numbering of a decision's records (a rules' call, each recorded)
+SEQ_RULES = {"type": "integer", "description": "1, 2, ... per run, numbered as the rules ran: a gap is a record the "
+             "recorder dropped"}
 STEP = _obj("bezier.AutopilotStep", "One call of the autopilot watch's rules (companion/autopilot_rules.py "
             "watch_step): a reading of what the autopilot reported (or a link check), the watch's state before and "
             "after, the flight state the rules read, the supervisor events and other outputs", {
-    "seq": {"type": "integer", "description": "1, 2, ... per run, numbered as the rules ran: a gap is a record "
-            "the recorder dropped"},
+    "seq": SEQ_RULES,
     "t": {"type": "number", "description": "the time the rules were given: the companion's monotonic clock (s), "
           "an input of the rules"},
     "transition": {"type": "integer", "description": "the /supervisor/transition seq its first event got (the "
@@ -141,8 +143,7 @@ TRACKING_STEP = _obj("bezier.TrackingStep", "One call of the tracking error's ru
                      "tracking_step) that changed their state or said something: a position sample's error and the "
                      "moment's facts, the state before and after, the outputs (events, a brake); every value exact, as "
                      "JSON holds it (no pickle)", {
-    "seq": {"type": "integer", "description": "1, 2, ... per run, numbered as the rules ran: a gap is a record "
-            "the recorder dropped"},
+    "seq": SEQ_RULES,
     "t": T_MONO,
     "transition": {"type": "integer", "description": "the /supervisor/transition seq next after the call: a brake's "
                    "Braking transition comes at or after it"},
@@ -151,6 +152,22 @@ TRACKING_STEP = _obj("bezier.TrackingStep", "One call of the tracking error's ru
     "window": {"type": ["array", "null"], "items": NUM, "description": "the errors before, in full, in the first "
                "record of a file or after a gap (null: the readings before make them)"},
 }, ("seq", "t", "transition", "reading", "before", "after", "outputs", "window"))
+
+SPLIT_STEP = _obj("bezier.SplitStep", "One call of the split-and-swap loop's rules (companion/split_rules.py "
+                  "split_step): for one plan made in flight, what was observed (the time committed, the plan's "
+                  "outcome and how long it took, the fleet's answer, the swap's refusal, ...), the state before and "
+                  "after, and what the loop did next; every value exact, as JSON holds it (no pickle)", {
+    "seq": SEQ_RULES,
+    "t": T_MONO,
+    "swap": {"type": "integer", "description": "the /control/swap seq of the last swap decided then (a step "
+             "that observed a swap: its record)"},
+    "call": {"type": "integer", "description": "the at_split call (1, 2, ... per run): its steps chain"},
+    "step": {"type": "integer", "description": "1, 2, ... within the call"},
+    "what": {"type": "string", "description": "what asked for the plan"},
+    "rules": {"type": "object", "description": "companion.split_rules.SplitRules: the call's givens"},
+    "before": {"type": "object", "description": "companion.split_rules.SplitState"},
+    "observation": TAGGED, "after": {"type": "object"}, "action": TAGGED,
+}, ("seq", "t", "swap", "call", "step", "what", "rules", "before", "observation", "after", "action"))
 
 DECODED = _obj("bezier.DecodedMessage", "An inbound message as the companion read it (companion.wire.messages.read): "
                "the typed message (local_ned) or the refusal, and what read was given besides the bytes", {
@@ -252,6 +269,8 @@ def spec(topic: str) -> Spec:
         return _json(SWAP)
     if topic == "/tracking/step":
         return _json(TRACKING_STEP)
+    if topic == "/navigator/split":
+        return _json(SPLIT_STEP)
     if topic == "/inbound/decoded":
         return _json(DECODED)
     if topic == "/recorder/stats":
@@ -372,6 +391,13 @@ def tracking_fields(before: Any, reading: Any, after: Any, outputs: tuple[Any, .
     """The readable part of a /tracking/step record (replay checks it against the pickle)."""
     return {"reading": _tagged(reading), "before": _plain(before), "after": _plain(after),
             "outputs": [_tagged(o) for o in outputs], "window": None if window is None else list(window)}
+
+
+def split_fields(call: int, step: int, what: str, rules: Any, before: Any, observation: Any, after: Any,
+                 action: Any) -> dict[str, Any]:
+    """The readable part of a /navigator/split record: all of it (JSON only)."""
+    return {"call": call, "step": step, "what": what, "rules": _plain(rules), "before": _plain(before),
+            "observation": _tagged(observation), "after": _plain(after), "action": _tagged(action)}
 
 
 ORDERS = ("velocity", "acceleration", "jerk", "snap")

@@ -56,11 +56,11 @@ class Navigator:
         # companion.deconfliction.Deconfliction: the other vehicles' trajectories and the commit
         # protocol; None or disabled without [fleet] separation
         self.fleet = fleet
-        swap = SplitSwap(cfg, flight, control, report, fleet)
-        self.replans = Replans(cfg, flight, control, runtime, report, self.lock, self.budget, self.obstacles, swap,
-                               self.brakes, fleet)
+        self.split = SplitSwap(cfg, flight, control, report, fleet)  # every plan made in flight swapped in
+        self.replans = Replans(cfg, flight, control, runtime, report, self.lock, self.budget, self.obstacles,
+                               self.split, self.brakes, fleet)
         self.missions = MissionStart(cfg, flight, control, runtime, report, position, self.lock, self.budget,
-                                     self.obstacles, swap, self.replans, limits, fleet)
+                                     self.obstacles, self.split, self.replans, limits, fleet)
 
     # -- the missions, as Control holds them (read-only here) ------------------------------
 

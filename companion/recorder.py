@@ -11,8 +11,9 @@ server). A record that finds its queue full is dropped and counted: in status
 `recorder` metadata record. Setpoints (every MAVLink message sent) have a queue of their own,
 so a burst of other traffic never drops one; so have the decisions replay checks as unbroken
 chains: the supervisor's transitions (every `Supervisor.handle` call), the autopilot watch's
-steps (every call of companion.autopilot_rules.watch_step) and the tracking error's (every call
-of companion.tracking_rules.tracking_step that changed or said something).
+steps (every call of companion.autopilot_rules.watch_step), the tracking error's (every call
+of companion.tracking_rules.tracking_step that changed or said something) and the split-and-swap
+loop's (every call of companion.split_rules.split_step).
 
 Channels, schemas and frames: companion/channels.py and docs/recording.md.
 """
@@ -171,6 +172,8 @@ class Recorder(Tap):
         self._step_seq = itertools.count(1)
         self._swap_seq = itertools.count(1)
         self._tracking_seq = itertools.count(1)
+        self._split_seq = itertools.count(1)
+        self._swaps = 0  # swaps numbered so far (on the loop, as the split's steps are recorded)
         # the writer's: the last /tracking/step seq written and the file part it went to; a
         # record after a gap, or the first of a part, carries its window of errors in full
         self._tracking_written: tuple[int, int] = (0, 0)
@@ -277,13 +280,20 @@ class Recorder(Tap):
 
     def swap(self, what: str, now: float, lead: float, rate_hz: float, t_split: float, old: Any, new: Any,
              refusal: str) -> None:
-        self._put(self._decisions, ("swap", next(self._swap_seq), what, now, lead, rate_hz, t_split, old, new,
-                                    refusal, self.clock()))
+        seq = self._swaps = next(self._swap_seq)
+        self._put(self._decisions, ("swap", seq, what, now, lead, rate_hz, t_split, old, new, refusal, self.clock()))
+
     def tracking_step(self, before: Any, reading: Any, after: Any, outputs: tuple[Any, ...], t: float) -> None:
         # numbered as autopilot steps are, with the next transition's number: the brake it asks
         # for is a transition after it, which replay finds
         self._put(self._decisions, ("tracking_step", next(self._tracking_seq), self._transitions + 1, before, reading,
                                     after, outputs, t))
+
+    def split_step(self, call: int, step: int, what: str, rules: Any, before: Any, observation: Any, after: Any,
+                   action: Any) -> None:
+        # with the number of the last swap decided: a step that observed a swap names its record
+        self._put(self._decisions, ("split_step", next(self._split_seq), self._swaps, call, step, what, rules, before,
+                                    observation, after, action, self.clock()))
 
     def flown(self, trajectory: Any, t_base: float | None, t: float) -> None:
         self._put(self._rest, ("flown", trajectory, t_base, t))
@@ -405,6 +415,10 @@ class Recorder(Tap):
             keyframe = self._tracking_written != (seq - 1, part)
             self._tracking_written = (seq, part)
             self._emit("/tracking/step", tracking_record(seq, first, t, before, reading, after, outputs, keyframe), t)
+        elif kind == "split_step":
+            _, seq, swap, call, step, what, rules, before, observation, after, action, t = item
+            body = ch.split_fields(call, step, what, rules, before, observation, after, action)
+            self._emit("/navigator/split", ch.dumps({"seq": seq, "t": t, "swap": swap, **body}), t)
         elif kind == "flown":
             _, traj, t_base, t = item
             for topic, data in self._viz.on_flown(traj, t_base, t):

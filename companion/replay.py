@@ -25,11 +25,16 @@ says the compiled one ran), and compares the result with the recorded one: every
 bit, every number by its exact binary value, every string, leaving out only the `stats`
 dictionaries (timings).
 
+Swaps and split steps: each `/control/swap` record holds one decision of the swap's rule,
+decided again (companion/replay_swaps.py); each `/navigator/split` record one call of the
+split-and-swap loop's rules (where a plan made in flight splits, planning again, moving it later,
+giving up), run again (companion/replay_split.py).
+
 What it does not cover: how inbound messages and commands became supervisor events and
-planner calls, the autopilot watch's telemetry advice, and the navigator's, the brakes' (but the
-tracking error's) and the command sequences' own decisions (which plan to swap in and when, when
-to brake for an obstacle) are not re-run; they are in the file (inbound messages, events, what
-was flown) to be read.
+planner calls, the autopilot watch's telemetry advice, and the navigator's (which plan to ask
+for), the brakes' (but the tracking error's) and the command sequences' own decisions (when to
+brake for an obstacle) are not re-run; they are in the file (inbound messages, events, what was
+flown) to be read.
 
 A recording comes from a companion you trust: the calls are pickled. Plan records are read with
 an allow-list (planner_core and companion data classes and planner functions, numpy arrays,
@@ -269,6 +274,17 @@ class Chain:
     reproduced: int = 0
     differences: list[str] = dataclasses.field(default_factory=list)
 
+
+
+
+def said_of(name: str, chain: Chain, recorded: bool, detail: str, alike: str = "reproduced") -> str:
+    """The replay's line for a file's `name` records: none recorded, the first difference, or
+    every one `alike` (`detail`: what they did)."""
+    if not recorded:
+        return f"{name}: none recorded"
+    if chain.differences:
+        return f"{name}: {chain.reproduced} of {chain.total} {alike}; first difference: {chain.differences[0]}"
+    return f"{name}: {chain.total} of {chain.total} {alike} ({detail})"
 
 Transitions = Chain
 Check = Callable[[dict[str, Any], "tuple[int, Any] | None"], "tuple[Any, list[str]]"]

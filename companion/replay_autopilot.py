@@ -208,11 +208,6 @@ def said_heartbeats(steps: Steps) -> str | None:
 
 def said(steps: Steps, recorded: bool) -> str:
     """The replay's line for the steps."""
-    if not recorded:
-        return "autopilot steps: none recorded"
-    if steps.differences:
-        return (f"autopilot steps: {steps.reproduced} of {steps.total} reproduced; first difference: "
-                f"{steps.differences[0]}")
     events = (f"{steps.events} events, each a recorded transition" if steps.against_transitions
               else f"{steps.events} events, not checked against transitions: none recorded")
-    return f"autopilot steps: {steps.total} of {steps.total} reproduced ({events})"
+    return replay.said_of("autopilot steps", steps, recorded, events)

@@ -1,7 +1,8 @@
 """`python -m companion replay FILE.mcap`: run every recorded transition, autopilot step, inbound
 read, tracking step and plan again and say whether each reproduces (exit 0), where the first
 differs (exit 1), or why the file cannot be replayed (exit 2). What each check covers:
-companion/replay.py, companion/replay_autopilot.py and companion/replay_tracking.py.
+companion/replay.py, companion/replay_autopilot.py, companion/replay_tracking.py,
+companion/replay_swaps.py and companion/replay_split.py.
 """
 
 from __future__ import annotations
@@ -9,7 +10,7 @@ from __future__ import annotations
 import pickle
 import sys
 
-from companion import replay_autopilot, replay_swaps, replay_tracking
+from companion import replay_autopilot, replay_split, replay_swaps, replay_tracking
 from companion.record_format import environment
 from companion.replay import (
     decoded_records,
@@ -69,6 +70,10 @@ def main(argv: list[str]) -> int:
         print(replay_swaps.said(swaps, any_swaps), flush=True)
         for more in swaps.differences[1:] if args.keep_going else ():
             print(f"  also: {more}")
+        splits, any_splits = replay_split.replay_file(args.file, args.since, args.until)
+        print(replay_split.said(splits, any_splits), flush=True)
+        for more in splits.differences[1:] if args.keep_going else ():
+            print(f"  also: {more}")
         decoded = decoded_records(args.file, args.since, args.until)
         decode_bad: list[str] = []
         if decoded:
@@ -94,8 +99,9 @@ def main(argv: list[str]) -> int:
     except (OSError, ValueError, KeyError, TypeError, pickle.UnpicklingError, McapError) as exc:
         print(f"replay: {args.file}: {exc}", file=sys.stderr)
         return 2
-    if n == 0 and not recs and not dropped and not decoded and not any_steps and not any_tracking and not any_swaps:
-        print("replay: no plan, transition, autopilot or tracking step, swap or inbound message in the recording "
+    if (n == 0 and not recs and not dropped and not decoded and not any_steps and not any_tracking and not any_swaps
+            and not any_splits):
+        print("replay: no plan, transition, autopilot, tracking or split step, swap or inbound message in the recording "
               "(or in the time range)", file=sys.stderr)
         return 2
     if n == 0:
@@ -104,5 +110,5 @@ def main(argv: list[str]) -> int:
         print(f"plans: {n - bad} of {n} reproduced bit-identically" if bad == 0 or args.keep_going
               else f"plans: plan {n} is the first that differs")
     clean = not (checked.differences or stepped.differences or tracked.differences or decode_bad
-                 or swaps.differences)
+                 or swaps.differences or splits.differences)
     return 0 if bad == 0 and clean else 1

@@ -92,12 +92,8 @@ def replay_swaps(recs: list[dict[str, Any]], dropped: int = 0) -> Swaps:
 
 def said(swaps: Swaps, recorded: bool) -> str:
     """The replay's line for the swaps."""
-    if not recorded:
-        return "swaps: none recorded"
-    if swaps.differences:
-        return f"swaps: {swaps.reproduced} of {swaps.total} decided alike; first difference: {swaps.differences[0]}"
     refused = swaps.total - swaps.swapped
-    return (f"swaps: {swaps.total} of {swaps.total} decided alike ({swaps.swapped} swapped in, {refused} refused)")
+    return replay.said_of("swaps", swaps, recorded, f"{swaps.swapped} swapped in, {refused} refused", "decided alike")
 
 
 def replay_file(path: str, since: float | None = None, until: float | None = None) -> tuple[Swaps, bool]:

@@ -176,14 +176,9 @@ def replay_file(path: str, transitions: list[dict[str, Any]], since: float | Non
 
 def said(steps: TrackingSteps, recorded: bool) -> str:
     """The replay's line for the tracking steps."""
-    if not recorded:
-        return "tracking steps: none recorded"
-    if steps.differences:
-        return (f"tracking steps: {steps.reproduced} of {steps.total} reproduced; first difference: "
-                f"{steps.differences[0]}")
     brakes = f"{steps.brakes} brake{'s' * (steps.brakes != 1)}"
     if steps.brakes and steps.against_transitions:
         brakes += f", {steps.tied} followed by its Braking transition"
     elif steps.brakes:
         brakes += ", not checked against transitions: none recorded"
-    return f"tracking steps: {steps.total} of {steps.total} reproduced ({brakes})"
+    return replay.said_of("tracking steps", steps, recorded, brakes)

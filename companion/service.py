@@ -124,6 +124,7 @@ class Service:
         self.watch.connect(observe=self.tap.autopilot_step)  # every call of its rules recorded, for replay
         self.control.observe_swap = self.tap.swap  # every swap decided, recorded for replay
         self.tracking.connect(observe=self.tap.tracking_step)  # likewise
+        self.navigator.split.observe = self.tap.split_step  # likewise: every plan made in flight
         self.link.on_message = self._on_mavlink
         self.deconfliction.on_replan = self.navigator.fleet_replan
         self.deconfliction.on_clock_off = self.navigator.fleet_stop

@@ -3,11 +3,15 @@
 Every plan made in flight (a mission's start, its anytime improvement, a change, a pop-up, a
 fleet replan) is planned from a split ahead of now and swapped in through `Control.swap`, here
 and nowhere else. The loop owns no state: it reads what is flown from `Control` and asks the
-fleet (companion.deconfliction) to commit the candidate when there is one.
+fleet (companion.deconfliction) to commit the candidate when there is one. What it does at each
+turn (where to split, whether to plan again, move the plan later or give up, and what it says) is
+decided by one pure function, companion.split_rules.split_step: the loop observes, calls it, shows
+the call to the flight recorder (/navigator/split) and carries out the action.
 """
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 import time
@@ -17,15 +21,38 @@ from typing import Any
 
 from companion.config import Config
 from companion.control import SWAP_LATE, Control
-from companion.plan_budget import MAX_AHEAD, RETRY_MARGIN
 from companion.report import Reporter
 from companion.route import Outcome
+from companion.split_rules import (
+    Action,
+    Again,
+    Attempt,
+    CheckHeld,
+    Commit,
+    Committed,
+    Done,
+    GiveUp,
+    Held,
+    Moved,
+    MoveLater,
+    Observation,
+    PlanAt,
+    Planned,
+    Refused,
+    SplitRules,
+    SplitState,
+    SwapDecided,
+    TrySwap,
+    first_state,
+    split_step,
+)
 from companion.supervisor import Supervisor
 from planner_core import Bounds, Trajectory, held_still, splice
 
 log = logging.getLogger("companion")
 
-FLEET_TRIES = 8  # candidates that lost to other vehicles before a plan is given up (docs/fleet.md)
+# each call of the split's rules, shown to the flight recorder (companion.tap.Tap.split_step)
+SplitObserver = Callable[[int, int, str, SplitRules, SplitState, Observation, SplitState, Action], None]
 
 
 @dataclass(frozen=True)
@@ -67,6 +94,10 @@ class SplitSwap:
         self.control = control
         self.report = report
         self.fleet = fleet  # companion.deconfliction.Deconfliction, or None without [fleet]
+        self.calls = itertools.count(1)  # each at_split call's number, for the records of its steps
+        # each call of the rules shown to the flight recorder: (call, step, what, rules, state
+        # before, observation, state after, action); the service connects its tap
+        self.observe: SplitObserver = lambda *_call: None
 
     async def at_split(self, what: str, arrived: float | None,
                        plan_at: Callable[[Trajectory, float], Awaitable[Outcome]],
@@ -75,7 +106,8 @@ class SplitSwap:
         """Plan from a split `ahead` of now (default [planner] split_ahead) and swap the plan in.
         A plan that came after its split is planned again once, further ahead (from the time it
         took); a flown plan that changed while planning, once more. Each cause is said once, in
-        its own words; the reason of a failure is the last cause. `plan_at(base, t_split)`."""
+        its own words; the reason of a failure is the last cause. `plan_at(base, t_split)`.
+        What to do at each turn is decided by companion.split_rules.split_step; this carries it out."""
         messages = notes if notes is not None else []
 
         def say(text: str) -> None:
@@ -83,70 +115,79 @@ class SplitSwap:
                 messages.append(text)
 
         fleet = self.fleet if fleet_on(self.fleet) else None
-        ahead = self.cfg.planner.split_ahead if ahead is None else ahead
-        if fleet is not None:  # a plan is proposed, then committed 2 x max_delay later (companion.commit)
-            ahead += fleet.wait
-        late = changed = lost = 0
-        reason = ""
-        while late < 2 and changed < 2:
-            if not self.control.flying or not self.flight.flying_ours:
-                return Swapped(None, reason=f"no longer in control ({self.flight.state.value})")
-            base, route = self.control.active, self.control.route
-            assert base is not None
-            t_split = self.control.committed() + ahead  # setpoints up to now + lead are sent
-            if hit is not None and t_split >= hit:
-                reason = "too close to the obstacle to replan"
-                say(reason)
-                break
-            t0 = time.monotonic()
-            outcome = await plan_at(base, t_split)
-            took = time.monotonic() - t0
-            if not outcome.ok or outcome.route is None:
-                return Swapped(outcome, t_split, outcome.message)
-            if fleet is not None and self.control.active is base:
+        rules = SplitRules(self.cfg.planner.split_ahead if ahead is None else ahead, fleet is not None,
+                           fleet.wait if fleet is not None else 0.0, hit)
+        call, steps = next(self.calls), itertools.count(1)
+        state = first_state(rules)
+
+        def step(seen: Observation) -> Action:
+            nonlocal state
+            before = state
+            state, action = split_step(rules, before, seen)
+            try:
+                self.observe(call, next(steps), what, rules, before, seen, state, action)
+            except Exception:  # a recorder's fault must never change what is flown
+                log.exception("split: the observer failed")
+            for text in state.said[len(before.said):]:
+                say(text)
+            return action
+
+        control = self.control
+        action: Action = Again()  # the first attempt
+        base, route, outcome = control.active, control.route, None
+        while True:
+            if isinstance(action, Again | GiveUp) and action.cancel and fleet is not None:
+                fleet.cancel()
+            if isinstance(action, Again):
+                if action.event:
+                    self.report.event("fleet", action.event, what=what)
+                base, route = control.active, control.route
+                action = step(self._attempt())
+            elif isinstance(action, PlanAt):
+                assert base is not None
+                t0 = time.monotonic()
+                outcome = await plan_at(base, action.t_split)
+                took = time.monotonic() - t0
+                ok = outcome.ok and outcome.route is not None
+                action = step(Planned(ok, outcome.message, took, control.active is base,
+                                      control.active is not base or control.route is not route))
+            elif isinstance(action, Commit):
+                assert fleet is not None and outcome is not None and outcome.route is not None and base is not None
                 why = await fleet.commit(splice(base, outcome.route.trajectory), what)
-                if why is not None and fleet.clock_off is not None:
-                    reason = why  # planning again would not help
-                    say(why)
-                    break
-                if why is not None:
-                    lost += 1
-                    reason = why
-                    say(why + ("; planning again against it" if lost < FLEET_TRIES else ""))
-                    if lost >= FLEET_TRIES:
-                        break
-                    self.report.event("fleet", f"deconfliction: {why}; planning again against it", what=what)
-                    continue
-            if self.control.active is not base or self.control.route is not route:
-                if fleet is not None:
-                    fleet.cancel()
-                changed += 1
-                reason = "the flown plan changed while planning (a stop or another change came first)"
-                say(reason + "; planning again")
-                continue
-            if self.control.swap(splice(base, outcome.route.trajectory), t_split, arrived, what, outcome.route):
-                return Swapped(outcome, t_split)
-            if fleet is not None:
-                fleet.cancel()  # the candidate that won is not flown: its number is not published
-            if self.control.refusal != SWAP_LATE:
-                reason = self.control.refusal  # an internal check: planning again would not help
-                say(reason)
-                break
-            # late, from a hold: the same plan starts later just as well (the curve and its checks
-            # do not depend on the time; a fleet's separation does): moved, not planned again
-            t_later = self.control.committed() + min(max(2.0 * ahead, RETRY_MARGIN * took + 0.1), MAX_AHEAD)
-            if fleet is None and held_still(base, t_split, t_later):
-                later = outcome.route.shifted(t_later - t_split)
-                if self.control.swap(splice(base, later.trajectory), t_later, arrived, what, later):
+                action = step(Committed(why, fleet.clock_off is not None,
+                                        control.active is not base or control.route is not route))
+            elif isinstance(action, TrySwap):
+                assert outcome is not None and outcome.route is not None and base is not None
+                swapped = control.swap(splice(base, outcome.route.trajectory), action.t_split, arrived, what,
+                                       outcome.route)
+                if not swapped and action.cancel and fleet is not None:
+                    fleet.cancel()  # the candidate that won is not flown: its number is not published
+                refusal = "" if swapped else control.refusal
+                action = step(SwapDecided(refusal, control.committed() if refusal == SWAP_LATE else None))
+            elif isinstance(action, CheckHeld):
+                assert base is not None
+                action = step(Held(held_still(base, action.t_split, action.t_later)))
+            elif isinstance(action, MoveLater):
+                assert outcome is not None and outcome.route is not None and base is not None
+                later = outcome.route.shifted(action.t_later - action.t_split)
+                moved = control.swap(splice(base, later.trajectory), action.t_later, arrived, what, later)
+                if moved:
+                    outcome = replace(outcome, route=later)
+                action = step(Moved("" if moved else control.refusal))
+            elif isinstance(action, Done):
+                if action.moved:
+                    assert state.took is not None and state.t_split is not None
                     log.info("%s: planning took %.2f s, more than the %.2f s to its split time: the plan from the "
-                             "hold starts %.2f s later", what, took, ahead, t_later - t_split)
-                    return Swapped(replace(outcome, route=later), t_later)
-            late += 1
-            reason = (f"planning took {took:.2f} s, more than the {ahead:.2f} s to its split time"
-                      + (" twice: the computer is too busy to plan this in flight now" if late == 2 else ""))
-            if late < 2:
-                say(reason + "; planned again once, further ahead")
-                ahead = min(max(2.0 * ahead, RETRY_MARGIN * took + 0.1), MAX_AHEAD)
+                             "hold starts %.2f s later", what, state.took, state.ahead, action.t_split - state.t_split)
+                return Swapped(outcome, action.t_split)
+            elif isinstance(action, Refused):
+                assert state.t_split is not None
+                return Swapped(outcome, state.t_split, action.reason)
             else:
-                say(reason)
-        return Swapped(None, reason=reason or "too close")
+                return Swapped(None, reason=action.reason)
+
+    def _attempt(self) -> Attempt:
+        """What each attempt starts from: in control (or the flight state), the time committed."""
+        if not self.control.flying or not self.flight.flying_ours:
+            return Attempt(False, self.flight.state.value, None)
+        return Attempt(True, "", self.control.committed())

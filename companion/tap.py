@@ -61,6 +61,13 @@ class Tap:
         changed their state or said something: the state before, the reading, the state after
         and the outputs, as immutable values, and the sample's time; on the loop."""
 
+    def split_step(self, call: int, step: int, what: str, rules: Any, before: Any, observation: Any, after: Any,
+                   action: Any) -> None:
+        """A call of the split-and-swap loop's rules (companion.split_rules.split_step): the
+        `at_split` call's number and the step's within it, what asked, the call's rules, the
+        state before, the observation, the state after and the action; on the loop, so no time:
+        the tap takes it."""
+
     def flown(self, trajectory: Any, t_base: float | None, t: float) -> None:
         """What the setpoint thread flies from now on (a new plan, a swap, a hold)."""
 

@@ -32,7 +32,7 @@ JSON_CHANNELS = ("/in/command", "/in/mission", "/in/change", "/out/status", "/ou
                  "/out/trajectory", SETPOINT, "/mavlink/out/HEARTBEAT", "/mavlink/out/COMMAND_LONG",
                  "/mavlink/in/HEARTBEAT", "/mavlink/in/LOCAL_POSITION_NED", "/mavlink/in/ATTITUDE",
                  "/mavlink/in/COMMAND_ACK", "/planner/plan", "/viz/bounds", "/recorder/stats", "/supervisor/transition",
-                 "/inbound/decoded", "/autopilot/step", "/tracking/step", "/control/swap")
+                 "/inbound/decoded", "/autopilot/step", "/tracking/step", "/control/swap", "/navigator/split")
 FOXGLOVE_CHANNELS = {"/viz/vehicle": "foxglove.PoseInFrame", "/viz/tf": "foxglove.FrameTransform",
                      "/viz/planned_path": "foxglove.PosesInFrame", "/viz/flown_path": "foxglove.PosesInFrame",
                      "/viz/obstacles": "foxglove.SceneUpdate", "/viz/corridors": "foxglove.SceneUpdate"}
@@ -211,6 +211,9 @@ def test_every_plan_transition_and_step_of_the_flight_replays_bit_identically(fl
     swapped = sum(1 for _s, c, _m in msgs if c.topic == "/control/swap")
     assert swapped >= 3 and any(ln.startswith(f"swaps: {swapped} of {swapped} decided alike (")
                                 for ln in run.stdout.splitlines())
+    # every step of the split-and-swap loop reproduced (the mission and the replan at least swapped in)
+    split = sum(1 for _s, c, _m in msgs if c.topic == "/navigator/split")
+    assert split >= 4 and any(ln.startswith(f"splits: {split} of {split} reproduced (") for ln in run.stdout.splitlines())
     # every inbound message the flight took in was read, and reads again the same (none was
     # dropped or refused on arrival in this flight)
     inbound = sum(1 for _s, c, _m in msgs if c.topic.startswith("/in/"))

@@ -18,6 +18,7 @@ import pytest
 from companionkit import Events, service_for, serving, until
 
 import planner_core
+from companion import replay, replay_split
 from companion.mission import start_mission
 from companion.wire.messages import read
 from sitl_mock import MockAutopilot, MockConfig
@@ -86,7 +87,7 @@ def test_a_late_mission_from_a_hover_is_moved_too(tmp_path: Path, late: int) -> 
     planned: list[Any] = []
 
     async def go() -> None:
-        svc = service_for(mock, planner={"anytime": False})
+        svc = service_for(mock, planner={"anytime": False}, recording={"path": str(tmp_path / "rec")})
         events = Events(svc)
         runtime = svc.navigator.runtime
         real = runtime.plan
@@ -123,3 +124,13 @@ def test_a_late_mission_from_a_hover_is_moved_too(tmp_path: Path, late: int) -> 
         asyncio.run(go())
     finally:
         mock.stop()
+    # recorded, the loop's decisions replay: the late swap, the plan moved later from the hover
+    # and swapped in there, each the swap record the loop saw (companion.replay_split)
+    (path,) = (tmp_path / "rec").glob("*.mcap")
+    found, _ = replay_split.replay_file(str(path))
+    assert not found.differences and found.reproduced == found.total > 0, found.differences[:3]
+    steps, _dropped = replay.numbered_records(str(path), replay_split.TOPIC, "split_step")
+    mission = [(r["observation"]["type"], r["action"]["type"]) for r in steps if r["what"] == "mission late"]
+    assert mission == [("Attempt", "PlanAt"), ("Planned", "TrySwap"), ("SwapDecided", "CheckHeld"),
+                       ("Held", "MoveLater"), ("Moved", "Done")]
+    assert found.swaps_checked >= 2

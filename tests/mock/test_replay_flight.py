@@ -36,7 +36,7 @@ def mission(at: Any) -> bytes:
 
 
 async def _fly(mock: MockAutopilot,
-               recordings: Path) -> tuple[list[dict[str, Any]], int, FlightState, int, int, list[str]]:
+               recordings: Path) -> tuple[list[dict[str, Any]], int, FlightState, int, int, list[str], list[Any]]:
     svc = service_for(mock, recording={"path": str(recordings)}, safety={"takeoff_altitude": 1.5})
     events = Events(svc)
     calls = [0]
@@ -71,6 +71,14 @@ async def _fly(mock: MockAutopilot,
         observe(*call)
 
     svc.control.observe_swap = swap_seen
+    split: list[Any] = []  # every call of the split-and-swap loop's rules: its action
+    record_split = svc.navigator.split.observe
+
+    def split_seen(*call: Any) -> None:
+        split.append(call[-1])
+        record_split(*call)
+
+    svc.navigator.split.observe = split_seen
     async with serving(svc):
         await until(lambda: svc.link.state.position_problem() is None, 30, "a position estimate")
         await svc.commands.takeoff(1.5)
@@ -94,7 +102,7 @@ async def _fly(mock: MockAutopilot,
         await until(lambda: any(e.get("command") == "land" and e["type"] in ("completed", "refused")
                                 for e in events.all), 60, "land to complete")
         await until(lambda: svc.flight.state is State.IDLE, 30, "the autopilot's disarm after landing")
-    return events.all, calls[0], svc.flight.value, steps[0], tracked[0], decided
+    return events.all, calls[0], svc.flight.value, steps[0], tracked[0], decided, split
 
 
 def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
@@ -102,7 +110,7 @@ def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
     mock = MockAutopilot(MockConfig(autopilot="px4", endpoints=["udpin:127.0.0.1:0"],
                                     log_path=str(tmp_path / "flight.jsonl"), log_rate_hz=20)).start()
     try:
-        published, handled, final, stepped, tracked, decided = asyncio.run(_fly(mock, tmp_path / "recordings"))
+        published, handled, final, stepped, tracked, decided, split = asyncio.run(_fly(mock, tmp_path / "recordings"))
     finally:
         mock.stop()
     (path,) = sorted((tmp_path / "recordings").glob("*.mcap"))
@@ -113,6 +121,7 @@ def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
         steps = [json.loads(m.data) for _s, _c, m in reader.iter_messages(topics=["/autopilot/step"])]
         swaps = [json.loads(m.data) for _s, _c, m in reader.iter_messages(topics=["/control/swap"])]
         tracking = [json.loads(m.data) for _s, _c, m in reader.iter_messages(topics=["/tracking/step"])]
+        splits = [json.loads(m.data) for _s, _c, m in reader.iter_messages(topics=["/navigator/split"])]
         heard = collections.Counter(c.topic for _s, c, _m in reader.iter_messages(topics=[
             "/mavlink/in/HEARTBEAT", "/mavlink/in/LOCAL_POSITION_NED", "/mavlink/in/EXTENDED_SYS_STATE"]))
     assert dropped == {}
@@ -177,6 +186,14 @@ def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
     assert (f"heartbeats: {beats} of {beats} read again alike (mode and armed from each one's fields as "
             "received)") in out.splitlines()
     assert f"tracking steps: {tracked} of {tracked} reproduced (0 brakes)" in out.splitlines()
+    # every step of the split-and-swap loop (the mission's start, its anytime improvement, any
+    # plan again) is in the file, in order, and reproduced; a swap it saw is that swap's record
+    assert [r["action"]["type"] for r in splits] == [type(a).__name__ for a in split]
+    assert [r["seq"] for r in splits] == list(range(1, len(split) + 1))
+    ends = [type(a).__name__ for a in split if type(a).__name__ in ("Done", "GiveUp", "Refused")]
+    assert "Done" in ends
+    assert (f"splits: {len(split)} of {len(split)} reproduced ({ends.count('Done')} swapped in, "
+            f"{len(ends) - ends.count('Done')} given up)") in out.splitlines()
     plans = [ln for ln in out.splitlines() if ln.startswith("plan ")]
     assert len(plans) >= 2 and all(": identical" in ln for ln in plans)
     assert f"plans: {len(plans)} of {len(plans)} reproduced bit-identically" in out.splitlines()
