@@ -24,7 +24,7 @@ takeoff or start was sent):
 Each sequence runs on a fresh rig (mock + companion restarted: ~1.5 s, faster than landing
 and disarming, ~3.6 s, and it also resets obstacles and the companion's mission state).
 
-Knobs (environment): BEZIER_SEQ_EXAMPLES (4), BEZIER_SEQ_STEPS (8); BEZIER_SEQ_SOFT=1
+Knobs (environment): BEZIER_SEQ_EXAMPLES (3; 4 until session 14), BEZIER_SEQ_STEPS (8); BEZIER_SEQ_SOFT=1
 collects every violation of every sequence and fails once at the end with all of them;
 BEZIER_SEQ_RANDOM=1 draws new sequences (default: derandomized, the same sequences on
 every run; the failing sequence is printed by hypothesis either way, with its blob).
@@ -55,7 +55,7 @@ from sequence_support import Plan, SeqRig, event_brief, match_waypoints, nearest
 
 pytestmark = pytest.mark.slow
 
-N_SEQUENCES = int(os.environ.get("BEZIER_SEQ_EXAMPLES", "4"))
+N_SEQUENCES = int(os.environ.get("BEZIER_SEQ_EXAMPLES", "3"))  # 3 in CI (its 25-minute budget); more: set it
 N_STEPS = int(os.environ.get("BEZIER_SEQ_STEPS", "8"))
 SOFT = os.environ.get("BEZIER_SEQ_SOFT") == "1"
 RANDOM = os.environ.get("BEZIER_SEQ_RANDOM") == "1"
