@@ -85,6 +85,7 @@ def _hold_the_gil(data: list[float]) -> float:
 
 
 async def _fly_while_starved(tmp_path: Path, process: bool) -> tuple[list[float], list[float], list[dict[str, Any]]]:
+    """The GIL holds, the gaps between the setpoints the autopilot heard, the stall events."""
     with _processes(tmp_path) as (mock, log):
         svc = service_for(mock, setpoints={"process": process,  # type: ignore[arg-type]
                                            "loop_stall_limit": LOOP_STALL_LIMIT})
@@ -96,7 +97,12 @@ async def _fly_while_starved(tmp_path: Path, process: bool) -> tuple[list[float]
             await asyncio.sleep(1.0)
             data = [random.random() for _ in range(_sorted_size(HOG_SECONDS))]  # sized as the machine is now
             held: list[float] = []
-            for _ in range(HOGS):
+            for k in range(HOGS):
+                # the first hold must find the vehicle flown by the stream, or it shows nothing (a
+                # stream that already ended has no gap and no stall); say what ended it
+                assert k > 0 or svc.control.streaming, (
+                    f"the stream had ended before the first hold: state {svc.flight.state.value}, mode "
+                    f"{svc.link.state.mode}; events {[(e['type'], e['message']) for e in events.all]}")
                 hog = threading.Thread(target=lambda: held.append(_hold_the_gil(data)))
                 hog.start()
                 while hog.is_alive():
