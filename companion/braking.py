@@ -36,6 +36,7 @@ from planner_core import (
     Trajectory,
     braking_trajectory,
     certify_all,
+    segment_at,
     splice,
     stop_time_scale,
 )
@@ -101,8 +102,7 @@ def _jet_at(traj: Trajectory, t: float) -> FloatArray:
 def corridor_at(traj: Trajectory, t: float) -> Polytope | None:
     if traj.corridors is None:
         return None
-    j = int(np.clip(np.searchsorted(traj.times, t, side="right") - 1, 0, traj.n_segments - 1))
-    return traj.corridors[j]
+    return traj.corridors[segment_at(traj.times, t)]
 
 
 def safe_corridor(position: FloatArray, velocity: FloatArray, obstacles: Sequence[Polytope],

@@ -32,7 +32,7 @@ from companion.mission import remaining
 from companion.route import Route
 from companion.setpoints import Feed, Setpoint, Tick, YawPolicy, sample
 from companion.wire.messages import MissionSpec
-from planner_core import Bounds, FloatArray, Trajectory, hold, sampler, trim_before
+from planner_core import Bounds, FloatArray, Trajectory, hold, sampler, segment_at, trim_before
 
 log = logging.getLogger("companion")
 
@@ -75,7 +75,7 @@ def _rounding(traj: Trajectory, t: float) -> FloatArray:
     by ~1e-5, which a plain 1e-6 tolerance took for a stop that does not start where the flown
     plan is (and the companion then held at the measured position instead of flying the stop)."""
     times = traj.times
-    s = min(max(int(np.searchsorted(times, t, side="right")) - 1, 0), len(times) - 2)
+    s = segment_at(times, t)
     duration = float(times[s + 1] - times[s])
     scale = 1.0 + float(np.max(np.abs(traj.control_points[s])))
     out: FloatArray = _ROUNDING * scale / duration ** np.arange(5)
@@ -87,9 +87,8 @@ def swap_span(traj: Trajectory, now: float, t_split: float) -> Trajectory:
     `t_split` (those from `now` to `t_split`, clamped to its span), the curve alone: the rule
     decides the same on it, and a recorded decision of a long mission stays small."""
     times = traj.times
-    last = len(times) - 2
     lo, hi = (min(max(t, float(times[0])), float(times[-1])) for t in (min(now, t_split), t_split))
-    i0, i1 = (min(max(int(np.searchsorted(times, t, side="right")) - 1, 0), last) for t in (lo, hi))
+    i0, i1 = segment_at(times, lo), segment_at(times, hi)
     return Trajectory(times[i0:i1 + 2], traj.control_points[i0:i1 + 1])
 
 

@@ -34,7 +34,7 @@ from companion.split_swap import SplitSwap, neighbours
 from companion.supervisor import MissionComplete, StoppedAfterBraking, Supervisor
 from companion.wire.encode import num
 from companion.wire.messages import Change, MissionSpec, ObstacleUpdate, bounds_from
-from planner_core import Bounds, FloatArray
+from planner_core import Bounds, FloatArray, segment_at
 
 S = State
 
@@ -131,7 +131,7 @@ class Navigator:
         r = self.route
         if r is not None and self.control.flying:
             t = self.control.now()
-            i = int(np.clip(np.searchsorted(r.times, t, side="right") - 1, 0, len(r.times) - 2))
+            i = segment_at(r.times, t)
             nxt = r.labels[i + 1 :]
             ahead = nxt[nxt >= 0]
             seg = int(ahead[0]) - 1 if len(ahead) else int(np.max(r.labels))

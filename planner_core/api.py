@@ -44,6 +44,7 @@ if TYPE_CHECKING:
         takeoff_duration,
         weighted_durations,
     )
+    from planner_core.bezier import segment_at, segments_at
     from planner_core.braking import braking_trajectory, stop_time_scale
     from planner_core.changes import (
         AddObstacles,
@@ -176,6 +177,8 @@ _WHERE: dict[str, tuple[str, str]] = {
     "ReplanResult": ("planner_core.replan", "ReplanResult"),
     "rest_jet": ("planner_core.problem", "rest_jet"),
     "Sampler": ("planner_core.trajectory", "Sampler"),
+    "segment_at": ("planner_core.bezier", "segment_at"),
+    "segments_at": ("planner_core.bezier", "segments_at"),
     "sampler": ("planner_core.trajectory", "sampler"),
     "scale_search": ("planner_core.feasibility", "scale_search"),
     "scaled_durations": ("planner_core.feasibility", "scaled"),
@@ -272,6 +275,8 @@ __all__ = [
     "sampler",
     "scale_search",
     "scaled_durations",
+    "segment_at",
+    "segments_at",
     "separation_rows",
     "shifted",
     "speed_bound",

@@ -231,10 +231,22 @@ def subdivided_hull_extent(ctrl: FloatArray, k: int, durations: FloatArray, piec
 # --- trajectory evaluation --------------------------------------------------
 
 
+def segments_at(times: FloatArray, t: FloatArray) -> NDArray[np.intp]:
+    """The segment of knots `times` that each time of t lies in: the later one at a knot, the
+    first before the span and the last at and after its end (where the curve holds its end)."""
+    seg: NDArray[np.intp] = np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 2)
+    return seg
+
+
+def segment_at(times: FloatArray, t: float) -> int:
+    """`segments_at` for one time (a fraction of its cost: hot loops call this)."""
+    return min(max(int(np.searchsorted(times, t, side="right")) - 1, 0), len(times) - 2)
+
+
 def locate(times: FloatArray, t: FloatArray) -> tuple[NDArray[np.intp], FloatArray]:
     """Segment index and local parameter u for times t (clamped to the span)."""
     t = np.clip(np.atleast_1d(np.asarray(t, dtype=float)), times[0], times[-1])
-    seg: NDArray[np.intp] = np.clip(np.searchsorted(times, t, side="right") - 1, 0, len(times) - 2)
+    seg = segments_at(times, t)
     u = (t - times[seg]) / (times[seg + 1] - times[seg])
     return seg, np.clip(u, 0.0, 1.0)
 

@@ -10,6 +10,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from planner_core.bezier import segments_at
 from planner_core.problem import Polytope, Trajectory
 
 INSIDE_EPS = 1e-9
@@ -29,7 +30,7 @@ def first_hit(traj: Trajectory, t_from: float, obstacles: Sequence[Polytope], ra
     # Sample only segments whose control-point hull (which holds the curve) is not wholly
     # beyond one plane of some inflated obstacle: same answer, a fraction of the evaluations
     # (this runs on the event loop, before the replan).
-    seg = np.clip(np.searchsorted(traj.times, ts, side="right") - 1, 0, traj.n_segments - 1)
+    seg = segments_at(traj.times, ts)
     near = np.zeros(traj.n_segments, dtype=bool)
     for ob in inflated:
         beyond = np.min(traj.control_points @ ob.A.T - ob.b, axis=1) > -INSIDE_EPS  # (S, P)

@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from planner_core.bezier import segments_at
 from planner_core.problem import FloatArray, Trajectory
 from planner_core.separation_batch import (
     Packed,
@@ -433,7 +434,7 @@ def verify_separation(a: Trajectory, b: Trajectory, cert: SeparationCertificate,
                                        f"trajectory's peak speed ({peak:.4g} m/s)")
     knots, pa, pb = common_pieces(a, b, extra=times[(times > lo) & (times < hi)])
     mid = 0.5 * (knots[:-1] + knots[1:])
-    which = np.clip(np.searchsorted(times, mid, side="right") - 1, 0, k - 1)
+    which = segments_at(times, mid)
     scale = np.linalg.norm(normals, axis=1)
     n = normals[which] / scale[which, None]
     c = offsets[which] / scale[which]

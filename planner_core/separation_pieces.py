@@ -20,6 +20,7 @@ from functools import lru_cache
 import numpy as np
 from numpy.typing import NDArray
 
+from planner_core.bezier import segments_at
 from planner_core.problem import FloatArray, Trajectory
 
 IntArray = NDArray[np.intp]
@@ -77,7 +78,7 @@ def locate(traj: Trajectory, t0: FloatArray, t1: FloatArray) -> tuple[IntArray, 
     """Segment, local u0, u1 and "held" (after the end) of each interval [t0, t1] (within one segment)."""
     times = traj.times
     mid = 0.5 * (t0 + t1)
-    seg = np.clip(np.searchsorted(times, mid, side="right") - 1, 0, traj.n_segments - 1)
+    seg = segments_at(times, mid)
     d = times[seg + 1] - times[seg]
     u0 = np.clip((t0 - times[seg]) / d, 0.0, 1.0)
     u1 = np.clip((t1 - times[seg]) / d, 0.0, 1.0)

@@ -16,6 +16,7 @@ from functools import cached_property
 import numpy as np
 from numpy.typing import NDArray
 
+from planner_core.bezier import segments_at
 from planner_core.broadphase import overlapping_pairs
 from planner_core.problem import Bounds, FloatArray, Polytope, Problem, Trajectory
 from planner_core.separation_batch import (
@@ -423,7 +424,7 @@ def separation_rows(times: FloatArray, cert: SeparationCertificate, n_segments: 
     knots = merge_knots(np.concatenate([cert.times, times[(times > cert.times[0]) & (times < cert.times[-1])]]))
     t0, t1 = knots[:-1], knots[1:]
     mid = 0.5 * (t0 + t1)
-    which = np.clip(np.searchsorted(cert.times, mid, side="right") - 1, 0, cert.n_intervals - 1)
+    which = segments_at(cert.times, mid)
     seg = np.clip(np.searchsorted(times, mid, side="right") - 1, 0, m1 - 1)
     d = times[seg + 1] - times[seg]
     u0 = np.clip((t0 - times[seg]) / d, 0.0, 1.0)

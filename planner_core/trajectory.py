@@ -12,7 +12,7 @@ import math
 
 import numpy as np
 
-from planner_core.bezier import end_jet, split_segment, start_jet
+from planner_core.bezier import end_jet, segment_at, segments_at, split_segment, start_jet
 from planner_core.problem import FloatArray, Polytope, Trajectory
 
 SPLIT_EPS = 1e-12  # a split closer than this (in seconds) to a boundary reuses that boundary
@@ -154,7 +154,6 @@ class Sampler:
         self.times = traj.times
         self.t0 = float(traj.times[0])
         self.t_end = float(traj.times[-1])
-        self._last = len(traj.times) - 2
         self._segments: dict[int, FloatArray] = {}
 
     def _segment(self, s: int) -> FloatArray:
@@ -168,7 +167,7 @@ class Sampler:
 
     def _eval(self, t: float, cols: int) -> FloatArray:
         tc = min(max(t, self.t0), self.t_end)
-        s = min(max(int(np.searchsorted(self.times, tc, side="right")) - 1, 0), self._last)
+        s = segment_at(self.times, tc)
         t_lo, t_hi = float(self.times[s]), float(self.times[s + 1])
         u = min(max((tc - t_lo) / (t_hi - t_lo), 0.0), 1.0)
         basis = _BINOM * u**_POW * (1.0 - u) ** (_DEG - _POW)
@@ -180,7 +179,7 @@ class Sampler:
         as `Trajectory.evaluate` (the setpoints' low-passed acceleration takes ~100 a tick:
         ~10x cheaper here, from the same segment matrices as `jet`)."""
         tc = np.clip(np.asarray(ts, dtype=float), self.t0, self.t_end)
-        seg = np.clip(np.searchsorted(self.times, tc, side="right") - 1, 0, self._last)
+        seg = segments_at(self.times, tc)
         lo, hi = self.times[seg], self.times[seg + 1]
         u = np.clip((tc - lo) / (hi - lo), 0.0, 1.0)[:, None]
         basis = _BINOM * u**_POW * (1.0 - u) ** (_DEG - _POW)

@@ -15,7 +15,9 @@ from planner_core.bezier import (
     end_map,
     evaluate_segment,
     hodograph,
+    segment_at,
     segment_from_jets,
+    segments_at,
     segments_from_jets,
     split_segment,
     start_jet,
@@ -126,3 +128,20 @@ def test_bernstein_gram_closed_form() -> None:
     B = bernstein_basis(5, u)
     quad = np.trapezoid(B[:, :, None] * B[:, None, :], u, axis=0)
     assert np.allclose(g, quad, atol=1e-9)
+
+
+@given(st.lists(st.floats(0.01, 5.0), min_size=1, max_size=8), st.floats(-100.0, 100.0),
+       st.lists(st.floats(-3.0, 40.0), max_size=20))
+def test_the_segment_of_a_time_is_the_one_that_holds_it(durations: list[float], t0: float, ts: list[float]) -> None:
+    """One reading of "which segment is t in" for every caller (samplers, swaps, corridors):
+    the later segment at a knot, the first before the span, the last at and after its end."""
+    times = t0 + np.concatenate([[0.0], np.cumsum(durations)])
+    last = len(durations) - 1
+    probes = [t0 + t for t in ts] + list(times)  # every knot too
+    for t in probes:
+        s = segment_at(times, t)
+        if t < times[-1]:
+            assert times[s] <= t < times[s + 1] or (s == 0 and t < times[0])
+        else:
+            assert s == last
+    assert segments_at(times, np.array(probes)).tolist() == [segment_at(times, t) for t in probes]
