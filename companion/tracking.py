@@ -73,6 +73,7 @@ class Tracking:
         self._observe: StepObserver = _unobserved
         self._tracking_stop: asyncio.Task[None] | None = None  # the hold the rules asked for last
         self._allowance_said: str | None = None  # the autopilot whose default allowance was said
+        self._limits: tuple[str | None, tuple[float, str, float]] | None = None  # _limit's, for the autopilot
         # lag compensation: the vehicle's lag behind the setpoints it is sent, from telemetry
         self.lag = LagEstimator(cap=cfg.setpoints.lead_max)
         self._leads: collections.deque[tuple[float, float]] = collections.deque()  # (t, lead) sampled
@@ -110,13 +111,25 @@ class Tracking:
         self._estimate_lag(measured_at)
         self._step(self._reading(err, ours), measured_at)
 
-    def _reading(self, err: float | None, ours: bool) -> TrackingSample:
-        fl, stop = self.flight, self._tracking_stop
+    def _limit(self) -> tuple[float, str, float]:
+        """(the brake's limit, its name, the allowance): they change only with the autopilot
+        linked (the configuration is frozen), so they are built once for each, not each sample."""
+        autopilot = self.link.state.autopilot
+        cached = self._limits
+        if cached is not None and cached[0] == autopilot:
+            return cached[1]
         brake = self.cfg.safety.tracking_brake
-        allowance, source = self.allowance()
+        allowance, source = tracking_allowance(self.cfg.planner, autopilot)
         name = "[safety] tracking_brake" if brake else \
             "[planner] tracking_allowance" + ("" if source.startswith("[planner]") else f" ({source})")
-        return TrackingSample(err, ours, fl.state is S.STREAMING and fl.airborne, brake or allowance, name, allowance,
+        limit = (brake or allowance, name, allowance)
+        self._limits = (autopilot, limit)
+        return limit
+
+    def _reading(self, err: float | None, ours: bool) -> TrackingSample:
+        fl, stop = self.flight, self._tracking_stop
+        limit, name, allowance = self._limit()
+        return TrackingSample(err, ours, fl.state is S.STREAMING and fl.airborne, limit, name, allowance,
                               stop is not None and not stop.done())
 
     def _step(self, reading: TrackingSample, measured_at: float) -> None:

@@ -292,3 +292,23 @@ def test_an_observer_that_fails_never_keeps_the_vehicle_from_braking(tmp_path: P
 
     asyncio.run(go())
     assert rig.sup.state.value == "HOLDING"
+
+
+def test_the_limit_follows_the_autopilot_linked(tmp_path: Path) -> None:
+    """The brake's limit is built once per autopilot, not per sample: a link to another
+    autopilot (or the first heartbeat) must still change it."""
+    cfg = config(tmp_path)
+    rig = Rig(Recorder(replace(cfg, planner=replace(cfg.planner, tracking_allowance="autopilot"))))
+    seen: list[tuple[float, str]] = []
+    rig.tracking.connect(observe=lambda _b, reading, *_: seen.append((reading.limit, reading.limit_name)))
+
+    async def go() -> None:
+        rig.handle(*UP)
+        for autopilot in (None, "px4", "ardupilot", "px4"):
+            rig.link.state.autopilot = autopilot
+            await rig.samples(*[5.0] * 2)  # over any allowance: each sample is a step shown
+
+    asyncio.run(go())
+    names = [name for _limit, name in seen]
+    assert [limit for limit, _name in seen] == [0.4, 0.4, 1.0, 1.0, 0.4, 0.4, 1.0, 1.0]
+    assert "not yet known" in names[0] and "PX4" in names[2] and "ArduPilot" in names[4] and "PX4" in names[6]
