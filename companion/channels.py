@@ -169,6 +169,20 @@ SPLIT_STEP = _obj("bezier.SplitStep", "One call of the split-and-swap loop's rul
     "observation": TAGGED, "after": {"type": "object"}, "action": TAGGED,
 }, ("seq", "t", "swap", "call", "step", "what", "rules", "before", "observation", "after", "action"))
 
+BUDGET_STEP = _obj("bezier.BudgetStep", "One question to the plan budget (companion/plan_budget.py budget_step): how "
+                   "far ahead a plan is split and how many candidate plans a search may plan, from the planning "
+                   "times measured in this service, or a plan's time measured into it; every value exact, as JSON "
+                   "holds it (no pickle)", {
+    "seq": SEQ_RULES,
+    "t": T_MONO,
+    "before": {"type": "object", "description": "companion.plan_budget.Budget: seconds per candidate plan per "
+               "waypoint, as estimated before"},
+    "ask": TAGGED,
+    "after": {"type": "object", "description": "companion.plan_budget.Budget (changed by Measured only)"},
+    "answer": {"type": ["number", "null"], "description": "seconds ahead, or candidate plans (null: no cap, or "
+               "nothing to answer)"},
+}, ("seq", "t", "before", "ask", "after", "answer"))
+
 DECODED = _obj("bezier.DecodedMessage", "An inbound message as the companion read it (companion.wire.messages.read): "
                "the typed message (local_ned) or the refusal, and what read was given besides the bytes", {
     "seq": {"type": "integer", "description": "1, 2, ... per run, numbered as the message was read: a gap is a "
@@ -271,6 +285,8 @@ def spec(topic: str) -> Spec:
         return _json(TRACKING_STEP)
     if topic == "/navigator/split":
         return _json(SPLIT_STEP)
+    if topic == "/navigator/budget":
+        return _json(BUDGET_STEP)
     if topic == "/inbound/decoded":
         return _json(DECODED)
     if topic == "/recorder/stats":
@@ -398,6 +414,11 @@ def split_fields(call: int, step: int, what: str, rules: Any, before: Any, obser
     """The readable part of a /navigator/split record: all of it (JSON only)."""
     return {"call": call, "step": step, "what": what, "rules": _plain(rules), "before": _plain(before),
             "observation": _tagged(observation), "after": _plain(after), "action": _tagged(action)}
+
+
+def budget_fields(before: Any, ask: Any, after: Any, answer: Any) -> dict[str, Any]:
+    """A /navigator/budget record's body but for seq and t: all of it (JSON only)."""
+    return {"before": _plain(before), "ask": _tagged(ask), "after": _plain(after), "answer": answer}
 
 
 ORDERS = ("velocity", "acceleration", "jerk", "snap")

@@ -12,8 +12,9 @@ server). A record that finds its queue full is dropped and counted: in status
 so a burst of other traffic never drops one; so have the decisions replay checks as unbroken
 chains: the supervisor's transitions (every `Supervisor.handle` call), the autopilot watch's
 steps (every call of companion.autopilot_rules.watch_step), the tracking error's (every call
-of companion.tracking_rules.tracking_step that changed or said something) and the split-and-swap
-loop's (every call of companion.split_rules.split_step).
+of companion.tracking_rules.tracking_step that changed or said something), the split-and-swap
+loop's (every call of companion.split_rules.split_step) and the plan budget's (every call of
+companion.plan_budget.budget_step).
 
 Channels, schemas and frames: companion/channels.py and docs/recording.md.
 """
@@ -173,6 +174,7 @@ class Recorder(Tap):
         self._swap_seq = itertools.count(1)
         self._tracking_seq = itertools.count(1)
         self._split_seq = itertools.count(1)
+        self._budget_seq = itertools.count(1)
         self._swaps = 0  # swaps numbered so far (on the loop, as the split's steps are recorded)
         # the writer's: the last /tracking/step seq written and the file part it went to; a
         # record after a gap, or the first of a part, carries its window of errors in full
@@ -294,6 +296,9 @@ class Recorder(Tap):
         # with the number of the last swap decided: a step that observed a swap names its record
         self._put(self._decisions, ("split_step", next(self._split_seq), self._swaps, call, step, what, rules, before,
                                     observation, after, action, self.clock()))
+
+    def budget_step(self, before: Any, ask: Any, after: Any, answer: Any) -> None:
+        self._put(self._decisions, ("budget_step", next(self._budget_seq), before, ask, after, answer, self.clock()))
 
     def flown(self, trajectory: Any, t_base: float | None, t: float) -> None:
         self._put(self._rest, ("flown", trajectory, t_base, t))
@@ -419,6 +424,9 @@ class Recorder(Tap):
             _, seq, swap, call, step, what, rules, before, observation, after, action, t = item
             body = ch.split_fields(call, step, what, rules, before, observation, after, action)
             self._emit("/navigator/split", ch.dumps({"seq": seq, "t": t, "swap": swap, **body}), t)
+        elif kind == "budget_step":
+            _, seq, before, ask, after, answer, t = item
+            self._emit("/navigator/budget", ch.dumps({"seq": seq, "t": t, **ch.budget_fields(before, ask, after, answer)}), t)
         elif kind == "flown":
             _, traj, t_base, t = item
             for topic, data in self._viz.on_flown(traj, t_base, t):

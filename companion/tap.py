@@ -68,6 +68,10 @@ class Tap:
         state before, the observation, the state after and the action; on the loop, so no time:
         the tap takes it."""
 
+    def budget_step(self, before: Any, ask: Any, after: Any, answer: Any) -> None:
+        """A question to the plan budget (companion.plan_budget.budget_step): the budget before,
+        the question, the budget after and the answer; on the loop, so no time: the tap takes it."""
+
     def flown(self, trajectory: Any, t_base: float | None, t: float) -> None:
         """What the setpoint thread flies from now on (a new plan, a swap, a hold)."""
 

@@ -214,6 +214,10 @@ def test_every_plan_transition_and_step_of_the_flight_replays_bit_identically(fl
     # every step of the split-and-swap loop reproduced (the mission and the replan at least swapped in)
     split = sum(1 for _s, c, _m in msgs if c.topic == "/navigator/split")
     assert split >= 4 and any(ln.startswith(f"splits: {split} of {split} reproduced (") for ln in run.stdout.splitlines())
+    # every question to the plan budget answered alike (the climb, the mission, the replan each
+    # asked how far ahead to split; their planning times measured)
+    budget = sum(1 for _s, c, _m in msgs if c.topic == "/navigator/budget")
+    assert budget >= 6 and any(ln.startswith(f"budget: {budget} of {budget} reproduced (") for ln in run.stdout.splitlines())
     # every inbound message the flight took in was read, and reads again the same (none was
     # dropped or refused on arrival in this flight)
     inbound = sum(1 for _s, c, _m in msgs if c.topic.startswith("/in/"))
