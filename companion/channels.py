@@ -169,6 +169,19 @@ SPLIT_STEP = _obj("bezier.SplitStep", "One call of the split-and-swap loop's rul
     "observation": TAGGED, "after": {"type": "object"}, "action": TAGGED,
 }, ("seq", "t", "swap", "call", "step", "what", "rules", "before", "observation", "after", "action"))
 
+COMMIT_STEP = _obj("bezier.CommitStep", "One call of the fleet's commit protocol (companion/commit.py step): a "
+                   "candidate ready with what was known of the others, another vehicle's trajectory heard, a tick, "
+                   "a cancel; the protocol's state before and after and its actions; every value exact, as JSON "
+                   "holds it (no pickle)", {
+    "seq": SEQ_RULES,
+    "t": T_MONO,
+    "before": {"type": "object", "description": "companion.commit.State: our rank, the wait, the phase, the "
+               "candidate's number, its deadline"},
+    "event": TAGGED,
+    "after": {"type": "object"},
+    "actions": {"type": "array", "items": TAGGED},
+}, ("seq", "t", "before", "event", "after", "actions"))
+
 BUDGET_STEP = _obj("bezier.BudgetStep", "One question to the plan budget (companion/plan_budget.py budget_step): how "
                    "far ahead a plan is split and how many candidate plans a search may plan, from the planning "
                    "times measured in this service, or a plan's time measured into it; every value exact, as JSON "
@@ -287,6 +300,8 @@ def spec(topic: str) -> Spec:
         return _json(SPLIT_STEP)
     if topic == "/navigator/budget":
         return _json(BUDGET_STEP)
+    if topic == "/fleet/commit":
+        return _json(COMMIT_STEP)
     if topic == "/inbound/decoded":
         return _json(DECODED)
     if topic == "/recorder/stats":
@@ -414,6 +429,12 @@ def split_fields(call: int, step: int, what: str, rules: Any, before: Any, obser
     """The readable part of a /navigator/split record: all of it (JSON only)."""
     return {"call": call, "step": step, "what": what, "rules": _plain(rules), "before": _plain(before),
             "observation": _tagged(observation), "after": _plain(after), "action": _tagged(action)}
+
+
+def commit_fields(before: Any, event: Any, after: Any, actions: tuple[Any, ...]) -> dict[str, Any]:
+    """A /fleet/commit record's body but for seq and t: all of it (JSON only)."""
+    return {"before": _plain(before), "event": _tagged(event), "after": _plain(after),
+            "actions": [_tagged(a) for a in actions]}
 
 
 def budget_fields(before: Any, ask: Any, after: Any, answer: Any) -> dict[str, Any]:

@@ -13,8 +13,9 @@ so a burst of other traffic never drops one; so have the decisions replay checks
 chains: the supervisor's transitions (every `Supervisor.handle` call), the autopilot watch's
 steps (every call of companion.autopilot_rules.watch_step), the tracking error's (every call
 of companion.tracking_rules.tracking_step that changed or said something), the split-and-swap
-loop's (every call of companion.split_rules.split_step) and the plan budget's (every call of
-companion.plan_budget.budget_step).
+loop's (every call of companion.split_rules.split_step), the plan budget's (every call of
+companion.plan_budget.budget_step) and the fleet's commit protocol's (every call of
+companion.commit.step).
 
 Channels, schemas and frames: companion/channels.py and docs/recording.md.
 """
@@ -175,6 +176,7 @@ class Recorder(Tap):
         self._tracking_seq = itertools.count(1)
         self._split_seq = itertools.count(1)
         self._budget_seq = itertools.count(1)
+        self._commit_seq = itertools.count(1)
         self._swaps = 0  # swaps numbered so far (on the loop, as the split's steps are recorded)
         # the writer's: the last /tracking/step seq written and the file part it went to; a
         # record after a gap, or the first of a part, carries its window of errors in full
@@ -296,6 +298,10 @@ class Recorder(Tap):
         # with the number of the last swap decided: a step that observed a swap names its record
         self._put(self._decisions, ("split_step", next(self._split_seq), self._swaps, call, step, what, rules, before,
                                     observation, after, action, self.clock()))
+
+    def commit_step(self, before: Any, event: Any, after: Any, actions: tuple[Any, ...]) -> None:
+        self._put(self._decisions, ("commit_step", next(self._commit_seq), before, event, after, actions,
+                                    self.clock()))
 
     def budget_step(self, before: Any, ask: Any, after: Any, answer: Any) -> None:
         self._put(self._decisions, ("budget_step", next(self._budget_seq), before, ask, after, answer, self.clock()))
@@ -424,6 +430,9 @@ class Recorder(Tap):
             _, seq, swap, call, step, what, rules, before, observation, after, action, t = item
             body = ch.split_fields(call, step, what, rules, before, observation, after, action)
             self._emit("/navigator/split", ch.dumps({"seq": seq, "t": t, "swap": swap, **body}), t)
+        elif kind == "commit_step":
+            _, seq, before, event, after, actions, t = item
+            self._emit("/fleet/commit", ch.dumps({"seq": seq, "t": t, **ch.commit_fields(before, event, after, actions)}), t)
         elif kind == "budget_step":
             _, seq, before, ask, after, answer, t = item
             self._emit("/navigator/budget", ch.dumps({"seq": seq, "t": t, **ch.budget_fields(before, ask, after, answer)}), t)

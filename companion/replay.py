@@ -30,7 +30,8 @@ decided again (companion/replay_swaps.py); each `/navigator/split` record one ca
 split-and-swap loop's rules (where a plan made in flight splits, planning again, moving it later,
 giving up), run again (companion/replay_split.py); each `/navigator/budget` record one question
 to the plan budget (how far ahead a plan splits, how big a search fits, each plan's time
-measured), answered again (companion/replay_budget.py).
+measured), answered again (companion/replay_budget.py); in a fleet, each `/fleet/commit` record
+one call of the commit protocol's rule, run again (companion/replay_commit.py).
 
 What it does not cover: how inbound messages and commands became supervisor events and
 planner calls, the autopilot watch's telemetry advice, and the navigator's (which plan to ask
