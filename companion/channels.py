@@ -182,6 +182,17 @@ COMMIT_STEP = _obj("bezier.CommitStep", "One call of the fleet's commit protocol
     "actions": {"type": "array", "items": TAGGED},
 }, ("seq", "t", "before", "event", "after", "actions"))
 
+CLOCK_SAMPLE = _obj("bezier.ClockSample", "One sample of the fleet's clock check (companion/clocks.py): another "
+                    "vehicle's trajectory put, sent on its clock and heard on ours (system clock, s), and the "
+                    "verdict on our clock then", {
+    "seq": SEQ_RULES,
+    "t": T_MONO,
+    "vehicle": {"type": "string"},
+    "sent": {"type": "number", "description": "the put's send time on its sender's system clock (attachment)"},
+    "arrived": {"type": "number", "description": "our system clock when it arrived"},
+    "off": {"type": ["string", "null"], "description": "why our clock is taken to be off then (null: it agrees)"},
+}, ("seq", "t", "vehicle", "sent", "arrived", "off"))
+
 BUDGET_STEP = _obj("bezier.BudgetStep", "One question to the plan budget (companion/plan_budget.py budget_step): how "
                    "far ahead a plan is split and how many candidate plans a search may plan, from the planning "
                    "times measured in this service, or a plan's time measured into it; every value exact, as JSON "
@@ -302,6 +313,8 @@ def spec(topic: str) -> Spec:
         return _json(BUDGET_STEP)
     if topic == "/fleet/commit":
         return _json(COMMIT_STEP)
+    if topic == "/fleet/clock":
+        return _json(CLOCK_SAMPLE)
     if topic == "/inbound/decoded":
         return _json(DECODED)
     if topic == "/recorder/stats":

@@ -47,6 +47,8 @@ class Deconfliction:
         # shown every call of the protocol's rule (the flight recorder's tap: it must return at once)
         self.observe: Callable[[cp.State, cp.Event, cp.State, tuple[cp.Action, ...]], None] = \
             lambda _b, _e, _a, _x: None
+        # shown every sample of the clock check and its verdict (vehicle, sent, arrived, why off)
+        self.observe_clock: Callable[[str, float, float, str | None], None] = lambda _v, _s, _a, _w: None
         self.seq = 0
         self.committed_seq = 0
         # the candidate that won (its number and certificates), until it is published as committed
@@ -249,6 +251,10 @@ class Deconfliction:
         if sent is not None and arrived is not None:  # a vehicle's trajectory (the router checked who may put it)
             self.clocks.heard(vehicle, sent, arrived)
             self._clock_verdict(arrived)
+            try:
+                self.observe_clock(vehicle, sent, arrived, self.clock_off)
+            except Exception:  # a recorder's fault must never change what the fleet decides
+                log.exception("fleet: the clock observer failed")
         held = (self.traffic.committed if claim.committed else self.traffic.proposed).get(vehicle)
         if held is not None and held.seq == claim.seq:
             return  # the same trajectory published again (REPUBLISH)

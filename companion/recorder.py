@@ -177,6 +177,7 @@ class Recorder(Tap):
         self._split_seq = itertools.count(1)
         self._budget_seq = itertools.count(1)
         self._commit_seq = itertools.count(1)
+        self._clock_seq = itertools.count(1)
         self._swaps = 0  # swaps numbered so far (on the loop, as the split's steps are recorded)
         # the writer's: the last /tracking/step seq written and the file part it went to; a
         # record after a gap, or the first of a part, carries its window of errors in full
@@ -302,6 +303,9 @@ class Recorder(Tap):
     def commit_step(self, before: Any, event: Any, after: Any, actions: tuple[Any, ...]) -> None:
         self._put(self._decisions, ("commit_step", next(self._commit_seq), before, event, after, actions,
                                     self.clock()))
+
+    def clock_sample(self, vehicle: str, sent: float, arrived: float, off: str | None) -> None:
+        self._put(self._decisions, ("clock_sample", next(self._clock_seq), vehicle, sent, arrived, off, self.clock()))
 
     def budget_step(self, before: Any, ask: Any, after: Any, answer: Any) -> None:
         self._put(self._decisions, ("budget_step", next(self._budget_seq), before, ask, after, answer, self.clock()))
@@ -433,6 +437,10 @@ class Recorder(Tap):
         elif kind == "commit_step":
             _, seq, before, event, after, actions, t = item
             self._emit("/fleet/commit", ch.dumps({"seq": seq, "t": t, **ch.commit_fields(before, event, after, actions)}), t)
+        elif kind == "clock_sample":
+            _, seq, vehicle, sent, arrived, off, t = item
+            self._emit("/fleet/clock", ch.dumps({"seq": seq, "t": t, "vehicle": vehicle, "sent": sent,
+                                                 "arrived": arrived, "off": off}), t)
         elif kind == "budget_step":
             _, seq, before, ask, after, answer, t = item
             self._emit("/navigator/budget", ch.dumps({"seq": seq, "t": t, **ch.budget_fields(before, ask, after, answer)}), t)

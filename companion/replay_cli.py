@@ -91,6 +91,11 @@ def main(argv: list[str]) -> int:
             print(replay_commit.said(commits, any_commits), flush=True)
         for more in commits.differences[1:] if args.keep_going else ():
             print(f"  also: {more}")
+        clock, any_clock = replay_commit.replay_clock_file(args.file)
+        if any_clock:
+            print(replay_commit.said_clock(clock, any_clock), flush=True)
+        for more in clock.differences[1:] if args.keep_going else ():
+            print(f"  also: {more}")
         decoded = decoded_records(args.file, args.since, args.until)
         decode_bad: list[str] = []
         if decoded:
@@ -117,7 +122,7 @@ def main(argv: list[str]) -> int:
         print(f"replay: {args.file}: {exc}", file=sys.stderr)
         return 2
     if (n == 0 and not recs and not dropped and not decoded and not any_steps and not any_tracking and not any_swaps
-            and not any_splits and not any_budget and not any_commits):
+            and not any_splits and not any_budget and not any_commits and not any_clock):
         print("replay: no plan, transition, autopilot, tracking, split or budget step, swap or inbound message in the "
               "recording "
               "(or in the time range)", file=sys.stderr)
@@ -128,5 +133,6 @@ def main(argv: list[str]) -> int:
         print(f"plans: {n - bad} of {n} reproduced bit-identically" if bad == 0 or args.keep_going
               else f"plans: plan {n} is the first that differs")
     clean = not (checked.differences or stepped.differences or tracked.differences or decode_bad
-                 or swaps.differences or splits.differences or budget.differences or commits.differences)
+                 or swaps.differences or splits.differences or budget.differences or commits.differences
+                 or clock.differences)
     return 0 if bad == 0 and clean else 1

@@ -20,6 +20,13 @@ Whether two trajectories conflict (fail to certify the separation) is decided ou
 by certifying in the fleet frame (companion.traffic), and recorded as the flags it gave; the
 certificates themselves travel in the trajectory messages (`/in/...`, `/out/trajectory`).
 
+Each /fleet/clock record holds one sample of the fleet's clock check (companion/clocks.py):
+another vehicle's trajectory put, its send time on its clock and its arrival on ours, and the
+verdict on our clock after it (why it is off, or null). Replay feeds the samples in order into a
+fresh check, with the recorded configuration's `clock_tolerance` and `max_delay`, and compares
+each verdict: so why the companion stopped a mission for its clock, and when it trusted it again,
+is answered from the file.
+
 A record is JSON only (every value a number, a flag or a string, exact as JSON holds it): it is
 read back into the protocol's own classes, named in it; a record naming any other is refused.
 """
@@ -130,3 +137,60 @@ def replay_file(path: str, since: float | None = None, until: float | None = Non
 def said(steps: CommitSteps, recorded: bool) -> str:
     """The replay's line for the commit records."""
     return replay.said_of("fleet commits", steps, recorded, f"{steps.committed} committed, {steps.lost} lost")
+
+
+# -- the clock check -----------------------------------------------------------------------------
+
+CLOCK_TOPIC = "/fleet/clock"
+
+
+@dataclasses.dataclass
+class ClockSamples(replay.Chain):
+    """What replaying a file's clock samples found (replay.Chain), and the verdicts that found
+    our clock off (a change from agreeing)."""
+
+    found_off: int = 0
+
+
+def replay_clock(recs: list[dict[str, Any]], tolerance: float, max_delay: float, dropped: int = 0) -> ClockSamples:
+    """Every sample (in `seq` order) into a fresh companion.clocks.ClockCheck, the verdict on our
+    clock after each compared with the one recorded. The check keeps WINDOW s of samples: after a
+    gap (a record missing) the verdicts are compared still, and a difference there may be the gap's."""
+    from companion.clocks import ClockCheck
+
+    out = ClockSamples()
+    check_ = ClockCheck(tolerance, max_delay)
+    was: list[str | None] = [None]
+
+    def check(rec: dict[str, Any], _previous: tuple[int, Any] | None) -> tuple[Any, list[str]]:
+        seq, vehicle = int(rec["seq"]), str(rec["vehicle"])
+        sent, arrived = float(rec["sent"]), float(rec["arrived"])
+        check_.heard(vehicle, sent, arrived)
+        why = check_.ours_off(arrived)
+        recorded = rec["off"]
+        if recorded is not None and not isinstance(recorded, str):
+            raise ValueError(f"seq {seq}: 'off' is neither text nor null")
+        out.found_off += why is not None and was[0] is None and why == recorded
+        was[0] = why
+        label = f"seq {seq} ({vehicle}, sent {sent!r}, arrived {arrived!r})"
+        return None, replay.compared(label, ("verdict on our clock", recorded, why))
+
+    replay.replay_chain(out, recs, check, dropped, "clock sample")
+    return out
+
+
+def replay_clock_file(path: str) -> tuple[ClockSamples, bool]:
+    """Replay the file's clock samples (all of them: a verdict depends on the window before it);
+    and whether it holds any."""
+    recs, dropped = replay.numbered_records(path, CLOCK_TOPIC, "clock_sample")
+    if not recs:
+        return ClockSamples(), bool(dropped)
+    cfg = replay.required_config(path, "check its fleet clock with")
+    return replay_clock(recs, float(cfg.fleet.clock_tolerance), float(cfg.fleet.max_delay), dropped), True
+
+
+def said_clock(samples: ClockSamples, recorded: bool) -> str:
+    """The replay's line for the clock samples."""
+    n = samples.found_off
+    return replay.said_of("fleet clock", samples, recorded, f"our clock found off {n} time{'s' * (n != 1)}",
+                          alike="judged alike")

@@ -72,6 +72,10 @@ class Tap:
         """A call of the fleet's commit protocol (companion.commit.step): the state before, the
         event, the state after and the actions; on the loop, so no time: the tap takes it."""
 
+    def clock_sample(self, vehicle: str, sent: float, arrived: float, off: str | None) -> None:
+        """A sample of the fleet's clock check (companion.clocks) and the verdict on our clock
+        after it; on the loop, so no time: the tap takes it."""
+
     def budget_step(self, before: Any, ask: Any, after: Any, answer: Any) -> None:
         """A question to the plan budget (companion.plan_budget.budget_step): the budget before,
         the question, the budget after and the answer; on the loop, so no time: the tap takes it."""

@@ -134,3 +134,54 @@ def test_a_file_without_commits_says_nothing_of_them(tmp_path: Path, flown: Path
     path = rewrite(flown, tmp_path / "none.mcap", lambda r: None, topic=TOPIC)
     assert replay_cli.main([str(path)]) == 2
     assert "fleet commits" not in capsys.readouterr().out
+
+
+def _clock_recorded(tmp_path: Path) -> Path:
+    """Three vehicles' puts every 0.2 s, whose clocks fall 0.5 s behind ours after 2 s: the
+    samples and the verdicts a real ClockCheck gave, recorded as the service records them."""
+    from companion.clocks import ClockCheck
+
+    cfg = config(tmp_path)
+    rec = Recorder(cfg)
+    check = ClockCheck(cfg.fleet.clock_tolerance, cfg.fleet.max_delay)
+    rec.open()
+    for k in range(20):
+        arrived = 1000.0 + 0.2 * k
+        for v in ("g1", "g2", "g3"):
+            sent = arrived - 0.01 + (0.5 if k >= 10 else 0.0)
+            check.heard(v, sent, arrived)
+            rec.clock_sample(v, sent, arrived, check.ours_off(arrived))
+    rec.close()
+    (path,) = tmp_path.glob("*.mcap")
+    return path
+
+
+def clock_line(path: Path, capsys: pytest.CaptureFixture[str]) -> tuple[int, str]:
+    code = replay_cli.main([str(path)])
+    out = capsys.readouterr().out
+    return code, next((ln for ln in out.splitlines() if ln.startswith("fleet clock:")), out)
+
+
+def test_the_clock_checks_verdicts_are_judged_alike(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    path = _clock_recorded(tmp_path)
+    recs = schema_checked(path, "/fleet/clock", "bezier.ClockSample")
+    assert [r["seq"] for r in recs] == list(range(1, 61))
+    assert recs[0]["off"] is None and recs[-1]["off"] is not None and "disagrees with 3 of the 3" in recs[-1]["off"]
+    assert clock_line(path, capsys) == (0, "fleet clock: 60 of 60 judged alike (our clock found off 1 time)")
+
+
+def test_a_changed_verdict_a_gap_and_todays_rule_changed_are_named(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    path = _clock_recorded(tmp_path)
+    trusted = rewrite(path, tmp_path / "verdict.mcap", lambda r: {**r, "off": None} if r["seq"] == 60 else r,
+                      topic="/fleet/clock")
+    code, line = clock_line(trusted, capsys)
+    assert code == 1 and line.startswith("fleet clock: 59 of 60 judged alike; first difference: seq 60 (g3,"), line
+    gap = rewrite(path, tmp_path / "gap.mcap", lambda r: None if r["seq"] == 7 else r, topic="/fleet/clock")
+    code, line = clock_line(gap, capsys)
+    assert code == 1 and "seq 7 missing (1 record" in line, line
+    import companion.clocks as clocks
+
+    monkeypatch.setattr(clocks, "MIN_SAMPLES", 50)  # the check would not yet judge our clock
+    code, line = clock_line(path, capsys)
+    assert code == 1 and "verdict on our clock" in line, line

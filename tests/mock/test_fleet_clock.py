@@ -152,6 +152,14 @@ def test_a_clock_off_the_fleets_stops_the_mission_and_refuses_plans(tmp_path: Pa
     out = capsys.readouterr().out
     assert f"fleet commits: {len(calls)} of {len(calls)} reproduced ({done.committed} committed, 0 lost)" \
         in out.splitlines() and code == 0, out
+    # every sample of the clock check is in the file, and the check fed them again judges our
+    # clock as the service did at each: off once (the mission stopped), then agreeing again
+    samples, _ = replay.numbered_records(str(path), replay_commit.CLOCK_TOPIC, "clock_sample")
+    assert len(samples) >= 3 * clocks.MIN_SAMPLES and [r["seq"] for r in samples] == list(range(1, len(samples) + 1))
+    verdicts = [r["off"] is not None for r in samples]
+    assert True in verdicts and verdicts[-1] is False
+    assert f"fleet clock: {len(samples)} of {len(samples)} judged alike (our clock found off 1 time)" \
+        in out.splitlines(), out
 
 
 @pytest.mark.slow
