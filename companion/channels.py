@@ -183,6 +183,21 @@ BUDGET_STEP = _obj("bezier.BudgetStep", "One question to the plan budget (compan
                "nothing to answer)"},
 }, ("seq", "t", "before", "ask", "after", "answer"))
 
+RACE_STEP = _obj("bezier.RaceStep", "One call of a pop-up obstacle's rules (companion/race_rules.py race_step): at "
+                 "the pop-up, when the deadline is brought forward, at each turn of the race of its replan against "
+                 "the braking deadline and at its end, what was observed, the state before and after, and what was "
+                 "done next; every value exact, as JSON holds it (no pickle)", {
+    "seq": SEQ_RULES,
+    "t": T_MONO,
+    "transition": {"type": "integer", "description": "the /supervisor/transition seq next after the call: a brake's "
+                   "Braking transition comes at or after it"},
+    "race": {"type": "integer", "description": "the pop-up (1, 2, ... per run): its steps chain"},
+    "step": {"type": "integer", "description": "1, 2, ... within the pop-up"},
+    "rules": {"type": "object", "description": "companion.race_rules.RaceRules: the pop-up's givens"},
+    "before": {"type": "object", "description": "companion.race_rules.RaceState"},
+    "observation": TAGGED, "after": {"type": "object"}, "action": TAGGED,
+}, ("seq", "t", "transition", "race", "step", "rules", "before", "observation", "after", "action"))
+
 DECODED = _obj("bezier.DecodedMessage", "An inbound message as the companion read it (companion.wire.messages.read): "
                "the typed message (local_ned) or the refusal, and what read was given besides the bytes", {
     "seq": {"type": "integer", "description": "1, 2, ... per run, numbered as the message was read: a gap is a "
@@ -287,6 +302,8 @@ def spec(topic: str) -> Spec:
         return _json(SPLIT_STEP)
     if topic == "/navigator/budget":
         return _json(BUDGET_STEP)
+    if topic == "/brakes/race":
+        return _json(RACE_STEP)
     if topic == "/inbound/decoded":
         return _json(DECODED)
     if topic == "/recorder/stats":
@@ -419,6 +436,13 @@ def split_fields(call: int, step: int, what: str, rules: Any, before: Any, obser
 def budget_fields(before: Any, ask: Any, after: Any, answer: Any) -> dict[str, Any]:
     """A /navigator/budget record's body but for seq and t: all of it (JSON only)."""
     return {"before": _plain(before), "ask": _tagged(ask), "after": _plain(after), "answer": answer}
+
+
+def race_fields(race: int, step: int, rules: Any, before: Any, observation: Any, after: Any,
+                action: Any) -> dict[str, Any]:
+    """The readable part of a /brakes/race record: all of it (JSON only)."""
+    return {"race": race, "step": step, "rules": _plain(rules), "before": _plain(before),
+            "observation": _tagged(observation), "after": _plain(after), "action": _tagged(action)}
 
 
 ORDERS = ("velocity", "acceleration", "jerk", "snap")

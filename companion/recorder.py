@@ -13,8 +13,8 @@ so a burst of other traffic never drops one; so have the decisions replay checks
 chains: the supervisor's transitions (every `Supervisor.handle` call), the autopilot watch's
 steps (every call of companion.autopilot_rules.watch_step), the tracking error's (every call
 of companion.tracking_rules.tracking_step that changed or said something), the split-and-swap
-loop's (every call of companion.split_rules.split_step) and the plan budget's (every call of
-companion.plan_budget.budget_step).
+loop's (every call of companion.split_rules.split_step), the plan budget's (every call of
+companion.plan_budget.budget_step) and the pop-ups' (every call of companion.race_rules.race_step).
 
 Channels, schemas and frames: companion/channels.py and docs/recording.md.
 """
@@ -175,6 +175,7 @@ class Recorder(Tap):
         self._tracking_seq = itertools.count(1)
         self._split_seq = itertools.count(1)
         self._budget_seq = itertools.count(1)
+        self._race_seq = itertools.count(1)
         self._swaps = 0  # swaps numbered so far (on the loop, as the split's steps are recorded)
         # the writer's: the last /tracking/step seq written and the file part it went to; a
         # record after a gap, or the first of a part, carries its window of errors in full
@@ -299,6 +300,12 @@ class Recorder(Tap):
 
     def budget_step(self, before: Any, ask: Any, after: Any, answer: Any) -> None:
         self._put(self._decisions, ("budget_step", next(self._budget_seq), before, ask, after, answer, self.clock()))
+
+    def race_step(self, race: int, step: int, rules: Any, before: Any, observation: Any, after: Any,
+                  action: Any) -> None:
+        # with the next transition's number, as tracking steps: a brake's Braking transition comes at or after it
+        self._put(self._decisions, ("race_step", next(self._race_seq), self._transitions + 1, race, step, rules,
+                                    before, observation, after, action, self.clock()))
 
     def flown(self, trajectory: Any, t_base: float | None, t: float) -> None:
         self._put(self._rest, ("flown", trajectory, t_base, t))
@@ -427,6 +434,10 @@ class Recorder(Tap):
         elif kind == "budget_step":
             _, seq, before, ask, after, answer, t = item
             self._emit("/navigator/budget", ch.dumps({"seq": seq, "t": t, **ch.budget_fields(before, ask, after, answer)}), t)
+        elif kind == "race_step":
+            _, seq, first, race, step, rules, before, observation, after, action, t = item
+            body = ch.race_fields(race, step, rules, before, observation, after, action)
+            self._emit("/brakes/race", ch.dumps({"seq": seq, "t": t, "transition": first, **body}), t)
         elif kind == "flown":
             _, traj, t_base, t = item
             for topic, data in self._viz.on_flown(traj, t_base, t):
