@@ -125,9 +125,11 @@ class _Replayer:
         return after, why
 
 
-def _brakes_against(out: Races, brakes: list[_Brake], first: int, transitions: dict[int, tuple[Any, Any, Any]]) -> None:
+def _brakes_against(out: Races, brakes: list[_Brake], first: int | None,
+                    transitions: dict[int, tuple[Any, Any, Any]]) -> None:
     """Each brake tied to the first unclaimed Braking transition of its reason at or after the
-    step's number; every Braking transition of an obstacle's reason from `first` on claimed."""
+    step's number; every Braking transition of an obstacle's reason from `first` on claimed
+    (None: none need be)."""
     from companion.supervisor import Braking
 
     braking = sorted(s for s, (_b, event, _a) in transitions.items() if isinstance(event, Braking))
@@ -140,7 +142,7 @@ def _brakes_against(out: Races, brakes: list[_Brake], first: int, transitions: d
             out.tied += 1
     for s in braking:
         event = transitions[s][1]
-        if s >= first and s not in claimed and event.reason.startswith(OBSTACLE_REASON):
+        if first is not None and s >= first and s not in claimed and event.reason.startswith(OBSTACLE_REASON):
             out.differences.append(f"transition {s} {event!r} was asked for by no recorded race step")
 
 
@@ -154,8 +156,20 @@ def replay_steps(recs: list[dict[str, Any]], dropped: int = 0,
     out.brakes = len(run.brakes)
     if transitions and recs:
         out.against_transitions = True
-        _brakes_against(out, run.brakes, int(recs[0]["transition"]), replay.transitions_by_seq(transitions))
+        _brakes_against(out, run.brakes, _first_claimable(recs), replay.transitions_by_seq(transitions))
     return out
+
+
+def _first_claimable(recs: list[dict[str, Any]]) -> int | None:
+    """The first transition number from which every Braking transition of an obstacle's reason
+    must have been asked for by a record here. A pop-up is decided under the navigator's lock,
+    which its race holds until its brake's Braking transition: only the braking race's own
+    deadline steps (`Forward`, outside the lock) come between a brake and its transition. So in
+    records that begin mid-race (a file part after a rotation, a time range), a Braking
+    transition before the first pop-up that starts here may be a brake asked for before them."""
+    if int(recs[0]["step"]) == 1:
+        return int(recs[0]["transition"])
+    return next((int(r["transition"]) for r in recs if int(r["step"]) == 1), None)
 
 
 def replay_file(path: str, transitions: list[dict[str, Any]], since: float | None = None,

@@ -29,7 +29,7 @@ from test_replay_transitions import rewrite
 import companion.braking as braking
 from companion import replay_race
 from companion.braking import Brakes, Replanned, StopContext, StopGuard, StopPlan
-from companion.race_rules import PopUp, Race, RaceRules, first_state, race_step
+from companion.race_rules import Forward, PopUp, Race, RaceRules, first_state, race_step
 from companion.recorder import Recorder
 from companion.report import Reporter
 from companion.supervisor import StoppedAfterBraking, Supervisor
@@ -237,3 +237,29 @@ def test_a_brake_without_its_transition_and_a_transition_without_its_brake(tmp_p
     assert any(d.startswith("transition ") and "was asked for by no recorded race step" in d
                for d in found.differences), found.differences
     assert len(recs) == len(steps(tmp_path / "untied.mcap"))
+
+
+def test_records_that_begin_mid_race_need_not_claim_a_brake_asked_for_before_them(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A file part (or a time range) that begins with a braking race's deadline step, after its
+    brake but before its Braking transition, does not name that transition; one that begins
+    with a pop-up does."""
+    path, _rec, _rig = recorded(tmp_path / "rec", monkeypatch)
+    transitions = steps(path, "/supervisor/transition")
+    wall = next(r for r in steps(path) if r["action"]["type"] == "Brake" and r["race"] == 4)
+    rules, _b, _o, after, _a = replay_race.step_values(wall)
+    seen = Forward(after.deadline - 0.5, after.hit, "['near']", "none", None)
+    later, action = race_step(rules, after, seen)
+
+    def record(step: int, before: Any, observation: Any, new: Any, act: Any) -> dict[str, Any]:
+        from companion import channels
+
+        return json.loads(channels.dumps({"seq": 1, "t": 0.0, "transition": wall["transition"],
+                                          **channels.race_fields(4, step, rules, before, observation, new, act)}))
+
+    mid = replay_race.replay_steps([record(wall["step"] + 1, after, seen, later, action)], 0, transitions)
+    assert mid.differences == [] and mid.total == mid.reproduced == 1
+    popup = PopUp(True, 1.0, 4.0, 1.1)
+    fresh = replay_race.replay_steps([record(1, first_state(), popup, *race_step(rules, first_state(), popup))], 0,
+                                     transitions)
+    assert any("was asked for by no recorded race step" in d for d in fresh.differences), fresh.differences
