@@ -1,11 +1,13 @@
 """A pop-up obstacle's decisions and its race against the braking deadline
-(companion.race_rules.race_step), on their own and against the race as it was before they were
+(companion.race_rules.race_step), on their own and against the code as it was before they were
 a function of their own: a copy of that race (`_old_race`, `_old_brake_at_deadline`, `_OldGuard`)
 and today's `Brakes.race` with `StopGuard` run in the same world (a virtual clock; the replan,
 its notes, requests for the stop, nearer pop-ups, the flight state, the stop's planning and the
 swap scripted) make the same calls in the same order at the same times: stops planned (and
 when), waits (how long, on what), cancels, brakes (reason, blocked waypoint, prepared stop),
-swaps, Braking transitions and events; and each step today's race took chains and reproduces."""
+swaps, Braking transitions and events; and each step today's race took chains and reproduces.
+Likewise a copy of `Replans.avoid` (`_old_avoid`) and today's: the same announcements, events,
+brakes, races and deadlines brought forward."""
 
 from __future__ import annotations
 
@@ -538,3 +540,136 @@ def test_a_late_replan_brakes_at_the_deadline_with_the_prepared_stop() -> None:
     assert "deadline brought forward by obstacles ['n'] (hit at t=2.20 s)" in handled[0][2]
     assert (deadline, hit, tuple(notes)) == (1.2, 2.2, ("deadline brought forward by obstacles ['n'] (hit at t=2.20 s)",))
     assert [type(s[6]).__name__ for s in steps][-3:] == ["Deadline", "SwapPrepared", "Braked"]
+
+
+# -- the pop-up's decision as it was: the oracle ----------------------------------------------------
+
+
+async def _old_avoid(self: Any, new: list[Any], ids: list[str], arrived: float, announce: Any) -> None:
+    """Replans.avoid before its decision was companion.race_rules (commit d018ae6), verbatim but
+    for the names it reads from this test's world (`AW`)."""
+    names = str(ids)
+    race = self.brakes.race_guard
+    route = self.control.route
+    if race is not None and self.control.active is race.base and route is not None and self.control.flying:
+        # A replan for an earlier pop-up holds the lock until it is swapped in or its
+        # braking deadline: this obstacle may need the stop sooner.
+        now = self.control.now()
+        hit = AW.first_hit(race.base, now, new, route.mission.radius)
+        if hit is not None:
+            race.bring_forward(AW.brake_deadline(race.base, now, hit, route.mission.bounds), hit,
+                               f"deadline brought forward by obstacles {names} (hit at t={hit:.2f} s)")
+    async with self.lock:
+        route = self.control.route
+        if not self.in_flight() or route is None:
+            announce()
+            return
+        active = self.control.active
+        assert active is not None
+        now = self.control.now()
+        radius, split_ahead = route.mission.radius, self.cfg.planner.split_ahead
+        hit = AW.first_hit(active, now, new, radius)
+        if hit is None:
+            announce()
+            self.report.event("obstacles_clear", f"obstacles {names}: the current trajectory stays clear; no replan",
+                              obstacles=ids)
+            return
+        if hit < self.control.committed() + split_ahead:  # setpoints up to now + lead are sent
+            announce()
+            await self.brakes.brake(f"obstacle {names} is {hit - now:.2f} s ahead: too close to replan", arrived)
+            return
+        await self._avoid_race(new, names, arrived, hit, announce)
+
+
+AW = SimpleNamespace(first_hit=None, brake_deadline=None)
+
+
+@dataclass
+class _PopUpWorld:
+    """What Replans.avoid reads, each drawn: the flight state, whether a route is flown and the
+    vehicle flies, a race under way (on the flown plan or an older one), where each plan is hit
+    (None: never), the times read, the split's lead."""
+
+    state: State
+    route: bool
+    flying: bool
+    race: int  # 0: none, 1: on the flown plan, 2: on another
+    hits: list[float | None]  # first_hit's answers, in order
+    now: float
+    lead: float
+    split_ahead: float
+
+    def run(self, old: bool) -> list[tuple[Any, ...]]:
+        import companion.replans as replans
+
+        did: list[tuple[Any, ...]] = []
+        hits, world = list(self.hits), self
+        active = object()
+        guard = None if self.race == 0 else SimpleNamespace(
+            base=active if self.race == 1 else object(),
+            bring_forward=lambda deadline, hit, said: did.append(
+                ("forward", deadline, hit, said if old else f"deadline brought forward by obstacles {said} "
+                 f"(hit at t={hit:.2f} s)")))
+        route = SimpleNamespace(mission=SimpleNamespace(radius=0.3, bounds="bounds")) if self.route else None
+        control = SimpleNamespace(route=route, active=active, flying=self.flying, now=lambda: world.now,
+                                  committed=lambda: world.now + world.lead)
+
+        async def brake(reason: str, arrived: float) -> None:
+            did.append(("brake", reason, arrived))
+
+        brakes = SimpleNamespace(race_guard=guard, brake=brake)
+        if not old:
+            rules_cfg = replace(Config().planner, split_ahead=self.split_ahead)
+            brakes.race_steps = lambda names: braking.RaceSteps(
+                RaceRules(names, f"obstacles {names}", rules_cfg.split_ahead, 0.04), 1,
+                lambda *call: did.append(("step", type(call[4]).__name__, type(call[6]).__name__)))
+        cfg = replace(Config(), planner=replace(Config().planner, split_ahead=self.split_ahead))
+        report = SimpleNamespace(event=lambda kind, msg, **kw: did.append(("event", kind, msg, sorted(kw.items()))))
+        flight = SimpleNamespace(state=self.state)
+
+        def first_hit(_traj: Any, now: float, _new: Any, radius: float) -> float | None:
+            did.append(("first_hit", now, radius))
+            return hits.pop(0) if hits else None
+
+        async def avoid_race(_new: Any, names: str, arrived: float, hit: float, _announce: Any, *_steps: Any) -> None:
+            did.append(("race", names, arrived, hit))
+
+        async def main() -> None:
+            r = replans.Replans(cfg, flight, control, None, report, asyncio.Lock(), None, None, None,  # type: ignore[arg-type]
+                                brakes, None)
+            r._avoid_race = avoid_race  # type: ignore[method-assign]
+            announce = lambda: did.append(("announce",))  # noqa: E731
+            if old:
+                await _old_avoid(r, ["polytope"], ["p1", "p2"], 7.5, announce)
+            else:
+                await r.avoid(["polytope"], ["p1", "p2"], 7.5, announce)  # type: ignore[list-item]
+
+        AW.first_hit, AW.brake_deadline = first_hit, lambda _b, now, hit, bounds: hit - 1.1 - now * 0.0
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(replans, "first_hit", first_hit)
+            mp.setattr(replans, "brake_deadline", AW.brake_deadline)
+            asyncio.run(main())
+        return did
+
+
+POPUP_WORLDS = st.builds(
+    _PopUpWorld,
+    st.sampled_from([State.STREAMING, State.STREAMING, State.HOLDING, State.BRAKING]),
+    st.booleans() | st.just(True), st.booleans() | st.just(True),
+    st.sampled_from([0, 0, 1, 2]),
+    st.lists(st.none() | st.floats(0.0, 6.0), min_size=2, max_size=2),
+    st.floats(0.0, 5.0), st.floats(0.0, 0.1), st.floats(0.05, 1.0),
+)
+
+
+@settings(max_examples=300, deadline=None)
+@given(POPUP_WORLDS)
+def test_the_pop_up_decides_what_avoid_did(world: _PopUpWorld) -> None:
+    """The same announcements, events, brakes (reason), races (hit), deadlines brought forward
+    (deadline, hit, note) and hits asked for, in the same order; each decision a step."""
+    old = world.run(old=True)
+    new = world.run(old=False)
+    assert [d for d in new if d[0] != "step"] == old  # (drawn: ~60 % announce only, 20 % clear, 15 % brake, 8 % race)
+    kinds = {d[0] for d in old}
+    decided = "Race" if "race" in kinds else "Brake" if "brake" in kinds else "Clear" if "event" in kinds else "Announce"
+    assert [d for d in new if d[0] == "step"] == [("step", "PopUp", decided)]
