@@ -3,7 +3,8 @@
 After a pop-up obstacle on the flown path, either a verified replan is swapped in or, by the
 braking deadline (time to hit minus a stop and a margin), a verified stop planned in
 parallel; a nearer pop-up meanwhile brings the deadline forward. The pure part (`plan_stop`,
-`brake_deadline`) runs in worker threads; `Brakes` runs the race on the loop.
+`brake_deadline`) runs in worker threads; `Brakes` runs the race on the loop, its decisions (and
+the deadline's) one pure function, companion.race_rules.race_step, each call recorded.
 """
 
 from __future__ import annotations
