@@ -169,6 +169,19 @@ SPLIT_STEP = _obj("bezier.SplitStep", "One call of the split-and-swap loop's rul
     "observation": TAGGED, "after": {"type": "object"}, "action": TAGGED,
 }, ("seq", "t", "swap", "call", "step", "what", "rules", "before", "observation", "after", "action"))
 
+COMMIT_STEP = _obj("bezier.CommitStep", "One call of the fleet's commit protocol (companion/commit.py step): a "
+                   "candidate ready with what was known of the others, another vehicle's trajectory heard, a tick, "
+                   "a cancel; the protocol's state before and after and its actions; every value exact, as JSON "
+                   "holds it (no pickle)", {
+    "seq": SEQ_RULES,
+    "t": T_MONO,
+    "before": {"type": "object", "description": "companion.commit.State: our rank, the wait, the phase, the "
+               "candidate's number, its deadline"},
+    "event": TAGGED,
+    "after": {"type": "object"},
+    "actions": {"type": "array", "items": TAGGED},
+}, ("seq", "t", "before", "event", "after", "actions"))
+
 BUDGET_STEP = _obj("bezier.BudgetStep", "One question to the plan budget (companion/plan_budget.py budget_step): how "
                    "far ahead a plan is split and how many candidate plans a search may plan, from the planning "
                    "times measured in this service, or a plan's time measured into it; every value exact, as JSON "
@@ -183,20 +196,18 @@ BUDGET_STEP = _obj("bezier.BudgetStep", "One question to the plan budget (compan
                "nothing to answer)"},
 }, ("seq", "t", "before", "ask", "after", "answer"))
 
-RACE_STEP = _obj("bezier.RaceStep", "One call of a pop-up obstacle's rules (companion/race_rules.py race_step): at "
-                 "the pop-up, when the deadline is brought forward, at each turn of the race of its replan against "
-                 "the braking deadline and at its end, what was observed, the state before and after, and what was "
-                 "done next; every value exact, as JSON holds it (no pickle)", {
-    "seq": SEQ_RULES,
-    "t": T_MONO,
+RACE_STEP = _obj("bezier.RaceStep", "One call of a pop-up obstacle's rules (companion/race_rules.py race_step): at the "
+                 "pop-up, a deadline brought forward, each turn of the race of its replan against the braking deadline, "
+                 "its end; the observation, the state before and after, the action; every value exact (JSON, no pickle)", {
+    "seq": SEQ_RULES, "t": T_MONO,
     "transition": {"type": "integer", "description": "the /supervisor/transition seq next after the call: a brake's "
                    "Braking transition comes at or after it"},
-    "race": {"type": "integer", "description": "the pop-up (1, 2, ... per run): its steps chain"},
-    "step": {"type": "integer", "description": "1, 2, ... within the pop-up"},
+    "call": {"type": "integer", "description": "the pop-up (1, 2, ... per run): its steps chain"},
+    "step": {"type": "integer", "description": "1, 2, ... within the pop-up"}, "what": {"type": "string"},
     "rules": {"type": "object", "description": "companion.race_rules.RaceRules: the pop-up's givens"},
     "before": {"type": "object", "description": "companion.race_rules.RaceState"},
     "observation": TAGGED, "after": {"type": "object"}, "action": TAGGED,
-}, ("seq", "t", "transition", "race", "step", "rules", "before", "observation", "after", "action"))
+}, ("seq", "t", "transition", "call", "step", "what", "rules", "before", "observation", "after", "action"))
 
 DECODED = _obj("bezier.DecodedMessage", "An inbound message as the companion read it (companion.wire.messages.read): "
                "the typed message (local_ned) or the refusal, and what read was given besides the bytes", {
@@ -304,6 +315,8 @@ def spec(topic: str) -> Spec:
         return _json(BUDGET_STEP)
     if topic == "/brakes/race":
         return _json(RACE_STEP)
+    if topic == "/fleet/commit":
+        return _json(COMMIT_STEP)
     if topic == "/inbound/decoded":
         return _json(DECODED)
     if topic == "/recorder/stats":
@@ -433,16 +446,15 @@ def split_fields(call: int, step: int, what: str, rules: Any, before: Any, obser
             "observation": _tagged(observation), "after": _plain(after), "action": _tagged(action)}
 
 
+def commit_fields(before: Any, event: Any, after: Any, actions: tuple[Any, ...]) -> dict[str, Any]:
+    """A /fleet/commit record's body but for seq and t: all of it (JSON only)."""
+    return {"before": _plain(before), "event": _tagged(event), "after": _plain(after),
+            "actions": [_tagged(a) for a in actions]}
+
+
 def budget_fields(before: Any, ask: Any, after: Any, answer: Any) -> dict[str, Any]:
     """A /navigator/budget record's body but for seq and t: all of it (JSON only)."""
     return {"before": _plain(before), "ask": _tagged(ask), "after": _plain(after), "answer": answer}
-
-
-def race_fields(race: int, step: int, rules: Any, before: Any, observation: Any, after: Any,
-                action: Any) -> dict[str, Any]:
-    """The readable part of a /brakes/race record: all of it (JSON only)."""
-    return {"race": race, "step": step, "rules": _plain(rules), "before": _plain(before),
-            "observation": _tagged(observation), "after": _plain(after), "action": _tagged(action)}
 
 
 ORDERS = ("velocity", "acceleration", "jerk", "snap")

@@ -14,7 +14,8 @@ chains: the supervisor's transitions (every `Supervisor.handle` call), the autop
 steps (every call of companion.autopilot_rules.watch_step), the tracking error's (every call
 of companion.tracking_rules.tracking_step that changed or said something), the split-and-swap
 loop's (every call of companion.split_rules.split_step), the plan budget's (every call of
-companion.plan_budget.budget_step) and the pop-ups' (every call of companion.race_rules.race_step).
+companion.plan_budget.budget_step), the pop-ups' (every call of companion.race_rules.race_step)
+and the fleet's commit protocol's (every call of companion.commit.step).
 
 Channels, schemas and frames: companion/channels.py and docs/recording.md.
 """
@@ -176,6 +177,7 @@ class Recorder(Tap):
         self._split_seq = itertools.count(1)
         self._budget_seq = itertools.count(1)
         self._race_seq = itertools.count(1)
+        self._commit_seq = itertools.count(1)
         self._swaps = 0  # swaps numbered so far (on the loop, as the split's steps are recorded)
         # the writer's: the last /tracking/step seq written and the file part it went to; a
         # record after a gap, or the first of a part, carries its window of errors in full
@@ -297,6 +299,10 @@ class Recorder(Tap):
         # with the number of the last swap decided: a step that observed a swap names its record
         self._put(self._decisions, ("split_step", next(self._split_seq), self._swaps, call, step, what, rules, before,
                                     observation, after, action, self.clock()))
+
+    def commit_step(self, before: Any, event: Any, after: Any, actions: tuple[Any, ...]) -> None:
+        self._put(self._decisions, ("commit_step", next(self._commit_seq), before, event, after, actions,
+                                    self.clock()))
 
     def budget_step(self, before: Any, ask: Any, after: Any, answer: Any) -> None:
         self._put(self._decisions, ("budget_step", next(self._budget_seq), before, ask, after, answer, self.clock()))
@@ -431,12 +437,15 @@ class Recorder(Tap):
             _, seq, swap, call, step, what, rules, before, observation, after, action, t = item
             body = ch.split_fields(call, step, what, rules, before, observation, after, action)
             self._emit("/navigator/split", ch.dumps({"seq": seq, "t": t, "swap": swap, **body}), t)
+        elif kind == "commit_step":
+            _, seq, before, event, after, actions, t = item
+            self._emit("/fleet/commit", ch.dumps({"seq": seq, "t": t, **ch.commit_fields(before, event, after, actions)}), t)
         elif kind == "budget_step":
             _, seq, before, ask, after, answer, t = item
             self._emit("/navigator/budget", ch.dumps({"seq": seq, "t": t, **ch.budget_fields(before, ask, after, answer)}), t)
         elif kind == "race_step":
             _, seq, first, race, step, rules, before, observation, after, action, t = item
-            body = ch.race_fields(race, step, rules, before, observation, after, action)
+            body = ch.split_fields(race, step, rules.what, rules, before, observation, after, action)  # the same fields
             self._emit("/brakes/race", ch.dumps({"seq": seq, "t": t, "transition": first, **body}), t)
         elif kind == "flown":
             _, traj, t_base, t = item

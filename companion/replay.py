@@ -33,7 +33,8 @@ to the plan budget (how far ahead a plan splits, how big a search fits, each pla
 measured), answered again (companion/replay_budget.py); each `/brakes/race` record one call of
 a pop-up obstacle's rules (announce, no replan, brake now or race; the braking deadline brought
 forward; each turn of the race; its end), run again, each brake found among the transitions
-(companion/replay_race.py).
+(companion/replay_race.py); in a fleet, each `/fleet/commit` record one call of the commit
+protocol's rule, run again (companion/replay_commit.py).
 
 What it does not cover: how inbound messages and commands became supervisor events and
 planner calls, the autopilot watch's telemetry advice, and the navigator's (which plan to ask

@@ -101,7 +101,7 @@ class _Replayer:
     def check(self, rec: dict[str, Any], _previous: tuple[int, Any] | None) -> tuple[Any, list[str]]:
         from companion.race_rules import Brake, Braked, PopUp, Race, first_state, race_step
 
-        seq, race, step = int(rec["seq"]), int(rec["race"]), int(rec["step"])
+        seq, race, step = int(rec["seq"]), int(rec["call"]), int(rec["step"])
         rules, before, seen, after, action = step_values(rec)
         label = f"seq {seq} ({rules.what}, race {race} step {step}) {seen!r}"
         why: list[str] = []

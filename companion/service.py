@@ -126,6 +126,7 @@ class Service:
         self.tracking.connect(observe=self.tap.tracking_step)  # likewise
         self.navigator.split.observe = self.tap.split_step  # likewise: every plan made in flight
         self.navigator.budget.observe = self.tap.budget_step  # likewise: how far ahead, how big a search
+        self.deconfliction.observe = self.tap.commit_step  # likewise: the fleet's commit protocol
         self.link.on_message = self._on_mavlink
         self.deconfliction.on_replan = self.navigator.fleet_replan
         self.deconfliction.on_clock_off = self.navigator.fleet_stop

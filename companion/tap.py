@@ -68,6 +68,10 @@ class Tap:
         state before, the observation, the state after and the action; on the loop, so no time:
         the tap takes it."""
 
+    def commit_step(self, before: Any, event: Any, after: Any, actions: tuple[Any, ...]) -> None:
+        """A call of the fleet's commit protocol (companion.commit.step): the state before, the
+        event, the state after and the actions; on the loop, so no time: the tap takes it."""
+
     def budget_step(self, before: Any, ask: Any, after: Any, answer: Any) -> None:
         """A question to the plan budget (companion.plan_budget.budget_step): the budget before,
         the question, the budget after and the answer; on the loop, so no time: the tap takes it."""

@@ -141,10 +141,10 @@ def test_every_step_is_recorded_and_reproduced(tmp_path: Path, capsys: pytest.Ca
     path, rec, rig = recorded(tmp_path, monkeypatch)
     recs = steps(path)
     assert rec.dropped == {} and [r["seq"] for r in recs] == list(range(1, len(recs) + 1))
-    races = sorted({r["race"] for r in recs})
-    assert races == list(range(1, 7)) and all([r["step"] for r in recs if r["race"] == n] ==
-                                              list(range(1, 1 + sum(r["race"] == n for r in recs))) for n in races)
-    by_race = {n: [(r["observation"]["type"], r["action"]["type"]) for r in recs if r["race"] == n] for n in races}
+    races = sorted({r["call"] for r in recs})
+    assert races == list(range(1, 7)) and all([r["step"] for r in recs if r["call"] == n] ==
+                                              list(range(1, 1 + sum(r["call"] == n for r in recs))) for n in races)
+    by_race = {n: [(r["observation"]["type"], r["action"]["type"]) for r in recs if r["call"] == n] for n in races}
     assert by_race[1] == [("PopUp", "Announce")] and by_race[2] == [("PopUp", "Clear")]
     assert by_race[3][:2] == [("PopUp", "Race"), ("Forward", "Forwarded")] and by_race[3][-1] == ("ReplanOver", "Won")
     assert by_race[4][-1] == ("ReplanOver", "Brake")
@@ -246,7 +246,7 @@ def test_records_that_begin_mid_race_need_not_claim_a_brake_asked_for_before_the
     with a pop-up does."""
     path, _rec, _rig = recorded(tmp_path / "rec", monkeypatch)
     transitions = steps(path, "/supervisor/transition")
-    wall = next(r for r in steps(path) if r["action"]["type"] == "Brake" and r["race"] == 4)
+    wall = next(r for r in steps(path) if r["action"]["type"] == "Brake" and r["call"] == 4)
     rules, _b, _o, after, _a = replay_race.step_values(wall)
     seen = Forward(after.deadline - 0.5, after.hit, "['near']", "none", None)
     later, action = race_step(rules, after, seen)
@@ -255,7 +255,8 @@ def test_records_that_begin_mid_race_need_not_claim_a_brake_asked_for_before_the
         from companion import channels
 
         return json.loads(channels.dumps({"seq": 1, "t": 0.0, "transition": wall["transition"],
-                                          **channels.race_fields(4, step, rules, before, observation, new, act)}))
+                                          **channels.split_fields(4, step, rules.what, rules, before, observation, new,
+                                                                            act)}))
 
     mid = replay_race.replay_steps([record(wall["step"] + 1, after, seen, later, action)], 0, transitions)
     assert mid.differences == [] and mid.total == mid.reproduced == 1
