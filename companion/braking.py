@@ -422,9 +422,8 @@ class Brakes:
         self.position = position
         self.race_guard: StopGuard | None = None  # the replan racing a braking deadline, if any
         self.races = itertools.count(1)  # each pop-up's number, for the records of its steps
-        # each call of a pop-up's rules shown to the flight recorder: the runtime's tap (the
-        # service's, which records the planner's calls too; a no-op without a recorder)
-        self.observe: RaceObserver = lambda *call: self.runtime.tap.race_step(*call)
+        # each call of a pop-up's rules shown to the flight recorder; the service connects its tap
+        self.observe: RaceObserver = lambda *_call: None
 
     def race_steps(self, names: str) -> RaceSteps:
         """The decisions of a pop-up of obstacles `names` (and of the race that may follow), numbered."""

@@ -80,6 +80,7 @@ def _tap_decisions(svc: Service) -> None:
     svc.navigator.split.observe = tap.split_step  # every plan made in flight: where it split, again
     svc.navigator.budget.observe = tap.budget_step  # how far ahead, how big a search
     svc.deconfliction.observe = tap.commit_step  # the fleet's commit protocol
+    svc.navigator.brakes.observe = tap.race_step  # every pop-up obstacle and its race
 
 
 class Service:
