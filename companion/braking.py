@@ -3,16 +3,18 @@
 After a pop-up obstacle on the flown path, either a verified replan is swapped in or, by the
 braking deadline (time to hit minus a stop and a margin), a verified stop planned in
 parallel; a nearer pop-up meanwhile brings the deadline forward. The pure part (`plan_stop`,
-`brake_deadline`) runs in worker threads; `Brakes` runs the race on the loop.
+`brake_deadline`) runs in worker threads; `Brakes` runs the race on the loop, its decisions (and
+the deadline's) one pure function, companion.race_rules.race_step, each call recorded.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import itertools
 import logging
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -20,6 +22,32 @@ import numpy as np
 from companion.config import Config
 from companion.control import Control
 from companion.flight import HOLDING_CONTROL
+from companion.race_rules import (
+    DONE,
+    NONE,
+    PLANNING,
+    Action,
+    Brake,
+    Braked,
+    Deadline,
+    Forward,
+    Forwarded,
+    GiveUp,
+    Observation,
+    Prepare,
+    PreparedSwap,
+    RaceRules,
+    RaceState,
+    ReplanCancelled,
+    ReplanOver,
+    SwapPrepared,
+    Tick,
+    Wait,
+    Won,
+    first_state,
+    race_step,
+    racing,
+)
 from companion.report import Reporter
 from companion.route import build_corridors
 from companion.runtime import Runtime
@@ -50,8 +78,6 @@ STOP_SAFETY_FACTOR = 1.5
 BRAKE_MARGIN_SECONDS = 0.1
 # A stop planned for "now" starts this far ahead at least (its QPs take 15-30 ms).
 BRAKE_LEAD = 0.08
-# Start preparing the stop this long before the braking deadline if the replan is still out.
-BRAKE_PREPARE = 0.35
 
 
 # -- pure: stops and deadlines --------------------------------------------------------------
@@ -263,20 +289,49 @@ class Replanned:
     blocked_message: str = ""
 
 
+# each call of a pop-up's rules, shown to the flight recorder (companion.tap.Tap.race_step):
+# (race, step, rules, state before, observation, state after, action)
+RaceObserver = Callable[[int, int, RaceRules, RaceState, Observation, RaceState, Action], None]
+
+
+class RaceSteps:
+    """One pop-up's decisions (companion.race_rules.race_step): the rules' state, stepped here
+    only, each call shown to the flight recorder with the race's number (0: not recorded)."""
+
+    def __init__(self, rules: RaceRules, number: int = 0, observe: RaceObserver | None = None,
+                 state: RaceState | None = None) -> None:
+        self.rules = rules
+        self.number = number
+        self.observe = observe
+        self.state = first_state() if state is None else state
+        self._steps = itertools.count(1)
+
+    def step(self, seen: Observation) -> Action:
+        before = self.state
+        self.state, action = race_step(self.rules, before, seen)
+        if self.observe is not None:
+            try:
+                self.observe(self.number, next(self._steps), self.rules, before, seen, self.state, action)
+            except Exception:  # a recorder's fault must never change what is flown
+                log.exception("race: the observer failed")
+        return action
+
+
 class StopGuard:
-    """What one race knows: the flown plan it guards, the braking deadline, and the verified
-    stop for that deadline once `Brakes` plans it (in the brake thread).
+    """What one race knows: the flown plan it guards, the race's decisions (`steps`: the braking
+    deadline among them), and the verified stop for that deadline once `Brakes` plans it (in
+    the brake thread).
 
     It knows nothing of who plans or flies the stop: `Brakes`, which runs the race, starts the
     planning (at the deadline less BRAKE_PREPARE, or at once when asked with `prepare`) and
     swaps the stop in; the guard never calls back into it. The deadline starts at the hit (no
-    stop may start later) and is only brought forward, by `bring_forward`, its one writer."""
+    stop may start later) and is only brought forward, by `bring_forward`, its one writer, as
+    the race's rules decide (companion.race_rules)."""
 
     def __init__(self, base: Trajectory, hit: float) -> None:
         self.base = base
-        self._deadline = hit
-        self.hit = hit
-        self.notes: list[str] = []
+        # unrecorded until the pop-up that races hands over its own (Replans.avoid)
+        self.steps = RaceSteps(RaceRules("", "", 0.0, 0.0), state=racing(hit))
         self.future: asyncio.Future[StopPlan] | None = None
         # set by `prepare`: the race wakes on it and starts the stop at once (created on the loop)
         self._asked: asyncio.Future[None] | None = None
@@ -284,20 +339,36 @@ class StopGuard:
     @property
     def deadline(self) -> float:
         """The latest trajectory time at which the stop may start."""
-        return self._deadline
+        deadline = self.steps.state.deadline
+        assert deadline is not None
+        return deadline
 
-    def bring_forward(self, deadline: float, hit: float, why: str = "") -> None:
+    @property
+    def hit(self) -> float:
+        hit = self.steps.state.hit
+        assert hit is not None
+        return hit
+
+    @property
+    def notes(self) -> tuple[str, ...]:
+        """What brought the deadline forward."""
+        return self.steps.state.notes
+
+    def bring_forward(self, deadline: float, hit: float, names: str = "") -> None:
         """The braking deadline for an obstacle hit at `hit` (the first one's, or another,
-        nearer obstacle's that arrived during the race, `why` says so): brake for it in time."""
-        if deadline >= self._deadline:
-            return
-        self._deadline, self.hit = deadline, min(self.hit, hit)
-        if why:
-            self.notes.append(why)
-        plan = self.ready()
-        if self.future is not None and (plan is None or plan.trajectory is None or plan.start > deadline):
+        nearer obstacle's that arrived during the race, `names` its ids): brake for it in time."""
+        stop, start = self.seen()
+        forwarded = self.steps.step(Forward(deadline, hit, names, stop, start))
+        if isinstance(forwarded, Forwarded) and forwarded.cancel and self.future is not None:
             self.future.cancel()  # planned for the later deadline (or still planning for it)
             self.future = None
+
+    def seen(self) -> tuple[str, float | None]:
+        """The stop for the deadline as the rules see it: none, planning or done, and its start
+        when done with a trajectory."""
+        plan = self.ready()
+        stop = NONE if self.future is None else DONE if self.future.done() else PLANNING
+        return stop, None if plan is None or plan.trajectory is None else plan.start
 
     def prepare(self) -> None:
         """Have the stop planned now rather than just before the deadline (the local replan
@@ -350,6 +421,19 @@ class Brakes:
         self.context = context
         self.position = position
         self.race_guard: StopGuard | None = None  # the replan racing a braking deadline, if any
+        self.races = itertools.count(1)  # each pop-up's number, for the records of its steps
+        # each call of a pop-up's rules shown to the flight recorder; the service connects its tap
+        self.observe: RaceObserver = lambda *_call: None
+
+    def race_steps(self, names: str) -> RaceSteps:
+        """The decisions of a pop-up of obstacles `names` (and of the race that may follow), numbered."""
+        rules = RaceRules(names, f"obstacles {names}", self.cfg.planner.split_ahead, self._spare())
+        return RaceSteps(rules, next(self.races), self.observe)
+
+    def _spare(self) -> float:
+        # Swap with a few periods to spare: the loop may be late, and swap() refuses a split
+        # less than half a period ahead.
+        return 2.0 / self.cfg.setpoints.rate_hz
 
     def _prepare(self, guard: StopGuard) -> None:
         """Plan the stop for the guard's deadline, unless it is planned (or planning) already."""
@@ -419,66 +503,71 @@ class Brakes:
 
     async def _race(self, guard: StopGuard, replan: asyncio.Task[Replanned], notes: list[str],
                     arrived: float, what: str) -> None:
-        # Swap with a few periods to spare: the loop may be late, and swap() refuses a split
-        # less than half a period ahead.
-        spare = 2.0 / self.cfg.setpoints.rate_hz
+        """Each turn observes, asks the race's rules (companion.race_rules) and carries out."""
+        steps = guard.steps
+        if steps.number == 0:  # a guard no pop-up handed its decisions to: this race's givens
+            steps.rules = replace(steps.rules, what=what, spare=self._spare())
         flight = self.flight
-        while not replan.done():
-            if flight.state not in HOLDING_CONTROL:  # e.g. a pilot took over meanwhile
+        while True:
+            if replan.done():
+                failed = None if replan.cancelled() else replan.exception()
+                if failed is not None:
+                    log.error("replan failed: %r", failed)
+                result = Replanned(False) if failed is not None else replan.result()
+                action = steps.step(ReplanOver(result.ok, result.reason, result.blocked, result.blocked_message,
+                                               "" if failed is None else repr(failed)))
+                break
+            held = flight.state in HOLDING_CONTROL
+            stop, start = guard.seen()
+            action = steps.step(Tick(held, flight.state.value, stop,
+                                     held and guard.future is None and guard.asked().done(), start,
+                                     self.control.committed() if held else None))
+            if isinstance(action, GiveUp):  # e.g. a pilot took over meanwhile
                 replan.cancel()
                 guard.cancel()
                 return
-            if guard.future is None and guard.asked().done():
+            if isinstance(action, Deadline | Wait) and action.prepare:  # asked for: planned at once
                 self._prepare(guard)
-            wake = guard.start_time() - spare
-            if guard.future is None:
-                wake = min(wake, guard.deadline - BRAKE_PREPARE)
-            delay = wake - self.control.committed()  # a stop starts after the setpoints already sent
-            if delay <= 0:
-                if guard.future is None:
-                    self._prepare(guard)
-                    continue
+            if isinstance(action, Prepare):
+                self._prepare(guard)
+                continue
+            if isinstance(action, Deadline):
                 break
+            assert isinstance(action, Wait)
             waiting: set[asyncio.Future[Any]] = {replan}
-            if guard.future is None:
+            if action.asked:
                 waiting.add(guard.asked())  # wake as soon as the stop is asked for
-            elif not guard.future.done():
+            if action.stop and guard.future is not None:
                 waiting.add(guard.future)
-            # at most a tick at a time: another pop-up may bring the deadline forward
-            await asyncio.wait(waiting, timeout=min(delay, spare / 2), return_when=asyncio.FIRST_COMPLETED)
-        if replan.done():
-            failed = None if replan.cancelled() else replan.exception()
-            if failed is not None:
-                log.error("replan failed: %r", failed)
-            result = Replanned(False, f"replan error: {failed!r}") if failed is not None else replan.result()
-            if result.ok:
-                guard.cancel()
-                return
-            why = (f"{what}: mission waypoint {result.blocked} is blocked ({result.blocked_message})"
-                   if result.blocked is not None else f"{what}: no safe plan ({result.reason})")
-            await self.brake(why, arrived, blocked=result.blocked, prepared=guard.ready())
+            await asyncio.wait(waiting, timeout=action.timeout, return_when=asyncio.FIRST_COMPLETED)
+        if isinstance(action, Won):
+            guard.cancel()
+            return
+        if isinstance(action, Brake):
+            await self.brake(action.reason, arrived, blocked=action.blocked,
+                             prepared=guard.ready() if action.prepared else None)
             return
         replan.cancel()
         with contextlib.suppress(asyncio.CancelledError):
             await replan
-        pending = "; ".join([*notes, *guard.notes, "the replan is still running"])
-        await self._brake_at_deadline(guard, arrived,
-                                      f"{what}: no verified replan by the braking deadline t={guard.deadline:.2f} s "
-                                      f"(the plan enters the obstacle at t={guard.hit:.2f} s; {pending})")
+        action = steps.step(ReplanCancelled(tuple(notes)))
+        assert isinstance(action, SwapPrepared)
+        await self._brake_at_deadline(guard, arrived)
 
-    async def _brake_at_deadline(self, guard: StopGuard, arrived: float, reason: str) -> None:
+    async def _brake_at_deadline(self, guard: StopGuard, arrived: float) -> None:
         """The replan is late: swap in the prepared stop (planned for the deadline)."""
         plan = await self._prepared(guard)
         swap_time = self.control.now()
-        if not self._commit(guard.base, plan, arrived):
-            await self.brake(reason + "; the prepared stop was not usable: "
-                             + ("none planned" if plan is None else plan.message), arrived)
+        swapped = self._commit(guard.base, plan, arrived)
+        action = guard.steps.step(PreparedSwap(swapped, None if plan is None else plan.message))
+        if isinstance(action, Brake):
+            await self.brake(action.reason, arrived)
             return
-        assert plan is not None
-        self.flight.handle(Braking(reason))
-        self.report.event("braking", f"{reason}; braking to a stop and holding", reason=reason, blocked_waypoint=None,
-                          detail=plan.message, deadline=round(guard.deadline, 4), hit_time=round(guard.hit, 4),
-                          swap_time=round(swap_time, 4), **stop_fields(plan))
+        assert isinstance(action, Braked) and plan is not None
+        self.flight.handle(Braking(action.reason))
+        self.report.event("braking", f"{action.reason}; braking to a stop and holding", reason=action.reason,
+                          blocked_waypoint=None, detail=plan.message, deadline=round(action.deadline, 4),
+                          hit_time=round(action.hit, 4), swap_time=round(swap_time, 4), **stop_fields(plan))
 
 
 def stop_fields(plan: StopPlan | None) -> dict[str, Any]:

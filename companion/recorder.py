@@ -14,10 +14,11 @@ chains: the supervisor's transitions (every `Supervisor.handle` call), the autop
 steps (every call of companion.autopilot_rules.watch_step), the tracking error's (every call
 of companion.tracking_rules.tracking_step that changed or said something), the split-and-swap
 loop's (every call of companion.split_rules.split_step), the plan budget's (every call of
-companion.plan_budget.budget_step) and the fleet's commit protocol's (every call of
-companion.commit.step).
+companion.plan_budget.budget_step), the pop-ups' (every call of companion.race_rules.race_step)
+and the fleet's commit protocol's (every call of companion.commit.step).
 
-Channels, schemas and frames: companion/channels.py and docs/recording.md.
+Channels, schemas and frames: companion/channels.py (the 3D messages: companion/viz3d.py) and
+docs/recording.md.
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ from companion import channels as ch
 from companion.config import Config, config_to_toml
 from companion.record_format import environment
 from companion.tap import Tap
+from companion.viz3d import Viz
 
 log = logging.getLogger("companion")
 
@@ -166,7 +168,7 @@ class Recorder(Tap):
         self.written = 0
         self.sinks: list[Sink] = list(sinks or [])
         self.mcap: McapSink | None = None
-        self._viz = ch.Viz()
+        self._viz = Viz()
         self._viz.offset = self.offset
         self._plan_seq = itertools.count(1)
         self._transition_seq = itertools.count(1)
@@ -176,6 +178,7 @@ class Recorder(Tap):
         self._tracking_seq = itertools.count(1)
         self._split_seq = itertools.count(1)
         self._budget_seq = itertools.count(1)
+        self._race_seq = itertools.count(1)
         self._commit_seq = itertools.count(1)
         self._clock_seq = itertools.count(1)
         self._swaps = 0  # swaps numbered so far (on the loop, as the split's steps are recorded)
@@ -309,6 +312,12 @@ class Recorder(Tap):
 
     def budget_step(self, before: Any, ask: Any, after: Any, answer: Any) -> None:
         self._put(self._decisions, ("budget_step", next(self._budget_seq), before, ask, after, answer, self.clock()))
+
+    def race_step(self, race: int, step: int, rules: Any, before: Any, observation: Any, after: Any,
+                  action: Any) -> None:
+        # with the next transition's number, as tracking steps: a brake's Braking transition comes at or after it
+        self._put(self._decisions, ("race_step", next(self._race_seq), self._transitions + 1, race, step, rules,
+                                    before, observation, after, action, self.clock()))
 
     def flown(self, trajectory: Any, t_base: float | None, t: float) -> None:
         self._put(self._rest, ("flown", trajectory, t_base, t))
@@ -444,6 +453,10 @@ class Recorder(Tap):
         elif kind == "budget_step":
             _, seq, before, ask, after, answer, t = item
             self._emit("/navigator/budget", ch.dumps({"seq": seq, "t": t, **ch.budget_fields(before, ask, after, answer)}), t)
+        elif kind == "race_step":
+            _, seq, first, race, step, rules, before, observation, after, action, t = item
+            body = ch.split_fields(race, step, rules.what, rules, before, observation, after, action)  # the same fields
+            self._emit("/brakes/race", ch.dumps({"seq": seq, "t": t, "transition": first, **body}), t)
         elif kind == "flown":
             _, traj, t_base, t = item
             for topic, data in self._viz.on_flown(traj, t_base, t):

@@ -16,7 +16,7 @@ from collections.abc import Awaitable, Callable
 from functools import partial
 from typing import Any
 
-from companion.braking import Brakes, Replanned, StopGuard, brake_deadline
+from companion.braking import Brakes, RaceSteps, Replanned, StopGuard, brake_deadline
 from companion.config import Config
 from companion.control import Control
 from companion.edits import LocalEdit, Refused, resolve_planned
@@ -24,6 +24,7 @@ from companion.flight import State
 from companion.mission import local_replan, replan_remainder, trim
 from companion.obstacles import ObstacleStore
 from companion.plan_budget import PlanBudget
+from companion.race_rules import Brake, Clear, PopUp, Race
 from companion.report import Reporter
 from companion.route import Outcome, Route
 from companion.runtime import Runtime
@@ -186,6 +187,8 @@ class Replans:
             announce()
 
     async def avoid(self, new: list[Polytope], ids: list[str], arrived: float, announce: Callable[[], None]) -> None:
+        """What a pop-up leads to is decided by companion.race_rules (announce only, no replan,
+        brake now, or race a replan against the braking deadline); this observes and carries out."""
         names = str(ids)
         race = self.brakes.race_guard
         route = self.control.route
@@ -195,31 +198,30 @@ class Replans:
             now = self.control.now()
             hit = first_hit(race.base, now, new, route.mission.radius)
             if hit is not None:
-                race.bring_forward(brake_deadline(race.base, now, hit, route.mission.bounds), hit,
-                             f"deadline brought forward by obstacles {names} (hit at t={hit:.2f} s)")
+                race.bring_forward(brake_deadline(race.base, now, hit, route.mission.bounds), hit, names)
         async with self.lock:
+            steps = self.brakes.race_steps(names)
             route = self.control.route
             if not self.in_flight() or route is None:
-                announce()
+                action = steps.step(PopUp(False))
+            else:
+                active = self.control.active
+                assert active is not None
+                now = self.control.now()
+                hit = first_hit(active, now, new, route.mission.radius)
+                action = steps.step(PopUp(True, now, hit, self.control.committed()))
+            if isinstance(action, Race):
+                assert steps.state.hit is not None
+                await self._avoid_race(new, names, arrived, steps.state.hit, announce, steps)
                 return
-            active = self.control.active
-            assert active is not None
-            now = self.control.now()
-            radius, split_ahead = route.mission.radius, self.cfg.planner.split_ahead
-            hit = first_hit(active, now, new, radius)
-            if hit is None:
-                announce()
-                self.report.event("obstacles_clear", f"obstacles {names}: the current trajectory stays clear; no replan",
-                                  obstacles=ids)
-                return
-            if hit < self.control.committed() + split_ahead:  # setpoints up to now + lead are sent
-                announce()
-                await self.brakes.brake(f"obstacle {names} is {hit - now:.2f} s ahead: too close to replan", arrived)
-                return
-            await self._avoid_race(new, names, arrived, hit, announce)
+            announce()
+            if isinstance(action, Clear):
+                self.report.event("obstacles_clear", action.event, obstacles=ids)
+            elif isinstance(action, Brake):  # setpoints up to now + lead are sent: too close to replan
+                await self.brakes.brake(action.reason, arrived)
 
     async def _avoid_race(self, new: list[Polytope], names: str, arrived: float, hit: float,
-                          announce: Callable[[], None]) -> None:
+                          announce: Callable[[], None], steps: RaceSteps) -> None:
         """Race the replan against the braking deadline: the latest start of a stop that ends
         before the flown plan would enter the obstacle. A verified stop is prepared in parallel
         (at once if the deadline is near, else when the local replan fails or runs late) and
@@ -227,9 +229,10 @@ class Replans:
         assert self.control.route is not None and self.control.active is not None
         base, bounds, now = self.control.active, self.control.route.mission.bounds, self.control.now()
         guard = StopGuard(base, hit)
+        guard.steps = steps  # the pop-up's decisions go on with the race's
         notes: list[str] = []
         edit = LocalEdit((AddObstacles(tuple(new)),), f"avoid obstacles {names}")
-        what = f"obstacles {names}"
+        what = steps.rules.what
 
         async def plan_at(base_now: Trajectory, t_split: float) -> Outcome:
             assert self.control.route is not None

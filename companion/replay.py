@@ -30,13 +30,16 @@ decided again (companion/replay_swaps.py); each `/navigator/split` record one ca
 split-and-swap loop's rules (where a plan made in flight splits, planning again, moving it later,
 giving up), run again (companion/replay_split.py); each `/navigator/budget` record one question
 to the plan budget (how far ahead a plan splits, how big a search fits, each plan's time
-measured), answered again (companion/replay_budget.py); in a fleet, each `/fleet/commit` record
-one call of the commit protocol's rule, run again (companion/replay_commit.py).
+measured), answered again (companion/replay_budget.py); each `/brakes/race` record one call of
+a pop-up obstacle's rules (announce, no replan, brake now or race; the braking deadline brought
+forward; each turn of the race; its end), run again, each brake found among the transitions
+(companion/replay_race.py); in a fleet, each `/fleet/commit` record one call of the commit
+protocol's rule, run again (companion/replay_commit.py).
 
 What it does not cover: how inbound messages and commands became supervisor events and
 planner calls, the autopilot watch's telemetry advice, and the navigator's (which plan to ask
-for), the brakes' (but the tracking error's) and the command sequences' own decisions (when to
-brake for an obstacle) are not re-run; they are in the file (inbound messages, events, what was
+for), the brakes' (but the tracking error's and the pop-ups') and the command sequences' own
+decisions are not re-run; they are in the file (inbound messages, events, what was
 flown) to be read.
 
 A recording comes from a companion you trust: the calls are pickled. Plan records are read with

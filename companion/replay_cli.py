@@ -1,9 +1,10 @@
 """`python -m companion replay FILE.mcap`: run every recorded transition, autopilot step, inbound
-read, tracking step, swap, split step, plan budget answer and plan again and say whether each
-reproduces (exit 0), where the first differs (exit 1), or why the file cannot be replayed
-(exit 2). What each check covers: companion/replay.py, companion/replay_autopilot.py,
-companion/replay_tracking.py, companion/replay_swaps.py, companion/replay_split.py,
-companion/replay_budget.py and companion/replay_commit.py (a vehicle in a fleet).
+read, tracking step, swap, split step, plan budget answer, race step, fleet commit step and plan
+again and say whether each reproduces (exit 0), where the first differs (exit 1), or why the
+file cannot be replayed (exit 2). What each check covers: companion/replay.py,
+companion/replay_autopilot.py, companion/replay_tracking.py, companion/replay_swaps.py,
+companion/replay_split.py, companion/replay_budget.py, companion/replay_race.py and
+companion/replay_commit.py (a vehicle in a fleet).
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from companion import (
     replay_autopilot,
     replay_budget,
     replay_commit,
+    replay_race,
     replay_split,
     replay_swaps,
     replay_tracking,
@@ -86,6 +88,10 @@ def main(argv: list[str]) -> int:
         print(replay_budget.said(budget, any_budget), flush=True)
         for more in budget.differences[1:] if args.keep_going else ():
             print(f"  also: {more}")
+        races, any_races = replay_race.replay_file(args.file, recs, args.since, args.until)
+        print(replay_race.said(races, any_races), flush=True)
+        for more in races.differences[1:] if args.keep_going else ():
+            print(f"  also: {more}")
         commits, any_commits = replay_commit.replay_file(args.file, args.since, args.until)
         if any_commits:  # a vehicle in a fleet: said only there
             print(replay_commit.said(commits, any_commits), flush=True)
@@ -122,10 +128,9 @@ def main(argv: list[str]) -> int:
         print(f"replay: {args.file}: {exc}", file=sys.stderr)
         return 2
     if (n == 0 and not recs and not dropped and not decoded and not any_steps and not any_tracking and not any_swaps
-            and not any_splits and not any_budget and not any_commits and not any_clock):
-        print("replay: no plan, transition, autopilot, tracking, split or budget step, swap or inbound message in the "
-              "recording "
-              "(or in the time range)", file=sys.stderr)
+            and not any_splits and not any_budget and not any_races and not any_commits and not any_clock):
+        print("replay: no plan, transition, autopilot, tracking, split, budget, race or commit step, clock sample, "
+              "swap or inbound message in the recording (or in the time range)", file=sys.stderr)
         return 2
     if n == 0:
         print("plans: none recorded")
@@ -133,6 +138,6 @@ def main(argv: list[str]) -> int:
         print(f"plans: {n - bad} of {n} reproduced bit-identically" if bad == 0 or args.keep_going
               else f"plans: plan {n} is the first that differs")
     clean = not (checked.differences or stepped.differences or tracked.differences or decode_bad
-                 or swaps.differences or splits.differences or budget.differences or commits.differences
-                 or clock.differences)
+                 or swaps.differences or splits.differences or budget.differences or races.differences
+                 or commits.differences or clock.differences)
     return 0 if bad == 0 and clean else 1

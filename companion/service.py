@@ -81,6 +81,7 @@ def _tap_decisions(svc: Service) -> None:
     svc.navigator.budget.observe = tap.budget_step  # how far ahead, how big a search
     svc.deconfliction.observe = tap.commit_step  # the fleet's commit protocol
     svc.deconfliction.observe_clock = tap.clock_sample  # and its clock check
+    svc.navigator.brakes.observe = tap.race_step  # every pop-up obstacle and its race
 
 
 class Service:

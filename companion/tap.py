@@ -80,6 +80,12 @@ class Tap:
         """A question to the plan budget (companion.plan_budget.budget_step): the budget before,
         the question, the budget after and the answer; on the loop, so no time: the tap takes it."""
 
+    def race_step(self, race: int, step: int, rules: Any, before: Any, observation: Any, after: Any,
+                  action: Any) -> None:
+        """A call of a pop-up's rules (companion.race_rules.race_step): the pop-up's number and
+        the step's within it, its rules, the state before, the observation, the state after and
+        the action; on the loop, so no time: the tap takes it."""
+
     def flown(self, trajectory: Any, t_base: float | None, t: float) -> None:
         """What the setpoint thread flies from now on (a new plan, a swap, a hold)."""
 

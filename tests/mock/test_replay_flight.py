@@ -28,6 +28,14 @@ from sitl_mock import MockAutopilot, MockConfig
 
 pytestmark = pytest.mark.slow
 
+def popup(at: list[float]) -> bytes:
+    """A small box across the mission's last leg, halfway along it (NED)."""
+    x, y, z = at
+    eye = [[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0], [-1.0, 0, 0], [0, -1.0, 0], [0, 0, -1.0]]
+    lo, hi = [x + 0.6, y + 1.35, z - 0.8], [x + 0.9, y + 1.65, z + 0.4]
+    return json.dumps({"add": [{"id": "popup", "A": eye, "b": [*hi, *(-v for v in lo)]}]}).encode()
+
+
 def mission(at: Any) -> bytes:
     """A short square-ish leg from where the vehicle hovers (local NED: no wait for home)."""
     x, y, z = (float(v) for v in at)
@@ -87,6 +95,14 @@ async def _fly(mock: MockAutopilot,
         record_budget(*call)
 
     svc.navigator.budget.observe = budget_seen
+    raced: list[Any] = []  # every call of the pop-ups' rules: its action
+    record_race = svc.navigator.brakes.observe
+
+    def race_seen(*call: Any) -> None:
+        raced.append(call[-1])
+        record_race(*call)
+
+    svc.navigator.brakes.observe = race_seen
     async with serving(svc):
         await until(lambda: svc.link.state.position_problem() is None, 30, "a position estimate")
         await svc.commands.takeoff(1.5)
@@ -97,20 +113,28 @@ async def _fly(mock: MockAutopilot,
 
         for attempt in range(3):  # a loaded test machine may plan too late for the split: sent again
             seen = len(events.all)
-            svc.inbound.dispatch("mission", b"", time.monotonic(),
-                                 read("mission", mission(svc.link.state.position), svc.cfg))
+            start = [float(v) for v in svc.link.state.position]
+            svc.inbound.dispatch("mission", b"", time.monotonic(), read("mission", mission(start), svc.cfg))
             await until(lambda: answer(seen) is not None, 60, "the mission answered")  # noqa: B023 - awaited here
             got = answer(seen)
             assert got is not None
             if got["type"] == "accepted":
                 break
             assert "after the split time" in got["message"] and attempt < 2, got
-        await until(lambda: bool(events.of("mission_complete")), 90, "the mission flown")
+        # a pop-up across the last leg while the first is flown, raced against its braking
+        # deadline: its inflated box (PX4's tracking allowance) covers the mission's waypoint 1, so
+        # the replan finds it blocked and the vehicle brakes (or, on a loaded machine, its stop
+        # by the deadline comes first); the mission's first leg is all the flight needs
+        await asyncio.sleep(0.3)
+        svc.inbound.dispatch("obstacles", b"", time.monotonic(), read("obstacles", popup(start), svc.cfg))
+        await until(lambda: bool(events.of("mission_complete") or events.of("braking")), 90, "the mission flown")
+        if events.of("braking"):
+            await until(lambda: svc.flight.state is State.HOLDING, 30, "the stop flown")
         await svc.commands.on_command(Command("land"), time.monotonic())
         await until(lambda: any(e.get("command") == "land" and e["type"] in ("completed", "refused")
                                 for e in events.all), 60, "land to complete")
         await until(lambda: svc.flight.state is State.IDLE, 30, "the autopilot's disarm after landing")
-    return events.all, calls[0], svc.flight.value, steps[0], tracked[0], decided, split, asked
+    return events.all, calls[0], svc.flight.value, steps[0], tracked[0], decided, split, asked, raced
 
 
 def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
@@ -118,7 +142,7 @@ def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
     mock = MockAutopilot(MockConfig(autopilot="px4", endpoints=["udpin:127.0.0.1:0"],
                                     log_path=str(tmp_path / "flight.jsonl"), log_rate_hz=20)).start()
     try:
-        published, handled, final, stepped, tracked, decided, split, asked = asyncio.run(
+        published, handled, final, stepped, tracked, decided, split, asked, raced = asyncio.run(
             _fly(mock, tmp_path / "recordings"))
     finally:
         mock.stop()
@@ -132,6 +156,7 @@ def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
         tracking = [json.loads(m.data) for _s, _c, m in reader.iter_messages(topics=["/tracking/step"])]
         splits = [json.loads(m.data) for _s, _c, m in reader.iter_messages(topics=["/navigator/split"])]
         budget = [json.loads(m.data) for _s, _c, m in reader.iter_messages(topics=["/navigator/budget"])]
+        races = [json.loads(m.data) for _s, _c, m in reader.iter_messages(topics=["/brakes/race"])]
         heard = collections.Counter(c.topic for _s, c, _m in reader.iter_messages(topics=[
             "/mavlink/in/HEARTBEAT", "/mavlink/in/LOCAL_POSITION_NED", "/mavlink/in/EXTENDED_SYS_STATE"]))
     assert dropped == {}
@@ -153,8 +178,10 @@ def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
     quiet = [r for r in recs if not any(a["type"] == "Announce" for a in r["actions"])]
     assert len(recs) == len(states) + len(quiet)
     assert all(r["before"]["state"] == r["after"]["state"] for r in quiet)
-    assert [s[1] for s in states] == ["ARMING", "READY", "TAKEOFF", "READY", "STREAMING", "HOLDING", "LANDING",
-                                      "IDLE"]
+    # (a stop for the pop-up by its deadline, on a loaded machine, brakes before the hold)
+    braked = ["BRAKING"] if any(type(a).__name__ in ("Brake", "Braked") for a in raced) else []
+    assert [s[1] for s in states] == ["ARMING", "READY", "TAKEOFF", "READY", "STREAMING", *braked, "HOLDING",
+                                      "LANDING", "IDLE"]
 
     # every call of the autopilot watch's rules is in the file, numbered without a gap; each
     # reading of a message is one the link received and recorded (a step per message: no more
@@ -213,6 +240,16 @@ def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
     assert kinds_asked[0] == "Measured" and "SplitAhead" in kinds_asked and kinds_asked.count("Measured") >= 3
     assert (f"budget: {len(asked)} of {len(asked)} reproduced ({len(asked) - kinds_asked.count('Measured')} "
             f"split or search asked, {kinds_asked.count('Measured')} planning times measured)") in out.splitlines()
+    # every step of the pop-up and its race (its decision, the deadline, each turn, the end) is
+    # in the file, in order, and reproduced; a stop by the deadline is its Braking transition
+    assert [r["action"]["type"] for r in races] == [type(a).__name__ for a in raced]
+    assert [r["seq"] for r in races] == list(range(1, len(raced) + 1))
+    kinds = collections.Counter(type(a).__name__ for a in raced)
+    assert kinds["Race"] == 1 and kinds["Forwarded"] >= 1 and kinds["Won"] + kinds["Brake"] + kinds["Braked"] == 1
+    brakes = kinds["Brake"] + kinds["Braked"]
+    tied = f", {brakes} followed by its Braking transition" if brakes else ""
+    assert (f"races: {len(raced)} of {len(raced)} reproduced (1 pop-up, 1 raced, {brakes} "
+            f"brake{'s' * (brakes != 1)}{tied})") in out.splitlines(), out
     plans = [ln for ln in out.splitlines() if ln.startswith("plan ")]
     assert len(plans) >= 2 and all(": identical" in ln for ln in plans)
     assert f"plans: {len(plans)} of {len(plans)} reproduced bit-identically" in out.splitlines()
