@@ -13,7 +13,8 @@ so a burst of other traffic never drops one; so have the decisions replay checks
 chains: the supervisor's transitions (every `Supervisor.handle` call), the autopilot watch's
 steps (every call of companion.autopilot_rules.watch_step), the tracking error's (every call
 of companion.tracking_rules.tracking_step that changed or said something) and the split-and-swap
-loop's (every call of companion.split_rules.split_step).
+loop's (every call of companion.split_rules.split_step) and the operator commands' sequences'
+(every call of companion.command_rules.command_step).
 
 Channels, schemas and frames: companion/channels.py and docs/recording.md.
 """
@@ -174,6 +175,7 @@ class Recorder(Tap):
         self._tracking_seq = itertools.count(1)
         self._split_seq = itertools.count(1)
         self._swaps = 0  # swaps numbered so far (on the loop, as the split's steps are recorded)
+        self._command_seq = itertools.count(1)
         # the writer's: the last /tracking/step seq written and the file part it went to; a
         # record after a gap, or the first of a part, carries its window of errors in full
         self._tracking_written: tuple[int, int] = (0, 0)
@@ -294,6 +296,13 @@ class Recorder(Tap):
         # with the number of the last swap decided: a step that observed a swap names its record
         self._put(self._decisions, ("split_step", next(self._split_seq), self._swaps, call, step, what, rules, before,
                                     observation, after, action, self.clock()))
+
+    def command_step(self, call: int, step: int, rules: Any, before: Any, observation: Any, after: Any,
+                     action: Any) -> None:
+        # with the next transition's number, as autopilot steps are: a step whose action is a
+        # transition makes that one (the sequence hands it to the supervisor right after)
+        self._put(self._decisions, ("command_step", next(self._command_seq), self._transitions + 1, call, step, rules,
+                                    before, observation, after, action, self.clock()))
 
     def flown(self, trajectory: Any, t_base: float | None, t: float) -> None:
         self._put(self._rest, ("flown", trajectory, t_base, t))
@@ -419,6 +428,10 @@ class Recorder(Tap):
             _, seq, swap, call, step, what, rules, before, observation, after, action, t = item
             body = ch.split_fields(call, step, what, rules, before, observation, after, action)
             self._emit("/navigator/split", ch.dumps({"seq": seq, "t": t, "swap": swap, **body}), t)
+        elif kind == "command_step":
+            _, seq, transition, call, step, rules, before, observation, after, action, t = item
+            body = ch.command_fields(call, step, rules, before, observation, after, action)
+            self._emit("/commands/step", ch.dumps({"seq": seq, "t": t, "transition": transition, **body}), t)
         elif kind == "flown":
             _, traj, t_base, t = item
             for topic, data in self._viz.on_flown(traj, t_base, t):

@@ -30,9 +30,13 @@ decided again (companion/replay_swaps.py); each `/navigator/split` record one ca
 split-and-swap loop's rules (where a plan made in flight splits, planning again, moving it later,
 giving up), run again (companion/replay_split.py).
 
+Command steps: each `/commands/step` record holds one call of an operator command sequence's
+rules (companion/command_rules.py: arm, takeoff and its climb, land, abort, disarm, how a
+command ended), run again and each transition it made found (companion/replay_commands.py).
+
 What it does not cover: how inbound messages and commands became supervisor events and
 planner calls, the autopilot watch's telemetry advice, and the navigator's (which plan to ask
-for), the brakes' (but the tracking error's) and the command sequences' own decisions (when to
+for) and the brakes' (but the tracking error's) own decisions (when to
 brake for an obstacle) are not re-run; they are in the file (inbound messages, events, what was
 flown) to be read.
 

@@ -2,7 +2,7 @@
 read, tracking step and plan again and say whether each reproduces (exit 0), where the first
 differs (exit 1), or why the file cannot be replayed (exit 2). What each check covers:
 companion/replay.py, companion/replay_autopilot.py, companion/replay_tracking.py,
-companion/replay_swaps.py and companion/replay_split.py.
+companion/replay_swaps.py, companion/replay_split.py and companion/replay_commands.py.
 """
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from __future__ import annotations
 import pickle
 import sys
 
-from companion import replay_autopilot, replay_split, replay_swaps, replay_tracking
+from companion import replay_autopilot, replay_commands, replay_split, replay_swaps, replay_tracking
 from companion.record_format import environment
 from companion.replay import (
     decoded_records,
@@ -74,6 +74,10 @@ def main(argv: list[str]) -> int:
         print(replay_split.said(splits, any_splits), flush=True)
         for more in splits.differences[1:] if args.keep_going else ():
             print(f"  also: {more}")
+        commanded, any_commands = replay_commands.replay_file(args.file, args.since, args.until)
+        print(replay_commands.said(commanded, any_commands), flush=True)
+        for more in commanded.differences[1:] if args.keep_going else ():
+            print(f"  also: {more}")
         decoded = decoded_records(args.file, args.since, args.until)
         decode_bad: list[str] = []
         if decoded:
@@ -100,9 +104,9 @@ def main(argv: list[str]) -> int:
         print(f"replay: {args.file}: {exc}", file=sys.stderr)
         return 2
     if (n == 0 and not recs and not dropped and not decoded and not any_steps and not any_tracking and not any_swaps
-            and not any_splits):
-        print("replay: no plan, transition, autopilot, tracking or split step, swap or inbound message in the recording "
-              "(or in the time range)", file=sys.stderr)
+            and not any_splits and not any_commands):
+        print("replay: no plan, transition, autopilot, tracking, split or command step, swap or inbound message in the "
+              "recording (or in the time range)", file=sys.stderr)
         return 2
     if n == 0:
         print("plans: none recorded")
@@ -110,5 +114,5 @@ def main(argv: list[str]) -> int:
         print(f"plans: {n - bad} of {n} reproduced bit-identically" if bad == 0 or args.keep_going
               else f"plans: plan {n} is the first that differs")
     clean = not (checked.differences or stepped.differences or tracked.differences or decode_bad
-                 or swaps.differences or splits.differences)
+                 or swaps.differences or splits.differences or commanded.differences)
     return 0 if bad == 0 and clean else 1

@@ -125,6 +125,7 @@ class Service:
         self.control.observe_swap = self.tap.swap  # every swap decided, recorded for replay
         self.tracking.connect(observe=self.tap.tracking_step)  # likewise
         self.navigator.split.observe = self.tap.split_step  # likewise: every plan made in flight
+        self.commands.observe = self.tap.command_step  # likewise: the operator commands' sequences
         self.link.on_message = self._on_mavlink
         self.deconfliction.on_replan = self.navigator.fleet_replan
         self.deconfliction.on_clock_off = self.navigator.fleet_stop
