@@ -416,9 +416,8 @@ class Commands:
         assert result is not None and result.trajectory is not None
         if isinstance(action, SwapClimb):
             swapped = control.swap(splice(base, result.trajectory), action.t_split, None, "takeoff")
-            refusal = "" if swapped else control.refusal
-            late = refusal == SWAP_LATE and control.flying
-            return ClimbSwapped(refusal, control.flying, control.committed() if late else 0.0)
+            refusal, flying = ("", True) if swapped else (control.refusal, control.flying)
+            return ClimbSwapped(refusal, flying, control.committed() if refusal == SWAP_LATE and flying else 0.0)
         assert isinstance(action, MoveClimb)
         held = held_still(base, action.t_split, action.t_later)
         if held:
