@@ -206,15 +206,18 @@ class Transition:
 
 @dataclass(frozen=True)
 class TakeControl:
-    """Control holds at the measured position (the supervisor: ControlTaken)."""
+    """Control holds at the measured position (the supervisor: ControlTaken); `stream`: the
+    setpoints sent are counted just before, for the Stream that follows."""
 
     reason: str
+    stream: bool = False
 
 
 @dataclass(frozen=True)
 class Stream:
-    """Wait for the first setpoint to leave (at most 3 s), then let them stream 1.1 s: PX4
-    refuses OFFBOARD unless setpoints have been streaming for a while (COM_OF_LOSS_T, 1 s)."""
+    """Wait for the first setpoint to leave after the TakeControl before (at most 3 s), then let
+    them stream 1.1 s: PX4 refuses OFFBOARD unless setpoints have been streaming for a while
+    (COM_OF_LOSS_T, 1 s)."""
 
 
 @dataclass(frozen=True)
@@ -363,7 +366,7 @@ def _follow(rules: CommandRules, s: CommandState, o: Observation) -> Step:
     assert isinstance(o, Did)
     if s.at == "taking":
         if s.autopilot == "px4":  # streaming first: PX4 refuses OFFBOARD without setpoints
-            return _to(s, "take", TakeControl(rules.reason))
+            return _to(s, "take", TakeControl(rules.reason, stream=True))
         return _to(s, "mode", Send("follow_mode"))
     if s.at == "take":
         return _to(s, "stream", Stream())

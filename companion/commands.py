@@ -342,9 +342,11 @@ class Commands:
         if isinstance(action, Transition):
             self.flight.handle(_event(action))
         elif isinstance(action, TakeControl):
+            if action.stream:  # counted before the stream starts: the first setpoint may leave at once
+                run.sent = self.link.sent_setpoints
             self.take_control(action.reason)
         elif isinstance(action, Stream):
-            sent = self.link.sent_setpoints
+            sent = run.sent
             # PX4 refuses OFFBOARD unless setpoints have been streaming for a while (COM_OF_LOSS_T-
             # based, 1 s in the docs): counted from the first setpoint that left, not from when
             # we asked for the stream, which a busy computer may start a few hundred ms late.
@@ -494,6 +496,7 @@ class _Run:
     failure: CommandFailed | None = None  # the run's first
     last: CommandFailed | None = None
     checks: tuple[float, Any] | None = None  # PX4's arming checks (age, reasons) when the run is an outcome
+    sent: int = 0  # setpoints sent when Control took over (Stream waits for the next)
 
 
 def _event(a: Transition) -> Event:

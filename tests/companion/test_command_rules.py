@@ -470,6 +470,7 @@ class _World:
     ops: list[tuple[str, float, str]]  # (command, altitude, origin)
     did: list[tuple[Any, ...]] = field(default_factory=list)
     now: float = 100.0
+    taken: int = 0  # Control.take calls
 
     def run(self, kind: type[Commands], wire: Any = None) -> list[tuple[Any, ...]]:
         """The world's operations by `kind`'s sequences: what was done, in order. `wire(commands,
@@ -501,8 +502,8 @@ class _World:
             state = st
 
             @property
-            def sent_setpoints(self) -> int:
-                return int(world.now >= world.setpoints_at)
+            def sent_setpoints(self) -> int:  # one at each take (the stream starts at once), the rest from then
+                return world.taken + int(world.now >= world.setpoints_at)
 
             async def set_follow_mode(self) -> None:
                 mode = st.mode
@@ -526,7 +527,7 @@ class _World:
                 answer(("send", "takeoff", altitude))
 
             async def wait_for(self, predicate: Any, timeout: float, what: str) -> None:
-                answer(("wait", what, timeout, bool(predicate(st))))
+                answer(("wait", what, timeout, bool(predicate(st)), world.now))
 
         class Control:
             active: Any = _Traj(0.0)
@@ -554,6 +555,7 @@ class _World:
 
             def take(self, position: Any, yaw: float, reason: str) -> None:
                 did.append(("take", tuple(position), yaw, reason))
+                world.taken += 1
 
             def pause(self) -> None:
                 did.append(("pause",))
