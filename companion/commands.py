@@ -4,6 +4,10 @@ Which command is accepted in which state is `FlightState.refuse` (the table is i
 the sequences here talk to the autopilot through the MAVLink adapter, hand control to and
 from `Control`, and missions to `Navigator`. A sequence that fails says why (`refused`,
 with the autopilot's answer) and leaves the vehicle in a state it can be commanded from.
+What each sequence does next from what it observed (the autopilot's answer or its timeout, the
+mode and armed state, the climb's swap) is decided by one pure function,
+companion.command_rules.command_step: the sequences here observe, call it, show the call to the
+flight recorder (/commands/step) and carry out the action; the waits themselves stay here.
 Leaving the vehicle to the autopilot (on exit, after a stall) is `handover.py`'s; the
 tracking error and the setpoints' lead are `tracking.py`'s.
 """
