@@ -48,8 +48,8 @@ UNIT := tests/planner tests/companion tests/test_systemd.py tests/test_structure
 FLIGHTS := tests/mock tests/e2e
 pytest: setup
 	$(PY) -m pytest -q -n 2 --dist loadfile -m "not serial" $(UNIT); a=$$?; \
-	$(PY) -m pytest -q -n 2 --dist loadfile -m "not serial" $(FLIGHTS); b=$$?; \
-	$(PY) -m pytest -q -m serial tests; c=$$?; \
+	$(PY) -m pytest -q -n 2 --dist loadfile -m "not serial" --durations=12 $(FLIGHTS); b=$$?; \
+	$(PY) -m pytest -q -m serial --durations=8 tests; c=$$?; \
 	test $$a = 0 && test $$b = 0 && test $$c = 0
 
 test: lint typecheck pytest

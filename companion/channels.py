@@ -169,22 +169,43 @@ SPLIT_STEP = _obj("bezier.SplitStep", "One call of the split-and-swap loop's rul
     "observation": TAGGED, "after": {"type": "object"}, "action": TAGGED,
 }, ("seq", "t", "swap", "call", "step", "what", "rules", "before", "observation", "after", "action"))
 
-COMMAND_STEP = _obj("bezier.CommandStep", "One call of an operator command sequence's rules "
-                    "(companion/command_rules.py command_step): for one run of a sequence (arm, takeoff, its climb, "
-                    "land, abort, disarm, how a command ended, ...), what was observed (the autopilot's answer or "
-                    "its timeout, the mode and armed state, the climb's swap), the state before and after, and what "
-                    "the sequence did next; every value exact, as JSON holds it (no pickle)", {
+COMMIT_STEP = _obj("bezier.CommitStep", "One call of the fleet's commit protocol (companion/commit.py step): a "
+                   "candidate ready with what was known of the others, another vehicle's trajectory heard, a tick, "
+                   "a cancel; the protocol's state before and after and its actions; every value exact, as JSON "
+                   "holds it (no pickle)", {
     "seq": SEQ_RULES,
     "t": T_MONO,
-    "transition": {"type": "integer", "description": "the /supervisor/transition seq the next transition gets (a "
-                   "step whose action is a Transition: the one it makes)"},
-    "call": {"type": "integer", "description": "the sequence's run (1, 2, ... per run of the service): its steps "
-             "chain"},
-    "step": {"type": "integer", "description": "1, 2, ... within the run"},
-    "rules": {"type": "object", "description": "companion.command_rules.CommandRules: the run's sequence and givens"},
-    "before": {"type": "object", "description": "companion.command_rules.CommandState"},
-    "observation": TAGGED, "after": {"type": "object"}, "action": TAGGED,
-}, ("seq", "t", "transition", "call", "step", "rules", "before", "observation", "after", "action"))
+    "before": {"type": "object", "description": "companion.commit.State: our rank, the wait, the phase, the "
+               "candidate's number, its deadline"},
+    "event": TAGGED,
+    "after": {"type": "object"},
+    "actions": {"type": "array", "items": TAGGED},
+}, ("seq", "t", "before", "event", "after", "actions"))
+
+CLOCK_SAMPLE = _obj("bezier.ClockSample", "One sample of the fleet's clock check (companion/clocks.py): another "
+                    "vehicle's trajectory put, sent on its clock and heard on ours (system clock, s), and the "
+                    "verdict on our clock then", {
+    "seq": SEQ_RULES,
+    "t": T_MONO,
+    "vehicle": {"type": "string"},
+    "sent": {"type": "number", "description": "the put's send time on its sender's system clock (attachment)"},
+    "arrived": {"type": "number", "description": "our system clock when it arrived"},
+    "off": {"type": ["string", "null"], "description": "why our clock is taken to be off then (null: it agrees)"},
+}, ("seq", "t", "vehicle", "sent", "arrived", "off"))
+
+BUDGET_STEP = _obj("bezier.BudgetStep", "One question to the plan budget (companion/plan_budget.py budget_step): how "
+                   "far ahead a plan is split and how many candidate plans a search may plan, from the planning "
+                   "times measured in this service, or a plan's time measured into it; every value exact, as JSON "
+                   "holds it (no pickle)", {
+    "seq": SEQ_RULES,
+    "t": T_MONO,
+    "before": {"type": "object", "description": "companion.plan_budget.Budget: seconds per candidate plan per "
+               "waypoint, as estimated before"},
+    "ask": TAGGED,
+    "after": {"type": "object", "description": "companion.plan_budget.Budget (changed by Measured only)"},
+    "answer": {"type": ["number", "null"], "description": "seconds ahead, or candidate plans (null: no cap, or "
+               "nothing to answer)"},
+}, ("seq", "t", "before", "ask", "after", "answer"))
 
 DECODED = _obj("bezier.DecodedMessage", "An inbound message as the companion read it (companion.wire.messages.read): "
                "the typed message (local_ned) or the refusal, and what read was given besides the bytes", {
@@ -288,7 +309,15 @@ def spec(topic: str) -> Spec:
         return _json(TRACKING_STEP)
     if topic == "/navigator/split":
         return _json(SPLIT_STEP)
-    if topic == "/commands/step":
+    if topic == "/navigator/budget":
+        return _json(BUDGET_STEP)
+    if topic == "/fleet/commit":
+        return _json(COMMIT_STEP)
+    if topic == "/fleet/clock":
+        return _json(CLOCK_SAMPLE)
+    if topic == "/commands/step":  # in a module of its own: this one is at its size limit
+        from companion.command_channel import COMMAND_STEP
+
         return _json(COMMAND_STEP)
     if topic == "/inbound/decoded":
         return _json(DECODED)
@@ -419,11 +448,15 @@ def split_fields(call: int, step: int, what: str, rules: Any, before: Any, obser
             "observation": _tagged(observation), "after": _plain(after), "action": _tagged(action)}
 
 
-def command_fields(call: int, step: int, rules: Any, before: Any, observation: Any, after: Any,
-                   action: Any) -> dict[str, Any]:
-    """The readable part of a /commands/step record: all of it (JSON only)."""
-    return {"call": call, "step": step, "rules": _plain(rules), "before": _plain(before),
-            "observation": _tagged(observation), "after": _plain(after), "action": _tagged(action)}
+def commit_fields(before: Any, event: Any, after: Any, actions: tuple[Any, ...]) -> dict[str, Any]:
+    """A /fleet/commit record's body but for seq and t: all of it (JSON only)."""
+    return {"before": _plain(before), "event": _tagged(event), "after": _plain(after),
+            "actions": [_tagged(a) for a in actions]}
+
+
+def budget_fields(before: Any, ask: Any, after: Any, answer: Any) -> dict[str, Any]:
+    """A /navigator/budget record's body but for seq and t: all of it (JSON only)."""
+    return {"before": _plain(before), "ask": _tagged(ask), "after": _plain(after), "answer": answer}
 
 
 ORDERS = ("velocity", "acceleration", "jerk", "snap")

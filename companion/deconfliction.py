@@ -44,6 +44,11 @@ class Deconfliction:
         self.me = cp.Rank(cfg.fleet.priority, cfg.vehicle.id)
         self.wait = 2.0 * cfg.fleet.max_delay
         self.state = cp.State(self.me, self.wait)
+        # shown every call of the protocol's rule (the flight recorder's tap: it must return at once)
+        self.observe: Callable[[cp.State, cp.Event, cp.State, tuple[cp.Action, ...]], None] = \
+            lambda _b, _e, _a, _x: None
+        # shown every sample of the clock check and its verdict (vehicle, sent, arrived, why off)
+        self.observe_clock: Callable[[str, float, float, str | None], None] = lambda _v, _s, _a, _w: None
         self.seq = 0
         self.committed_seq = 0
         # the candidate that won (its number and certificates), until it is published as committed
@@ -124,6 +129,17 @@ class Deconfliction:
 
     # -- the commit protocol ---------------------------------------------------------------
 
+    def _step(self, event: cp.Event) -> list[cp.Action]:
+        """One call of the protocol's rule (companion.commit.step), the state replaced and the
+        call shown to the recorder (/fleet/commit), which replay runs again."""
+        before = self.state
+        self.state, acts = cp.step(before, event)
+        try:
+            self.observe(before, event, self.state, tuple(acts))
+        except Exception:  # a recorder's fault must never change what the fleet decides
+            log.exception("fleet: the commit observer failed")
+        return acts
+
     async def commit(self, candidate: Trajectory, what: str) -> str | None:
         """Propose `candidate` (local, flight time), wait, commit: None when it may be flown (the
         caller swaps it in at once), else why it lost (replan against the winner)."""
@@ -136,7 +152,7 @@ class Deconfliction:
         seq = self.seq
         checks = self._check(candidate)
         known = tuple(other(c, cert is None) for c, cert, _ in checks)
-        self.state, acts = cp.step(self.state, cp.Ready(seq, time.monotonic(), known))
+        acts = self._step(cp.Ready(seq, time.monotonic(), known))
         log.info("fleet: candidate %d for %s against %s: %s", seq, what,
                  [(c.vehicle, c.seq, c.committed, cert is not None) for c, cert, _ in checks], acts)
         for a in acts:
@@ -157,7 +173,7 @@ class Deconfliction:
             if lost.done():
                 self.replans += 1
                 return f"{what}: {lost.result()}"
-            self.state, acts = cp.step(self.state, cp.Tick(time.monotonic()))
+            acts = self._step(cp.Tick(time.monotonic()))
             if any(isinstance(a, cp.Commit) and a.seq == seq for a in acts):
                 self.approved = (seq, certs)  # published as committed when swapped in (committed_section)
                 return None
@@ -169,7 +185,7 @@ class Deconfliction:
 
     def cancel(self) -> None:
         self.approved = None
-        self.state, _ = cp.step(self.state, cp.Cancel())
+        self._step(cp.Cancel())
 
     # -- what we publish ------------------------------------------------------------------
 
@@ -235,6 +251,10 @@ class Deconfliction:
         if sent is not None and arrived is not None:  # a vehicle's trajectory (the router checked who may put it)
             self.clocks.heard(vehicle, sent, arrived)
             self._clock_verdict(arrived)
+            try:
+                self.observe_clock(vehicle, sent, arrived, self.clock_off)
+            except Exception:  # a recorder's fault must never change what the fleet decides
+                log.exception("fleet: the clock observer failed")
         held = (self.traffic.committed if claim.committed else self.traffic.proposed).get(vehicle)
         if held is not None and held.seq == claim.seq:
             return  # the same trajectory published again (REPUBLISH)
@@ -253,7 +273,7 @@ class Deconfliction:
             return
         if self.proposed is not None and self._lost is not None and not self._lost.done():
             (_, cert, msg), = self._check(self.proposed, [claim])
-            self.state, acts = cp.step(self.state, cp.Heard(time.monotonic(), other(claim, cert is None)))
+            acts = self._step(cp.Heard(time.monotonic(), other(claim, cert is None)))
             for a in acts:
                 if isinstance(a, cp.Lose):
                     self._lost.set_result(a.reason + (f" ({msg})" if msg else ""))
@@ -263,8 +283,7 @@ class Deconfliction:
             from companion.traffic import to_local
 
             (_, cert, msg), = self._check(to_local(self.ours, pl, tb), [claim])
-            self.state, acts = cp.step(self.state, cp.Heard(time.monotonic(),
-                                                            other(claim, False, conflicts_committed=cert is None)))
+            acts = self._step(cp.Heard(time.monotonic(), other(claim, False, conflicts_committed=cert is None)))
             for a in acts:
                 if isinstance(a, cp.Replan):
                     self.replans += 1

@@ -12,9 +12,11 @@ server). A record that finds its queue full is dropped and counted: in status
 so a burst of other traffic never drops one; so have the decisions replay checks as unbroken
 chains: the supervisor's transitions (every `Supervisor.handle` call), the autopilot watch's
 steps (every call of companion.autopilot_rules.watch_step), the tracking error's (every call
-of companion.tracking_rules.tracking_step that changed or said something) and the split-and-swap
-loop's (every call of companion.split_rules.split_step) and the operator commands' sequences'
-(every call of companion.command_rules.command_step).
+of companion.tracking_rules.tracking_step that changed or said something), the split-and-swap
+loop's (every call of companion.split_rules.split_step), the plan budget's (every call of
+companion.plan_budget.budget_step), the fleet's commit protocol's (every call of
+companion.commit.step) and the operator commands' sequences' (every call of
+companion.command_rules.command_step).
 
 Channels, schemas and frames: companion/channels.py and docs/recording.md.
 """
@@ -37,6 +39,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from companion import channels as ch
+from companion.command_channel import command_fields
 from companion.config import Config, config_to_toml
 from companion.record_format import environment
 from companion.tap import Tap
@@ -174,6 +177,9 @@ class Recorder(Tap):
         self._swap_seq = itertools.count(1)
         self._tracking_seq = itertools.count(1)
         self._split_seq = itertools.count(1)
+        self._budget_seq = itertools.count(1)
+        self._commit_seq = itertools.count(1)
+        self._clock_seq = itertools.count(1)
         self._swaps = 0  # swaps numbered so far (on the loop, as the split's steps are recorded)
         self._command_seq = itertools.count(1)
         # the writer's: the last /tracking/step seq written and the file part it went to; a
@@ -296,6 +302,16 @@ class Recorder(Tap):
         # with the number of the last swap decided: a step that observed a swap names its record
         self._put(self._decisions, ("split_step", next(self._split_seq), self._swaps, call, step, what, rules, before,
                                     observation, after, action, self.clock()))
+
+    def commit_step(self, before: Any, event: Any, after: Any, actions: tuple[Any, ...]) -> None:
+        self._put(self._decisions, ("commit_step", next(self._commit_seq), before, event, after, actions,
+                                    self.clock()))
+
+    def clock_sample(self, vehicle: str, sent: float, arrived: float, off: str | None) -> None:
+        self._put(self._decisions, ("clock_sample", next(self._clock_seq), vehicle, sent, arrived, off, self.clock()))
+
+    def budget_step(self, before: Any, ask: Any, after: Any, answer: Any) -> None:
+        self._put(self._decisions, ("budget_step", next(self._budget_seq), before, ask, after, answer, self.clock()))
 
     def command_step(self, call: int, step: int, rules: Any, before: Any, observation: Any, after: Any,
                      action: Any) -> None:
@@ -428,9 +444,19 @@ class Recorder(Tap):
             _, seq, swap, call, step, what, rules, before, observation, after, action, t = item
             body = ch.split_fields(call, step, what, rules, before, observation, after, action)
             self._emit("/navigator/split", ch.dumps({"seq": seq, "t": t, "swap": swap, **body}), t)
+        elif kind == "commit_step":
+            _, seq, before, event, after, actions, t = item
+            self._emit("/fleet/commit", ch.dumps({"seq": seq, "t": t, **ch.commit_fields(before, event, after, actions)}), t)
+        elif kind == "clock_sample":
+            _, seq, vehicle, sent, arrived, off, t = item
+            self._emit("/fleet/clock", ch.dumps({"seq": seq, "t": t, "vehicle": vehicle, "sent": sent,
+                                                 "arrived": arrived, "off": off}), t)
+        elif kind == "budget_step":
+            _, seq, before, ask, after, answer, t = item
+            self._emit("/navigator/budget", ch.dumps({"seq": seq, "t": t, **ch.budget_fields(before, ask, after, answer)}), t)
         elif kind == "command_step":
             _, seq, transition, call, step, rules, before, observation, after, action, t = item
-            body = ch.command_fields(call, step, rules, before, observation, after, action)
+            body = command_fields(call, step, rules, before, observation, after, action)
             self._emit("/commands/step", ch.dumps({"seq": seq, "t": t, "transition": transition, **body}), t)
         elif kind == "flown":
             _, traj, t_base, t = item

@@ -28,7 +28,10 @@ dictionaries (timings).
 Swaps and split steps: each `/control/swap` record holds one decision of the swap's rule,
 decided again (companion/replay_swaps.py); each `/navigator/split` record one call of the
 split-and-swap loop's rules (where a plan made in flight splits, planning again, moving it later,
-giving up), run again (companion/replay_split.py).
+giving up), run again (companion/replay_split.py); each `/navigator/budget` record one question
+to the plan budget (how far ahead a plan splits, how big a search fits, each plan's time
+measured), answered again (companion/replay_budget.py); in a fleet, each `/fleet/commit` record
+one call of the commit protocol's rule, run again (companion/replay_commit.py).
 
 Command steps: each `/commands/step` record holds one call of an operator command sequence's
 rules (companion/command_rules.py: arm, takeoff and its climb, land, abort, disarm, how a

@@ -1,8 +1,10 @@
 """`python -m companion replay FILE.mcap`: run every recorded transition, autopilot step, inbound
-read, tracking step and plan again and say whether each reproduces (exit 0), where the first
-differs (exit 1), or why the file cannot be replayed (exit 2). What each check covers:
-companion/replay.py, companion/replay_autopilot.py, companion/replay_tracking.py,
-companion/replay_swaps.py, companion/replay_split.py and companion/replay_commands.py.
+read, tracking step, swap, split step, plan budget answer, command step and plan again and say whether each
+reproduces (exit 0), where the first differs (exit 1), or why the file cannot be replayed
+(exit 2). What each check covers: companion/replay.py, companion/replay_autopilot.py,
+companion/replay_tracking.py, companion/replay_swaps.py, companion/replay_split.py,
+companion/replay_budget.py, companion/replay_commit.py (a vehicle in a fleet) and
+companion/replay_commands.py.
 """
 
 from __future__ import annotations
@@ -10,7 +12,15 @@ from __future__ import annotations
 import pickle
 import sys
 
-from companion import replay_autopilot, replay_commands, replay_split, replay_swaps, replay_tracking
+from companion import (
+    replay_autopilot,
+    replay_budget,
+    replay_commands,
+    replay_commit,
+    replay_split,
+    replay_swaps,
+    replay_tracking,
+)
 from companion.record_format import environment
 from companion.replay import (
     decoded_records,
@@ -74,6 +84,20 @@ def main(argv: list[str]) -> int:
         print(replay_split.said(splits, any_splits), flush=True)
         for more in splits.differences[1:] if args.keep_going else ():
             print(f"  also: {more}")
+        budget, any_budget = replay_budget.replay_file(args.file, args.since, args.until)
+        print(replay_budget.said(budget, any_budget), flush=True)
+        for more in budget.differences[1:] if args.keep_going else ():
+            print(f"  also: {more}")
+        commits, any_commits = replay_commit.replay_file(args.file, args.since, args.until)
+        if any_commits:  # a vehicle in a fleet: said only there
+            print(replay_commit.said(commits, any_commits), flush=True)
+        for more in commits.differences[1:] if args.keep_going else ():
+            print(f"  also: {more}")
+        clock, any_clock = replay_commit.replay_clock_file(args.file)
+        if any_clock:
+            print(replay_commit.said_clock(clock, any_clock), flush=True)
+        for more in clock.differences[1:] if args.keep_going else ():
+            print(f"  also: {more}")
         commanded, any_commands = replay_commands.replay_file(args.file, args.since, args.until)
         print(replay_commands.said(commanded, any_commands), flush=True)
         for more in commanded.differences[1:] if args.keep_going else ():
@@ -104,9 +128,9 @@ def main(argv: list[str]) -> int:
         print(f"replay: {args.file}: {exc}", file=sys.stderr)
         return 2
     if (n == 0 and not recs and not dropped and not decoded and not any_steps and not any_tracking and not any_swaps
-            and not any_splits and not any_commands):
-        print("replay: no plan, transition, autopilot, tracking, split or command step, swap or inbound message in the "
-              "recording (or in the time range)", file=sys.stderr)
+            and not any_splits and not any_budget and not any_commits and not any_clock and not any_commands):
+        print("replay: no plan, transition, autopilot, tracking, split, budget or command step, swap or inbound message "
+              "in the recording (or in the time range)", file=sys.stderr)
         return 2
     if n == 0:
         print("plans: none recorded")
@@ -114,5 +138,6 @@ def main(argv: list[str]) -> int:
         print(f"plans: {n - bad} of {n} reproduced bit-identically" if bad == 0 or args.keep_going
               else f"plans: plan {n} is the first that differs")
     clean = not (checked.differences or stepped.differences or tracked.differences or decode_bad
-                 or swaps.differences or splits.differences or commanded.differences)
+                 or swaps.differences or splits.differences or budget.differences or commits.differences
+                 or clock.differences or commanded.differences)
     return 0 if bad == 0 and clean else 1

@@ -16,7 +16,8 @@ service ran with, compares the state after and the outputs exactly, and checks:
 - with the file's transitions: each `Brake` is followed by the `Braking` transition of the same
   reason (at or after the transition number the step was recorded with; a brake may come to
   nothing, when the plan stopped meanwhile, so one without is counted, not a difference), and
-  every `Braking` transition of a tracking reason was asked for by a recorded step.
+  every `Braking` transition of a tracking reason was asked for by a recorded step (or, for a
+  file whose first step says a tracking stop still runs, by the step before the file).
 
 A record is JSON only (every value a number, a flag or a string, exact as JSON holds it): it is
 read back into the rules' own classes, named in it; a record naming any other is refused.
@@ -72,7 +73,7 @@ class TrackingSteps(replay.Chain):
 class _Brake:
     seq: int
     transition: int
-    reason: str
+    reason: str | None  # None: one asked for before the file (its reason unknown, a tracking one)
 
 
 class _Replayer:
@@ -128,7 +129,8 @@ def _brakes_against(out: TrackingSteps, earlier: list[_Brake], brakes: list[_Bra
     claimed: set[int] = set()
     for brake in [*earlier, *brakes]:
         found = next((s for s in braking if s >= brake.transition and s not in claimed
-                      and transitions[s][1].reason == brake.reason), None)
+                      and (transitions[s][1].reason == brake.reason if brake.reason is not None
+                           else transitions[s][1].reason.startswith(BRAKE_REASON))), None)
         if found is not None:
             claimed.add(found)
             out.tied += brake in brakes
@@ -147,9 +149,13 @@ def replay_steps(recs: list[dict[str, Any]], rules: Any, dropped: int = 0,
     run = _Replayer(rules)
     body = recs if inside is None else [r for r in recs if int(r["seq"]) in inside]
     earlier: list[_Brake] = []  # asked for before the range: their Braking transitions may be in it
+    if recs and step_values(recs[0])[1].stop_running:
+        # a file's first step while the stop a step asked for is still being planned: that step
+        # is in the part before (the file rotated between it and its Braking transition)
+        earlier.append(_Brake(int(recs[0]["seq"]) - 1, int(recs[0]["transition"]), None))
     if body and body[0] is not recs[0]:
         replay.replay_chain(TrackingSteps(), recs[:recs.index(body[0])], run.check, 0, "tracking step")
-        earlier, run.brakes = run.brakes, []
+        earlier, run.brakes = earlier + run.brakes, []
     out = TrackingSteps()
     replay.replay_chain(out, body, run.check, dropped, "tracking step")
     out.brakes = len(run.brakes)

@@ -41,6 +41,7 @@ from typing import Any, cast
 import numpy as np
 
 from companion.setpoints import (
+    THREAD_STALL,
     DeadlineScheduler,
     Feed,
     Liveness,
@@ -534,7 +535,10 @@ def _child_main(start: _Start, inbox: multiprocessing.connection.Connection, rec
         now = time.monotonic()
         thread_gap, woke = now - woke, now
         current = feed
-        if current is not None and live is not None and not live.check(now, thread_gap):
+        # a stall after a setpoint left is latched even when the stream was released meanwhile
+        # (as in setpoints.SetpointSender._run: the stall is still the cause, and is said)
+        if live is not None and (current is not None or (last is not None and thread_gap > THREAD_STALL)) \
+                and not live.check(now, thread_gap):
             current = None
         following = sched.deadline(sched.k + 1)
         if current is not None:

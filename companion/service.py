@@ -71,6 +71,18 @@ from planner_core import FloatArray, Trajectory, hold
 log = logging.getLogger("companion")
 
 
+def _tap_decisions(svc: Service) -> None:
+    """Every call of the decisions' rules shown to the recorder, for replay (issue 23)."""
+    tap = svc.tap
+    svc.watch.connect(observe=tap.autopilot_step)  # the autopilot watch's
+    svc.control.observe_swap = tap.swap  # every swap decided
+    svc.tracking.connect(observe=tap.tracking_step)  # the tracking error's
+    svc.navigator.split.observe = tap.split_step  # every plan made in flight: where it split, again
+    svc.navigator.budget.observe = tap.budget_step  # how far ahead, how big a search
+    svc.deconfliction.observe = tap.commit_step  # the fleet's commit protocol
+    svc.deconfliction.observe_clock = tap.clock_sample  # and its clock check
+    svc.commands.observe = tap.command_step  # the operator commands' sequences
+
 
 class Service:
     def __init__(self, cfg: Config, stop: asyncio.Event | None = None,
@@ -121,11 +133,7 @@ class Service:
                             observe=self.tap.transition)  # every transition recorded, for replay (issue 23)
         self.watch = AutopilotWatch(cfg, self.flight, self.link, self.report,
                                     on_position=self.tracking.check_tracking, stalled=self.stalls.stalled)
-        self.watch.connect(observe=self.tap.autopilot_step)  # every call of its rules recorded, for replay
-        self.control.observe_swap = self.tap.swap  # every swap decided, recorded for replay
-        self.tracking.connect(observe=self.tap.tracking_step)  # likewise
-        self.navigator.split.observe = self.tap.split_step  # likewise: every plan made in flight
-        self.commands.observe = self.tap.command_step  # likewise: the operator commands' sequences
+        _tap_decisions(self)
         self.link.on_message = self._on_mavlink
         self.deconfliction.on_replan = self.navigator.fleet_replan
         self.deconfliction.on_clock_off = self.navigator.fleet_stop

@@ -342,7 +342,12 @@ class SetpointSender:
             now = self.clock()
             thread_gap, woke = now - woke, now
             feed = self.feed
-            if feed is not None and self.liveness is not None and not self.liveness.check(now, thread_gap):
+            # A stall after a setpoint left is latched even when the stream was released
+            # meanwhile: the autopilot may have left OFFBOARD for want of setpoints, and the loop,
+            # first to run after the stall, seen that and released control; the stall is still
+            # the cause, and is said (companion.stalls).
+            if self.liveness is not None and (feed is not None or (last is not None and thread_gap > THREAD_STALL)) \
+                    and not self.liveness.check(now, thread_gap):
                 feed = None
             gap = error = sp = None
             if feed is not None:

@@ -68,6 +68,18 @@ class Tap:
         state before, the observation, the state after and the action; on the loop, so no time:
         the tap takes it."""
 
+    def commit_step(self, before: Any, event: Any, after: Any, actions: tuple[Any, ...]) -> None:
+        """A call of the fleet's commit protocol (companion.commit.step): the state before, the
+        event, the state after and the actions; on the loop, so no time: the tap takes it."""
+
+    def clock_sample(self, vehicle: str, sent: float, arrived: float, off: str | None) -> None:
+        """A sample of the fleet's clock check (companion.clocks) and the verdict on our clock
+        after it; on the loop, so no time: the tap takes it."""
+
+    def budget_step(self, before: Any, ask: Any, after: Any, answer: Any) -> None:
+        """A question to the plan budget (companion.plan_budget.budget_step): the budget before,
+        the question, the budget after and the answer; on the loop, so no time: the tap takes it."""
+
     def command_step(self, call: int, step: int, rules: Any, before: Any, observation: Any, after: Any,
                      action: Any) -> None:
         """A call of an operator command sequence's rules (companion.command_rules.command_step):

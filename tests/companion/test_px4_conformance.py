@@ -247,6 +247,47 @@ def test_the_setpoint_thread_withholds_setpoints_once_the_loop_stops_beating() -
         sender.stop()
 
 
+def test_a_thread_stall_is_latched_when_the_stream_was_released_meanwhile() -> None:
+    """The setpoint thread wakes THREAD_STALL late after a setpoint left, and the stream has been
+    released meanwhile (the loop, first to run after the stall, saw the autopilot leave OFFBOARD
+    for want of setpoints): the stall is still latched as the thread's, so the companion says
+    that it stalled rather than leave the autopilot's failsafe unexplained. Seen in CI: a GIL
+    held 1.25 s by another thread, no `stalled` event. Then, with no stream, a late wake-up
+    latches nothing (nothing was flown)."""
+    offset, armed, done = [0.0], threading.Event(), threading.Event()
+    sent: list[float] = []
+    sender: SetpointSender
+
+    def clock() -> float:
+        if armed.is_set() and not done.is_set():  # the stall and the release, as one step
+            offset[0] += 1.0
+            sender.feed = None
+            done.set()
+        return time.monotonic() + offset[0]
+
+    live = Liveness(30.0, clock)  # the loop's own limit far off: this is about the thread
+    sender = SetpointSender(100.0, lambda sp: sent.append(clock()), YawPolicy("hold", 0.0, 0.3),
+                            lambda tick: None, lambda exc: None, clock=clock)
+    sender.liveness = live
+    sender.feed = Feed(hold(np.zeros(3), 0.0), clock())
+    sender.start()
+    try:
+        assert _until(lambda: len(sent) >= 5) and not sender.withheld
+        armed.set()
+        assert _until(lambda: sender.withheld)
+        assert live.withheld is not None and live.withheld[1] == "thread" and live.withheld[2] > 1.0
+        assert live.release() is not None
+        n = len(sent)
+        armed.clear()
+        done.clear()
+        armed.set()  # another late wake-up, nothing streamed since: nothing to latch
+        assert _until(done.is_set)
+        time.sleep(0.1)
+        assert live.withheld is None and len(sent) == n
+    finally:
+        sender.stop()
+
+
 def _home_position(x: float, y: float, z: float, lat: float = 47.4, lon: float = 8.5) -> Any:
     from pymavlink.dialects.v20 import common as mav
 

@@ -19,7 +19,7 @@ from typing import Any
 import pytest
 from mcap.reader import make_reader
 from recorder_support import BrakingNavigator, ScriptedControl, TrackingLink, config, schema_checked
-from test_replay_transitions import rewrite
+from test_replay_transitions import rewrite, transition_records
 
 from companion import replay, replay_cli
 from companion.config import PlannerConfig
@@ -312,3 +312,27 @@ def test_the_limit_follows_the_autopilot_linked(tmp_path: Path) -> None:
     names = [name for _limit, name in seen]
     assert [limit for limit, _name in seen] == [0.4, 0.4, 1.0, 1.0, 0.4, 0.4, 1.0, 1.0]
     assert "not yet known" in names[0] and "PX4" in names[2] and "ArduPilot" in names[4] and "PX4" in names[6]
+
+
+def test_a_file_that_starts_while_a_brake_is_planned_ties_its_braking_transition(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Files small enough that one rotates between a brake's step and its Braking transition,
+    with another step first in the new file (its reading says the tracking stop still runs):
+    that file, replayed alone, ties the transition to the step before it, not a difference."""
+    straddled = 0
+    # where a file rotates depends on when the writer thread writes: sizes until the case is made
+    for size in range(2_500, 9_001, 250):
+        if straddled:
+            break
+        where = tmp_path / str(size)
+        where.mkdir()
+        recorded(where, max_bytes=size, keep_bytes=10**9)
+        for part in sorted(where.glob("*.mcap"), key=lambda p: (len(p.name), p.name)):
+            recs = steps(part)
+            if not recs:  # a file of other records only (tiny files): nothing of this to replay
+                continue
+            code, out = run(part, capsys)
+            assert code == 0, out
+            straddled += recs[0]["reading"]["fields"]["stop_running"] and any(
+                "Braking" in json.dumps(t) for t in transition_records(part))
+    assert straddled, "no file started between a brake's step and its transition: the case was not made"

@@ -216,6 +216,10 @@ def test_every_plan_transition_and_step_of_the_flight_replays_bit_identically(fl
     # every step of the split-and-swap loop reproduced (the mission and the replan at least swapped in)
     split = sum(1 for _s, c, _m in msgs if c.topic == "/navigator/split")
     assert split >= 4 and any(ln.startswith(f"splits: {split} of {split} reproduced (") for ln in run.stdout.splitlines())
+    # every question to the plan budget answered alike (the climb, the mission, the replan each
+    # asked how far ahead to split; their planning times measured)
+    budget = sum(1 for _s, c, _m in msgs if c.topic == "/navigator/budget")
+    assert budget >= 6 and any(ln.startswith(f"budget: {budget} of {budget} reproduced (") for ln in run.stdout.splitlines())
     # every step of the operator commands' sequences reproduced (the takeoff sent over Zenoh: its
     # arm, the OFFBOARD it needs, the climb, and how the command ended), none failed, and each
     # transition a step made is the transition record it names

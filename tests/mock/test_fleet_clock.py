@@ -19,6 +19,7 @@ import pytest
 from companionkit import Events, service_for, serving, until, zenoh_client
 
 import companion.clocks as clocks
+from companion import replay, replay_cli, replay_commit
 from companion.wire.encode import encode_trajectory
 from companion.wire.messages import read
 from planner_core import hold
@@ -59,13 +60,24 @@ class Ghosts:
         self.thread.join(5)
 
 
-def _fly(tmp_path: Path, skew: dict[str, float], then: Any) -> None:
+def _fly(tmp_path: Path, skew: dict[str, float], then: Any, recording: Path | None = None) -> list[Any]:
+    """The flight; with `recording`, recorded there. Returns the commit protocol's calls, each
+    (before, event, after, actions), as the service made them."""
     mock = MockAutopilot(MockConfig(autopilot="px4", endpoints=["udpin:127.0.0.1:0"],
                                     log_path=str(tmp_path / "f.jsonl"))).start()
+    calls: list[Any] = []
 
     async def go() -> None:
         svc = service_for(mock, fleet={"origin": list(HOME), "separation": 3.0, "clock_tolerance": 0.05,
-                                       "max_delay": 0.1})
+                                       "max_delay": 0.1},
+                          **({"recording": {"path": str(recording)}} if recording is not None else {}))
+        record = svc.deconfliction.observe
+
+        def seen(*call: Any) -> None:  # every call, counted apart from what the recorder saw
+            calls.append(call)
+            record(*call)
+
+        svc.deconfliction.observe = seen
         events = Events(svc)
         async with serving(svc):
             await until(lambda: svc.link.state.position_problem() is None, 15, "position")
@@ -85,6 +97,7 @@ def _fly(tmp_path: Path, skew: dict[str, float], then: Any) -> None:
         asyncio.run(go())
     finally:
         mock.stop()
+    return calls
 
 
 def _mission(mid: str) -> Any:
@@ -93,8 +106,8 @@ def _mission(mid: str) -> Any:
 
 
 @pytest.mark.slow
-def test_a_clock_off_the_fleets_stops_the_mission_and_refuses_plans(tmp_path: Path,
-                                                                    monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_clock_off_the_fleets_stops_the_mission_and_refuses_plans(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                                    capsys: pytest.CaptureFixture[str]) -> None:
     monkeypatch.setattr(clocks, "WINDOW", 4.0)  # a clock put right is believed again after this
 
     async def then(svc: Any, events: Events, ghosts: Ghosts) -> None:
@@ -126,7 +139,27 @@ def test_a_clock_off_the_fleets_stops_the_mission_and_refuses_plans(tmp_path: Pa
         await svc.navigator.on_mission(read("mission", _mission("third"), svc.cfg), time.monotonic())
         await until(lambda: any(e.get("mission") == "third" for e in events.of("accepted")), 15, "the mission flown")
 
-    _fly(tmp_path, {"g1": 0.0, "g2": 0.0, "g3": 0.0}, then)
+    calls = _fly(tmp_path, {"g1": 0.0, "g2": 0.0, "g3": 0.0}, then, tmp_path / "recordings")
+    # every call of the commit protocol (each mission's candidate ready, the others heard while
+    # it was proposed, its deadline's tick) is in the recording, in order, and runs again alike
+    (path,) = sorted((tmp_path / "recordings").glob("*.mcap"))
+    recs, dropped = replay.numbered_records(str(path), replay_commit.TOPIC, "commit_step")
+    assert dropped == 0 and [r["event"]["type"] for r in recs] == [type(c[1]).__name__ for c in calls]
+    done = replay_commit.replay_steps(recs)
+    assert not done.differences and done.total == len(calls) and done.committed >= 2, done
+    assert "Heard" in [r["event"]["type"] for r in recs]
+    code = replay_cli.main([str(path)])
+    out = capsys.readouterr().out
+    assert f"fleet commits: {len(calls)} of {len(calls)} reproduced ({done.committed} committed, 0 lost)" \
+        in out.splitlines() and code == 0, out
+    # every sample of the clock check is in the file, and the check fed them again judges our
+    # clock as the service did at each: off once (the mission stopped), then agreeing again
+    samples, _ = replay.numbered_records(str(path), replay_commit.CLOCK_TOPIC, "clock_sample")
+    assert len(samples) >= 3 * clocks.MIN_SAMPLES and [r["seq"] for r in samples] == list(range(1, len(samples) + 1))
+    verdicts = [r["off"] is not None for r in samples]
+    assert True in verdicts and verdicts[-1] is False
+    assert f"fleet clock: {len(samples)} of {len(samples)} judged alike (our clock found off 1 time)" \
+        in out.splitlines(), out
 
 
 @pytest.mark.slow

@@ -35,8 +35,8 @@ def mission(at: Any) -> bytes:
                                                        [x, y + 1.5, z - 0.3]]}).encode()
 
 
-async def _fly(mock: MockAutopilot, recordings: Path) -> tuple[list[dict[str, Any]], int, FlightState, int, int,
-                                                               list[str], list[Any], list[tuple[str, Any]]]:
+async def _fly(mock: MockAutopilot,
+               recordings: Path) -> tuple[list[dict[str, Any]], int, FlightState, int, int, list[str], list[Any]]:
     svc = service_for(mock, recording={"path": str(recordings)}, safety={"takeoff_altitude": 1.5})
     events = Events(svc)
     calls = [0]
@@ -79,6 +79,14 @@ async def _fly(mock: MockAutopilot, recordings: Path) -> tuple[list[dict[str, An
         record_split(*call)
 
     svc.navigator.split.observe = split_seen
+    asked: list[Any] = []  # every question to the plan budget: (ask, answer)
+    record_budget = svc.navigator.budget.observe
+
+    def budget_seen(*call: Any) -> None:
+        asked.append((call[1], call[3]))
+        record_budget(*call)
+
+    svc.navigator.budget.observe = budget_seen
     commanded: list[tuple[str, Any]] = []  # every call of the command sequences' rules: its sequence and action
     record_command = svc.commands.observe
 
@@ -110,7 +118,7 @@ async def _fly(mock: MockAutopilot, recordings: Path) -> tuple[list[dict[str, An
         await until(lambda: any(e.get("command") == "land" and e["type"] in ("completed", "refused")
                                 for e in events.all), 60, "land to complete")
         await until(lambda: svc.flight.state is State.IDLE, 30, "the autopilot's disarm after landing")
-    return events.all, calls[0], svc.flight.value, steps[0], tracked[0], decided, split, commanded
+    return events.all, calls[0], svc.flight.value, steps[0], tracked[0], decided, split, asked, commanded
 
 
 def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
@@ -118,7 +126,7 @@ def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
     mock = MockAutopilot(MockConfig(autopilot="px4", endpoints=["udpin:127.0.0.1:0"],
                                     log_path=str(tmp_path / "flight.jsonl"), log_rate_hz=20)).start()
     try:
-        published, handled, final, stepped, tracked, decided, split, commanded = asyncio.run(
+        published, handled, final, stepped, tracked, decided, split, asked, commanded = asyncio.run(
             _fly(mock, tmp_path / "recordings"))
     finally:
         mock.stop()
@@ -131,6 +139,7 @@ def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
         swaps = [json.loads(m.data) for _s, _c, m in reader.iter_messages(topics=["/control/swap"])]
         tracking = [json.loads(m.data) for _s, _c, m in reader.iter_messages(topics=["/tracking/step"])]
         splits = [json.loads(m.data) for _s, _c, m in reader.iter_messages(topics=["/navigator/split"])]
+        budget = [json.loads(m.data) for _s, _c, m in reader.iter_messages(topics=["/navigator/budget"])]
         commands = [json.loads(m.data) for _s, _c, m in reader.iter_messages(topics=["/commands/step"])]
         heard = collections.Counter(c.topic for _s, c, _m in reader.iter_messages(topics=[
             "/mavlink/in/HEARTBEAT", "/mavlink/in/LOCAL_POSITION_NED", "/mavlink/in/EXTENDED_SYS_STATE"]))
@@ -204,6 +213,15 @@ def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
     assert "Done" in ends
     assert (f"splits: {len(split)} of {len(split)} reproduced ({ends.count('Done')} swapped in, "
             f"{len(ends) - ends.count('Done')} given up)") in out.splitlines()
+    # every question to the plan budget (the warm-up's planning time measured first, how far
+    # ahead the climb's and the mission's plans split, each plan's time measured) is in the file,
+    # in order, and answered alike again from the times measured before it
+    assert [(r["ask"]["type"], r["answer"]) for r in budget] == [(type(a).__name__, x) for a, x in asked]
+    assert [r["seq"] for r in budget] == list(range(1, len(asked) + 1))
+    kinds_asked = [type(a).__name__ for a, _x in asked]
+    assert kinds_asked[0] == "Measured" and "SplitAhead" in kinds_asked and kinds_asked.count("Measured") >= 3
+    assert (f"budget: {len(asked)} of {len(asked)} reproduced ({len(asked) - kinds_asked.count('Measured')} "
+            f"split or search asked, {kinds_asked.count('Measured')} planning times measured)") in out.splitlines()
     # every step of the operator commands' sequences (takeoff: its arm, the OFFBOARD it needs,
     # the climb; land: the landing and its wait for the ground, and how it ended) is in the file,
     # in order, and reproduced; the transitions they made are the supervisor's of those kinds,

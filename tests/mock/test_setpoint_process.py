@@ -69,13 +69,17 @@ def _processes(tmp_path: Path) -> Iterator[tuple[_MockProcess, Path]]:
 
 
 def _sorted_size(seconds: float) -> int:
-    """A list length whose sort holds the GIL about `seconds` on this machine."""
+    """A list length whose sort holds the GIL at least about `seconds` on this machine: sized by
+    the fastest of a few sorts (a sort timed while the machine was briefly busier would size the
+    hold below THREAD_STALL once it is quieter; a busier machine only makes the hold longer)."""
     n = 300_000
     data = [random.random() for _ in range(n)]
-    t = time.perf_counter()
-    sorted(data)
-    took = max(time.perf_counter() - t, 1e-3)
-    return max(n, int(n * seconds / took))
+    took = []
+    for _ in range(3):
+        t = time.perf_counter()
+        sorted(data)
+        took.append(time.perf_counter() - t)
+    return max(n, int(n * seconds / max(min(took), 1e-3)))
 
 
 def _hold_the_gil(data: list[float]) -> float:
