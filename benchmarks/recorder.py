@@ -239,7 +239,7 @@ def tracking_record_cost(seconds: float = 60.0) -> dict[str, float]:
     bytes zstd-compressed among a minute of them (as the file's chunks compress them)."""
     import zstandard
 
-    from companion.recorder import tracking_record
+    from companion.record_bodies import tracking_record
 
     items = tracking_items(seconds)
     t0 = time.process_time()
@@ -254,7 +254,7 @@ def step_record_cost(records: int = 3000) -> float:
     """The writer thread's conversion of an /autopilot/step record (JSON, pickle), in us."""
     from companion.autopilot_rules import PositionSeen, WatchRules, WatchState, watch_step
     from companion.flight import FlightState, State
-    from companion.recorder import step_record
+    from companion.record_bodies import step_record
 
     fs = FlightState(State.STREAMING, True, seen_link=True, ground_z=0.0)
     ws = WatchState()

@@ -213,6 +213,23 @@ RACE_STEP = _obj("bezier.RaceStep", "One call of a pop-up obstacle's rules (comp
     "observation": TAGGED, "after": {"type": "object"}, "action": TAGGED,
 }, ("seq", "t", "transition", "call", "step", "what", "rules", "before", "observation", "after", "action"))
 
+COMMAND_STEP = _obj("bezier.CommandStep", "One call of an operator command sequence's rules "
+                    "(companion/command_rules.py command_step): for one run of a sequence (arm, takeoff, its climb, "
+                    "land, abort, disarm, how a command ended, ...), what was observed (the autopilot's answer or "
+                    "its timeout, the mode and armed state, the climb's swap), the state before and after, and what "
+                    "the sequence did next; every value exact, as JSON holds it (no pickle)", {
+    "seq": SEQ_RULES,
+    "t": T_MONO,
+    "transition": {"type": "integer", "description": "the /supervisor/transition seq the next transition gets (a "
+                   "step whose action is a Transition: the one it makes)"},
+    "call": {"type": "integer", "description": "the sequence's run (1, 2, ... per run of the service): its steps "
+             "chain"},
+    "step": {"type": "integer", "description": "1, 2, ... within the run"},
+    "rules": {"type": "object", "description": "companion.command_rules.CommandRules: the run's sequence and givens"},
+    "before": {"type": "object", "description": "companion.command_rules.CommandState"},
+    "observation": TAGGED, "after": {"type": "object"}, "action": TAGGED,
+}, ("seq", "t", "transition", "call", "step", "rules", "before", "observation", "after", "action"))
+
 DECODED = _obj("bezier.DecodedMessage", "An inbound message as the companion read it (companion.wire.messages.read): "
                "the typed message (local_ned) or the refusal, and what read was given besides the bytes", {
     "seq": {"type": "integer", "description": "1, 2, ... per run, numbered as the message was read: a gap is a "
@@ -323,6 +340,8 @@ def spec(topic: str) -> Spec:
         return _json(COMMIT_STEP)
     if topic == "/fleet/clock":
         return _json(CLOCK_SAMPLE)
+    if topic == "/commands/step":
+        return _json(COMMAND_STEP)
     if topic == "/inbound/decoded":
         return _json(DECODED)
     if topic == "/recorder/stats":
@@ -449,6 +468,13 @@ def split_fields(call: int, step: int, what: str, rules: Any, before: Any, obser
                  action: Any) -> dict[str, Any]:
     """The readable part of a /navigator/split record: all of it (JSON only)."""
     return {"call": call, "step": step, "what": what, "rules": _plain(rules), "before": _plain(before),
+            "observation": _tagged(observation), "after": _plain(after), "action": _tagged(action)}
+
+
+def command_fields(call: int, step: int, rules: Any, before: Any, observation: Any, after: Any,
+                   action: Any) -> dict[str, Any]:
+    """The readable part of a /commands/step record: all of it (JSON only)."""
+    return {"call": call, "step": step, "rules": _plain(rules), "before": _plain(before),
             "observation": _tagged(observation), "after": _plain(after), "action": _tagged(action)}
 
 

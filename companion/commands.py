@@ -4,6 +4,10 @@ Which command is accepted in which state is `FlightState.refuse` (the table is i
 the sequences here talk to the autopilot through the MAVLink adapter, hand control to and
 from `Control`, and missions to `Navigator`. A sequence that fails says why (`refused`,
 with the autopilot's answer) and leaves the vehicle in a state it can be commanded from.
+What each sequence does next from what it observed (the autopilot's answer or its timeout, the
+mode and armed state, the climb's swap) is decided by one pure function,
+companion.command_rules.command_step: the sequences here observe, call it, show the call to the
+flight recorder (/commands/step) and carry out the action; the waits themselves stay here.
 Leaving the vehicle to the autopilot (on exit, after a stall) is `handover.py`'s; the
 tracking error and the setpoints' lead are `tracking.py`'s.
 """
@@ -11,21 +15,57 @@ tracking error and the setpoints' lead are `tracking.py`'s.
 from __future__ import annotations
 
 import asyncio
+import itertools
 import logging
 import math
 import time
-from collections.abc import Iterable
-from dataclasses import replace
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
 
+from companion.command_rules import (
+    AbortMission,
+    Action,
+    Aim,
+    Aimed,
+    Await,
+    Begin,
+    CheckPending,
+    ClimbFrom,
+    ClimbMoved,
+    ClimbPlanned,
+    ClimbSwapped,
+    CommandRules,
+    CommandState,
+    Complete,
+    Did,
+    Ended,
+    Fail,
+    Finish,
+    FlyPending,
+    Forget,
+    MoveClimb,
+    Observation,
+    Pending,
+    PlanClimb,
+    Refuse,
+    Release,
+    Run,
+    Say,
+    Send,
+    Stream,
+    SwapClimb,
+    TakeControl,
+    Transition,
+    command_step,
+)
 from companion.config import Config
 from companion.control import SWAP_LATE, Control
-from companion.flight import HOLDING_CONTROL, State
+from companion.flight import State
 from companion.handover import at_rest
 from companion.navigator import Navigator
-from companion.plan_budget import MAX_AHEAD, RETRY_MARGIN
 from companion.report import Reporter
 from companion.runtime import Runtime
 from companion.supervisor import (
@@ -35,6 +75,7 @@ from companion.supervisor import (
     ControlTakenBack,
     DisarmedOnCommand,
     DisarmRequested,
+    Event,
     LandRequested,
     SequenceAborted,
     StartBegan,
@@ -50,6 +91,7 @@ from companion.wire.px4_events import arming_report
 from companion.wire.vehicle import MAV_LANDED_IN_AIR, MAV_LANDED_ON_GROUND, CommandFailed, Note
 from planner_core import (
     Problem,
+    Trajectory,
     allocate_times,
     held_still,
     plan,
@@ -60,6 +102,10 @@ from planner_core import (
 
 log = logging.getLogger("companion")
 S = State
+
+# each call of a sequence's rules, shown to the flight recorder (companion.tap.Tap.command_step):
+# (run, step, rules, state before, observation, state after, action)
+CommandObserver = Callable[[int, int, CommandRules, CommandState, Observation, CommandState, Action], None]
 
 
 class Commands:
@@ -75,6 +121,9 @@ class Commands:
         self.task: asyncio.Task[None] | None = None  # the running arm/takeoff/start sequence
         # PX4's EVENTs heard (the service shares AutopilotWatch's): the last arming-check report
         self.events_heard: Iterable[Note] = link.state.notes
+        self.calls = itertools.count(1)  # each run of a sequence's rules, numbered for the records of its steps
+        # each call of the rules shown to the flight recorder; the service connects its tap
+        self.observe: CommandObserver = lambda *_call: None
 
     def cancel_sequence(self) -> None:
         if self.task is not None and self.task is not asyncio.current_task() and not self.task.done():
@@ -144,66 +193,32 @@ class Commands:
                           command=name)
 
     async def _sequence(self, name: str, coro: Any) -> None:
+        failure: CommandFailed | None = None
+        cancelled = False
         try:
             await coro
         except CommandFailed as exc:
-            # the companion's own checks say why; the autopilot's refusals say what failed
-            reason = str(exc) if exc.by == "companion" else f"failed: {exc}"
-            extra: dict[str, Any] = {}
-            if exc.by == "autopilot" and exc.result is not None and name in ("arm", "takeoff", "start"):
-                checks = arming_report(self.events_heard, time.monotonic())
-                if checks is not None and checks[1]:
-                    age, said = checks
-                    reason += f"; PX4's arming checks ({age:.1f} s before): {'; '.join(said)}"
-                    exc.reasons = tuple(dict.fromkeys((*exc.reasons, *said)))
-                    extra["arming_checks"] = {"age_s": round(age, 2), "reasons": list(said)}
-            self.report.refuse(name, reason, by=exc.by, **exc.fields(), **extra)
-            self.flight.handle(SequenceAborted(f"{name} failed: {exc}", armed=self.link.state.armed))
+            failure = exc
         except asyncio.CancelledError:
-            self.report.refuse(name, "cancelled before it completed", by="companion")
-        else:
-            self._completed(name)
+            cancelled = True
+        checks = None
+        if failure is not None and failure.by == "autopilot" and failure.result is not None:
+            checks = arming_report(self.events_heard, time.monotonic())
+        said = checks[1] if checks is not None else ()
+        ended = Ended(failure is not None, "" if failure is None else str(failure),
+                      "" if failure is None else failure.by, failure is not None and failure.result is not None,
+                      cancelled, len(said), "; ".join(said), checks[0] if checks is not None else 0.0)
+        # how it ended, reported (never suspends: a cancelled task ends here)
+        await self._run(CommandRules("outcome", command=name), _Run(failure=failure, checks=checks), ended)
 
     # -- sequences -------------------------------------------------------------------------------
 
     async def _take_follow_mode(self, reason: str) -> None:
         """Stream a hold at the measured position, then ask for OFFBOARD/GUIDED."""
-        st = self.link.state
-        self.flight.handle(TakingControl(reason))
-        if st.autopilot == "px4":
-            sent = self.link.sent_setpoints
-            self.take_control(reason)
-            # PX4 refuses OFFBOARD unless setpoints have been streaming for a while (COM_OF_LOSS_T-
-            # based, 1 s in the docs): counted from the first setpoint that left, not from when
-            # we asked for the stream, which a busy computer may start a few hundred ms late.
-            started = time.monotonic() + 3.0
-            while self.link.sent_setpoints == sent and time.monotonic() < started:
-                await asyncio.sleep(0.005)
-            await asyncio.sleep(1.1)
-        await self.link.set_follow_mode()
-        await self.link.wait_for(lambda s: s.in_follow_mode(), 3.0, "the autopilot to confirm OFFBOARD/GUIDED")
-        if st.autopilot != "px4" and self.flight.airborne:
-            self.take_control(reason)
+        await self._run(CommandRules("follow", reason=reason))
 
     async def arm(self) -> None:
-        st = self.link.state
-        before = (st.base_mode, st.custom_mode, st.mode)
-        await self._take_follow_mode("arm command")
-        self.flight.handle(ArmRequested())
-        try:
-            await self.link.arm(True)
-            await self.link.wait_for(lambda s: s.armed, 3.0, "the autopilot to report armed")
-        except CommandFailed as exc:
-            if st.armed or not before[2] or st.mode == before[2]:
-                raise
-            # Denied: leave the autopilot in the mode it was in, not in OFFBOARD/GUIDED.
-            try:
-                await self.link.restore_mode(before[0], before[1])
-                await self.link.wait_for(lambda s: s.mode == before[2], 3.0, f"the autopilot to confirm {before[2]}")
-            except CommandFailed as again:
-                raise exc.chained(f"{exc}; and the previous mode {before[2]} was not restored: {again}") from exc
-            raise exc.chained(f"{exc}; the autopilot is back in {before[2]}") from exc
-        self.flight.handle(Armed(self.link.state.mode))
+        await self._run(CommandRules("arm"))
 
     def takeoff_target(self, altitude: float, origin: str = "ground") -> tuple[np.ndarray, str]:
         """Where a takeoff to `altitude` ends (NED, local frame), and what it is above.
@@ -221,29 +236,7 @@ class Commands:
         return np.array([here[0], here[1], fl.ground_z - altitude]), "the ground"
 
     async def takeoff(self, altitude: float, origin: str = "ground") -> None:
-        st = self.link.state
-        if not st.armed:
-            await self.arm()
-        elif self.flight.state not in (S.READY, S.HOLDING):
-            await self._take_follow_mode("takeoff command")
-        target, above = self.takeoff_target(altitude, origin)
-        self.flight.handle(TakeoffBegan(f"taking off to {altitude:.2f} m above {above} (local z {target[2]:.2f} m NED)"))
-        tol = self.cfg.safety.arrival_tolerance
-        if st.autopilot == "px4":
-            await self._px4_climb(target)
-        else:
-            self.control.pause()
-            # ArduPilot's takeoff altitude is above home
-            home_z = float(st.home[2]) if st.home is not None else float(st.position[2])
-            await self.link.takeoff(max(0.1, home_z - float(target[2])))
-            rest = self.cfg.safety.rest_speed
-            await self.link.wait_for(lambda s: abs(s.position[2] - target[2]) <= tol and at_rest(s.velocity, rest),
-                                     10.0 + altitude / 0.3, f"altitude {altitude:.2f} m, at rest")
-            self.take_control("takeoff complete")
-        self.flight.handle(TookOff(f"airborne at {altitude:.2f} m above {above}: holding"))
-        pending = self.nav.pending
-        if pending is not None and pending.autostart and not self.flight.starting:
-            await self.nav.fly(pending, None)
+        await self._run(CommandRules("takeoff", altitude=altitude), _Run(origin=origin, altitude=altitude))
 
     async def _px4_climb(self, target: np.ndarray) -> None:
         """A verified vertical climb streamed in OFFBOARD (PX4 has no GUIDED-style takeoff for us)."""
@@ -251,48 +244,10 @@ class Commands:
         # split as far ahead as planning takes in this service; a plan that comes late is planned
         # again once, further ahead (as SplitSwap.at_split does for missions)
         ahead = self.nav.budget.split_ahead_for(2)
-        for attempt in range(2):
-            base = self.control.active
-            assert base is not None
-            t_split = self.control.committed() + ahead
-            jet = base.jet(t_split)
-            points = np.vstack([jet[0], target])
-            climb = target - jet[0]
-            height = float(np.linalg.norm(climb))
-            if height > 1e-3 and at_rest(jet[1], self.cfg.safety.rest_speed):
-                # the fastest rest-to-rest climb the planner certifies (issue 12); from a moving
-                # start the planner's recovery stretches it if it must
-                durations = np.array([takeoff_duration(height, bounds, up=tuple(climb / height))])
-            else:
-                durations = np.diff(allocate_times(points, bounds, t0=t_split))
-            problem = Problem.from_waypoints(points, durations, bounds, initial=jet, t0=t_split)
-            t0 = time.monotonic()
-            assert self.runtime is not None
-            result = await self.runtime.plan(plan, problem)
-            took = time.monotonic() - t0
-            if not result.ok or result.trajectory is None:
-                raise CommandFailed(f"no verified climb: {result.message}", by="companion")
-            if self.control.swap(splice(base, result.trajectory), t_split, None, "takeoff"):
-                break
-            if not self.control.flying:
-                raise CommandFailed("control was released during the climb's planning", by="companion")
-            if self.control.refusal != SWAP_LATE or attempt == 1:
-                raise CommandFailed(f"climb not swapped in: {self.control.refusal}"
-                                    + (f" (planning took {took:.2f} s, twice)" if attempt == 1 else ""), by="companion")
-            ahead = min(max(2.0 * ahead, RETRY_MARGIN * took + 0.1), MAX_AHEAD)
-            # planned too late on a busy computer: from a hold the same climb starts later just as
-            # well (the curve and its checks do not depend on the time), so it is moved, not replanned
-            t_later = self.control.committed() + ahead
-            if held_still(base, t_split, t_later) and self.control.swap(
-                    splice(base, later := shifted(result.trajectory, t_later - t_split)), t_later, None, "takeoff"):
-                result = replace(result, trajectory=later)
-                break
-        tol, rest = self.cfg.safety.arrival_tolerance, self.cfg.safety.rest_speed
-        assert result.trajectory is not None
-        end = result.trajectory.t_end
-        await self.link.wait_for(
-            lambda s: self.control.flying and self.control.now() >= end and abs(s.position[2] - target[2]) <= tol
-            and at_rest(s.velocity, rest), end - self.control.now() + 10.0, "the climb to finish, at rest")
+        run = _Run(target=target, bounds=bounds, base=self.control.active)
+        assert run.base is not None
+        await self._run(CommandRules("climb", ahead=ahead, target_z=float(target[2])), run,
+                        ClimbFrom(self.control.committed()))
 
     async def start(self, arrived: float) -> None:
         self.flight.handle(StartBegan())
@@ -324,44 +279,235 @@ class Commands:
         self.cancel_sequence()
         self.control.forget()
         self.control.release()
-        self.flight.handle(LandRequested())
-        try:
-            await self.link.land()
-        except CommandFailed as exc:
-            self.report.refuse("land", f"failed: {exc}", by="autopilot", **exc.fields())
-            return False
-        return True
+        return await self._run(CommandRules("land"))
 
     async def _until_on_ground(self) -> None:
         """The landing ends on the ground: disarmed, or EXTENDED_SYS_STATE on-ground (fresh)."""
-        st = self.link.state
-        height = 0.0 if self.flight.ground_z is None or not st.has_position else \
-            max(0.0, self.flight.ground_z - float(st.position[2]))
-
-        def on_ground(s: Any) -> bool:
-            return (not s.armed or (s.landed_state == MAV_LANDED_ON_GROUND
-                                    and time.monotonic() - s.last_landed_state < 3.0))
-
-        await self.link.wait_for(on_ground, 30.0 + height / 0.3, "the vehicle to be on the ground")
+        await self._run(CommandRules("on_ground"))
 
     async def abort(self, arrived: float) -> None:
         self.cancel_sequence()
-        state = self.flight.state
-        if state in HOLDING_CONTROL or (state is S.TAKEOFF and self.control.streaming):
-            await self.nav.abort(arrived)
-        else:
-            self.control.forget()
-            self.flight.handle(SequenceAborted("abort command", armed=self.link.state.armed))
-        self.report.event("aborted", "mission and pending commands cancelled")
+        await self._run(CommandRules("abort"), _Run(arrived=arrived))
 
     async def disarm(self) -> bool:
-        self.flight.handle(DisarmRequested())
-        self.release_control()
-        try:
-            await self.link.arm(False)
-        except CommandFailed as exc:
-            self.report.refuse("disarm", f"failed: {exc}", by="autopilot", **exc.fields())
-            return False
-        self.flight.handle(DisarmedOnCommand("disarmed on command"))
-        return True
+        return await self._run(CommandRules("disarm"))
 
+    # -- the sequences' shell: observe, decide (companion.command_rules), record, carry out -------
+
+    async def _run(self, rules: CommandRules, run: _Run | None = None, first: Observation | None = None) -> bool:
+        """One run of a sequence: what to do at each turn is decided by
+        companion.command_rules.command_step; this observes, shows each call to the flight
+        recorder (/commands/step) and carries the action out. False: land or disarm refused."""
+        run = run if run is not None else _Run()
+        call, steps = next(self.calls), itertools.count(1)
+        state = CommandState()
+
+        def step(seen: Observation) -> Action:
+            nonlocal state
+            before = state
+            state, action = command_step(rules, before, seen)
+            try:
+                self.observe(call, next(steps), rules, before, seen, state, action)
+            except Exception:  # a recorder's fault must never change what is flown
+                log.exception("commands: the observer failed")
+            return action
+
+        action = step(first if first is not None else self._begin())
+        while not isinstance(action, Finish):
+            if isinstance(action, Fail):
+                if action.how == "again" and run.last is not None:
+                    raise run.last
+                if action.how == "chained" and run.failure is not None:
+                    raise run.failure.chained(action.message) from run.failure
+                raise CommandFailed(action.message, by=action.by)
+            try:
+                seen = await self._carry_out(action, run)
+            except CommandFailed as exc:
+                run.last, run.failure = exc, run.failure or exc
+                seen = self._did(exc)
+            action = step(seen)
+        return action.ok
+
+    def _begin(self) -> Begin:
+        st, fl = self.link.state, self.flight
+        height = 0.0 if fl.ground_z is None or not st.has_position else \
+            max(0.0, fl.ground_z - float(st.position[2]))
+        return Begin(st.autopilot or "", st.armed, st.mode, st.base_mode, st.custom_mode, fl.state.value,
+                     self.control.streaming, height)
+
+    def _did(self, exc: CommandFailed | None = None) -> Did:
+        st = self.link.state
+        return Did(exc is not None, "" if exc is None else str(exc), "" if exc is None else exc.by,
+                   None if exc is None else exc.result, st.armed, st.mode, self.flight.airborne)
+
+    async def _carry_out(self, action: Action, run: _Run) -> Observation:
+        """Do what `action` says; what was seen then (a failure raises CommandFailed)."""
+        st, control = self.link.state, self.control
+        if isinstance(action, Transition):
+            self.flight.handle(_event(action))
+        elif isinstance(action, TakeControl):
+            if action.stream:  # counted before the stream starts: the first setpoint may leave at once
+                run.sent = self.link.sent_setpoints
+            self.take_control(action.reason)
+        elif isinstance(action, Stream):
+            sent = run.sent
+            # PX4 refuses OFFBOARD unless setpoints have been streaming for a while (COM_OF_LOSS_T-
+            # based, 1 s in the docs): counted from the first setpoint that left, not from when
+            # we asked for the stream, which a busy computer may start a few hundred ms late.
+            started = time.monotonic() + 3.0
+            while self.link.sent_setpoints == sent and time.monotonic() < started:
+                await asyncio.sleep(0.005)
+            await asyncio.sleep(1.1)
+        elif isinstance(action, Send):
+            await self._send(action)
+        elif isinstance(action, Await):
+            await self._await(action)
+        elif isinstance(action, Run):
+            if action.sequence == "follow":
+                await self._take_follow_mode(action.reason)
+            elif action.sequence == "arm":
+                await self.arm()
+            else:
+                assert run.target is not None
+                await self._px4_climb(run.target)
+        elif isinstance(action, Aim):
+            run.target, above = self.takeoff_target(run.altitude, run.origin)
+            home_z = float(st.home[2]) if st.home is not None else float(st.position[2])
+            return Aimed(float(run.target[2]), above, home_z, st.autopilot or "")
+        elif isinstance(action, CheckPending):
+            run.pending = self.nav.pending
+            return Pending(run.pending is not None and run.pending.autostart and not self.flight.starting)
+        elif isinstance(action, FlyPending):
+            await self.nav.fly(run.pending, None)
+        elif isinstance(action, AbortMission):
+            await self.nav.abort(run.arrived)
+        elif isinstance(action, Forget):
+            control.forget()
+        elif isinstance(action, Release):
+            self.release_control()
+        elif isinstance(action, Say):
+            self.report.event(action.kind, action.text)
+        elif isinstance(action, Refuse):
+            self._refuse(action, run)
+        elif isinstance(action, Complete):
+            self._completed(action.command)
+        else:
+            return await self._climb(action, run)
+        return self._did()
+
+    async def _climb(self, action: Action, run: _Run) -> Observation:
+        """The climb's plan from the flown hold, its swap, and the same climb moved later."""
+        control, base, result = self.control, run.base, run.result
+        assert base is not None
+        if isinstance(action, PlanClimb):
+            target, bounds, t_split = run.target, run.bounds, action.t_split
+            assert target is not None
+            jet = base.jet(t_split)
+            points = np.vstack([jet[0], target])
+            climb = target - jet[0]
+            height = float(np.linalg.norm(climb))
+            if height > 1e-3 and at_rest(jet[1], self.cfg.safety.rest_speed):
+                # the fastest rest-to-rest climb the planner certifies (issue 12); from a moving
+                # start the planner's recovery stretches it if it must
+                durations = np.array([takeoff_duration(height, bounds, up=tuple(climb / height))])
+            else:
+                durations = np.diff(allocate_times(points, bounds, t0=t_split))
+            problem = Problem.from_waypoints(points, durations, bounds, initial=jet, t0=t_split)
+            t0 = time.monotonic()
+            assert self.runtime is not None
+            run.result = result = await self.runtime.plan(plan, problem)
+            took = time.monotonic() - t0
+            ok = result.ok and result.trajectory is not None
+            return ClimbPlanned(ok, result.message, took, float(result.trajectory.t_end) if ok else 0.0)
+        assert result is not None and result.trajectory is not None
+        if isinstance(action, SwapClimb):
+            swapped = control.swap(splice(base, result.trajectory), action.t_split, None, "takeoff")
+            refusal, flying = ("", True) if swapped else (control.refusal, control.flying)
+            return ClimbSwapped(refusal, flying, control.committed() if refusal == SWAP_LATE and flying else 0.0)
+        assert isinstance(action, MoveClimb)
+        held = held_still(base, action.t_split, action.t_later)
+        if held:
+            later = shifted(result.trajectory, action.t_later - action.t_split)
+            if control.swap(splice(base, later), action.t_later, None, "takeoff"):
+                run.result = replace(result, trajectory=later)
+                return ClimbMoved(True, True, 0.0, float(later.t_end))
+        run.base = control.active  # planned again from what is flown then
+        assert run.base is not None
+        return ClimbMoved(held, False, control.committed(), 0.0)
+
+    async def _send(self, action: Send) -> None:
+        link, what = self.link, action.command
+        if what == "follow_mode":
+            await link.set_follow_mode()
+        elif what in ("arm", "disarm"):
+            await link.arm(what == "arm")
+        elif what == "restore_mode":
+            await link.restore_mode(action.base, action.custom)
+        elif what == "land":
+            await link.land()
+        elif what == "takeoff":
+            self.control.pause()  # ArduPilot flies its takeoff
+            await link.takeoff(action.altitude)
+        else:
+            raise ValueError(f"no MAVLink command {what!r}")
+
+    async def _await(self, a: Await) -> None:
+        tol, rest, control = self.cfg.safety.arrival_tolerance, self.cfg.safety.rest_speed, self.control
+        timeout = a.timeout
+        predicate: Callable[[Any], bool]
+        if a.until == "follow":
+            predicate = lambda s: s.in_follow_mode()  # noqa: E731
+        elif a.until == "armed":
+            predicate = lambda s: s.armed  # noqa: E731
+        elif a.until == "mode":
+            predicate = lambda s: s.mode == a.mode  # noqa: E731
+        elif a.until == "altitude":
+            predicate = lambda s: abs(s.position[2] - a.z) <= tol and at_rest(s.velocity, rest)  # noqa: E731
+        elif a.until == "climb":
+            predicate = lambda s: (control.flying and control.now() >= a.end  # noqa: E731
+                                   and abs(s.position[2] - a.z) <= tol and at_rest(s.velocity, rest))
+            timeout = a.end - control.now() + 10.0
+        elif a.until == "on_ground":
+            predicate = lambda s: (not s.armed or (s.landed_state == MAV_LANDED_ON_GROUND  # noqa: E731
+                                                   and time.monotonic() - s.last_landed_state < 3.0))
+        else:
+            raise ValueError(f"no wait {a.until!r}")
+        await self.link.wait_for(predicate, timeout, a.what)
+
+    def _refuse(self, action: Refuse, run: _Run) -> None:
+        exc = run.last or run.failure
+        extra: dict[str, Any] = {}
+        if action.checks and exc is not None and run.checks is not None:
+            age, said = run.checks
+            exc.reasons = tuple(dict.fromkeys((*exc.reasons, *said)))
+            extra["arming_checks"] = {"age_s": round(age, 2), "reasons": list(said)}
+        fields = exc.fields() if exc is not None else {}
+        self.report.refuse(action.command, action.reason, by=action.by, **fields, **extra)
+
+
+@dataclass
+class _Run:
+    """What one run's shell holds between its steps: what the rules do not decide on."""
+
+    origin: str = "ground"
+    altitude: float = 0.0
+    arrived: float = 0.0
+    target: np.ndarray | None = None
+    bounds: Any = None
+    base: Trajectory | None = None
+    result: Any = None  # the climb's plan (planner_core's result)
+    pending: Any = None  # the mission that starts on its own after the takeoff
+    failure: CommandFailed | None = None  # the run's first
+    last: CommandFailed | None = None
+    checks: tuple[float, Any] | None = None  # PX4's arming checks (age, reasons) when the run is an outcome
+    sent: int = 0  # setpoints sent when Control took over (Stream waits for the next)
+
+
+def _event(a: Transition) -> Event:
+    """The supervisor event a Transition names."""
+    made: dict[str, Callable[[], Event]] = {
+        "TakingControl": lambda: TakingControl(a.reason), "ArmRequested": ArmRequested, "Armed": lambda: Armed(a.mode),
+        "TakeoffBegan": lambda: TakeoffBegan(a.reason), "TookOff": lambda: TookOff(a.reason),
+        "LandRequested": LandRequested, "SequenceAborted": lambda: SequenceAborted(a.reason, armed=a.armed),
+        "DisarmRequested": DisarmRequested, "DisarmedOnCommand": lambda: DisarmedOnCommand(a.reason)}
+    return made[a.event]()

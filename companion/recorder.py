@@ -14,8 +14,9 @@ chains: the supervisor's transitions (every `Supervisor.handle` call), the autop
 steps (every call of companion.autopilot_rules.watch_step), the tracking error's (every call
 of companion.tracking_rules.tracking_step that changed or said something), the split-and-swap
 loop's (every call of companion.split_rules.split_step), the plan budget's (every call of
-companion.plan_budget.budget_step), the pop-ups' (every call of companion.race_rules.race_step)
-and the fleet's commit protocol's (every call of companion.commit.step).
+companion.plan_budget.budget_step), the pop-ups' (every call of companion.race_rules.race_step),
+the fleet's commit protocol's (every call of companion.commit.step) and the operator commands'
+sequences' (every call of companion.command_rules.command_step).
 
 Channels, schemas and frames: companion/channels.py (the 3D messages: companion/viz3d.py) and
 docs/recording.md.
@@ -23,14 +24,12 @@ docs/recording.md.
 
 from __future__ import annotations
 
-import base64
 import contextlib
 import datetime
 import itertools
 import json
 import logging
 import os
-import pickle
 import queue
 import threading
 import time
@@ -40,6 +39,14 @@ from typing import Any, Protocol
 
 from companion import channels as ch
 from companion.config import Config, config_to_toml
+from companion.record_bodies import (
+    decoded_record,
+    plan_record,
+    step_record,
+    swap_record,
+    tracking_record,
+    transition_record,
+)
 from companion.record_format import environment
 from companion.tap import Tap
 from companion.viz3d import Viz
@@ -182,6 +189,7 @@ class Recorder(Tap):
         self._commit_seq = itertools.count(1)
         self._clock_seq = itertools.count(1)
         self._swaps = 0  # swaps numbered so far (on the loop, as the split's steps are recorded)
+        self._command_seq = itertools.count(1)
         # the writer's: the last /tracking/step seq written and the file part it went to; a
         # record after a gap, or the first of a part, carries its window of errors in full
         self._tracking_written: tuple[int, int] = (0, 0)
@@ -317,6 +325,13 @@ class Recorder(Tap):
                   action: Any) -> None:
         # with the next transition's number, as tracking steps: a brake's Braking transition comes at or after it
         self._put(self._decisions, ("race_step", next(self._race_seq), self._transitions + 1, race, step, rules,
+                                    before, observation, after, action, self.clock()))
+
+    def command_step(self, call: int, step: int, rules: Any, before: Any, observation: Any, after: Any,
+                     action: Any) -> None:
+        # with the next transition's number, as autopilot steps are: a step whose action is a
+        # transition makes that one (the sequence hands it to the supervisor right after)
+        self._put(self._decisions, ("command_step", next(self._command_seq), self._transitions + 1, call, step, rules,
                                     before, observation, after, action, self.clock()))
 
     def flown(self, trajectory: Any, t_base: float | None, t: float) -> None:
@@ -457,114 +472,14 @@ class Recorder(Tap):
             _, seq, first, race, step, rules, before, observation, after, action, t = item
             body = ch.split_fields(race, step, rules.what, rules, before, observation, after, action)  # the same fields
             self._emit("/brakes/race", ch.dumps({"seq": seq, "t": t, "transition": first, **body}), t)
+        elif kind == "command_step":
+            _, seq, transition, call, step, rules, before, observation, after, action, t = item
+            body = ch.command_fields(call, step, rules, before, observation, after, action)
+            self._emit("/commands/step", ch.dumps({"seq": seq, "t": t, "transition": transition, **body}), t)
         elif kind == "flown":
             _, traj, t_base, t = item
             for topic, data in self._viz.on_flown(traj, t_base, t):
                 self._emit(topic, data, t)
-
-
-# -- planner records ----------------------------------------------------------------------------
-
-
-def plan_record(seq: int, fn: Any, args: tuple[Any, ...], result: Any, submitted: float, done: float,
-                where: str, cfg: Config) -> bytes:
-    """One planner call: readable fields, and the call and its result pickled (base64) so that
-    `python -m companion replay` can run it again and compare bit for bit. Built so that no
-    single C call holds the interpreter lock for long (the setpoint thread needs it every tick):
-    pickles are written in 64 kB frames through Python, the base64 text is spliced in, not
-    passed through the JSON encoder."""
-    from companion import record_format as fmt
-
-    name = fmt.function_name(fn)
-    compiled = fmt.compiled_used(result, cfg.planner.compiled if where == "process" else False)
-    body: dict[str, Any] = {
-        "seq": seq,
-        "function": name,
-        "where": where,
-        "compiled": compiled,
-        "submitted": submitted,
-        "done": done,
-        "latency_ms": round((done - submitted) * 1000, 3),
-        **fmt.summary_of(result),
-        "fingerprint": fmt.fingerprint(result),
-    }
-    call = _pickled((fn, args))
-    res = None if isinstance(result, BaseException) else _pickled(result)
-    return b"".join([ch.dumps(body)[:-1],
-                     b',"call":', b"null" if call is None else b'"' + call + b'"',
-                     b',"result":', b"null" if res is None else b'"' + res + b'"', b"}"])
-
-
-def transition_record(seq: int, t: float, before: Any, event: Any, after: Any, actions: tuple[Any, ...]) -> bytes:
-    """One `Supervisor.handle` call: readable fields (companion.channels.transition_fields) and
-    the four values pickled together (base64), which `python -m companion replay` runs through
-    `transition` again. One pickle, not four: the classes are named once (measured 27-38 % smaller)."""
-    body = ch.transition_fields(before, event, after, actions)
-    blob = _pickled((before, event, after, actions))
-    return b"".join([ch.dumps({"seq": seq, "t": t, **body})[:-1],
-                     b',"pickle":', b"null" if blob is None else b'"' + blob + b'"', b"}"])
-
-
-def step_record(seq: int, transition: int, before: Any, flight: Any, reading: Any, now: float,
-                after: Any, outputs: tuple[Any, ...]) -> bytes:
-    """One call of the autopilot watch's rules: readable fields (companion.channels.step_fields)
-    and the six values pickled together (base64), which `python -m companion replay` runs through
-    `watch_step` again."""
-    body = ch.step_fields(before, flight, reading, now, after, outputs)
-    blob = _pickled((before, flight, reading, now, after, outputs))
-    return b"".join([ch.dumps({"seq": seq, "transition": transition, **body})[:-1],
-                     b',"pickle":', b"null" if blob is None else b'"' + blob + b'"', b"}"])
-
-
-def tracking_record(seq: int, transition: int, t: float, before: Any, reading: Any, after: Any,
-                    outputs: tuple[Any, ...], keyframe: bool) -> bytes:
-    """One call of the tracking error's rules (companion.channels.tracking_fields), which
-    `python -m companion replay` runs through `tracking_step` again. JSON only, no pickle: every
-    value is a number, a flag or a string, which JSON holds exactly (a float by its shortest
-    repr), at half the bytes. The states are recorded as `StateSeen` (the window of errors by its
-    length and digest: the errors are the readings of the records before); a `keyframe` (the
-    first record of a file, or after a gap) holds the window before in full, for replay to start from."""
-    from companion.tracking_rules import StateSeen
-
-    window = before.errors if keyframe and before.errors else None
-    body = ch.tracking_fields(StateSeen.of(before), reading, StateSeen.of(after), outputs, window)
-    return ch.dumps({"seq": seq, "transition": transition, "t": t, **body})
-
-
-def decoded_record(seq: int, key: str, payload: Any, context: dict[str, Any], result: Any, t: float) -> bytes:
-    """One inbound message read: what it became (readable, and a fingerprint) and the call's
-    inputs pickled (base64), which `python -m companion replay` reads again and compares. The
-    result is not pickled: a typed message is its fingerprint and the refusal its words."""
-    from companion import record_format as fmt
-
-    body: dict[str, Any] = {"seq": seq, "key": key, "t": t, **fmt.decoded_summary(result),
-                            "fingerprint": fmt.decoded_fingerprint(result)}
-    raw = bytes(payload) if isinstance(payload, bytes | bytearray | memoryview) else len(payload)
-    call = _pickled((key, raw, context.get("home"), bool(context.get("home_pending")), context.get("fleet"),
-                     context.get("autopilot")))
-    return b"".join([ch.dumps(body)[:-1], b',"call":', b"null" if call is None else b'"' + call + b'"', b"}"])
-
-
-class _Frames:
-    """A file for pickle.Pickler: a Python-level write per 64 kB frame is where other threads
-    get the interpreter lock back while a large result is pickled."""
-
-    def __init__(self) -> None:
-        self.parts: list[bytes] = []
-
-    def write(self, data: Any) -> int:  # bytes, or a PickleBuffer (a large array's data)
-        part = bytes(data)
-        self.parts.append(part)
-        return len(part)
-
-
-def _pickled(obj: Any) -> bytes | None:
-    try:
-        out = _Frames()
-        pickle.Pickler(out, protocol=5).dump(obj)
-        return base64.b64encode(b"".join(out.parts))
-    except Exception:  # not picklable: the plan is recorded, but replay cannot run it
-        return None
 
 
 def tap_for(cfg: Config) -> Tap:
@@ -572,19 +487,3 @@ def tap_for(cfg: Config) -> Tap:
     if cfg.recording.path or cfg.live.foxglove:
         return Recorder(cfg)
     return Tap()
-
-
-def swap_record(seq: int, t: float, what: str, now: float, lead: float, rate_hz: float, t_split: float,
-                old: Any, new: Any, refusal: str) -> bytes:
-    """One decision of the swap's rule: readable fields (companion.channels.swap_fields) and the
-    two trajectories pickled together (base64), which `python -m companion replay` decides again
-    with companion.control.swap_refusal."""
-    from companion.control import swap_span
-
-    # what the rule reads: the segments from now to the split, the curves alone (a 1000-waypoint
-    # mission's two trajectories would be ~0.6 MB a swap; the corridors are in the plan records)
-    old, new = swap_span(old, now, t_split), swap_span(new, now, t_split)
-    body = ch.swap_fields(what, now, lead, rate_hz, t_split, old, new, refusal)
-    blob = _pickled((old, new))
-    return b"".join([ch.dumps({"seq": seq, "t": t, **body})[:-1],
-                     b',"pickle":', b"null" if blob is None else b'"' + blob + b'"', b"}"])

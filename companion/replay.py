@@ -36,11 +36,14 @@ forward; each turn of the race; its end), run again, each brake found among the 
 (companion/replay_race.py); in a fleet, each `/fleet/commit` record one call of the commit
 protocol's rule, run again (companion/replay_commit.py).
 
+Command steps: each `/commands/step` record holds one call of an operator command sequence's
+rules (companion/command_rules.py: arm, takeoff and its climb, land, abort, disarm, how a
+command ended), run again and each transition it made found (companion/replay_commands.py).
+
 What it does not cover: how inbound messages and commands became supervisor events and
 planner calls, the autopilot watch's telemetry advice, and the navigator's (which plan to ask
-for), the brakes' (but the tracking error's and the pop-ups') and the command sequences' own
-decisions are not re-run; they are in the file (inbound messages, events, what was
-flown) to be read.
+for) and the brakes' (but the tracking error's and the pop-ups') own decisions are not re-run;
+they are in the file (inbound messages, events, what was flown) to be read.
 
 A recording comes from a companion you trust: the calls are pickled. Plan records are read with
 an allow-list (planner_core and companion data classes and planner functions, numpy arrays,

@@ -1,10 +1,10 @@
 """`python -m companion replay FILE.mcap`: run every recorded transition, autopilot step, inbound
-read, tracking step, swap, split step, plan budget answer, race step, fleet commit step and plan
-again and say whether each reproduces (exit 0), where the first differs (exit 1), or why the
-file cannot be replayed (exit 2). What each check covers: companion/replay.py,
+read, tracking step, swap, split step, plan budget answer, race step, fleet commit step, command
+step and plan again and say whether each reproduces (exit 0), where the first differs (exit 1),
+or why the file cannot be replayed (exit 2). What each check covers: companion/replay.py,
 companion/replay_autopilot.py, companion/replay_tracking.py, companion/replay_swaps.py,
-companion/replay_split.py, companion/replay_budget.py, companion/replay_race.py and
-companion/replay_commit.py (a vehicle in a fleet).
+companion/replay_split.py, companion/replay_budget.py, companion/replay_race.py,
+companion/replay_commit.py (a vehicle in a fleet) and companion/replay_commands.py.
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ import sys
 from companion import (
     replay_autopilot,
     replay_budget,
+    replay_commands,
     replay_commit,
     replay_race,
     replay_split,
@@ -102,6 +103,10 @@ def main(argv: list[str]) -> int:
             print(replay_commit.said_clock(clock, any_clock), flush=True)
         for more in clock.differences[1:] if args.keep_going else ():
             print(f"  also: {more}")
+        commanded, any_commands = replay_commands.replay_file(args.file, args.since, args.until)
+        print(replay_commands.said(commanded, any_commands), flush=True)
+        for more in commanded.differences[1:] if args.keep_going else ():
+            print(f"  also: {more}")
         decoded = decoded_records(args.file, args.since, args.until)
         decode_bad: list[str] = []
         if decoded:
@@ -128,9 +133,10 @@ def main(argv: list[str]) -> int:
         print(f"replay: {args.file}: {exc}", file=sys.stderr)
         return 2
     if (n == 0 and not recs and not dropped and not decoded and not any_steps and not any_tracking and not any_swaps
-            and not any_splits and not any_budget and not any_races and not any_commits and not any_clock):
-        print("replay: no plan, transition, autopilot, tracking, split, budget, race or commit step, clock sample, "
-              "swap or inbound message in the recording (or in the time range)", file=sys.stderr)
+            and not any_splits and not any_budget and not any_races and not any_commits and not any_clock
+            and not any_commands):
+        print("replay: no plan, transition, autopilot, tracking, split, budget, race, commit or command step, clock "
+              "sample, swap or inbound message in the recording (or in the time range)", file=sys.stderr)
         return 2
     if n == 0:
         print("plans: none recorded")
@@ -139,5 +145,5 @@ def main(argv: list[str]) -> int:
               else f"plans: plan {n} is the first that differs")
     clean = not (checked.differences or stepped.differences or tracked.differences or decode_bad
                  or swaps.differences or splits.differences or budget.differences or races.differences
-                 or commits.differences or clock.differences)
+                 or commits.differences or clock.differences or commanded.differences)
     return 0 if bad == 0 and clean else 1

@@ -82,6 +82,7 @@ def _tap_decisions(svc: Service) -> None:
     svc.deconfliction.observe = tap.commit_step  # the fleet's commit protocol
     svc.deconfliction.observe_clock = tap.clock_sample  # and its clock check
     svc.navigator.brakes.observe = tap.race_step  # every pop-up obstacle and its race
+    svc.commands.observe = tap.command_step  # the operator commands' sequences
 
 
 class Service:

@@ -86,6 +86,12 @@ class Tap:
         the step's within it, its rules, the state before, the observation, the state after and
         the action; on the loop, so no time: the tap takes it."""
 
+    def command_step(self, call: int, step: int, rules: Any, before: Any, observation: Any, after: Any,
+                     action: Any) -> None:
+        """A call of an operator command sequence's rules (companion.command_rules.command_step):
+        the run's number and the step's within it, the run's rules, the state before, the
+        observation, the state after and the action; on the loop, so no time: the tap takes it."""
+
     def flown(self, trajectory: Any, t_base: float | None, t: float) -> None:
         """What the setpoint thread flies from now on (a new plan, a swap, a hold)."""
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 import asyncio
 import json
 import os
+import re
 import shutil
 import socket
 import struct
@@ -32,7 +33,8 @@ JSON_CHANNELS = ("/in/command", "/in/mission", "/in/change", "/out/status", "/ou
                  "/out/trajectory", SETPOINT, "/mavlink/out/HEARTBEAT", "/mavlink/out/COMMAND_LONG",
                  "/mavlink/in/HEARTBEAT", "/mavlink/in/LOCAL_POSITION_NED", "/mavlink/in/ATTITUDE",
                  "/mavlink/in/COMMAND_ACK", "/planner/plan", "/viz/bounds", "/recorder/stats", "/supervisor/transition",
-                 "/inbound/decoded", "/autopilot/step", "/tracking/step", "/control/swap", "/navigator/split")
+                 "/inbound/decoded", "/autopilot/step", "/tracking/step", "/control/swap", "/navigator/split",
+                 "/commands/step")
 FOXGLOVE_CHANNELS = {"/viz/vehicle": "foxglove.PoseInFrame", "/viz/tf": "foxglove.FrameTransform",
                      "/viz/planned_path": "foxglove.PosesInFrame", "/viz/flown_path": "foxglove.PosesInFrame",
                      "/viz/obstacles": "foxglove.SceneUpdate", "/viz/corridors": "foxglove.SceneUpdate"}
@@ -218,6 +220,14 @@ def test_every_plan_transition_and_step_of_the_flight_replays_bit_identically(fl
     # asked how far ahead to split; their planning times measured)
     budget = sum(1 for _s, c, _m in msgs if c.topic == "/navigator/budget")
     assert budget >= 6 and any(ln.startswith(f"budget: {budget} of {budget} reproduced (") for ln in run.stdout.splitlines())
+    # every step of the operator commands' sequences reproduced (the takeoff sent over Zenoh: its
+    # arm, the OFFBOARD it needs, the climb, and how the command ended), none failed, and each
+    # transition a step made is the transition record it names
+    commanded = sum(1 for _s, c, _m in msgs if c.topic == "/commands/step")
+    said = next(ln for ln in run.stdout.splitlines() if ln.startswith("commands: "))
+    made = re.search(r"; (\d+) of (\d+) transitions found as made\)$", said)
+    assert commanded >= 10 and said.startswith(f"commands: {commanded} of {commanded} reproduced ("), said
+    assert " 0 failed; " in said and made is not None and made[1] == made[2] != "0", said
     # every inbound message the flight took in was read, and reads again the same (none was
     # dropped or refused on arrival in this flight)
     inbound = sum(1 for _s, c, _m in msgs if c.topic.startswith("/in/"))

@@ -103,6 +103,14 @@ async def _fly(mock: MockAutopilot,
         record_race(*call)
 
     svc.navigator.brakes.observe = race_seen
+    commanded: list[tuple[str, Any]] = []  # every call of the command sequences' rules: its sequence and action
+    record_command = svc.commands.observe
+
+    def command_seen(*call: Any) -> None:
+        commanded.append((call[2].sequence, call[-1]))
+        record_command(*call)
+
+    svc.commands.observe = command_seen
     async with serving(svc):
         await until(lambda: svc.link.state.position_problem() is None, 30, "a position estimate")
         await svc.commands.takeoff(1.5)
@@ -134,7 +142,7 @@ async def _fly(mock: MockAutopilot,
         await until(lambda: any(e.get("command") == "land" and e["type"] in ("completed", "refused")
                                 for e in events.all), 60, "land to complete")
         await until(lambda: svc.flight.state is State.IDLE, 30, "the autopilot's disarm after landing")
-    return events.all, calls[0], svc.flight.value, steps[0], tracked[0], decided, split, asked, raced
+    return events.all, calls[0], svc.flight.value, steps[0], tracked[0], decided, split, asked, raced, commanded
 
 
 def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
@@ -142,7 +150,7 @@ def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
     mock = MockAutopilot(MockConfig(autopilot="px4", endpoints=["udpin:127.0.0.1:0"],
                                     log_path=str(tmp_path / "flight.jsonl"), log_rate_hz=20)).start()
     try:
-        published, handled, final, stepped, tracked, decided, split, asked, raced = asyncio.run(
+        published, handled, final, stepped, tracked, decided, split, asked, raced, commanded = asyncio.run(
             _fly(mock, tmp_path / "recordings"))
     finally:
         mock.stop()
@@ -157,6 +165,7 @@ def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
         splits = [json.loads(m.data) for _s, _c, m in reader.iter_messages(topics=["/navigator/split"])]
         budget = [json.loads(m.data) for _s, _c, m in reader.iter_messages(topics=["/navigator/budget"])]
         races = [json.loads(m.data) for _s, _c, m in reader.iter_messages(topics=["/brakes/race"])]
+        commands = [json.loads(m.data) for _s, _c, m in reader.iter_messages(topics=["/commands/step"])]
         heard = collections.Counter(c.topic for _s, c, _m in reader.iter_messages(topics=[
             "/mavlink/in/HEARTBEAT", "/mavlink/in/LOCAL_POSITION_NED", "/mavlink/in/EXTENDED_SYS_STATE"]))
     assert dropped == {}
@@ -250,6 +259,25 @@ def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
     tied = f", {brakes} followed by its Braking transition" if brakes else ""
     assert (f"races: {len(raced)} of {len(raced)} reproduced (1 pop-up, 1 raced, {brakes} "
             f"brake{'s' * (brakes != 1)}{tied})") in out.splitlines(), out
+    # every step of the operator commands' sequences (takeoff: its arm, the OFFBOARD it needs,
+    # the climb; land: the landing and its wait for the ground, and how it ended) is in the file,
+    # in order, and reproduced; the transitions they made are the supervisor's of those kinds,
+    # each the transition record the step named
+    assert [(r["rules"]["sequence"], r["action"]["type"]) for r in commands] == \
+        [(sequence, type(a).__name__) for sequence, a in commanded]
+    assert [r["seq"] for r in commands] == list(range(1, len(commanded) + 1))
+    assert {r["rules"]["sequence"] for r in commands} == {"takeoff", "arm", "follow", "climb", "land", "on_ground",
+                                                          "outcome"}
+    made_by_commands = [a.event if type(a).__name__ == "Transition" else "ControlTaken" for _s, a in commanded
+                        if type(a).__name__ in ("Transition", "TakeControl")]
+    command_kinds = {"TakingControl", "ControlTaken", "ArmRequested", "Armed", "TakeoffBegan", "TookOff",
+                     "LandRequested"}
+    assert made_by_commands == [r["event"]["type"] for r in recs if r["event"]["type"] in command_kinds]
+    runs = [type(a).__name__ for _s, a in commanded if type(a).__name__ in ("Finish", "Fail")]
+    assert runs and set(runs) == {"Finish"}
+    n = len(commanded)
+    assert (f"commands: {n} of {n} reproduced ({len(runs)} runs finished, 0 failed; {len(made_by_commands)} of "
+            f"{len(made_by_commands)} transitions found as made)") in out.splitlines()
     plans = [ln for ln in out.splitlines() if ln.startswith("plan ")]
     assert len(plans) >= 2 and all(": identical" in ln for ln in plans)
     assert f"plans: {len(plans)} of {len(plans)} reproduced bit-identically" in out.splitlines()
