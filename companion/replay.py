@@ -286,6 +286,42 @@ class Chain:
 
 
 
+class RulesReader:
+    """Reads a recorded rules value (`{"type": class name, "fields": ...}`) back into one of the
+    classes `kinds()` names (a rules module's observations and actions), by name; any other is
+    refused (ValueError), so a JSON record can make nothing but the rules' own values. `tuples`:
+    fields JSON holds as lists that the classes hold as tuples."""
+
+    def __init__(self, kinds: Callable[[], tuple[type, ...]], what: str, tuples: tuple[str, ...] = ()) -> None:
+        self._kinds = kinds
+        self._by_name: dict[str, type] | None = None  # on first use: the rules module loads then
+        self.what = what
+        self.tuples = tuples
+
+    def __call__(self, tagged: dict[str, Any]) -> Any:
+        if self._by_name is None:
+            self._by_name = {k.__name__: k for k in self._kinds()}
+        kind = self._by_name.get(tagged["type"])
+        if kind is None:
+            raise ValueError(f"{tagged['type']!r} is not {self.what}")
+        fields = tagged["fields"]
+        if self.tuples:
+            fields = {k: tuple(v) if k in self.tuples and isinstance(v, list) else v for k, v in fields.items()}
+        return kind(**fields)
+
+
+def observations_and_actions(module: str) -> Callable[[], tuple[type, ...]]:
+    """The classes of a rules module's `Observation` and `Action` unions (imported when asked)."""
+    def kinds() -> tuple[type, ...]:
+        import importlib
+        import typing
+
+        rules = importlib.import_module(module)
+        return (*typing.get_args(rules.Observation), *typing.get_args(rules.Action))
+
+    return kinds
+
+
 def said_of(name: str, chain: Chain, recorded: bool, detail: str, alike: str = "reproduced") -> str:
     """The replay's line for a file's `name` records: none recorded, the first difference, or
     every one `alike` (`detail`: what they did)."""

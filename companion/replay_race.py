@@ -31,8 +31,6 @@ read back into the rules' own classes, named in it; a record naming any other is
 from __future__ import annotations
 
 import dataclasses
-import functools
-import typing
 from typing import Any
 
 from companion import replay
@@ -41,21 +39,8 @@ TOPIC = "/brakes/race"
 OBSTACLE_REASON = "obstacle"  # the reasons the pop-ups brake for start so ("obstacle ['a']", "obstacles ['a']")
 
 
-@functools.cache
-def _kinds() -> dict[str, type]:
-    from companion import race_rules as rules
-
-    return {k.__name__: k for k in (*typing.get_args(rules.Observation), *typing.get_args(rules.Action))}
-
-
-def _typed(tagged: dict[str, Any]) -> Any:
-    kind = _kinds().get(tagged["type"])
-    if kind is None:
-        raise ValueError(f"{tagged['type']!r} is not a race observation or action")
-    fields = tagged["fields"]
-    if "notes" in fields:
-        fields = {**fields, "notes": tuple(fields["notes"])}
-    return kind(**fields)
+_typed = replay.RulesReader(replay.observations_and_actions("companion.race_rules"), "a race observation or action",
+                             ("notes",))
 
 
 def step_values(rec: dict[str, Any]) -> tuple[Any, Any, Any, Any, Any]:

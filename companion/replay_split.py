@@ -23,8 +23,6 @@ read back into the rules' own classes, named in it; a record naming any other is
 from __future__ import annotations
 
 import dataclasses
-import functools
-import typing
 from typing import Any
 
 from companion import replay
@@ -32,18 +30,7 @@ from companion import replay
 TOPIC = "/navigator/split"
 
 
-@functools.cache
-def _kinds() -> dict[str, type]:
-    from companion import split_rules as rules
-
-    return {k.__name__: k for k in (*typing.get_args(rules.Observation), *typing.get_args(rules.Action))}
-
-
-def _typed(tagged: dict[str, Any]) -> Any:
-    kind = _kinds().get(tagged["type"])
-    if kind is None:
-        raise ValueError(f"{tagged['type']!r} is not a split observation or action")
-    return kind(**tagged["fields"])
+_typed = replay.RulesReader(replay.observations_and_actions("companion.split_rules"), "a split observation or action")
 
 
 def step_values(rec: dict[str, Any]) -> tuple[Any, Any, Any, Any, Any]:

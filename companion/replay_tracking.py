@@ -26,7 +26,6 @@ read back into the rules' own classes, named in it; a record naming any other is
 from __future__ import annotations
 
 import dataclasses
-import functools
 import typing
 from typing import Any
 
@@ -35,18 +34,13 @@ from companion import record_format, replay
 TOPIC = "/tracking/step"
 
 
-@functools.cache
-def _kinds() -> dict[str, type]:
+def _tracking_kinds() -> tuple[type, ...]:
     from companion import tracking_rules as rules
 
-    return {k.__name__: k for k in (rules.TrackingSample, *typing.get_args(rules.Output))}
+    return (rules.TrackingSample, *typing.get_args(rules.Output))
 
 
-def _typed(tagged: dict[str, Any]) -> Any:
-    kind = _kinds().get(tagged["type"])
-    if kind is None:
-        raise ValueError(f"{tagged['type']!r} is not a tracking reading or output")
-    return kind(**tagged["fields"])
+_typed = replay.RulesReader(_tracking_kinds, "a tracking reading or output")
 
 
 def step_values(rec: dict[str, Any]) -> tuple[Any, Any, Any, tuple[Any, ...], tuple[float, ...] | None]:
