@@ -42,8 +42,18 @@ def test_px4_hand_over_from_3_m_s_leaves_a_margin_to_exit_timeout(tmp_path: Path
         await svc.commands.takeoff(2.0)
         spec = read("mission", MISSION, svc.cfg, st.home, autopilot=st.autopilot)
         assert isinstance(spec, MissionSpec), spec
-        await svc.navigator.on_mission(spec, time.monotonic())
-        await until(lambda: float(np.linalg.norm(mock.snapshot()["velocity"])) >= 2.8, 20, "~3 m/s")
+        for attempt in range(3):  # a loaded test machine may plan too late for the split: sent again
+            seen = len(events.all)
+            await svc.navigator.on_mission(spec, time.monotonic())
+            answers = [e for e in events.all[seen:] if e["type"] in ("accepted", "rejected") and e.get("key") == "mission"]
+            assert answers, events.all[seen:]
+            if answers[-1]["type"] == "accepted":
+                break
+            assert "after the split time" in answers[-1]["message"] and attempt < 2, answers[-1]
+        try:
+            await until(lambda: float(np.linalg.norm(mock.snapshot()["velocity"])) >= 2.8, 20, "~3 m/s")
+        except AssertionError as exc:  # say what the mission did instead
+            raise AssertionError(f"{exc}; events {[(e['type'], e['message']) for e in events.all[-8:]]}") from exc
         speed = float(np.linalg.norm(mock.snapshot()["velocity"]))
         t0 = time.monotonic()
         svc.requested.set()  # what SIGTERM does (companion.cli_run)
