@@ -137,6 +137,7 @@ class ModeRules(TelemetryStreams):
             self.failsafe_mode = None
             self.user_mode = self.mode_after_disarm
             self._set_mode(self.user_mode, "disarmed")
+        self._update_snapshot()  # so that whoever sees the heartbeat sees its effect too
         self._send_heartbeat()
 
     def disarm(self, force: bool) -> tuple[int, str]:
