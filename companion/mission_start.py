@@ -156,13 +156,21 @@ class MissionStart:
                 left = t_split - self.control.committed() - (fleet.wait if fleet is not None else 0.0)
                 cap = self.budget.candidates_within(n, left)
                 # without a fleet the call is start_mission's own (what a recording names and replays)
+                search: Any = partial(start_mission, candidates=cap) if cap else start_mission
                 fn: Any = (partial(start_separated, neighbours=neighbours(fleet, spec.bounds), candidates=cap)
-                           if fleet is not None else partial(start_mission, quick=True) if quick[0]
-                           else partial(start_mission, candidates=cap) if cap else start_mission)
+                           if fleet is not None else partial(start_mission, quick=True) if quick[0] else search)
                 out: Outcome = logged(await self.runtime.plan(fn, replace(spec, raw={}), jet, t_split,
                                                               self.obstacles.known(), self.cfg))
+                self.budget.measured(time.perf_counter() - t0, n, int(out.stats.get("candidates", 1)))
+                if quick[0] and not out.ok and out.status is OutcomeStatus.INFEASIBLE:
+                    # the default allocation failed where the search may not (it places knots and
+                    # tries other durations): the search, as without anytime, before refusing
+                    quick[0] = False
+                    t1 = time.perf_counter()
+                    out = logged(await self.runtime.plan(search, replace(spec, raw={}), jet, t_split,
+                                                         self.obstacles.known(), self.cfg))
+                    self.budget.measured(time.perf_counter() - t1, n, int(out.stats.get("candidates", 1)))
                 self.plan_latency = time.perf_counter() - t0
-                self.budget.measured(self.plan_latency, n, int(out.stats.get("candidates", 1)))
                 quick[0] = quick[0] and out.ok  # the default allocation failed: the search, as without anytime
                 return out
 

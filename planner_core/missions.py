@@ -29,6 +29,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
+from math import factorial
 from typing import Any
 
 import numpy as np
@@ -141,16 +142,13 @@ def plan_mission(
         bad = np.flatnonzero(~(np.isfinite(given) & (given > 0.0)))
         if bad.size:
             raise FieldError(f"durations[{int(bad[0])}]", f"must be finite and > 0, got {given[bad[0]]:g}")
-    same = np.arange(m, dtype=np.int64)
-    if time_weight is None and given is not None and timing != "fastest":
-        return _planned(Problem.from_waypoints(wps, given, bounds, cors, init, fin, t0), same, "given", method, opts)
     within = bounds.scaled(1.0 - reserve) if reserve > 0.0 else bounds
-    if time_weight is None and timing == "default":
-        from planner_core.timing import allocate_times
-
-        # as the loader and the companion always did: from the legs and the start velocity alone
-        times = np.asarray(allocate_times(wps, within, t0=t0, initial_velocity=init[1]), dtype=float)
-        return _full(_planned(Problem(wps, times, within, init, fin, cors), same, "default", method, opts), bounds)
+    if time_weight is None and (timing == "default" or (given is not None and timing != "fastest")):
+        mp = _fixed(wps, bounds, within, cors, given, init, fin, t0, method, opts)
+        if mp.ok or not np.any(init[1:]):
+            return mp
+        led = _fixed_with_lead(wps, bounds, within, cors, given, init, fin, t0, method, opts)
+        return led if led is not None and led.ok else mp
     from planner_core.allocation import fastest_durations, weighted_durations
 
     seed = Problem.from_waypoints(wps, np.ones(m - 1), within, cors, init, fin, t0)  # only t0 of its times counts
@@ -161,6 +159,82 @@ def plan_mission(
         alloc = fastest_durations(seed, method, max_candidates=max_candidates, **opts)
         mode = "fastest"
     return _full(_checked(MissionPlan(alloc.result, alloc.problem, alloc.waypoint_index, mode)), bounds)
+
+
+def _fixed(wps: FloatArray, bounds: Bounds, within: Bounds, cors: tuple[Polytope | None, ...] | None,
+           given: FloatArray | None, init: FloatArray, fin: FloatArray, t0: float, method: str,
+           opts: dict[str, Any]) -> MissionPlan:
+    """A plan on durations fixed before planning: the given ones (the planner's recovery may
+    stretch them), else the default allocation within the reserve."""
+    same = np.arange(wps.shape[0], dtype=np.int64)
+    if given is not None:
+        return _planned(Problem.from_waypoints(wps, given, bounds, cors, init, fin, t0), same, "given", method, opts)
+    from planner_core.timing import allocate_times
+
+    # as the loader and the companion always did: from the legs and the start velocity alone
+    times = np.asarray(allocate_times(wps, within, t0=t0, initial_velocity=init[1]), dtype=float)
+    return _full(_planned(Problem(wps, times, within, init, fin, cors), same, "default", method, opts), bounds)
+
+
+# s: durations tried for the lead segment of a plan from a moving start, longest first
+LEAD_TIMES = (0.5, 0.25, 0.125)
+
+
+def lead_in(initial: FloatArray, bounds: Bounds, corridor: Polytope | None, longest: float = np.inf,
+            ) -> tuple[float, FloatArray] | None:
+    """The lead segment of a plan from the moving jet `initial`: its own Taylor curve for tau s
+    (the longest of LEAD_TIMES up to `longest` whose certified control points hold the bounds
+    and stay in `corridor`), as (tau, the jet it ends with); None when none does.
+
+    Why: one degree-9 segment from a given jet has its first five control points fixed by that
+    jet and its duration, and they march outwards as the duration grows (velocity by T, jerk by
+    T, snap by T^2 on the acceleration's points...). A long first leg from a jerky or fast state
+    (a mission or a timed mission sent in flight) then breaks the acceleration bound or the
+    corridor for every duration, and stretching only makes it worse. A knot tau s along the
+    vehicle's own motion keeps the first segment short; the knot's jet is free, so the plan can
+    turn from there. The Taylor curve itself is one plan of the lead segment: the knot never
+    makes a plan infeasible that its lead held."""
+    from planner_core.certificate import hull_violation, segment_ctrl
+
+    jet = np.asarray(initial, dtype=float)
+    for tau in LEAD_TIMES:
+        if tau > longest:
+            continue
+        end = np.zeros_like(jet)
+        for k in range(jet.shape[0]):
+            end[k] = sum(jet[i] * tau ** (i - k) / factorial(i - k) for i in range(k, jet.shape[0]))
+        ctrl = segment_ctrl(jet, end, tau)
+        if hull_violation(ctrl[None], np.array([tau]), bounds, [corridor]) is None:
+            return tau, end
+    return None
+
+
+def _fixed_with_lead(wps: FloatArray, bounds: Bounds, within: Bounds, cors: tuple[Polytope | None, ...] | None,
+                     given: FloatArray | None, init: FloatArray, fin: FloatArray, t0: float, method: str,
+                     opts: dict[str, Any]) -> MissionPlan | None:
+    """`_fixed` once more with a knot on the vehicle's own motion a short lead time after the
+    start (`lead_in`); the knot splits the first leg (its given duration is shared) and is no
+    given waypoint (`waypoint_index` skips it). None when no lead holds."""
+    first = None if cors is None else cors[0]
+    lead = lead_in(init, bounds if given is not None else within, first,
+                   np.inf if given is None else 0.5 * float(given[0]))
+    if lead is None:
+        return None
+    tau, end = lead
+    points = np.vstack([wps[0], end[0], wps[1:]])
+    lead_cors = None if cors is None else (first, *cors)
+    if given is not None:
+        mp = _fixed(points, bounds, within, lead_cors, np.concatenate([[tau, given[0] - tau], given[1:]]), init, fin,
+                    t0, method, opts)
+    else:
+        from planner_core.timing import allocate_times
+
+        rest = np.asarray(allocate_times(points[1:], within, t0=t0 + tau, initial_velocity=end[1]), dtype=float)
+        planned = _planned(Problem(points, np.concatenate([[t0], rest]), within, init, fin, lead_cors),
+                           np.arange(points.shape[0], dtype=np.int64), "default", method, opts)
+        mp = _full(planned, bounds)
+    index = np.concatenate([[0], np.arange(2, points.shape[0])]).astype(np.int64)
+    return replace(mp, waypoint_index=index)
 
 
 def _full(mp: MissionPlan, bounds: Bounds) -> MissionPlan:

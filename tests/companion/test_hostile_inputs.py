@@ -82,10 +82,11 @@ def _spec(obj: dict[str, Any]) -> MissionSpec:
 
 
 def test_a_planner_failure_is_named_by_the_senders_field_not_the_planners_segment() -> None:
-    # in flight (moving at 1 m/s) with a leg of 3000 s: the planner's "corridor of segment 0
-    # fixed by the initial state" said as the leg and the duration the sender gave
+    # in flight (moving at 1 m/s, accelerating at 4 m/s^2: beyond the mission's 3, so no lead
+    # knot helps) with a leg of 3000 s: the planner's "bounds of segment 0 fixed by the initial
+    # state" said as the leg and the duration the sender gave
     jet = rest_jet(np.array([0.0, 0.0, -1.5]))
-    jet[1] = [1.0, 0.5, 0.0]
+    jet[1], jet[2] = [1.0, 0.5, 0.0], [4.0, 0.0, 0.0]
     spec = _spec({"id": "m", "waypoints": [[0.05, 0, -1.5], [3, 0, -1.5], [3, 3, -1.5]], "durations": [3000, 3]})
     out = start_mission(spec, jet, 0.0, Known(), CFG)
     assert not out.ok and out.field == "durations[0]", out

@@ -16,7 +16,8 @@ import numpy as np
 import pytest
 from companionkit import Events, service_for, serving, until
 
-from companion.mission import replan_remainder
+from companion.mission import replan_remainder, start_mission
+from companion.route import Outcome
 from companion.wire.messages import read
 from planner_core import verify
 from sitl_mock import MockAutopilot, MockConfig
@@ -30,10 +31,11 @@ def mission(mid: str) -> bytes:
 
 
 def fly(tmp_path: Path, anytime: bool, during: Any = None,
-        slow_search: float = 0.0) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+        slow_search: float = 0.0, quick_fails: bool = False) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     """Takes off, sends the mission in flight, optionally runs `during(svc, events)` right after
     it is accepted; `slow_search`: the search's plans reach the navigator that much later (still
-    planned for real); returns the events and what was flown."""
+    planned for real); `quick_fails`: the default allocation's plan is refused as infeasible
+    (counted in seen["quick_calls"]); returns the events and what was flown."""
     mock = MockAutopilot(MockConfig(autopilot="px4", endpoints=["udpin:127.0.0.1:0"],
                                     log_path=str(tmp_path / "f.jsonl"))).start()
     seen: dict[str, Any] = {}
@@ -65,6 +67,17 @@ def fly(tmp_path: Path, anytime: bool, during: Any = None,
                 return out
 
             svc.runtime.plan = slow  # type: ignore[method-assign]
+        if quick_fails:
+            seen["quick_calls"] = 0
+            real = svc.runtime.plan
+
+            async def refusing(fn: Any, *args: Any, **kw: Any) -> Any:
+                if getattr(fn, "func", None) is start_mission and fn.keywords.get("quick"):
+                    seen["quick_calls"] += 1
+                    return Outcome(False, message="no plan on the default allocation (the test refuses it)")
+                return await real(fn, *args, **kw)
+
+            svc.runtime.plan = refusing  # type: ignore[method-assign]
         async with serving(svc):
             await until(lambda: svc.link.state.position_problem() is None, 20, "position")
             await svc.commands.takeoff(2.0)
@@ -132,6 +145,20 @@ def test_without_anytime_the_search_plan_is_awaited(tmp_path: Path) -> None:
     assert "default durations" not in accepted["message"]
     assert not [e for e in events if e["type"] == "improved"]
     assert [e["type"] for e in events].count("mission_complete") == 1
+
+
+@pytest.mark.slow
+def test_a_mission_whose_default_allocation_fails_is_planned_by_the_search(tmp_path: Path) -> None:
+    """The anytime start's one plan on the default allocation can fail where the search (other
+    durations, knots) plans: the mission is then planned by the search at once, as without
+    anytime, not refused (a mission sent in flight was refused so in CI)."""
+    events, seen = fly(tmp_path, anytime=True, quick_fails=True)
+    assert seen["quick_calls"] == 1
+    accepted = next(e for e in events if e["type"] == "accepted")
+    assert "default durations" not in accepted["message"], accepted["message"]
+    assert not [e for e in events if e["type"] == "improved"]
+    assert [e["type"] for e in events].count("mission_complete") == 1
+    assert verify(seen["final"].trajectory, seen["final"].problem).ok
 
 
 @pytest.mark.slow
