@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import pickle
 import sys
+from collections.abc import Callable
+from typing import Any
 
 from companion import (
     replay_autopilot,
@@ -34,6 +36,32 @@ from companion.replay import (
     transition_records,
 )
 
+_Check = tuple[Callable[[], tuple[Any, bool]], Callable[[Any, bool], str | None]]
+
+
+def _checks(file: str, recs: list[Any], since: float | None, until: float | None) -> list[_Check]:
+    """Each recorded loop's replay (run: its result and whether the file holds any) and what it
+    says, in the order printed; a fleet's commits and clock are said only where there are any."""
+
+    def autopilot(r: Any, any_: bool) -> str:
+        heard = replay_autopilot.said_heartbeats(r)
+        return replay_autopilot.said(r, any_) + ("" if heard is None else "\n" + heard)
+
+    def fleet_only(said: Callable[[Any, bool], str]) -> Callable[[Any, bool], str | None]:
+        return lambda r, any_: said(r, any_) if any_ else None
+
+    return [
+        (lambda: replay_autopilot.replay_file(file, recs, since, until), autopilot),
+        (lambda: replay_tracking.replay_file(file, recs, since, until), replay_tracking.said),
+        (lambda: replay_swaps.replay_file(file, since, until), replay_swaps.said),
+        (lambda: replay_split.replay_file(file, since, until), replay_split.said),
+        (lambda: replay_budget.replay_file(file, since, until), replay_budget.said),
+        (lambda: replay_race.replay_file(file, recs, since, until), replay_race.said),
+        (lambda: replay_commit.replay_file(file, since, until), fleet_only(replay_commit.said)),
+        (lambda: replay_commit.replay_clock_file(file), fleet_only(replay_commit.said_clock)),
+        (lambda: replay_commands.replay_file(file, since, until), replay_commands.said),
+    ]
+
 
 def main(argv: list[str]) -> int:
     import argparse
@@ -49,6 +77,8 @@ def main(argv: list[str]) -> int:
                    help="replay every plan and list every transition difference, not only the first")
     args = p.parse_args(argv)
     n = bad = 0
+    differences: list[str] = []
+    found: list[bool] = []
     try:
         here, there = environment(), recorded_environment(args.file)
         differ = {k: (there.get(k), v) for k, v in here.items() if k in there and there[k] != v}
@@ -66,47 +96,15 @@ def main(argv: list[str]) -> int:
                   f"{checked.differences[0]}", flush=True)
             for more in checked.differences[1:] if args.keep_going else ():
                 print(f"  also: {more}")
-        stepped, any_steps = replay_autopilot.replay_file(args.file, recs, args.since, args.until)
-        print(replay_autopilot.said(stepped, any_steps), flush=True)
-        for more in stepped.differences[1:] if args.keep_going else ():
-            print(f"  also: {more}")
-        heard = replay_autopilot.said_heartbeats(stepped)
-        if heard is not None:
-            print(heard, flush=True)
-        tracked, any_tracking = replay_tracking.replay_file(args.file, recs, args.since, args.until)
-        print(replay_tracking.said(tracked, any_tracking), flush=True)
-        for more in tracked.differences[1:] if args.keep_going else ():
-            print(f"  also: {more}")
-        swaps, any_swaps = replay_swaps.replay_file(args.file, args.since, args.until)
-        print(replay_swaps.said(swaps, any_swaps), flush=True)
-        for more in swaps.differences[1:] if args.keep_going else ():
-            print(f"  also: {more}")
-        splits, any_splits = replay_split.replay_file(args.file, args.since, args.until)
-        print(replay_split.said(splits, any_splits), flush=True)
-        for more in splits.differences[1:] if args.keep_going else ():
-            print(f"  also: {more}")
-        budget, any_budget = replay_budget.replay_file(args.file, args.since, args.until)
-        print(replay_budget.said(budget, any_budget), flush=True)
-        for more in budget.differences[1:] if args.keep_going else ():
-            print(f"  also: {more}")
-        races, any_races = replay_race.replay_file(args.file, recs, args.since, args.until)
-        print(replay_race.said(races, any_races), flush=True)
-        for more in races.differences[1:] if args.keep_going else ():
-            print(f"  also: {more}")
-        commits, any_commits = replay_commit.replay_file(args.file, args.since, args.until)
-        if any_commits:  # a vehicle in a fleet: said only there
-            print(replay_commit.said(commits, any_commits), flush=True)
-        for more in commits.differences[1:] if args.keep_going else ():
-            print(f"  also: {more}")
-        clock, any_clock = replay_commit.replay_clock_file(args.file)
-        if any_clock:
-            print(replay_commit.said_clock(clock, any_clock), flush=True)
-        for more in clock.differences[1:] if args.keep_going else ():
-            print(f"  also: {more}")
-        commanded, any_commands = replay_commands.replay_file(args.file, args.since, args.until)
-        print(replay_commands.said(commanded, any_commands), flush=True)
-        for more in commanded.differences[1:] if args.keep_going else ():
-            print(f"  also: {more}")
+        for run, said in _checks(args.file, recs, args.since, args.until):
+            result, any_ = run()
+            found.append(any_)
+            text = said(result, any_)
+            if text is not None:
+                print(text, flush=True)
+            differences.extend(result.differences)
+            for more in result.differences[1:] if args.keep_going else ():
+                print(f"  also: {more}")
         decoded = decoded_records(args.file, args.since, args.until)
         decode_bad: list[str] = []
         if decoded:
@@ -132,9 +130,7 @@ def main(argv: list[str]) -> int:
     except (OSError, ValueError, KeyError, TypeError, pickle.UnpicklingError, McapError) as exc:
         print(f"replay: {args.file}: {exc}", file=sys.stderr)
         return 2
-    if (n == 0 and not recs and not dropped and not decoded and not any_steps and not any_tracking and not any_swaps
-            and not any_splits and not any_budget and not any_races and not any_commits and not any_clock
-            and not any_commands):
+    if n == 0 and not recs and not dropped and not decoded and not any(found):
         print("replay: no plan, transition, autopilot, tracking, split, budget, race, commit or command step, clock "
               "sample, swap or inbound message in the recording (or in the time range)", file=sys.stderr)
         return 2
@@ -143,7 +139,5 @@ def main(argv: list[str]) -> int:
     else:
         print(f"plans: {n - bad} of {n} reproduced bit-identically" if bad == 0 or args.keep_going
               else f"plans: plan {n} is the first that differs")
-    clean = not (checked.differences or stepped.differences or tracked.differences or decode_bad
-                 or swaps.differences or splits.differences or budget.differences or races.differences
-                 or commits.differences or clock.differences or commanded.differences)
+    clean = not (checked.differences or differences or decode_bad)
     return 0 if bad == 0 and clean else 1
