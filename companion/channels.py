@@ -230,6 +230,19 @@ COMMAND_STEP = _obj("bezier.CommandStep", "One call of an operator command seque
     "observation": TAGGED, "after": {"type": "object"}, "action": TAGGED,
 }, ("seq", "t", "transition", "call", "step", "rules", "before", "observation", "after", "action"))
 
+STALL_STEP = _obj("bezier.StallStep", "One call of the stall rules (companion/stall_rules.py stall_step) that changed "
+                  "their state, found a stall or settled: the loop's beat (its gap, the setpoint sender's latch, the time since a "
+                  "setpoint left, control, the flight state) or the flight state once a stall was dealt with; the state "
+                  "before and after; the action (quiet, or the stall and what to do: nothing, hold, release control); "
+                  "every value exact (JSON, no pickle)", {
+    "seq": SEQ_RULES, "t": T_MONO,
+    "transition": {"type": "integer", "description": "the /supervisor/transition seq the next transition gets: a "
+                   "hold or a release after a stall makes its transitions at or after it"},
+    "rules": {"type": "object", "description": "companion.stall_rules.StallRules"},
+    "before": {"type": "object", "description": "companion.stall_rules.StallState"},
+    "observation": TAGGED, "after": {"type": "object"}, "action": TAGGED,
+}, ("seq", "t", "transition", "rules", "before", "observation", "after", "action"))
+
 DECODED = _obj("bezier.DecodedMessage", "An inbound message as the companion read it (companion.wire.messages.read): "
                "the typed message (local_ned) or the refusal, and what read was given besides the bytes", {
     "seq": {"type": "integer", "description": "1, 2, ... per run, numbered as the message was read: a gap is a "
@@ -342,6 +355,8 @@ def spec(topic: str) -> Spec:
         return _json(CLOCK_SAMPLE)
     if topic == "/commands/step":
         return _json(COMMAND_STEP)
+    if topic == "/stalls/step":
+        return _json(STALL_STEP)
     if topic == "/inbound/decoded":
         return _json(DECODED)
     if topic == "/recorder/stats":
@@ -476,6 +491,12 @@ def command_fields(call: int, step: int, rules: Any, before: Any, observation: A
     """The readable part of a /commands/step record: all of it (JSON only)."""
     return {"call": call, "step": step, "rules": _plain(rules), "before": _plain(before),
             "observation": _tagged(observation), "after": _plain(after), "action": _tagged(action)}
+
+
+def stall_fields(rules: Any, before: Any, observation: Any, after: Any, action: Any) -> dict[str, Any]:
+    """A /stalls/step record's body but for seq, t and transition: all of it (JSON only)."""
+    return {"rules": _plain(rules), "before": _plain(before), "observation": _tagged(observation),
+            "after": _plain(after), "action": _tagged(action)}
 
 
 def commit_fields(before: Any, event: Any, after: Any, actions: tuple[Any, ...]) -> dict[str, Any]:

@@ -15,8 +15,9 @@ steps (every call of companion.autopilot_rules.watch_step), the tracking error's
 of companion.tracking_rules.tracking_step that changed or said something), the split-and-swap
 loop's (every call of companion.split_rules.split_step), the plan budget's (every call of
 companion.plan_budget.budget_step), the pop-ups' (every call of companion.race_rules.race_step),
-the fleet's commit protocol's (every call of companion.commit.step) and the operator commands'
-sequences' (every call of companion.command_rules.command_step).
+the fleet's commit protocol's (every call of companion.commit.step), the operator commands'
+sequences' (every call of companion.command_rules.command_step) and the stall watch's (every call
+of companion.stall_rules.stall_step that changed or found something).
 
 Channels, schemas and frames: companion/channels.py (the 3D messages: companion/viz3d.py) and
 docs/recording.md.
@@ -190,6 +191,7 @@ class Recorder(Tap):
         self._clock_seq = itertools.count(1)
         self._swaps = 0  # swaps numbered so far (on the loop, as the split's steps are recorded)
         self._command_seq = itertools.count(1)
+        self._stall_seq = itertools.count(1)
         # the writer's: the last /tracking/step seq written and the file part it went to; a
         # record after a gap, or the first of a part, carries its window of errors in full
         self._tracking_written: tuple[int, int] = (0, 0)
@@ -334,6 +336,12 @@ class Recorder(Tap):
         self._put(self._decisions, ("command_step", next(self._command_seq), self._transitions + 1, call, step, rules,
                                     before, observation, after, action, self.clock()))
 
+    def stall_step(self, rules: Any, before: Any, observation: Any, after: Any, action: Any) -> None:
+        # with the next transition's number: a hold or a release after a stall makes its
+        # transitions at or after it
+        self._put(self._decisions, ("stall_step", next(self._stall_seq), self._transitions + 1, rules, before,
+                                    observation, after, action, self.clock()))
+
     def flown(self, trajectory: Any, t_base: float | None, t: float) -> None:
         self._put(self._rest, ("flown", trajectory, t_base, t))
 
@@ -476,6 +484,10 @@ class Recorder(Tap):
             _, seq, transition, call, step, rules, before, observation, after, action, t = item
             body = ch.command_fields(call, step, rules, before, observation, after, action)
             self._emit("/commands/step", ch.dumps({"seq": seq, "t": t, "transition": transition, **body}), t)
+        elif kind == "stall_step":
+            _, seq, transition, rules, before, observation, after, action, t = item
+            self._emit("/stalls/step", ch.dumps({"seq": seq, "t": t, "transition": transition,
+                                                 **ch.stall_fields(rules, before, observation, after, action)}), t)
         elif kind == "flown":
             _, traj, t_base, t = item
             for topic, data in self._viz.on_flown(traj, t_base, t):

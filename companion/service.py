@@ -83,6 +83,7 @@ def _tap_decisions(svc: Service) -> None:
     svc.deconfliction.observe_clock = tap.clock_sample  # and its clock check
     svc.navigator.brakes.observe = tap.race_step  # every pop-up obstacle and its race
     svc.commands.observe = tap.command_step  # the operator commands' sequences
+    svc.stalls.observe = tap.stall_step  # the companion's own stalls
 
 
 class Service:

@@ -9,7 +9,9 @@ A hung loop is systemd's watchdog's: it is fed only from setpoint ticks handled 
 from __future__ import annotations
 
 import asyncio
+import logging
 import time
+from collections.abc import Callable
 
 from companion.config import Config
 from companion.control import Control
@@ -17,13 +19,27 @@ from companion.handover import HandOver
 from companion.report import Reporter
 from companion.sendproc import SetpointProcess
 from companion.setpoints import Liveness, SetpointSender
+from companion.stall_rules import (
+    Action,
+    Beat,
+    Observation,
+    Quiet,
+    Settled,
+    Stalled,
+    StallRules,
+    StallState,
+    stall_step,
+)
 from companion.supervisor import Supervisor
 from companion.wire import encode as enc
 from companion.wire.mavlink import MavlinkLink
 
-# s: setpoints withheld after a stall for less than this (half PX4's default COM_OF_LOSS_T):
-# the autopilot still flies our plan, so the companion keeps control and holds
-STALL_HOLD_WITHIN = 0.5
+log = logging.getLogger("companion.stalls")
+
+
+def _unobserved(_rules: StallRules, _before: StallState, _seen: Observation, _after: StallState,
+                _action: Action) -> None:
+    """What the watch shows its rules' calls to when nothing records."""
 
 
 class StallWatch:
@@ -40,6 +56,8 @@ class StallWatch:
         # the loop's beat, which the setpoint thread checks before each send
         self.liveness = Liveness(cfg.setpoints.loop_stall_limit)
         self.setpoints_stalled = False
+        # the flight recorder's view of each call of the stall rules that changed or did something
+        self.observe: Callable[[StallRules, StallState, Observation, StallState, Action], None] = _unobserved
 
     async def setpoint_watchdog(self) -> None:
         """Notices when setpoints stop leaving while streaming (the setpoint thread stalled or
@@ -85,39 +103,54 @@ class StallWatch:
         (it waits for `resume`). Longer: the autopilot may have left OFFBOARD on its own;
         release control (FAILSAFE; the autopilot is asked to hold) and wait for `start`."""
         period = 1.0 / self.cfg.setpoints.rate_hz
-        limit = self.cfg.setpoints.loop_stall_limit
+        rules = StallRules(self.cfg.setpoints.loop_stall_limit)
         live = self.liveness
+        state = StallState()
+
+        def step(seen: Observation) -> Action:
+            nonlocal state
+            before = state
+            state, action = stall_step(rules, before, seen)
+            # a quiet beat that changes nothing is not shown (50 a second); the rest is rare
+            if state != before or not isinstance(action, Quiet) or isinstance(seen, Settled):
+                try:
+                    self.observe(rules, before, seen, state, action)
+                except Exception:  # a recorder's fault must never change what is flown
+                    log.exception("stalls: the observer failed")
+            return action
+
         live.beat()
-        was = self.flight.state
+        step(Settled(self.flight.state.value))
         while not self.stop.is_set():
             await asyncio.sleep(period)
             gap = live.beat()
             withheld = live.withheld
-            if gap <= limit and withheld is None:
-                was = self.flight.state  # as it was before any stall
-                continue
             now = time.monotonic()
-            what = "the setpoint thread" if withheld is not None and withheld[1] == "thread" else "its event loop"
-            stall = max(gap, withheld[2] if withheld is not None else 0.0)
-            silence = now - live.last_sent
-            reason = f"the companion stalled ({what} did not run for {stall * 1000:.0f} ms)"
-            if not self.flight.controlling:
-                reaction = "not in control"
-            elif withheld is not None and silence >= STALL_HOLD_WITHIN:
-                self.handover.after_stall(reason)
-                reaction = "released control"
-            else:
-                reaction = self.handover.hold_after_stall(reason)
-            live.release()
-            link = self.link.link_ok()
-            silent = (f"setpoints were withheld for {silence * 1000:.0f} ms" if withheld is not None
-                      else "no setpoint was withheld")
-            self.report.event(
-                "stalled", f"{reason} while {was.value}: cause the companion, not the link (the autopilot "
-                f"{'is heard' if link else 'is not heard either'}); {silent}; {reaction}; now "
-                f"{self.flight.state.value}, mode {self.link.state.mode}",
-                cause="companion", stalled=what.removeprefix("its ").replace(" ", "_"), stall_ms=round(stall * 1000, 1),
-                setpoints_withheld=withheld is not None,
-                silence_ms=enc.ms(silence, 1) if withheld is not None else None,
-                previous_state=was.value, link=link, mode=self.link.state.mode)
-            was = self.flight.state
+            action = step(Beat(gap, None if withheld is None else withheld[1],
+                               0.0 if withheld is None else withheld[2], now - live.last_sent,
+                               self.flight.controlling, self.flight.state.value))
+            if isinstance(action, Stalled):
+                self._stalled(action)
+                step(Settled(self.flight.state.value))
+
+    def _stalled(self, stall: Stalled) -> None:
+        """Carry out what the rules decided about a stall, then say it."""
+        if stall.reaction == "release":
+            self.handover.after_stall(stall.reason)
+            reaction = "released control"
+        elif stall.reaction == "hold":
+            reaction = self.handover.hold_after_stall(stall.reason)
+        else:
+            reaction = "not in control"
+        self.liveness.release()
+        link = self.link.link_ok()
+        silent = (f"setpoints were withheld for {stall.silence * 1000:.0f} ms" if stall.withheld
+                  else "no setpoint was withheld")
+        self.report.event(
+            "stalled", f"{stall.reason} while {stall.was}: cause the companion, not the link (the autopilot "
+            f"{'is heard' if link else 'is not heard either'}); {silent}; {reaction}; now "
+            f"{self.flight.state.value}, mode {self.link.state.mode}",
+            cause="companion", stalled=stall.what.removeprefix("its ").replace(" ", "_"),
+            stall_ms=round(stall.stall * 1000, 1), setpoints_withheld=stall.withheld,
+            silence_ms=enc.ms(stall.silence, 1) if stall.withheld else None,
+            previous_state=stall.was, link=link, mode=self.link.state.mode)

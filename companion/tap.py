@@ -92,6 +92,11 @@ class Tap:
         the run's number and the step's within it, the run's rules, the state before, the
         observation, the state after and the action; on the loop, so no time: the tap takes it."""
 
+    def stall_step(self, rules: Any, before: Any, observation: Any, after: Any, action: Any) -> None:
+        """A call of the stall rules (companion.stall_rules.stall_step) that changed their state,
+        found a stall or settled (at the start, after a stall): the rules, the state before, the observation, the state after and the
+        action; on the loop, so no time: the tap takes it."""
+
     def flown(self, trajectory: Any, t_base: float | None, t: float) -> None:
         """What the setpoint thread flies from now on (a new plan, a swap, a hold)."""
 

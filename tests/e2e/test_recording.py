@@ -34,7 +34,7 @@ JSON_CHANNELS = ("/in/command", "/in/mission", "/in/change", "/out/status", "/ou
                  "/mavlink/in/HEARTBEAT", "/mavlink/in/LOCAL_POSITION_NED", "/mavlink/in/ATTITUDE",
                  "/mavlink/in/COMMAND_ACK", "/planner/plan", "/viz/bounds", "/recorder/stats", "/supervisor/transition",
                  "/inbound/decoded", "/autopilot/step", "/tracking/step", "/control/swap", "/navigator/split",
-                 "/commands/step")
+                 "/commands/step", "/stalls/step")
 FOXGLOVE_CHANNELS = {"/viz/vehicle": "foxglove.PoseInFrame", "/viz/tf": "foxglove.FrameTransform",
                      "/viz/planned_path": "foxglove.PosesInFrame", "/viz/flown_path": "foxglove.PosesInFrame",
                      "/viz/obstacles": "foxglove.SceneUpdate", "/viz/corridors": "foxglove.SceneUpdate"}
@@ -228,6 +228,10 @@ def test_every_plan_transition_and_step_of_the_flight_replays_bit_identically(fl
     made = re.search(r"; (\d+) of (\d+) transitions found as made\)$", said)
     assert commanded >= 10 and said.startswith(f"commands: {commanded} of {commanded} reproduced ("), said
     assert " 0 failed; " in said and made is not None and made[1] == made[2] != "0", said
+    # the stall watch's start and the flight states it saw, replayed alike (no stall here)
+    watched = sum(1 for _s, c, _m in msgs if c.topic == "/stalls/step")
+    assert watched >= 3 and f"stalls: {watched} of {watched} reproduced (0 stalls: 0 held, 0 released control, 0 not " \
+        "in control)" in run.stdout.splitlines(), run.stdout
     # every inbound message the flight took in was read, and reads again the same (none was
     # dropped or refused on arrival in this flight)
     inbound = sum(1 for _s, c, _m in msgs if c.topic.startswith("/in/"))

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import itertools
 import json
 import time
 from pathlib import Path
@@ -166,6 +167,7 @@ def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
         budget = [json.loads(m.data) for _s, _c, m in reader.iter_messages(topics=["/navigator/budget"])]
         races = [json.loads(m.data) for _s, _c, m in reader.iter_messages(topics=["/brakes/race"])]
         commands = [json.loads(m.data) for _s, _c, m in reader.iter_messages(topics=["/commands/step"])]
+        stalls = [json.loads(m.data) for _s, _c, m in reader.iter_messages(topics=["/stalls/step"])]
         heard = collections.Counter(c.topic for _s, c, _m in reader.iter_messages(topics=[
             "/mavlink/in/HEARTBEAT", "/mavlink/in/LOCAL_POSITION_NED", "/mavlink/in/EXTENDED_SYS_STATE"]))
     assert dropped == {}
@@ -278,6 +280,14 @@ def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
     n = len(commanded)
     assert (f"commands: {n} of {n} reproduced ({len(runs)} runs finished, 0 failed; {len(made_by_commands)} of "
             f"{len(made_by_commands)} transitions found as made)") in out.splitlines()
+    # the stall watch: no stall in this flight; its start and every flight state it saw before
+    # any stall (what a `stalled` event would name), in order, replayed alike
+    assert stalls[0]["observation"] == {"type": "Settled", "fields": {"state": "IDLE"}}
+    assert [r["seq"] for r in stalls] == list(range(1, len(stalls) + 1))
+    seen = [r["after"]["was"] for r in stalls]
+    assert {"IDLE", "STREAMING", "HOLDING"} <= set(seen) and all(a != b for a, b in itertools.pairwise(seen))
+    assert f"stalls: {len(stalls)} of {len(stalls)} reproduced (0 stalls: 0 held, 0 released control, 0 not in " \
+           "control)" in out.splitlines()
     plans = [ln for ln in out.splitlines() if ln.startswith("plan ")]
     assert len(plans) >= 2 and all(": identical" in ln for ln in plans)
     assert f"plans: {len(plans)} of {len(plans)} reproduced bit-identically" in out.splitlines()
