@@ -243,6 +243,17 @@ STALL_STEP = _obj("bezier.StallStep", "One call of the stall rules (companion/st
     "observation": TAGGED, "after": {"type": "object"}, "action": TAGGED,
 }, ("seq", "t", "transition", "rules", "before", "observation", "after", "action"))
 
+HOLD_STEP = _obj("bezier.HoldStep", "One call of the hand-over's hold rules (companion/hold_rules.py hold_step): "
+                 "where the hold began or a sample of the vehicle (armed, mode, altitude, velocity), the state before "
+                 "and after, and the verdict (watch on, holds, fails and why); every value exact (JSON, no pickle)", {
+    "seq": SEQ_RULES, "t": T_MONO,
+    "call": {"type": "integer", "description": "the hold watched (1, 2, ... per run): its steps chain"},
+    "step": {"type": "integer", "description": "1, 2, ... within the hold"},
+    "rules": {"type": "object", "description": "companion.hold_rules.HoldRules: the autopilot's hold profile"},
+    "before": {"type": "object", "description": "companion.hold_rules.HoldState"},
+    "observation": TAGGED, "after": {"type": "object"}, "action": TAGGED,
+}, ("seq", "t", "call", "step", "rules", "before", "observation", "after", "action"))
+
 DECODED = _obj("bezier.DecodedMessage", "An inbound message as the companion read it (companion.wire.messages.read): "
                "the typed message (local_ned) or the refusal, and what read was given besides the bytes", {
     "seq": {"type": "integer", "description": "1, 2, ... per run, numbered as the message was read: a gap is a "
@@ -357,6 +368,8 @@ def spec(topic: str) -> Spec:
         return _json(COMMAND_STEP)
     if topic == "/stalls/step":
         return _json(STALL_STEP)
+    if topic == "/handover/hold":
+        return _json(HOLD_STEP)
     if topic == "/inbound/decoded":
         return _json(DECODED)
     if topic == "/recorder/stats":

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import asyncio
 import functools
+import itertools
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -21,6 +22,9 @@ import numpy as np
 from companion.config import Config, SafetyConfig
 from companion.control import Control
 from companion.flight import HOLDING_CONTROL, State
+from companion.hold_rules import Action as HoldAction
+from companion.hold_rules import Began, Fails, HoldRules, HoldState, Seen, Watch, hold_step
+from companion.hold_rules import Observation as HoldObservation
 from companion.navigator import Navigator
 from companion.report import Reporter
 from companion.supervisor import (
@@ -92,6 +96,11 @@ def hold_profile(safety: SafetyConfig, autopilot: str | None) -> HoldProfile:
     )
 
 
+def _unobserved(_call: int, _step: int, _rules: HoldRules, _before: HoldState, _seen: HoldObservation,
+                _after: HoldState, _action: HoldAction) -> None:
+    """What the hand-over shows its hold rules' calls to when nothing records."""
+
+
 def in_mode(mode: str, state: Any) -> bool:
     return bool(state.mode == mode)
 
@@ -112,6 +121,10 @@ class HandOver:
         self.cancel_sequence = cancel_sequence  # the running command sequence (Commands owns it)
         self._settle_by: float | None = None  # loop time: the hand-over's vehicle settled by then
         self._stall_task: asyncio.Task[None] | None = None  # what a stall of the companion set off
+        self._holds = itertools.count(1)  # holds watched, numbered for the recorder
+        # the flight recorder's view of each call of the hold's rules
+        self.observe: Callable[[int, int, HoldRules, HoldState, HoldObservation, HoldState, HoldAction],
+                               None] = _unobserved
 
     async def hand_over(self, reason: str, *, can_brake: bool = True) -> bool:
         """Leave the vehicle to the autopilot's own control before the service exits.
@@ -245,40 +258,34 @@ class HandOver:
         end), its speed under `speed_tolerance`."""
         st, pr = self.link.state, self.hold_profile()
         loop = asyncio.get_running_loop()
-        z0, mode_now = float(st.position[2]), st.mode
-        worst_dz, worst_v = 0.0, 0.0
-        start = loop.time()
-        settle_by = self._settle_by if self._settle_by is not None else start + pr.settle
-        # `confirm` s, longer only while the vehicle has not settled (then up to 1 s past the settle time)
-        done_by, latest = start + pr.confirm, max(start + pr.confirm, min(settle_by, start + pr.settle) + 1.0)
-        settled = False
-        problem = None
-        while loop.time() < latest and not (settled and loop.time() >= done_by):
-            await asyncio.sleep(0.05)
-            dz = float(st.position[2]) - z0
-            speed = float(np.linalg.norm(st.velocity))
-            worst_dz = dz if abs(dz) > abs(worst_dz) else worst_dz
-            worst_v = max(worst_v, speed)
-            settled = settled or speed <= pr.speed_tolerance or loop.time() >= settle_by
-            if not st.armed:
-                problem = "the vehicle disarmed"
-            elif st.mode != mode_now:
-                problem = f"the autopilot left {mode_now} for {st.mode}"
-            elif abs(dz) > pr.altitude_tolerance:
-                problem = f"the vehicle {'descends' if dz > 0 else 'climbs'}: {abs(dz):.2f} m from where the hold began"
-            elif settled and speed > pr.speed_tolerance:
-                vz = float(st.velocity[2])
-                how = f" ({'descending' if vz > 0 else 'climbing'} at {abs(vz):.2f} m/s)" if abs(vz) >= 0.5 * speed else ""
-                problem = f"the vehicle moves at {speed:.2f} m/s{how}"
-            if problem is not None:
-                break
-        watched = round(loop.time() - start, 2)
-        fields = {"mode": st.mode, "reason": reason, "altitude_change": round(worst_dz, 3),
-                  "speed_max": round(worst_v, 3), "watched_s": watched,
+        rules = HoldRules(pr.altitude_tolerance, pr.speed_tolerance, pr.settle, pr.confirm)
+        call, steps = next(self._holds), itertools.count(1)
+        state = HoldState()
+
+        def step(seen: HoldObservation) -> HoldAction:
+            nonlocal state
+            before = state
+            state, action = hold_step(rules, before, seen)
+            try:
+                self.observe(call, next(steps), rules, before, seen, state, action)
+            except Exception:  # a recorder's fault must never change the verdict
+                log.exception("hand-over: the observer failed")
+            return action
+
+        action = step(Began(loop.time(), float(st.position[2]), st.mode, self._settle_by))
+        while isinstance(action, Watch):
+            await asyncio.sleep(action.seconds)
+            v = st.velocity
+            action = step(Seen(loop.time(), bool(st.armed), st.mode, float(st.position[2]),
+                               (float(v[0]), float(v[1]), float(v[2]))))
+        mode_now, watched = state.mode, action.watched
+        fields = {"mode": st.mode, "reason": reason, "altitude_change": round(state.worst_dz, 3),
+                  "speed_max": round(state.worst_v, 3), "watched_s": watched,
                   "limits": {"altitude": pr.altitude_tolerance, "speed": pr.speed_tolerance,
                              "settle_s": pr.settle, "confirm_s": pr.confirm, "rest_speed": pr.rest_speed}}
-        if problem is not None:
-            msg = (f"{reason}: the hand-over to {mode_now} does not hold: {problem} (limits "
+        worst_dz, worst_v = state.worst_dz, state.worst_v
+        if isinstance(action, Fails):
+            msg = (f"{reason}: the hand-over to {mode_now} does not hold: {action.problem} (limits "
                    f"{pr.altitude_tolerance:g} m, {pr.speed_tolerance:g} m/s after {pr.settle:g} s to settle, "
                    f"over {pr.confirm:g} s; [safety] hold_* keys)")
             log.error("%s", msg)

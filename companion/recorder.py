@@ -16,8 +16,9 @@ of companion.tracking_rules.tracking_step that changed or said something), the s
 loop's (every call of companion.split_rules.split_step), the plan budget's (every call of
 companion.plan_budget.budget_step), the pop-ups' (every call of companion.race_rules.race_step),
 the fleet's commit protocol's (every call of companion.commit.step), the operator commands'
-sequences' (every call of companion.command_rules.command_step) and the stall watch's (every call
-of companion.stall_rules.stall_step that changed or found something).
+sequences' (every call of companion.command_rules.command_step), the stall watch's (every call
+of companion.stall_rules.stall_step that changed or found something) and the hand-over's hold
+(every call of companion.hold_rules.hold_step).
 
 Channels, schemas and frames: companion/channels.py (the 3D messages: companion/viz3d.py) and
 docs/recording.md.
@@ -192,6 +193,7 @@ class Recorder(Tap):
         self._swaps = 0  # swaps numbered so far (on the loop, as the split's steps are recorded)
         self._command_seq = itertools.count(1)
         self._stall_seq = itertools.count(1)
+        self._hold_seq = itertools.count(1)
         # the writer's: the last /tracking/step seq written and the file part it went to; a
         # record after a gap, or the first of a part, carries its window of errors in full
         self._tracking_written: tuple[int, int] = (0, 0)
@@ -342,6 +344,11 @@ class Recorder(Tap):
         self._put(self._decisions, ("stall_step", next(self._stall_seq), self._transitions + 1, rules, before,
                                     observation, after, action, self.clock()))
 
+    def hold_step(self, call: int, step: int, rules: Any, before: Any, observation: Any, after: Any,
+                  action: Any) -> None:
+        self._put(self._decisions, ("hold_step", next(self._hold_seq), call, step, rules, before, observation, after,
+                                    action, self.clock()))
+
     def flown(self, trajectory: Any, t_base: float | None, t: float) -> None:
         self._put(self._rest, ("flown", trajectory, t_base, t))
 
@@ -488,6 +495,10 @@ class Recorder(Tap):
             _, seq, transition, rules, before, observation, after, action, t = item
             self._emit("/stalls/step", ch.dumps({"seq": seq, "t": t, "transition": transition,
                                                  **ch.stall_fields(rules, before, observation, after, action)}), t)
+        elif kind == "hold_step":
+            _, seq, call, step, rules, before, observation, after, action, t = item
+            body = ch.command_fields(call, step, rules, before, observation, after, action)  # the same fields
+            self._emit("/handover/hold", ch.dumps({"seq": seq, "t": t, **body}), t)
         elif kind == "flown":
             _, traj, t_base, t = item
             for topic, data in self._viz.on_flown(traj, t_base, t):

@@ -84,6 +84,7 @@ def _tap_decisions(svc: Service) -> None:
     svc.navigator.brakes.observe = tap.race_step  # every pop-up obstacle and its race
     svc.commands.observe = tap.command_step  # the operator commands' sequences
     svc.stalls.observe = tap.stall_step  # the companion's own stalls
+    svc.handover.observe = tap.hold_step  # whether the autopilot holds after a hand-over
 
 
 class Service:

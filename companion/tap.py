@@ -97,6 +97,12 @@ class Tap:
         found a stall or settled (at the start, after a stall): the rules, the state before, the observation, the state after and the
         action; on the loop, so no time: the tap takes it."""
 
+    def hold_step(self, call: int, step: int, rules: Any, before: Any, observation: Any, after: Any,
+                  action: Any) -> None:
+        """A call of the hand-over's hold rules (companion.hold_rules.hold_step): the hold's number
+        and the step's within it, the rules, the state before, the observation, the state after
+        and the action; on the loop, so no time: the tap takes it."""
+
     def flown(self, trajectory: Any, t_base: float | None, t: float) -> None:
         """What the setpoint thread flies from now on (a new plan, a swap, a hold)."""
 
