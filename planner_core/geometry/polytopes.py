@@ -295,12 +295,12 @@ def polytope_from_vertices(vertices: ArrayLike) -> Polytope:
     A, b, hull_vertices = _small_hull(p) if p.shape[0] <= SMALL_HULL_POINTS else _hull_planes(p)
     if A.shape[0] < 4 or hull_vertices.shape[0] < 4 or not _is_bounded(A):
         A, b, hull_vertices = _hull_planes(p)  # a nearly flat handful: qhull's tolerances decide
-    poly = Polytope(A=A, b=b * scale + A @ origin)
-    # The hull's vertices are known: `polytope_vertices` need not enumerate plane triples.
-    verts = np.ascontiguousarray(p[hull_vertices] * scale + origin, dtype=float)
-    verts.flags.writeable = False
-    _remember_vertices(poly, verts)
-    return poly
+    # The hull's vertices are known here, but they are not remembered for `polytope_vertices`:
+    # they differ from what it computes from (A, b) in the last bits, so a plan would then
+    # depend on whether its obstacle was read in the same process (a flight recorded with the
+    # planner in a worker process replayed differently in one). The cache holds only what
+    # `polytope_vertices` itself computes (a box's corners are exactly that).
+    return Polytope(A=A, b=b * scale + A @ origin)
 
 
 def polytope_from_box(center: ArrayLike, size: ArrayLike) -> Polytope:
