@@ -130,6 +130,7 @@ def box_corners(lo: FloatArray, hi: FloatArray) -> FloatArray:
     return np.where(_CORNER_BITS[None].astype(bool), hi[:, None, :], lo[:, None, :])
 
 
+HULL_VERTICES = "_hull_vertices"  # a Polytope built from vertices carries them under this name
 _VERTEX_CACHE: OrderedDict[tuple[tuple[int, ...], bytes, bytes], FloatArray] = OrderedDict()
 _VERTEX_CACHE_SIZE = 256
 
@@ -141,6 +142,10 @@ def polytope_vertices(poly: Polytope, name: str = "polytope") -> FloatArray:
     obstacle is checked when its message is parsed and again by the replan that
     avoids it, and the vertex enumeration is a millisecond or two each time.
     """
+    given = getattr(poly, HULL_VERTICES, None)
+    if given is not None:  # a hull's own vertices, wherever it was built (polytope_from_vertices)
+        _remember_vertices(poly, given)
+        return given  # type: ignore[no-any-return]
     A0 = np.ascontiguousarray(poly.A, dtype=float)
     b0 = np.ascontiguousarray(poly.b, dtype=float)
     key = (A0.shape, A0.tobytes(), b0.tobytes())
@@ -295,12 +300,17 @@ def polytope_from_vertices(vertices: ArrayLike) -> Polytope:
     A, b, hull_vertices = _small_hull(p) if p.shape[0] <= SMALL_HULL_POINTS else _hull_planes(p)
     if A.shape[0] < 4 or hull_vertices.shape[0] < 4 or not _is_bounded(A):
         A, b, hull_vertices = _hull_planes(p)  # a nearly flat handful: qhull's tolerances decide
-    # The hull's vertices are known here, but they are not remembered for `polytope_vertices`:
-    # they differ from what it computes from (A, b) in the last bits, so a plan would then
-    # depend on whether its obstacle was read in the same process (a flight recorded with the
-    # planner in a worker process replayed differently in one). The cache holds only what
-    # `polytope_vertices` itself computes (a box's corners are exactly that).
-    return Polytope(A=A, b=b * scale + A @ origin)
+    poly = Polytope(A=A, b=b * scale + A @ origin)
+    # The hull's vertices are known: `polytope_vertices` need not enumerate plane triples (for a
+    # nearly flat hull it could not: its planes' intersections are ill-conditioned). They differ
+    # from an enumeration from (A, b) in the last bits, so they travel with the polytope (an
+    # attribute, not a field: pickled with it to a planner process, and to a recording), or a
+    # plan would depend on which process built the obstacle.
+    verts = np.ascontiguousarray(p[hull_vertices] * scale + origin, dtype=float)
+    verts.flags.writeable = False
+    object.__setattr__(poly, HULL_VERTICES, verts)
+    _remember_vertices(poly, verts)
+    return poly
 
 
 def polytope_from_box(center: ArrayLike, size: ArrayLike) -> Polytope:
