@@ -219,6 +219,7 @@ def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
     # replay: every transition, every step and every plan (the climb and the mission at least) reproduced
     assert replay_cli.main([str(path)]) == 0
     out = capsys.readouterr().out
+    print(out)  # what the replay said (docs/recording.md quotes it)
     assert f"transitions: {handled} of {handled} reproduced" in out.splitlines()
     assert (f"autopilot steps: {stepped} of {stepped} reproduced ({len(made)} events, each a recorded "
             "transition)") in out.splitlines()
