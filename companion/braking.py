@@ -50,6 +50,7 @@ from companion.race_rules import (
 )
 from companion.report import Reporter
 from companion.route import build_corridors
+from companion.rule_run import RuleRun
 from companion.runtime import Runtime
 from companion.supervisor import Braking, Supervisor
 from companion.traffic import named_neighbours
@@ -294,27 +295,14 @@ class Replanned:
 RaceObserver = Callable[[int, int, RaceRules, RaceState, Observation, RaceState, Action], None]
 
 
-class RaceSteps:
+RaceSteps = RuleRun[RaceRules, RaceState, Observation, Action]
+
+
+def race_run(rules: RaceRules, number: int = 0, observe: RaceObserver | None = None,
+             state: RaceState | None = None) -> RaceSteps:
     """One pop-up's decisions (companion.race_rules.race_step): the rules' state, stepped here
     only, each call shown to the flight recorder with the race's number (0: not recorded)."""
-
-    def __init__(self, rules: RaceRules, number: int = 0, observe: RaceObserver | None = None,
-                 state: RaceState | None = None) -> None:
-        self.rules = rules
-        self.number = number
-        self.observe = observe
-        self.state = first_state() if state is None else state
-        self._steps = itertools.count(1)
-
-    def step(self, seen: Observation) -> Action:
-        before = self.state
-        self.state, action = race_step(self.rules, before, seen)
-        if self.observe is not None:
-            try:
-                self.observe(self.number, next(self._steps), self.rules, before, seen, self.state, action)
-            except Exception:  # a recorder's fault must never change what is flown
-                log.exception("race: the observer failed")
-        return action
+    return RuleRun(race_step, rules, first_state() if state is None else state, "race", number, observe)
 
 
 class StopGuard:
@@ -331,7 +319,7 @@ class StopGuard:
     def __init__(self, base: Trajectory, hit: float) -> None:
         self.base = base
         # unrecorded until the pop-up that races hands over its own (Replans.avoid)
-        self.steps = RaceSteps(RaceRules("", "", 0.0, 0.0), state=racing(hit))
+        self.steps = race_run(RaceRules("", "", 0.0, 0.0), state=racing(hit))
         self.future: asyncio.Future[StopPlan] | None = None
         # set by `prepare`: the race wakes on it and starts the stop at once (created on the loop)
         self._asked: asyncio.Future[None] | None = None
@@ -428,7 +416,7 @@ class Brakes:
     def race_steps(self, names: str) -> RaceSteps:
         """The decisions of a pop-up of obstacles `names` (and of the race that may follow), numbered."""
         rules = RaceRules(names, f"obstacles {names}", self.cfg.planner.split_ahead, self._spare())
-        return RaceSteps(rules, next(self.races), self.observe)
+        return race_run(rules, next(self.races), self.observe)
 
     def _spare(self) -> float:
         # Swap with a few periods to spare: the loop may be late, and swap() refuses a split

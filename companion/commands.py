@@ -67,6 +67,7 @@ from companion.flight import State
 from companion.handover import at_rest
 from companion.navigator import Navigator
 from companion.report import Reporter
+from companion.rule_run import RuleRun
 from companion.runtime import Runtime
 from companion.supervisor import (
     Armed,
@@ -299,18 +300,7 @@ class Commands:
         companion.command_rules.command_step; this observes, shows each call to the flight
         recorder (/commands/step) and carries the action out. False: land or disarm refused."""
         run = run if run is not None else _Run()
-        call, steps = next(self.calls), itertools.count(1)
-        state = CommandState()
-
-        def step(seen: Observation) -> Action:
-            nonlocal state
-            before = state
-            state, action = command_step(rules, before, seen)
-            try:
-                self.observe(call, next(steps), rules, before, seen, state, action)
-            except Exception:  # a recorder's fault must never change what is flown
-                log.exception("commands: the observer failed")
-            return action
+        step = RuleRun(command_step, rules, CommandState(), "commands", next(self.calls), self.observe).step
 
         action = step(first if first is not None else self._begin())
         while not isinstance(action, Finish):

@@ -27,6 +27,7 @@ from companion.hold_rules import Began, Fails, HoldRules, HoldState, Seen, Watch
 from companion.hold_rules import Observation as HoldObservation
 from companion.navigator import Navigator
 from companion.report import Reporter
+from companion.rule_run import RuleRun
 from companion.supervisor import (
     DisarmedOnCommand,
     DisarmRequested,
@@ -259,25 +260,15 @@ class HandOver:
         st, pr = self.link.state, self.hold_profile()
         loop = asyncio.get_running_loop()
         rules = HoldRules(pr.altitude_tolerance, pr.speed_tolerance, pr.settle, pr.confirm)
-        call, steps = next(self._holds), itertools.count(1)
-        state = HoldState()
-
-        def step(seen: HoldObservation) -> HoldAction:
-            nonlocal state
-            before = state
-            state, action = hold_step(rules, before, seen)
-            try:
-                self.observe(call, next(steps), rules, before, seen, state, action)
-            except Exception:  # a recorder's fault must never change the verdict
-                log.exception("hand-over: the observer failed")
-            return action
-
+        run = RuleRun(hold_step, rules, HoldState(), "hand-over", next(self._holds), self.observe)
+        step = run.step
         action = step(Began(loop.time(), float(st.position[2]), st.mode, self._settle_by))
         while isinstance(action, Watch):
             await asyncio.sleep(action.seconds)
             v = st.velocity
             action = step(Seen(loop.time(), bool(st.armed), st.mode, float(st.position[2]),
                                (float(v[0]), float(v[1]), float(v[2]))))
+        state = run.state
         mode_now, watched = state.mode, action.watched
         fields = {"mode": st.mode, "reason": reason, "altitude_change": round(state.worst_dz, 3),
                   "speed_max": round(state.worst_v, 3), "watched_s": watched,

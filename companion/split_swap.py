@@ -23,6 +23,7 @@ from companion.config import Config
 from companion.control import SWAP_LATE, Control
 from companion.report import Reporter
 from companion.route import Outcome
+from companion.rule_run import RuleRun
 from companion.split_rules import (
     Action,
     Again,
@@ -117,18 +118,13 @@ class SplitSwap:
         fleet = self.fleet if fleet_on(self.fleet) else None
         rules = SplitRules(self.cfg.planner.split_ahead if ahead is None else ahead, fleet is not None,
                            fleet.wait if fleet is not None else 0.0, hit)
-        call, steps = next(self.calls), itertools.count(1)
-        state = first_state(rules)
+        run = RuleRun(split_step, rules, first_state(rules), "split", next(self.calls),
+                      lambda n, k, r, b, o, a, act: self.observe(n, k, what, r, b, o, a, act))
 
         def step(seen: Observation) -> Action:
-            nonlocal state
-            before = state
-            state, action = split_step(rules, before, seen)
-            try:
-                self.observe(call, next(steps), what, rules, before, seen, state, action)
-            except Exception:  # a recorder's fault must never change what is flown
-                log.exception("split: the observer failed")
-            for text in state.said[len(before.said):]:
+            before = run.state
+            action = run.step(seen)
+            for text in run.state.said[len(before.said):]:
                 say(text)
             return action
 
@@ -176,13 +172,13 @@ class SplitSwap:
                 action = step(Moved("" if moved else control.refusal))
             elif isinstance(action, Done):
                 if action.moved:
-                    assert state.took is not None and state.t_split is not None
+                    assert run.state.took is not None and run.state.t_split is not None
                     log.info("%s: planning took %.2f s, more than the %.2f s to its split time: the plan from the "
-                             "hold starts %.2f s later", what, state.took, state.ahead, action.t_split - state.t_split)
+                             "hold starts %.2f s later", what, run.state.took, run.state.ahead, action.t_split - run.state.t_split)
                 return Swapped(outcome, action.t_split)
             elif isinstance(action, Refused):
-                assert state.t_split is not None
-                return Swapped(outcome, state.t_split, action.reason)
+                assert run.state.t_split is not None
+                return Swapped(outcome, run.state.t_split, action.reason)
             else:
                 return Swapped(None, reason=action.reason)
 

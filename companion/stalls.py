@@ -9,7 +9,6 @@ A hung loop is systemd's watchdog's: it is fed only from setpoint ticks handled 
 from __future__ import annotations
 
 import asyncio
-import logging
 import time
 from collections.abc import Callable
 
@@ -17,6 +16,7 @@ from companion.config import Config
 from companion.control import Control
 from companion.handover import HandOver
 from companion.report import Reporter
+from companion.rule_run import RuleRun
 from companion.sendproc import SetpointProcess
 from companion.setpoints import Liveness, SetpointSender
 from companion.stall_rules import (
@@ -33,8 +33,6 @@ from companion.stall_rules import (
 from companion.supervisor import Supervisor
 from companion.wire import encode as enc
 from companion.wire.mavlink import MavlinkLink
-
-log = logging.getLogger("companion.stalls")
 
 
 def _unobserved(_rules: StallRules, _before: StallState, _seen: Observation, _after: StallState,
@@ -105,19 +103,13 @@ class StallWatch:
         period = 1.0 / self.cfg.setpoints.rate_hz
         rules = StallRules(self.cfg.setpoints.loop_stall_limit)
         live = self.liveness
-        state = StallState()
 
-        def step(seen: Observation) -> Action:
-            nonlocal state
-            before = state
-            state, action = stall_step(rules, before, seen)
+        def shown(before: StallState, seen: Observation, after: StallState, action: Action) -> bool:
             # a quiet beat that changes nothing is not shown (50 a second); the rest is rare
-            if state != before or not isinstance(action, Quiet) or isinstance(seen, Settled):
-                try:
-                    self.observe(rules, before, seen, state, action)
-                except Exception:  # a recorder's fault must never change what is flown
-                    log.exception("stalls: the observer failed")
-            return action
+            return after != before or not isinstance(action, Quiet) or isinstance(seen, Settled)
+
+        step = RuleRun(stall_step, rules, StallState(), "stalls", 0,
+                       lambda _n, _k, r, b, o, a, act: self.observe(r, b, o, a, act), shown).step
 
         live.beat()
         step(Settled(self.flight.state.value))

@@ -620,7 +620,7 @@ class _PopUpWorld:
         brakes = SimpleNamespace(race_guard=guard, brake=brake)
         if not old:
             rules_cfg = replace(Config().planner, split_ahead=self.split_ahead)
-            brakes.race_steps = lambda names: braking.RaceSteps(
+            brakes.race_steps = lambda names: braking.race_run(
                 RaceRules(names, f"obstacles {names}", rules_cfg.split_ahead, 0.04), 1,
                 lambda *call: did.append(("step", type(call[4]).__name__, type(call[6]).__name__)))
         cfg = replace(Config(), planner=replace(Config().planner, split_ahead=self.split_ahead))
