@@ -492,24 +492,23 @@ def tracking_fields(before: Any, reading: Any, after: Any, outputs: tuple[Any, .
             "outputs": [_tagged(o) for o in outputs], "window": None if window is None else list(window)}
 
 
+def rule_fields(rules: Any, before: Any, observation: Any, after: Any, action: Any) -> dict[str, Any]:
+    """The body of a record of one call of a decision rule (companion.rule_run.RuleRun): the
+    rules, the state before and after, the observation and the action; JSON only."""
+    return {"rules": _plain(rules), "before": _plain(before), "observation": _tagged(observation),
+            "after": _plain(after), "action": _tagged(action)}
+
+
 def split_fields(call: int, step: int, what: str, rules: Any, before: Any, observation: Any, after: Any,
                  action: Any) -> dict[str, Any]:
-    """The readable part of a /navigator/split record: all of it (JSON only)."""
-    return {"call": call, "step": step, "what": what, "rules": _plain(rules), "before": _plain(before),
-            "observation": _tagged(observation), "after": _plain(after), "action": _tagged(action)}
+    """The readable part of a /navigator/split (and /brakes/race) record: all of it (JSON only)."""
+    return {"call": call, "step": step, "what": what, **rule_fields(rules, before, observation, after, action)}
 
 
 def command_fields(call: int, step: int, rules: Any, before: Any, observation: Any, after: Any,
                    action: Any) -> dict[str, Any]:
-    """The readable part of a /commands/step record: all of it (JSON only)."""
-    return {"call": call, "step": step, "rules": _plain(rules), "before": _plain(before),
-            "observation": _tagged(observation), "after": _plain(after), "action": _tagged(action)}
-
-
-def stall_fields(rules: Any, before: Any, observation: Any, after: Any, action: Any) -> dict[str, Any]:
-    """A /stalls/step record's body but for seq, t and transition: all of it (JSON only)."""
-    return {"rules": _plain(rules), "before": _plain(before), "observation": _tagged(observation),
-            "after": _plain(after), "action": _tagged(action)}
+    """The readable part of a /commands/step (and /handover/hold) record: all of it (JSON only)."""
+    return {"call": call, "step": step, **rule_fields(rules, before, observation, after, action)}
 
 
 def commit_fields(before: Any, event: Any, after: Any, actions: tuple[Any, ...]) -> dict[str, Any]:

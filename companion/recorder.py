@@ -494,7 +494,7 @@ class Recorder(Tap):
         elif kind == "stall_step":
             _, seq, transition, rules, before, observation, after, action, t = item
             self._emit("/stalls/step", ch.dumps({"seq": seq, "t": t, "transition": transition,
-                                                 **ch.stall_fields(rules, before, observation, after, action)}), t)
+                                                 **ch.rule_fields(rules, before, observation, after, action)}), t)
         elif kind == "hold_step":
             _, seq, call, step, rules, before, observation, after, action, t = item
             body = ch.command_fields(call, step, rules, before, observation, after, action)  # the same fields

@@ -310,6 +310,16 @@ class RulesReader:
         return kind(**fields)
 
 
+def rule_values(rec: dict[str, Any], rules: Callable[..., Any], state: Callable[[dict[str, Any]], Any],
+                typed: RulesReader) -> tuple[Any, Any, Any, Any, Any]:
+    """(rules, before, observation, after, action) of a record of one call of a decision rule
+    (channels.rule_fields), typed again from its JSON into the rules' own classes: `rules` and
+    `state` build the rules and a state from their fields, `typed` the observation and action
+    (a record naming another class is refused: TypeError, ValueError)."""
+    return (rules(**rec["rules"]), state(rec["before"]), typed(rec["observation"]), state(rec["after"]),
+            typed(rec["action"]))
+
+
 def observations_and_actions(module: str) -> Callable[[], tuple[type, ...]]:
     """The classes of a rules module's `Observation` and `Action` unions (imported when asked)."""
     def kinds() -> tuple[type, ...]:

@@ -40,8 +40,7 @@ def step_values(rec: dict[str, Any]) -> tuple[Any, Any, Any, Any, Any]:
     rules' own classes only (a record naming another is refused: TypeError, ValueError)."""
     from companion.command_rules import CommandRules, CommandState
 
-    return (CommandRules(**rec["rules"]), CommandState(**rec["before"]), _typed(rec["observation"]),
-            CommandState(**rec["after"]), _typed(rec["action"]))
+    return replay.rule_values(rec, CommandRules, lambda d: CommandState(**d), _typed)
 
 
 @dataclasses.dataclass

@@ -39,8 +39,7 @@ def step_values(rec: dict[str, Any]) -> tuple[Any, Any, Any, Any, Any]:
     rules' own classes only (a record naming another is refused: TypeError, ValueError)."""
     from companion.hold_rules import HoldRules, HoldState
 
-    return (HoldRules(**rec["rules"]), HoldState(**rec["before"]), _typed(rec["observation"]),
-            HoldState(**rec["after"]), _typed(rec["action"]))
+    return replay.rule_values(rec, HoldRules, lambda d: HoldState(**d), _typed)
 
 
 @dataclasses.dataclass

@@ -51,8 +51,7 @@ def step_values(rec: dict[str, Any]) -> tuple[Any, Any, Any, Any, Any]:
     def state(d: dict[str, Any]) -> RaceState:
         return RaceState(**{**d, "notes": tuple(d["notes"])})
 
-    return (RaceRules(**rec["rules"]), state(rec["before"]), _typed(rec["observation"]), state(rec["after"]),
-            _typed(rec["action"]))
+    return replay.rule_values(rec, RaceRules, state, _typed)
 
 
 @dataclasses.dataclass

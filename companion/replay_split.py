@@ -41,8 +41,7 @@ def step_values(rec: dict[str, Any]) -> tuple[Any, Any, Any, Any, Any]:
     def state(d: dict[str, Any]) -> SplitState:
         return SplitState(**{**d, "said": tuple(d["said"])})
 
-    return (SplitRules(**rec["rules"]), state(rec["before"]), _typed(rec["observation"]), state(rec["after"]),
-            _typed(rec["action"]))
+    return replay.rule_values(rec, SplitRules, state, _typed)
 
 
 @dataclasses.dataclass

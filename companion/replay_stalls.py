@@ -41,8 +41,7 @@ def step_values(rec: dict[str, Any]) -> tuple[Any, Any, Any, Any, Any]:
     rules' own classes only (a record naming another is refused: TypeError, ValueError)."""
     from companion.stall_rules import StallRules, StallState
 
-    return (StallRules(**rec["rules"]), StallState(**rec["before"]), _typed(rec["observation"]),
-            StallState(**rec["after"]), _typed(rec["action"]))
+    return replay.rule_values(rec, StallRules, lambda d: StallState(**d), _typed)
 
 
 @dataclasses.dataclass
