@@ -21,7 +21,7 @@ LIMIT = 0.5  # s: [setpoints] loop_stall_limit here (1.5 s by default)
 # s: the setpoints stop at LIMIT, PX4's COM_OF_LOSS_T (1 s) runs out well before the loop wakes (at
 # LIMIT + 1.5 a loaded CI run saw the loop wake first: its hold request put the vehicle in LOITER
 # before the failsafe, as it would on PX4, and nothing landed it)
-STALL = LIMIT + 3.0
+STALL = LIMIT + 5.0  # (LIMIT + 3.0: the same once more in CI, session 16: the mock, stepping late on a loaded runner)
 
 
 def test_px4_ground_events_refusal_home_mission_and_a_companion_stall(tmp_path: Path) -> None:

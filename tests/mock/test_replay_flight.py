@@ -286,7 +286,10 @@ def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
     assert stalls[0]["observation"] == {"type": "Settled", "fields": {"state": "IDLE"}}
     assert [r["seq"] for r in stalls] == list(range(1, len(stalls) + 1))
     seen = [r["after"]["was"] for r in stalls]
-    assert {"IDLE", "STREAMING", "HOLDING"} <= set(seen) and all(a != b for a, b in itertools.pairwise(seen))
+    # (the watch sees the state at its beats: a brief one, such as the hold between the mission and
+    # the landing, can fall between two on a loaded runner; each it saw is one the supervisor made)
+    made = {"IDLE"} | {r["after"]["state"] for r in recs}
+    assert "STREAMING" in seen and set(seen) <= made and all(a != b for a, b in itertools.pairwise(seen)), seen
     assert f"stalls: {len(stalls)} of {len(stalls)} reproduced (0 stalls: 0 held, 0 released control, 0 not in " \
            "control)" in out.splitlines()
     plans = [ln for ln in out.splitlines() if ln.startswith("plan ")]
