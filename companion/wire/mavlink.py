@@ -64,6 +64,9 @@ class MavlinkLink:
         self.on_message = on_message
         self.events = Px4Events(self, cfg.mavlink.events_cache_dir)  # PX4's events metadata
         self._acks: dict[int, asyncio.Future[int]] = {}
+        # COMMAND_ACK names only the command, so two of one command in flight at once cannot be
+        # told apart: the second waits for the first's answer (MAVSDK queues them likewise)
+        self._command_locks: dict[int, asyncio.Lock] = {}
         self.boot = time.monotonic()  # monotonic s at time_boot_ms 0 in what we send
         # PARAM_VALUEs heard (name -> value in the parameter's own unit) and who waits for them
         self.params: dict[str, float] = {}
@@ -195,14 +198,18 @@ class MavlinkLink:
         self.io.send(msg)
 
     async def command(self, command: int, *params: float, timeout: float | None = None) -> int:
-        """COMMAND_LONG and wait for its COMMAND_ACK; returns MAV_RESULT."""
+        """COMMAND_LONG and wait for its COMMAND_ACK; returns MAV_RESULT. A second caller of the
+        same command (the link-up's HOME_POSITION request beside an operator's, say) waits for
+        the first's ACK or timeout, then sends its own."""
+        lock = self._command_locks.setdefault(command, asyncio.Lock())
+        async with lock:
+            return await self._command_once(command, params, timeout)
+
+    async def _command_once(self, command: int, params: tuple[float, ...], timeout: float | None) -> int:
         loop = self.io.loop
         assert loop is not None
         p = [float(x) for x in params] + [0.0] * (7 - len(params))
         fut: asyncio.Future[int] = loop.create_future()
-        old = self._acks.get(command)
-        if old is not None and not old.done():
-            old.cancel()
         self._acks[command] = fut
         self.io.send(self.conn.mav.command_long_encode(self.cfg.vehicle.sysid, self.cfg.vehicle.autopilot_component,
                                                        command, 0, *p))

@@ -327,6 +327,28 @@ def max_gap(records: list[dict[str, Any]]) -> float:
     return float(np.max(np.diff(t))) if len(t) > 1 else math.inf
 
 
+# The setpoint stream as the autopilot needs it: no gap near PX4's offboard loss (COM_OF_LOSS_T
+# 1 s) or the companion's own stall latch (setpoints.THREAD_STALL 0.5 s), and the configured rate
+# kept (a sender that skips ticks shows as a rate below it). A single late tick of a loaded
+# 2-core runner (92 ms was seen in CI) is neither.
+STREAM_GAP = 0.25  # s
+STREAM_RATE = 50.0  # Hz: [setpoints] rate
+STREAM_RATE_KEPT = 0.98
+
+
+def stream_problem(records: list[dict[str, Any]]) -> str | None:
+    """What is wrong with the setpoint stream `records` (by the companion's send stamps), or None."""
+    t = np.array([r["time_boot_ms"] for r in records], dtype=float) / 1000.0
+    if len(t) < 2:
+        return f"{len(t)} setpoints"
+    gap, rate = float(np.max(np.diff(t))), (len(t) - 1) / float(t[-1] - t[0])
+    if gap > STREAM_GAP:
+        return f"a gap of {gap * 1000:.0f} ms between setpoints (> {STREAM_GAP * 1000:.0f} ms)"
+    if rate < STREAM_RATE_KEPT * STREAM_RATE:
+        return f"{rate:.1f} Hz of setpoints (< {STREAM_RATE_KEPT:.0%} of {STREAM_RATE:.0f} Hz)"
+    return None
+
+
 def arrival_gap(records: list[dict[str, Any]]) -> float:
     """Largest gap in the mock's loop time: must stay far below PX4's offboard loss timeout (1 s)."""
     t = np.array([r["t"] for r in records])
