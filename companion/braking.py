@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from companion import choice_rules as cr
 from companion.config import Config
 from companion.control import Control
 from companion.flight import HOLDING_CONTROL
@@ -50,7 +51,7 @@ from companion.race_rules import (
 )
 from companion.report import Reporter
 from companion.route import build_corridors
-from companion.rule_run import RuleRun
+from companion.rule_run import RuleRun, Runs
 from companion.runtime import Runtime
 from companion.supervisor import Braking, Supervisor
 from companion.traffic import named_neighbours
@@ -71,6 +72,15 @@ from planner_core import (
 )
 
 log = logging.getLogger("companion")
+
+# the navigator's plan choices (companion.choice_rules): one numbering and observer for the
+# starts, replans and stops of a run of the service
+ChoiceRuns = Runs[cr.Rules, cr.ChoiceState, cr.Observation, cr.Action]
+
+
+def choice_runs() -> ChoiceRuns:
+    return Runs(cr.choice_step, "plan choice")
+
 
 # A snap-limited stop takes about a second even from a slow speed (measured: the braking QP's
 # durations grow 0.2 s * 1.5^k and slow stops land at k = 4), longer from speed.
@@ -400,7 +410,8 @@ class Brakes:
     mission flown at its start: `Control` keeps what is left of it for `resume`."""
 
     def __init__(self, cfg: Config, flight: Supervisor, control: Control, runtime: Runtime, report: Reporter,
-                 context: Callable[[], StopContext], position: Callable[[], FloatArray]) -> None:
+                 context: Callable[[], StopContext], position: Callable[[], FloatArray],
+                 choices: ChoiceRuns | None = None) -> None:
         self.cfg = cfg
         self.flight = flight
         self.control = control
@@ -412,6 +423,7 @@ class Brakes:
         self.races = itertools.count(1)  # each pop-up's number, for the records of its steps
         # each call of a pop-up's rules shown to the flight recorder; the service connects its tap
         self.observe: RaceObserver = lambda *_call: None
+        self.choices = choices if choices is not None else choice_runs()  # stop, prepared or hold
 
     def race_steps(self, names: str) -> RaceSteps:
         """The decisions of a pop-up of obstacles `names` (and of the race that may follow), numbered."""
@@ -455,8 +467,11 @@ class Brakes:
     async def brake(self, reason: str, arrived: float | None, blocked: int | None = None,
                     prepared: StopPlan | None = None) -> None:
         """Fly a verified stop inside a free corridor, starting as soon as one is planned; else
-        the `prepared` one if it still starts ahead; else hold at the measured position. Say why."""
-        if not self.control.flying:
+        the `prepared` one if it still starts ahead; else hold at the measured position. Say why.
+        Which, is companion.choice_rules' (a stop's run); this observes and carries out."""
+        run = self.choices.run(cr.StopRules(prepared is not None), cr.ChoiceState())
+        action = run.step(cr.Ask(self.control.flying))
+        if isinstance(action, cr.Nothing):
             return
         base = self.control.active
         assert base is not None
@@ -465,19 +480,22 @@ class Brakes:
         except Exception as exc:  # a planner bug must still end in a hold, not in flying on
             log.exception("stop planning failed")
             plan = StopPlan(None, self.control.now(), f"stop planning failed: {exc!r}", False)
-        why = plan.message
         swapped = self._commit(base, plan, arrived)
-        if not swapped and self._commit(base, prepared, arrived):
-            assert prepared is not None
-            swapped, plan, why = True, prepared, f"{why}; the stop prepared for the braking deadline instead"
-        if not swapped:
-            if not self.control.flying:
-                return
+        action = run.step(cr.Answer(swapped, "", plan.message, self.control.flying))
+        if isinstance(action, cr.Plan):
+            assert action.call == cr.PREPARED and prepared is not None
+            swapped = self._commit(base, prepared, arrived)
+            plan = prepared
+            action = run.step(cr.Answer(swapped, "", prepared.message, self.control.flying))
+        if isinstance(action, cr.Nothing):
+            return
+        if isinstance(action, cr.Hold):
             self.control.hold_here(self.position())
-            why = f"no verified braking trajectory ({why}); holding at the measured position"
+        assert isinstance(action, cr.Take | cr.Hold)
         self.flight.handle(Braking(reason))
         self.report.event("braking", f"{reason}; braking to a stop and holding", reason=reason,
-                          blocked_waypoint=blocked, detail=why, **stop_fields(plan if swapped else None))
+                          blocked_waypoint=blocked, detail=action.detail,
+                          **stop_fields(plan if isinstance(action, cr.Take) else None))
 
     async def race(self, guard: StopGuard, replan: asyncio.Task[Replanned], notes: list[str],
                    arrived: float, what: str) -> None:

@@ -254,6 +254,17 @@ HOLD_STEP = _obj("bezier.HoldStep", "One call of the hand-over's hold rules (com
     "observation": TAGGED, "after": {"type": "object"}, "action": TAGGED,
 }, ("seq", "t", "call", "step", "rules", "before", "observation", "after", "action"))
 
+CHOICE_STEP = _obj("bezier.ChoiceStep", "One call of the navigator's plan choice (companion/choice_rules.py "
+                   "choice_step): which planner call a mission's start, a replan or a stop asks for, and what it "
+                   "makes of the answer; every value exact (JSON, no pickle)", {
+    "seq": SEQ_RULES, "t": T_MONO,
+    "call": {"type": "integer", "description": "the run (1, 2, ... per run of the service: a start, a replan or a "
+             "stop): its steps chain"},
+    "step": {"type": "integer", "description": "1, 2, ... within the run"},
+    "rules": TAGGED, "before": {"type": "object", "description": "companion.choice_rules.ChoiceState"},
+    "observation": TAGGED, "after": {"type": "object"}, "action": TAGGED,
+}, ("seq", "t", "call", "step", "rules", "before", "observation", "after", "action"))
+
 DECODED = _obj("bezier.DecodedMessage", "An inbound message as the companion read it (companion.wire.messages.read): "
                "the typed message (local_ned) or the refusal, and what read was given besides the bytes", {
     "seq": {"type": "integer", "description": "1, 2, ... per run, numbered as the message was read: a gap is a "
@@ -370,6 +381,8 @@ def spec(topic: str) -> Spec:
         return _json(STALL_STEP)
     if topic == "/handover/hold":
         return _json(HOLD_STEP)
+    if topic == "/navigator/choice":
+        return _json(CHOICE_STEP)
     if topic == "/inbound/decoded":
         return _json(DECODED)
     if topic == "/recorder/stats":
@@ -509,6 +522,13 @@ def command_fields(call: int, step: int, rules: Any, before: Any, observation: A
                    action: Any) -> dict[str, Any]:
     """The readable part of a /commands/step (and /handover/hold) record: all of it (JSON only)."""
     return {"call": call, "step": step, **rule_fields(rules, before, observation, after, action)}
+
+
+def choice_fields(call: int, step: int, rules: Any, before: Any, observation: Any, after: Any,
+                  action: Any) -> dict[str, Any]:
+    """The readable part of a /navigator/choice record: all of it (JSON only; the rules tagged:
+    a start's, a replan's or a stop's)."""
+    return {**command_fields(call, step, rules, before, observation, after, action), "rules": _tagged(rules)}
 
 
 def commit_fields(before: Any, event: Any, after: Any, actions: tuple[Any, ...]) -> dict[str, Any]:

@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from companion import choice_rules as cr
 from companion.command_rules import (
     AbortMission,
     Action,
@@ -258,21 +259,30 @@ class Commands:
             self.flight.handle(StartEnded())
 
     async def _start(self, arrived: float) -> None:
-        st = self.link.state
-        if not st.armed:
-            await self.takeoff(self.cfg.safety.takeoff_altitude)
-        elif self.flight.state in (S.PILOT, S.FAILSAFE, S.IDLE):
-            if not self.flight.airborne and st.landed_state != MAV_LANDED_IN_AIR and st.autopilot != "px4":
-                raise CommandFailed("vehicle is on the ground: send 'takeoff' first", by="companion")
-            await self._take_follow_mode("start command: taking control")
-            self.flight.handle(ControlTakenBack(self.link.state.mode))
-        if self.flight.state is S.READY and not self.flight.airborne:
-            await self.takeoff(self.cfg.safety.takeoff_altitude)
-        nav = self.nav
-        if nav.pending is not None:
-            await nav.fly(nav.pending, arrived)
-        elif nav.interrupted is not None:
-            await nav.resume(arrived)
+        """What `start` does first and then flies is companion.choice_rules' (a start command's run)."""
+        st, nav = self.link.state, self.nav
+        run = nav.choices.run(cr.StartCommand(self.cfg.safety.takeoff_altitude), cr.ChoiceState())
+        action = run.step(cr.Asked(st.armed, self.flight.state.value, self.flight.airborne,
+                                   st.landed_state == MAV_LANDED_IN_AIR, st.autopilot or ""))
+        while True:
+            if isinstance(action, cr.Refuse):
+                raise CommandFailed(action.reason, by="companion")
+            if isinstance(action, cr.TakeOff):
+                await self.takeoff(action.altitude)
+            elif isinstance(action, cr.TakeControl):
+                await self._take_follow_mode(action.reason)
+                self.flight.handle(ControlTakenBack(self.link.state.mode))
+            elif isinstance(action, cr.FlyPending):
+                assert nav.pending is not None
+                await nav.fly(nav.pending, arrived)
+                return
+            elif isinstance(action, cr.Resume):
+                await nav.resume(arrived)
+                return
+            elif isinstance(action, cr.Nothing):
+                return
+            action = run.step(cr.Now(self.flight.state.value, self.flight.airborne, nav.pending is not None,
+                                     nav.interrupted is not None))
 
     async def land(self) -> bool:
         """The autopilot lands (NAV_LAND / LAND mode), from any state in which the vehicle may

@@ -20,6 +20,8 @@ from typing import Any
 
 import numpy as np
 
+from companion import choice_rules as cr
+from companion.braking import ChoiceRuns, choice_runs
 from companion.config import Config
 from companion.control import Control
 from companion.limits import clips_text, refusal_note
@@ -44,7 +46,7 @@ IMPROVE_MIN = 0.05  # s: the search's plan replaces the anytime start's only if 
 class MissionStart:
     def __init__(self, cfg: Config, flight: Supervisor, control: Control, runtime: Runtime, report: Reporter,
                  position: Callable[[], FloatArray], lock: asyncio.Lock, budget: PlanBudget, obstacles: ObstacleStore, swap: SplitSwap,
-                 replans: Replans, limits: Any, fleet: Any) -> None:
+                 replans: Replans, limits: Any, fleet: Any, choices: ChoiceRuns | None = None) -> None:
         self.cfg = cfg
         self.flight = flight
         self.control = control
@@ -60,6 +62,7 @@ class MissionStart:
         self.fleet = fleet  # companion.deconfliction.Deconfliction, or None without [fleet]
         self.plan_latency: float | None = None
         self.improving: asyncio.Task[None] | None = None  # the anytime start's search (improve)
+        self.choices = choices if choices is not None else choice_runs()  # which plan a start asks for
 
     # -- bounds within the autopilot's limits ---------------------------------------------------
 
@@ -143,9 +146,11 @@ class MissionStart:
         async with self.lock:
             n = len(spec.waypoints)
 
-            # the anytime start: the default allocation at once, the search's plan later (improve)
-            quick = [self.cfg.planner.anytime and spec.durations is None and self.cfg.planner.timing == "fastest"
-                     and fleet is None]
+            # the anytime start: the default allocation at once, the search's plan later (improve);
+            # which plan is asked for is companion.choice_rules' (a start's run)
+            rules = cr.StartRules(self.cfg.planner.anytime, self.cfg.planner.timing, spec.durations is not None,
+                                  fleet is not None)
+            run = self.choices.run(rules, cr.ChoiceState())
 
             async def plan_at(base: Trajectory, t_split: float) -> Outcome:
                 jet = self.control.jet(t_split)
@@ -157,24 +162,23 @@ class MissionStart:
                 cap = self.budget.candidates_within(n, left)
                 # without a fleet the call is start_mission's own (what a recording names and replays)
                 search: Any = partial(start_mission, candidates=cap) if cap else start_mission
-                fn: Any = (partial(start_separated, neighbours=neighbours(fleet, spec.bounds), candidates=cap)
-                           if fleet is not None else partial(start_mission, quick=True) if quick[0] else search)
-                out: Outcome = logged(await self.runtime.plan(fn, replace(spec, raw={}), jet, t_split,
-                                                              self.obstacles.known(), self.cfg))
-                self.budget.measured(time.perf_counter() - t0, n, int(out.stats.get("candidates", 1)))
-                if quick[0] and not out.ok and out.status is OutcomeStatus.INFEASIBLE:
-                    # the default allocation failed where the search may not (it places knots and
-                    # tries other durations): the search, as without anytime, before refusing
-                    quick[0] = False
+                action = run.step(cr.Ask())
+                while True:
+                    assert isinstance(action, cr.Plan)
+                    fn: Any = (partial(start_separated, neighbours=neighbours(fleet, spec.bounds), candidates=cap)
+                               if action.call == cr.SEPARATED else partial(start_mission, quick=True) if action.quick
+                               else search)
                     t1 = time.perf_counter()
-                    out = logged(await self.runtime.plan(search, replace(spec, raw={}), jet, t_split,
-                                                         self.obstacles.known(), self.cfg))
+                    out: Outcome = logged(await self.runtime.plan(fn, replace(spec, raw={}), jet, t_split,
+                                                                  self.obstacles.known(), self.cfg))
                     self.budget.measured(time.perf_counter() - t1, n, int(out.stats.get("candidates", 1)))
+                    action = run.step(cr.Answer(out.ok, out.status.name, out.message))
+                    if isinstance(action, cr.Take):
+                        break
                 self.plan_latency = time.perf_counter() - t0
-                quick[0] = quick[0] and out.ok  # the default allocation failed: the search, as without anytime
                 return out
 
-            ahead = self.budget.split_ahead_for(n) if quick[0] else self.budget.mission_ahead(n)
+            ahead = self.budget.split_ahead_for(n) if cr.quick_start(rules) else self.budget.mission_ahead(n)
             done = await self.swap.at_split(f"mission {spec.id}", arrived, plan_at,
                                             ahead=self.ahead_within(spec.bounds, ahead))
             if not done.ok:
@@ -197,14 +201,15 @@ class MissionStart:
                 waits += (f"; the search for the fastest durations stopped after {done.outcome.stats['candidates']} "
                           f"candidate plans, what fits in [planner] search_time {self.cfg.planner.search_time:g} s "
                           "at the planning speed measured here (it may fly a little slower than a full search)")
-            if quick[0]:
+            quick = bool(run.state.quick)
+            if quick:
                 waits += "; flying the default durations while the fastest are searched for (event `improved`)"
             self.report.event("accepted", f"mission {spec.id}: planned and verified in {lat * 1000:.1f} ms "
                               f"({len(spec.waypoints)} waypoints, {done.outcome.route.t_end - done.t_split:.2f} s)"
                               + waits, key="mission", mission=spec.id, plan_ms=round(lat * 1000, 2),
                               compute_ms=num(float(done.outcome.stats.get("plan_seconds", math.nan)) * 1000, 2),
                               **({"fleet_delay": delay} if delay else {}))
-            if quick[0]:
+            if quick:
                 self.improving = asyncio.get_running_loop().create_task(self.improve(done.outcome.route))
             return True
 
@@ -224,20 +229,26 @@ class MissionStart:
         def superseded() -> bool:
             return self.control.route is not quick or self.lock.locked() or not self.flight.flying_ours
 
+        # whether to search, and whether its plan replaces the quick one: companion.choice_rules'
+        rules = cr.ImproveRules(quick.t_end, IMPROVE_MIN)
+
         async def plan_at(base: Trajectory, t_split: float) -> Outcome:
-            if superseded():
-                return Outcome(False, message="the flown plan changed first")
+            run = self.choices.run(rules, cr.ChoiceState())
+            action = run.step(cr.Ask(not superseded()))
+            if isinstance(action, cr.Take):
+                return Outcome(False, message=action.detail)
             t0 = time.perf_counter()
             fn: Any = (partial(replan_remainder, allocate=True, candidates=cap) if cap < FULL_SEARCH
                        else partial(replan_remainder, allocate=True))
             out: Outcome = logged(await self.runtime.plan(fn, quick, base, t_split, self.obstacles.known(), self.cfg))
             self.budget.measured(time.perf_counter() - t0, n, int(out.stats.get("candidates", 1)))
-            if superseded():
-                return Outcome(False, message="the flown plan changed first")
-            if out.ok and out.route is not None and out.route.t_end > quick.t_end - IMPROVE_MIN:
-                return Outcome(False, message=f"the search's plan lands no earlier ({out.route.t_end - t_split:.2f} s "
+            t_end = out.route.t_end if out.route is not None else 0.0
+            action = run.step(cr.Answer(out.ok, out.status.name, out.message, not superseded(), t_end))
+            assert isinstance(action, cr.Take)
+            if action.detail == cr.NO_EARLIER:
+                return Outcome(False, message=f"the search's plan lands no earlier ({t_end - t_split:.2f} s "
                                f"against {quick.t_end - t_split:.2f} s from the split)")
-            return out
+            return Outcome(False, message=action.detail) if action.detail else out
 
         t0 = time.perf_counter()
         done = await self.swap.at_split(f"{what} (fastest durations)", None, plan_at,

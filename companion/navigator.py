@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.braking import Brakes, StopContext
+from companion.braking import Brakes, StopContext, choice_runs
 from companion.config import Config
 from companion.control import Control
 from companion.flight import State
@@ -51,7 +51,9 @@ class Navigator:
         self.obstacles = ObstacleStore(cfg.limits.max_obstacles_held)
         self.lock = asyncio.Lock()  # one plan change at a time
         self.budget = PlanBudget(cfg)  # how long plans take here, so how far ahead they split
-        self.brakes = Brakes(cfg, flight, control, runtime, report, self.stop_context, position)
+        # which plan each start, replan and stop asks for (companion.choice_rules), numbered as one
+        self.choices = choice_runs()
+        self.brakes = Brakes(cfg, flight, control, runtime, report, self.stop_context, position, self.choices)
         self.limits = limits  # companion.limits_watch.LimitsWatch (None: not read): bounds flown
         # companion.deconfliction.Deconfliction: the other vehicles' trajectories and the commit
         # protocol; None or disabled without [fleet] separation
@@ -60,7 +62,7 @@ class Navigator:
         self.replans = Replans(cfg, flight, control, runtime, report, self.lock, self.budget, self.obstacles,
                                self.split, self.brakes, fleet)
         self.missions = MissionStart(cfg, flight, control, runtime, report, position, self.lock, self.budget,
-                                     self.obstacles, self.split, self.replans, limits, fleet)
+                                     self.obstacles, self.split, self.replans, limits, fleet, self.choices)
 
     # -- the missions, as Control holds them (read-only here) ------------------------------
 

@@ -194,6 +194,7 @@ class Recorder(Tap):
         self._command_seq = itertools.count(1)
         self._stall_seq = itertools.count(1)
         self._hold_seq = itertools.count(1)
+        self._choice_seq = itertools.count(1)
         # the writer's: the last /tracking/step seq written and the file part it went to; a
         # record after a gap, or the first of a part, carries its window of errors in full
         self._tracking_written: tuple[int, int] = (0, 0)
@@ -349,6 +350,11 @@ class Recorder(Tap):
         self._put(self._decisions, ("hold_step", next(self._hold_seq), call, step, rules, before, observation, after,
                                     action, self.clock()))
 
+    def choice_step(self, call: int, step: int, rules: Any, before: Any, observation: Any, after: Any,
+                    action: Any) -> None:
+        self._put(self._decisions, ("choice_step", next(self._choice_seq), call, step, rules, before, observation,
+                                    after, action, self.clock()))
+
     def flown(self, trajectory: Any, t_base: float | None, t: float) -> None:
         self._put(self._rest, ("flown", trajectory, t_base, t))
 
@@ -499,6 +505,10 @@ class Recorder(Tap):
             _, seq, call, step, rules, before, observation, after, action, t = item
             body = ch.command_fields(call, step, rules, before, observation, after, action)  # the same fields
             self._emit("/handover/hold", ch.dumps({"seq": seq, "t": t, **body}), t)
+        elif kind == "choice_step":
+            _, seq, call, step, rules, before, observation, after, action, t = item
+            body = ch.choice_fields(call, step, rules, before, observation, after, action)
+            self._emit("/navigator/choice", ch.dumps({"seq": seq, "t": t, **body}), t)
         elif kind == "flown":
             _, traj, t_base, t = item
             for topic, data in self._viz.on_flown(traj, t_base, t):

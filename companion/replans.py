@@ -16,6 +16,7 @@ from collections.abc import Awaitable, Callable
 from functools import partial
 from typing import Any
 
+from companion import choice_rules as cr
 from companion.braking import Brakes, RaceSteps, Replanned, StopGuard, brake_deadline
 from companion.config import Config
 from companion.control import Control
@@ -113,34 +114,40 @@ class Replans:
                               allocate: bool | None = None) -> Outcome:
         """A local replan (in this process: a few ms), then a replan of the whole remainder in
         the urgent worker (`allocate`: with durations chosen again; default: when the mission's
-        durations were the planner's)."""
+        durations were the planner's). Which, is companion.choice_rules' (a replan's run)."""
         messages = notes if notes is not None else []
-        if local is not None:
+        if allocate is None:
+            allocate = self.allocates(r)
+        run = self.brakes.choices.run(cr.ReplanRules(local is not None, allocate), cr.ChoiceState())
+        action = run.step(cr.Ask())
+        if isinstance(action, cr.Plan) and action.call == cr.LOCAL:
+            assert local is not None
             out: Outcome = logged(await self.runtime.run(self.runtime.replan_pool, local_replan, r, t_split,
                                                          local, self.obstacles.known(), self.cfg,
                                                          neighbours(self.fleet, r.mission.bounds)))
-            if out.ok:
+            action = run.step(cr.Answer(out.ok, out.status.name, out.message))
+            if isinstance(action, cr.Take):
                 out.stats.setdefault("method", "local")
                 return out
             messages.append(f"local replan: {out.message}")
+        assert isinstance(action, cr.Plan) and action.call == cr.REMAINDER
         if on_fallback is not None:
             on_fallback()
         extra = () if remainder is None else remainder
-        if allocate is None:
-            allocate = self.allocates(r)
         # The fastest-allocation search is cut to what fits before the split, as a mission's is
         # (fly): the swap refuses a plan ready after t_split - lead, and a whole search (~30
         # candidate plans, each detour tried) took 0.45-0.5 s on the loaded 2-core machine for a
         # wall across a leg: past the 0.15 s to the split, and again past the braking deadline.
         n = len(r.waypoints) + 2  # a detour's two points
-        cap = self.budget.candidates_within(n, t_split - self.control.committed()) if allocate else None
+        cap = self.budget.candidates_within(n, t_split - self.control.committed()) if action.allocate else None
         kw: dict[str, Any] = {"candidates": cap} if cap else {}
-        out = logged(await self.runtime.plan(partial(replan_remainder, allocate=allocate,
+        out = logged(await self.runtime.plan(partial(replan_remainder, allocate=action.allocate,
                                                      neighbours=neighbours(self.fleet, r.mission.bounds), **kw),
                                              r, base, t_split, self.obstacles.known(), self.cfg, *extra, urgent=True))
         if self.cfg.planner.fallback_delay > 0:
             await asyncio.sleep(self.cfg.planner.fallback_delay)
         out.stats["method"] = "detour" if out.stats.get("detour") else "remainder"
+        run.step(cr.Answer(out.ok, out.status.name, out.message))
         if not out.ok:
             messages.append(f"full replan: {out.message}")
         return out

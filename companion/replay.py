@@ -40,10 +40,17 @@ Command steps: each `/commands/step` record holds one call of an operator comman
 rules (companion/command_rules.py: arm, takeoff and its climb, land, abort, disarm, how a
 command ended), run again and each transition it made found (companion/replay_commands.py).
 
-What it does not cover: how inbound messages and commands became supervisor events and
-planner calls, the autopilot watch's telemetry advice, and the navigator's (which plan to ask
-for) and the brakes' (but the tracking error's and the pop-ups') own decisions are not re-run;
-they are in the file (inbound messages, events, what was flown) to be read.
+Plan choices: each `/navigator/choice` record holds one call of the navigator's plan choice
+(companion/choice_rules.py: which planner call a mission's start, a replan or a stop asks for,
+and what it makes of the answer: the search after an infeasible quick start, the remainder after
+a local replan, the prepared stop or a hold), run again and each planner call chosen found among
+the plan records (companion/replay_choice.py).
+
+(companion/choice_rules.py also decides the improvement of a quick start and the `start`
+command: take off, take control, fly what is loaded or resume.)
+
+What it does not cover: the autopilot watch's telemetry advice (a text for the operator) is not
+re-run; it is in the file (events, status) to be read.
 
 A recording comes from a companion you trust: the calls are pickled. Plan records are read with
 an allow-list (planner_core and companion data classes and planner functions, numpy arrays,

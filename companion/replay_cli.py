@@ -1,11 +1,11 @@
 """`python -m companion replay FILE.mcap`: run every recorded transition, autopilot step, inbound
 read, tracking step, swap, split step, plan budget answer, race step, fleet commit step, command
-step, stall step, hand-over hold step and plan again and say whether each reproduces (exit 0), where the first differs (exit 1),
+step, stall step, hand-over hold step, plan choice and plan again and say whether each reproduces (exit 0), where the first differs (exit 1),
 or why the file cannot be replayed (exit 2). What each check covers: companion/replay.py,
 companion/replay_autopilot.py, companion/replay_tracking.py, companion/replay_swaps.py,
 companion/replay_split.py, companion/replay_budget.py, companion/replay_race.py,
 companion/replay_commit.py (a vehicle in a fleet), companion/replay_commands.py,
-companion/replay_stalls.py and companion/replay_hold.py.
+companion/replay_stalls.py, companion/replay_hold.py and companion/replay_choice.py.
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ from typing import Any
 from companion import (
     replay_autopilot,
     replay_budget,
+    replay_choice,
     replay_commands,
     replay_commit,
     replay_hold,
@@ -65,6 +66,7 @@ def _checks(file: str, recs: list[Any], since: float | None, until: float | None
         (lambda: replay_commands.replay_file(file, since, until), replay_commands.said),
         (lambda: replay_stalls.replay_file(file, since, until), replay_stalls.said),
         (lambda: replay_hold.replay_file(file, since, until), replay_hold.said),
+        (lambda: replay_choice.replay_file(file, since, until), replay_choice.said),
     ]
 
 
@@ -137,7 +139,7 @@ def main(argv: list[str]) -> int:
         return 2
     if n == 0 and not recs and not dropped and not decoded and not any(found):
         print("replay: no plan, transition, autopilot, tracking, split, budget, race, commit, command, stall or "
-              "hold step, clock sample, swap or inbound message in the recording (or in the time range)", file=sys.stderr)
+              "hold step, plan choice, clock sample, swap or inbound message in the recording (or in the time range)", file=sys.stderr)
         return 2
     if n == 0:
         print("plans: none recorded")

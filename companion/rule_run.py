@@ -50,3 +50,16 @@ class RuleRun(Generic[R, S, O, A]):
             except Exception:  # a recorder's fault must never change what is flown
                 log.exception("%s: the observer failed", self.what)
         return action
+
+
+class Runs(Generic[R, S, O, A]):
+    """Numbered runs of one rule, each shown to the one observer (the service connects the tap)."""
+
+    def __init__(self, rule: Callable[[R, S, O], tuple[S, A]], what: str) -> None:
+        self.rule = rule
+        self.what = what
+        self.numbers = itertools.count(1)
+        self.observe: Observer[R, S, O, A] | None = None
+
+    def run(self, rules: R, state: S) -> RuleRun[R, S, O, A]:
+        return RuleRun(self.rule, rules, state, self.what, next(self.numbers), self.observe)

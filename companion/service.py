@@ -85,6 +85,7 @@ def _tap_decisions(svc: Service) -> None:
     svc.commands.observe = tap.command_step  # the operator commands' sequences
     svc.stalls.observe = tap.stall_step  # the companion's own stalls
     svc.handover.observe = tap.hold_step  # whether the autopilot holds after a hand-over
+    svc.navigator.choices.observe = tap.choice_step  # which plan a start, a replan, a stop asks for
 
 
 class Service:

@@ -103,6 +103,12 @@ class Tap:
         and the step's within it, the rules, the state before, the observation, the state after
         and the action; on the loop, so no time: the tap takes it."""
 
+    def choice_step(self, call: int, step: int, rules: Any, before: Any, observation: Any, after: Any,
+                    action: Any) -> None:
+        """A call of the navigator's plan choice (companion.choice_rules.choice_step): the run's
+        number and the step's within it, the rules, the state before, the observation, the state
+        after and the action; on the loop, so no time: the tap takes it."""
+
     def flown(self, trajectory: Any, t_base: float | None, t: float) -> None:
         """What the setpoint thread flies from now on (a new plan, a swap, a hold)."""
 

@@ -34,7 +34,7 @@ JSON_CHANNELS = ("/in/command", "/in/mission", "/in/change", "/out/status", "/ou
                  "/mavlink/in/HEARTBEAT", "/mavlink/in/LOCAL_POSITION_NED", "/mavlink/in/ATTITUDE",
                  "/mavlink/in/COMMAND_ACK", "/planner/plan", "/viz/bounds", "/recorder/stats", "/supervisor/transition",
                  "/inbound/decoded", "/autopilot/step", "/tracking/step", "/control/swap", "/navigator/split",
-                 "/commands/step", "/stalls/step")
+                 "/commands/step", "/stalls/step", "/navigator/choice")
 FOXGLOVE_CHANNELS = {"/viz/vehicle": "foxglove.PoseInFrame", "/viz/tf": "foxglove.FrameTransform",
                      "/viz/planned_path": "foxglove.PosesInFrame", "/viz/flown_path": "foxglove.PosesInFrame",
                      "/viz/obstacles": "foxglove.SceneUpdate", "/viz/corridors": "foxglove.SceneUpdate"}
@@ -195,7 +195,7 @@ def test_every_plan_transition_and_step_of_the_flight_replays_bit_identically(fl
     run = subprocess.run([sys.executable, "-m", "companion", "replay", str(flight["path"])], cwd=REPO, env=env,
                          capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stdout + run.stderr
-    lines = [ln for ln in run.stdout.splitlines() if ln.startswith("plan ")]
+    lines = [ln for ln in run.stdout.splitlines() if ln.startswith("plan ") and not ln.startswith("plan choices")]
     assert len(lines) >= 3 and all(": identical" in ln for ln in lines)  # climb, mission, replan
     assert any("replan" in ln for ln in lines)
     _meta, msgs = messages(flight["path"])
@@ -232,6 +232,16 @@ def test_every_plan_transition_and_step_of_the_flight_replays_bit_identically(fl
     watched = sum(1 for _s, c, _m in msgs if c.topic == "/stalls/step")
     assert watched >= 3 and f"stalls: {watched} of {watched} reproduced (0 stalls: 0 held, 0 released control, 0 not " \
         "in control)" in run.stdout.splitlines(), run.stdout
+    # which plan the mission's start and the change's replan asked for, replayed alike, each call
+    # chosen found among the plans recorded
+    choices = [json.loads(m.data) for _s, c, m in msgs if c.topic == "/navigator/choice"]
+    runs = {r["rules"]["type"] for r in choices}
+    chosen = sum(1 for r in choices if r["action"]["type"] == "Plan"
+                 and r["action"]["fields"]["call"].startswith("companion.mission."))  # a stop records no plan
+    said = next(ln for ln in run.stdout.splitlines() if ln.startswith("plan choices: "))
+    assert {"StartRules", "ReplanRules"} <= runs, runs
+    assert said.startswith(f"plan choices: {len(choices)} of {len(choices)} reproduced (") and \
+        f"; {chosen} planner calls found as chosen; " in said, said
     # every inbound message the flight took in was read, and reads again the same (none was
     # dropped or refused on arrival in this flight)
     inbound = sum(1 for _s, c, _m in msgs if c.topic.startswith("/in/"))

@@ -168,6 +168,7 @@ def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
         races = [json.loads(m.data) for _s, _c, m in reader.iter_messages(topics=["/brakes/race"])]
         commands = [json.loads(m.data) for _s, _c, m in reader.iter_messages(topics=["/commands/step"])]
         stalls = [json.loads(m.data) for _s, _c, m in reader.iter_messages(topics=["/stalls/step"])]
+        choices = [json.loads(m.data) for _s, _c, m in reader.iter_messages(topics=["/navigator/choice"])]
         heard = collections.Counter(c.topic for _s, c, _m in reader.iter_messages(topics=[
             "/mavlink/in/HEARTBEAT", "/mavlink/in/LOCAL_POSITION_NED", "/mavlink/in/EXTENDED_SYS_STATE"]))
     assert dropped == {}
@@ -292,6 +293,15 @@ def test_a_recorded_flight_replays_every_transition_and_plan(tmp_path: Path,
     assert "STREAMING" in seen and set(seen) <= made and all(a != b for a, b in itertools.pairwise(seen)), seen
     assert f"stalls: {len(stalls)} of {len(stalls)} reproduced (0 stalls: 0 held, 0 released control, 0 not in " \
            "control)" in out.splitlines()
-    plans = [ln for ln in out.splitlines() if ln.startswith("plan ")]
+    # which plan the mission's start, the pop-up's replan and the stop asked for, replayed alike,
+    # each planner call chosen found among the plans recorded (and those replay bit-identically)
+    kinds = collections.Counter(r["rules"]["type"] for r in choices if r["step"] == 1)
+    assert kinds["StartRules"] == 1 and kinds["StopRules"] >= 1, kinds
+    calls = sum(1 for r in choices if r["action"]["type"] == "Plan"
+                and r["action"]["fields"]["call"].startswith("companion.mission."))
+    said = next(ln for ln in out.splitlines() if ln.startswith("plan choices: "))
+    assert said.startswith(f"plan choices: {len(choices)} of {len(choices)} reproduced (") and \
+        f"; {calls} planner calls found as chosen; " in said and calls >= 1, said
+    plans = [ln for ln in out.splitlines() if ln.startswith("plan ") and not ln.startswith("plan choices")]
     assert len(plans) >= 2 and all(": identical" in ln for ln in plans)
     assert f"plans: {len(plans)} of {len(plans)} reproduced bit-identically" in out.splitlines()
