@@ -101,6 +101,25 @@ def test_the_recorded_flight_in_tests_data_replays_bit_identically(capsys: pytes
     assert "transitions: none recorded" in out.splitlines()
 
 
+def test_the_recorded_flight_decisions_in_tests_data_replay_alike(capsys: pytest.CaptureFixture[str]) -> None:
+    """A flight recorded by the service as deployed (tests/e2e/test_recording.py's: `python -m
+    companion run` against mock PX4, a mission, a change, SIGTERM), its decision channels, inbound
+    reads and plans kept (tests/data/README.md): every decision the service made in it, and every
+    plan, made again alike. A change of any rule's behaviour, of the inbound reader or of the
+    planner's numbers fails here until the flight is recorded again (which is the point: say why
+    in the commit)."""
+    import re
+
+    assert replay_cli.main([str(DATA / "flight-decisions.mcap")]) == 0
+    out = capsys.readouterr().out.splitlines()
+    said = {ln.split(":")[0]: ln for ln in out if not re.match(r"plan +\d+ ", ln)}
+    for loop in ("transitions", "autopilot steps", "heartbeats", "tracking steps", "swaps", "splits", "budget",
+                 "commands", "stalls", "holds", "plan choices", "messages", "plans"):
+        m = re.match(rf"{loop}: (\d+) of (\d+) ", said[loop])
+        assert m is not None and m[1] == m[2] != "0", said[loop]
+    assert "1 start, 1 stop; 3 planner calls found as chosen" in said["plan choices"]
+
+
 def test_replay_gives_the_compiled_switch_back_as_it_found_it(tmp_path: Path) -> None:
     """A replay runs each call with the recording's choice of compiled pass; the switch is
     process-wide, so after the replay a caller's own plans run as they did before it (this leaked
