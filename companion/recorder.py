@@ -17,8 +17,9 @@ loop's (every call of companion.split_rules.split_step), the plan budget's (ever
 companion.plan_budget.budget_step), the pop-ups' (every call of companion.race_rules.race_step),
 the fleet's commit protocol's (every call of companion.commit.step), the operator commands'
 sequences' (every call of companion.command_rules.command_step), the stall watch's (every call
-of companion.stall_rules.stall_step that changed or found something) and the hand-over's hold
-(every call of companion.hold_rules.hold_step).
+of companion.stall_rules.stall_step that changed or found something), the hand-over's hold
+(every call of companion.hold_rules.hold_step) and the navigator's plan choice (every call of
+companion.choice_rules.choice_step).
 
 Channels, schemas and frames: companion/channels.py (the 3D messages: companion/viz3d.py) and
 docs/recording.md.
