@@ -424,6 +424,46 @@ def chained(label: str, before: Any, previous: tuple[int, Any] | None, replaced:
     return [f"{label}: does not start where seq {previous[0]} ended ({where}): {replaced}, or a record was altered"]
 
 
+@dataclasses.dataclass(frozen=True)
+class RunStep:
+    """A run's last step as replay saw it: its number, rules, state after, seq and action."""
+
+    step: int
+    rules: Any
+    after: Any
+    seq: int
+    action: Any
+
+
+class RunChains:
+    """The records of a rule stepped in runs (a command sequence, a race, a split, a hold, a
+    plan choice: companion.rule_run.RuleRun), chained per run: a run's step 1 starts from the
+    state a run starts with (`fresh(rules)`, said as `start`); a later one from where the run's
+    step before ended (`replaced`: what it means if not), under the same rules."""
+
+    def __init__(self, fresh: Callable[[Any], Any], replaced: str, start: str = "before") -> None:
+        self.fresh = fresh
+        self.replaced = replaced
+        self.start = start
+        self.last: dict[int, RunStep] = {}
+
+    def chain(self, label: str, run: int, step: int, seq: int, rules: Any, before: Any, after: Any,
+              action: Any) -> tuple[list[str], RunStep | None]:
+        """Where this step does not start as its run left off, and the run's step before it
+        (None: the first, or one the chain cannot reach across a gap)."""
+        why: list[str] = []
+        last = self.last.get(run)
+        prior = None
+        if step == 1:
+            why += compared(label, (self.start, self.fresh(rules), before))
+        elif last is not None and last.step == step - 1:
+            why += chained(label, before, (last.seq, last.after), self.replaced)
+            why += compared(label, ("rules", last.rules, rules))
+            prior = last
+        self.last[run] = RunStep(step, rules, after, seq, action)
+        return why, prior
+
+
 def compared(label: str, *values: tuple[str, Any, Any]) -> list[str]:
     """(name, recorded, replayed) compared exactly: where each pair differs first."""
     return [f"{label}: {first_difference(was, now, name)}" for name, was, now in values

@@ -85,11 +85,19 @@ class ChoiceSteps(replay.Chain):
     held: int = 0  # stops that held at the measured position
 
 
+def _fresh(_rules: Any) -> Any:
+    """The state a run starts with."""
+    from companion.choice_rules import ChoiceState
+
+    return ChoiceState()
+
+
 class _Replayer:
     def __init__(self, out: ChoiceSteps, plans: list[tuple[float, float, str]] | None,
                  next_t: dict[int, float]) -> None:
         self.out = out
-        self.runs: dict[int, tuple[int, Any, Any, int, Any]] = {}  # run -> (step, rules, after, seq, action)
+        self.runs = replay.RunChains(_fresh, "the run's state was replaced outside its rules",
+                                     "before (the state a run starts with)")
         self.plans = plans  # (submitted, done, function) of the file's plan records, by submitted; None: not checked
         self.claimed: set[int] = set()
         self.next_t = next_t  # seq -> t of the run's next step (absent: the run's last)
@@ -115,20 +123,14 @@ class _Replayer:
         seq, run, step = int(rec["seq"]), int(rec["call"]), int(rec["step"])
         rules, before, seen, after, action = step_values(rec)
         label = f"seq {seq} (run {run} step {step}) {seen!r}"
-        why: list[str] = []
-        last = self.runs.get(run)
+        why, last = self.runs.chain(label, run, step, seq, rules, before, after, action)
         if step == 1:
-            why += replay.compared(label, ("before (the state a run starts with)", cr.ChoiceState(), before))
             kind = {cr.StartRules: "start", cr.ReplanRules: "replan", cr.StopRules: "stop",
                     cr.StartCommand: "start command", cr.ImproveRules: "improvement"}[type(rules)]
             self.out.runs[kind] = self.out.runs.get(kind, 0) + 1
-        elif last is not None and last[0] == step - 1:
-            why += replay.chained(label, before, (last[3], last[2]), "the run's state was replaced outside its rules")
-            why += replay.compared(label, ("rules", last[1], rules))
-            final = cr.Take | cr.Hold | cr.Nothing | cr.Refuse | cr.FlyPending | cr.Resume
-            if isinstance(last[4], final) and not isinstance(seen, cr.Ask):
-                why.append(f"{label}: an answer after the run's last word at step {last[0]} ({last[4]!r})")
-        self.runs[run] = (step, rules, after, seq, action)
+        final = cr.Take | cr.Hold | cr.Nothing | cr.Refuse | cr.FlyPending | cr.Resume
+        if last is not None and isinstance(last.action, final) and not isinstance(seen, cr.Ask):
+            why.append(f"{label}: an answer after the run's last word at step {last.step} ({last.action!r})")
         try:
             new, act = cr.choice_step(rules, before, seen)
         except Exception as exc:  # the recorded call returned: raising now is a difference

@@ -70,29 +70,28 @@ def expected_event(action: Any) -> Any:
     return kind(**{f.name: given[f.name] for f in dataclasses.fields(kind)})
 
 
+def _fresh(_rules: Any) -> Any:
+    """The state a run starts with."""
+    from companion.command_rules import CommandState
+
+    return CommandState()
+
+
 class _Replayer:
     """Runs the records in `seq` order, chaining each run's steps."""
 
     def __init__(self, out: CommandSteps, transitions: dict[int, tuple[Any, Any, Any]] | None) -> None:
         self.out = out
         self.transitions = transitions  # the file's transitions by seq (None: not checked)
-        self.calls: dict[int, tuple[int, Any, Any, int]] = {}  # run -> (step, rules, state after, seq)
+        self.calls = replay.RunChains(_fresh, "the sequence's state was replaced outside its rules")
 
     def check(self, rec: dict[str, Any], _previous: tuple[int, Any] | None) -> tuple[Any, list[str]]:
-        from companion.command_rules import CommandState, Fail, Finish, command_step
+        from companion.command_rules import Fail, Finish, command_step
 
         seq, call, step = int(rec["seq"]), int(rec["call"]), int(rec["step"])
         rules, before, seen, after, action = step_values(rec)
         label = f"seq {seq} ({rules.sequence}, run {call} step {step}) {seen!r}"
-        why: list[str] = []
-        last = self.calls.get(call)
-        if step == 1:
-            why += replay.compared(label, ("before", CommandState(), before))
-        elif last is not None and last[0] == step - 1:
-            why += replay.chained(label, before, (last[3], last[2]), "the sequence's state was replaced outside its "
-                                  "rules")
-            why += replay.compared(label, ("rules", last[1], rules))
-        self.calls[call] = (step, rules, after, seq)
+        why, _ = self.calls.chain(label, call, step, seq, rules, before, after, action)
         try:
             new, act = command_step(rules, before, seen)
         except Exception as exc:  # the recorded call returned: raising now is a difference

@@ -50,27 +50,28 @@ class HoldSteps(replay.Chain):
     failed: int = 0
 
 
+def _fresh(_rules: Any) -> Any:
+    """The state a run starts with."""
+    from companion.hold_rules import HoldState
+
+    return HoldState()
+
+
 class _Replayer:
     def __init__(self, out: HoldSteps) -> None:
         self.out = out
-        self.calls: dict[int, tuple[int, Any, Any, int, Any]] = {}  # hold -> (step, rules, after, seq, action)
+        self.calls = replay.RunChains(_fresh, "the hold's state was replaced outside its rules",
+                                      "before (the state a watch starts with)")
 
     def check(self, rec: dict[str, Any], _previous: tuple[int, Any] | None) -> tuple[Any, list[str]]:
-        from companion.hold_rules import Fails, Holds, HoldState, hold_step
+        from companion.hold_rules import Fails, Holds, hold_step
 
         seq, call, step = int(rec["seq"]), int(rec["call"]), int(rec["step"])
         rules, before, seen, after, action = step_values(rec)
         label = f"seq {seq} (hold {call} step {step}) {seen!r}"
-        why: list[str] = []
-        last = self.calls.get(call)
-        if step == 1:
-            why += replay.compared(label, ("before (the state a watch starts with)", HoldState(), before))
-        elif last is not None and last[0] == step - 1:
-            why += replay.chained(label, before, (last[3], last[2]), "the hold's state was replaced outside its rules")
-            why += replay.compared(label, ("rules", last[1], rules))
-            if isinstance(last[4], Holds | Fails):
-                why.append(f"{label}: follows the verdict of step {last[0]} ({last[4]!r})")
-        self.calls[call] = (step, rules, after, seq, action)
+        why, last = self.calls.chain(label, call, step, seq, rules, before, after, action)
+        if last is not None and isinstance(last.action, Holds | Fails):
+            why.append(f"{label}: follows the verdict of step {last.step} ({last.action!r})")
         try:
             new, act = hold_step(rules, before, seen)
         except Exception as exc:  # the recorded call returned: raising now is a difference

@@ -74,28 +74,28 @@ class _Brake:
     reason: str
 
 
+def _first_state(_rules: Any) -> Any:
+    """The state a run starts with."""
+    from companion.race_rules import first_state
+
+    return first_state()
+
+
 class _Replayer:
     """Runs the records in `seq` order, chaining each pop-up's steps."""
 
     def __init__(self, out: Races) -> None:
         self.out = out
-        self.races: dict[int, tuple[int, Any, Any, int]] = {}  # race -> (step, rules, state after, seq)
+        self.races = replay.RunChains(_first_state, "the race's state was replaced outside its rules")
         self.brakes: list[_Brake] = []
 
     def check(self, rec: dict[str, Any], _previous: tuple[int, Any] | None) -> tuple[Any, list[str]]:
-        from companion.race_rules import Brake, Braked, PopUp, Race, first_state, race_step
+        from companion.race_rules import Brake, Braked, PopUp, Race, race_step
 
         seq, race, step = int(rec["seq"]), int(rec["call"]), int(rec["step"])
         rules, before, seen, after, action = step_values(rec)
         label = f"seq {seq} ({rules.what}, race {race} step {step}) {seen!r}"
-        why: list[str] = []
-        last = self.races.get(race)
-        if step == 1:
-            why += replay.compared(label, ("before", first_state(), before))
-        elif last is not None and last[0] == step - 1:
-            why += replay.chained(label, before, (last[3], last[2]), "the race's state was replaced outside its rules")
-            why += replay.compared(label, ("rules", last[1], rules))
-        self.races[race] = (step, rules, after, seq)
+        why, _ = self.races.chain(label, race, step, seq, rules, before, after, action)
         if isinstance(action, Brake | Braked):
             self.brakes.append(_Brake(seq, int(rec["transition"]), action.reason))
         try:

@@ -55,13 +55,20 @@ class Splits(replay.Chain):
     swaps_checked: int = 0
 
 
+def _first_state(rules: Any) -> Any:
+    """The state a run starts with."""
+    from companion.split_rules import first_state
+
+    return first_state(rules)
+
+
 class _Replayer:
     """Runs the records in `seq` order, chaining each call's steps."""
 
     def __init__(self, out: Splits, swaps: dict[int, dict[str, Any]] | None) -> None:
         self.out = out
         self.swaps = swaps  # the file's /control/swap records by seq (None: not checked)
-        self.calls: dict[int, tuple[int, Any, Any, int]] = {}  # call -> (step, rules, state after, seq)
+        self.calls = replay.RunChains(_first_state, "the loop's state was replaced outside its rules")
 
     def check(self, rec: dict[str, Any], _previous: tuple[int, Any] | None) -> tuple[Any, list[str]]:
         from companion.split_rules import (
@@ -70,21 +77,13 @@ class _Replayer:
             Moved,
             Refused,
             SwapDecided,
-            first_state,
             split_step,
         )
 
         seq, call, step = int(rec["seq"]), int(rec["call"]), int(rec["step"])
         rules, before, seen, after, action = step_values(rec)
         label = f"seq {seq} ({rec['what']}, call {call} step {step}) {seen!r}"
-        why: list[str] = []
-        last = self.calls.get(call)
-        if step == 1:
-            why += replay.compared(label, ("before", first_state(rules), before))
-        elif last is not None and last[0] == step - 1:
-            why += replay.chained(label, before, (last[3], last[2]), "the loop's state was replaced outside its rules")
-            why += replay.compared(label, ("rules", last[1], rules))
-        self.calls[call] = (step, rules, after, seq)
+        why, _ = self.calls.chain(label, call, step, seq, rules, before, after, action)
         try:
             new, act = split_step(rules, before, seen)
         except Exception as exc:  # the recorded call returned: raising now is a difference
