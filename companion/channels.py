@@ -255,11 +255,12 @@ HOLD_STEP = _obj("bezier.HoldStep", "One call of the hand-over's hold rules (com
 }, ("seq", "t", "call", "step", "rules", "before", "observation", "after", "action"))
 
 CHOICE_STEP = _obj("bezier.ChoiceStep", "One call of the navigator's plan choice (companion/choice_rules.py "
-                   "choice_step): which planner call a mission's start, a replan or a stop asks for, and what it "
-                   "makes of the answer; every value exact (JSON, no pickle)", {
+                   "choice_step): which planner call a mission's start, a replan, a stop or a quick start's "
+                   "improvement asks for and what it makes of the answer, and what the start command does; every "
+                   "value exact (JSON, no pickle)", {
     "seq": SEQ_RULES, "t": T_MONO,
-    "call": {"type": "integer", "description": "the run (1, 2, ... per run of the service: a start, a replan or a "
-             "stop): its steps chain"},
+    "call": {"type": "integer", "description": "the run (1, 2, ... per run of the service: a start, a replan, a "
+             "stop, an improvement, a start command): its steps chain"},
     "step": {"type": "integer", "description": "1, 2, ... within the run"},
     "rules": TAGGED, "before": {"type": "object", "description": "companion.choice_rules.ChoiceState"},
     "observation": TAGGED, "after": {"type": "object"}, "action": TAGGED,
