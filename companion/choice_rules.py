@@ -7,7 +7,8 @@ runs, each a short sequence of attempts with fallbacks:
   once, the search for the fastest durations follows, `improve`), the whole search when the
   quick plan is infeasible; the search otherwise (cut to what fits before the split: the plan
   budget's count), the separated start with a fleet. The quick choice is made once per start
-  and lost when a quick plan fails, so the split loop's retries search;
+  and lost when a quick plan fails, so the split loop's retries search. When nothing plans from
+  a moving start, the search from further along the flown plan (`later`, twice);
 - a replan of the flown mission (companion/replans.py `Replans._replan_outcome`): the local
   replan when the change or pop-up has a local edit, the remainder when it fails or has none;
 - a stop (companion/braking.py `Brakes.brake`): a stop planned now; the stop prepared for the
@@ -29,7 +30,7 @@ holds are the ones chosen.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 # the calls, as the recorder names the planner's functions (companion.record_format.function_name)
 START = "companion.mission.start_mission"
@@ -43,12 +44,15 @@ PREPARED = "the stop prepared for the braking deadline"  # planned before: only 
 @dataclass(frozen=True)
 class StartRules:
     """A mission's start: [planner] anytime and timing, whether the mission gave durations,
-    whether it is separated from other vehicles."""
+    whether it is separated from other vehicles; `later`: how much further along the flown plan
+    each of two more starts is tried when nothing plans from a moving one (0: none; recordings
+    made before it replay with none)."""
 
     anytime: bool
     timing: str
     durations: bool
     fleet: bool
+    later: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -85,6 +89,7 @@ class ImproveRules:
 Rules = StartRules | ReplanRules | StopRules | StartCommand | ImproveRules
 
 CHANGED = "the flown plan changed first"
+LATER_TRIES = 2  # a start's further starts along the flown plan (StartRules.later)
 NO_EARLIER = "lands no earlier"
 
 # the flight states from which `start` takes control back first (companion.flight.State values)
@@ -94,19 +99,23 @@ TAKEN_BACK_FROM = ("PILOT", "FAILSAFE", "IDLE")
 @dataclass(frozen=True)
 class ChoiceState:
     """`quick`: a start flies the default allocation (None: not decided yet); `last`: the call
-    the last action asked for ("" before any); `why`: what the first answer of a stop said."""
+    the last action asked for ("" before any); `why`: what the first answer of a stop said;
+    `moving`, `later`: a start's split is not at rest, and how far past it the last call started."""
 
     quick: bool | None = None
     last: str = ""
     why: str = ""
+    moving: bool = False
+    later: float = 0.0
 
 
 @dataclass(frozen=True)
 class Ask:
     """The run (or a retry of the split loop) asks for a plan; `flying`: the vehicle is ours
-    and flown (a stop only)."""
+    and flown (a stop only); `moving`: the flown plan is not at rest at the split (a start)."""
 
     flying: bool = True
+    moving: bool = False
 
 
 @dataclass(frozen=True)
@@ -150,11 +159,13 @@ Observation = Ask | Answer | Asked | Now
 
 @dataclass(frozen=True)
 class Plan:
-    """Make this call (`quick`: the default allocation; `allocate`: choose durations again)."""
+    """Make this call (`quick`: the default allocation; `allocate`: choose durations again;
+    `later`: from the flown plan that many seconds after the split, which it flies until then)."""
 
     call: str
     quick: bool = False
     allocate: bool = False
+    later: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -224,14 +235,22 @@ def _start(rules: StartRules, state: ChoiceState, seen: Observation) -> Step:
     quick = quick_start(rules) if state.quick is None else state.quick
     if isinstance(seen, Ask):
         call = SEPARATED if rules.fleet else START
-        return ChoiceState(quick, call), Plan(call, quick=quick)
+        return ChoiceState(quick, call, moving=seen.moving), Plan(call, quick=quick)
     assert isinstance(seen, Answer)
     if state.last == START and quick and not seen.ok and seen.status == "INFEASIBLE":
         # the default allocation failed where the search may not (it places knots, tries other
         # durations): the search, as without anytime, before refusing
-        return ChoiceState(False, START), Plan(START)
+        return replace(state, quick=False), Plan(START, later=state.later)
+    if (not seen.ok and seen.status == "INFEASIBLE" and state.moving and rules.later > 0.0
+            and state.later < LATER_TRIES * rules.later):
+        # From some moving jets no degree-9 first segment reaches the first waypoint within the
+        # bounds (planner_core.missions.lead_in); a little further along the flown plan, which
+        # is verified and flies on meanwhile, the jet differs and the search plans it (missions
+        # replaced in flight: 12 of 5600 splits refused from the jet, none from 0.25 s later).
+        later = state.later + rules.later
+        return replace(state, quick=False, later=later), Plan(state.last, later=later)
     quick = quick and seen.ok  # a failed quick plan: the split loop's retries search
-    return ChoiceState(quick, state.last), Take(seen.ok, state.last, quick)
+    return replace(state, quick=quick), Take(seen.ok, state.last, quick)
 
 
 def _replan(rules: ReplanRules, state: ChoiceState, seen: Observation) -> Step:

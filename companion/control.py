@@ -82,6 +82,14 @@ def _rounding(traj: Trajectory, t: float) -> FloatArray:
     return out
 
 
+def jet_on(traj: Trajectory, t: float) -> FloatArray:
+    """`traj`'s jet at trajectory time t, at rest past its end (where a flown plan holds)."""
+    jet = traj.jet(min(t, traj.t_end))
+    if t >= traj.t_end:
+        jet[1:] = 0.0
+    return jet
+
+
 def swap_span(traj: Trajectory, now: float, t_split: float) -> Trajectory:
     """The segments of `traj` that `swap_refusal` reads deciding at `now` for a split at
     `t_split` (those from `now` to `t_split`, clamped to its span), the curve alone: the rule
@@ -205,10 +213,7 @@ class Control:
     def jet(self, t: float) -> FloatArray:
         """The flown plan's jet at trajectory time t (at rest past its end)."""
         assert self._active is not None
-        jet = self._active.jet(min(t, self._active.t_end))
-        if t >= self._active.t_end:
-            jet[1:] = 0.0
-        return jet
+        return jet_on(self._active, t)
 
     def reference(self, at: float | None = None) -> FloatArray | None:
         """The setpoint position of monotonic time `at` (default now; None when not streaming).

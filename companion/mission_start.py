@@ -23,7 +23,7 @@ import numpy as np
 from companion import choice_rules as cr
 from companion.braking import ChoiceRuns, choice_runs
 from companion.config import Config
-from companion.control import Control
+from companion.control import Control, jet_on
 from companion.limits import clips_text, refusal_note
 from companion.mission import check_mission, replan_remainder, start_mission, start_separated
 from companion.obstacles import ObstacleStore
@@ -41,6 +41,9 @@ from planner_core import Bounds, FloatArray, Trajectory, rest_jet
 log = logging.getLogger("companion")
 
 IMPROVE_MIN = 0.05  # s: the search's plan replaces the anytime start's only if it lands this much earlier
+# s: when nothing plans from a moving split, the start is tried this much further along the flown
+# plan, twice (companion.choice_rules.StartRules.later)
+LATER_START = 0.25
 
 
 class MissionStart:
@@ -149,7 +152,7 @@ class MissionStart:
             # the anytime start: the default allocation at once, the search's plan later (improve);
             # which plan is asked for is companion.choice_rules' (a start's run)
             rules = cr.StartRules(self.cfg.planner.anytime, self.cfg.planner.timing, spec.durations is not None,
-                                  fleet is not None)
+                                  fleet is not None, LATER_START)
             run = self.choices.run(rules, cr.ChoiceState())
 
             async def plan_at(base: Trajectory, t_split: float) -> Outcome:
@@ -162,15 +165,19 @@ class MissionStart:
                 cap = self.budget.candidates_within(n, left)
                 # without a fleet the call is start_mission's own (what a recording names and replays)
                 search: Any = partial(start_mission, candidates=cap) if cap else start_mission
-                action = run.step(cr.Ask())
+                action = run.step(cr.Ask(moving=bool(np.any(jet[1:] != 0.0))))
                 while True:
                     assert isinstance(action, cr.Plan)
                     fn: Any = (partial(start_separated, neighbours=neighbours(fleet, spec.bounds), candidates=cap)
                                if action.call == cr.SEPARATED else partial(start_mission, quick=True) if action.quick
                                else search)
+                    # a later start: the plan begins on the flown one, which flies on until then
+                    # (the swap at t_split splices it there: the same curve up to it)
+                    at = t_split + action.later
                     t1 = time.perf_counter()
-                    out: Outcome = logged(await self.runtime.plan(fn, replace(spec, raw={}), jet, t_split,
-                                                                  self.obstacles.known(), self.cfg))
+                    out: Outcome = logged(await self.runtime.plan(fn, replace(spec, raw={}),
+                                                                  jet_on(base, at) if action.later else jet,
+                                                                  at, self.obstacles.known(), self.cfg))
                     self.budget.measured(time.perf_counter() - t1, n, int(out.stats.get("candidates", 1)))
                     action = run.step(cr.Answer(out.ok, out.status.name, out.message))
                     if isinstance(action, cr.Take):

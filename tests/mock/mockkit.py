@@ -41,6 +41,10 @@ class Client:
             f"udpout:127.0.0.1:{port}", source_system=sysid, source_component=190, dialect="common"
         )
         self.conn.mav.srcSystem = sysid
+        # Only the mock's own datagrams: under xdist a mock of another test may still stream to
+        # a client port that closed, and the kernel can hand that port to this client (a foreign
+        # "disarmed" heartbeat once ended a PX4 conformance test early).
+        self.conn.port.connect(("127.0.0.1", port))
         self.mav: Any = self.conn.mav
 
     def hello(self, timeout: float = 5.0) -> Any:

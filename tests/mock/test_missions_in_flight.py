@@ -82,11 +82,14 @@ def test_missions_replaced_in_flight_are_all_flown(tmp_path: Path, cpu_hog: Any)
                     await asyncio.sleep(max(0.0, 1.5 - (time.monotonic() - sent)))
                 await until(lambda: any(e.get("mission") == ids[-1] for e in events.of("mission_complete")), 60,
                             "the last mission flown to its end")
-            except AssertionError:
+            except AssertionError as exc:
                 if not events.of("stalled"):
                     for e in events.all:
                         print(e["type"], e.get("message", "")[:300])
-                    raise
+                    # the answers in the failure's own line: a CI log keeps only part of the output
+                    answers = [f"{e['type']}: {e.get('message', '')[:160]}" for e in events.all
+                               if e["type"] in ("accepted", "rejected") and e.get("mission") in ids[-2:]]
+                    raise AssertionError(f"{exc}; the last two missions' answers: {answers}") from None
             stalled.extend(e["message"] for e in events.of("stalled"))
             if stalled:
                 return
