@@ -21,7 +21,7 @@ import numpy as np
 
 from companion import choice_rules as cr
 from companion.config import Config
-from companion.control import Control
+from companion.control import Control, jet_on
 from companion.flight import HOLDING_CONTROL
 from companion.race_rules import (
     DONE,
@@ -129,11 +129,7 @@ class StopPlan:
     separated: bool | None = None
 
 
-def _jet_at(traj: Trajectory, t: float) -> FloatArray:
-    jet = traj.jet(min(t, traj.t_end))
-    if t >= traj.t_end:
-        jet[1:] = 0.0
-    return jet
+_jet_at = jet_on  # the one copy (companion.control): a flown plan's jet, at rest past its end
 
 
 def corridor_at(traj: Trajectory, t: float) -> Polytope | None:
