@@ -84,8 +84,11 @@ class YawPolicy:
 
 # [setpoints] accel_lead_tc > 0: the plan's acceleration low-passed over this many time
 # constants of its past, in steps of FILTER_STEP s (a Riemann sum of the exponential kernel: the
-# acceleration is smooth, bounded snap, so 40 ms steps are exact to well under a millimetre of aim)
-FILTER_SPAN = 4.0
+# acceleration is smooth, bounded snap, so 40 ms steps are exact to well under a millimetre of aim).
+# The kernel's tail beyond the span is lumped at its end: e^-6 = 0.25 % of it, within which the
+# target's velocity F' = (a - F) / tc is F's derivative (at 4 spans, 1.8 %: 0.065 m/s of velocity
+# with PX4 SIH's horizontal k of 3.4 s²)
+FILTER_SPAN = 6.0
 FILTER_STEP = 0.04
 
 
@@ -116,7 +119,23 @@ def filtered_accel(traj: Trajectory, t: float, tc: float) -> FloatArray:
     return out
 
 
-def sample(traj: Trajectory, t: float, yaw: YawPolicy, accel_lead: float = 0.0, accel_lead_tc: float = 0.0) -> Setpoint:
+# Terms of the horizontal aim (`[setpoints] aim_horizontal`): (k s², time constant s) each
+AimTerms = tuple[tuple[float, float], ...]
+
+
+def _aim_term(traj: Trajectory, t: float, jet: FloatArray, tc: float) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """F, F', F'' of one aim term: the plan's acceleration low-passed with time constant tc (0:
+    as it is), and its first two derivatives (F' = (a - F) / tc, F'' = (j - F') / tc)."""
+    _, _, a, j, s = jet
+    if tc <= 0.0:
+        return a, j, s
+    f = filtered_accel(traj, t, tc)
+    df = (a - f) / tc
+    return f, df, (j - df) / tc
+
+
+def sample(traj: Trajectory, t: float, yaw: YawPolicy, accel_lead: float = 0.0, accel_lead_tc: float = 0.0,
+           aim_horizontal: AimTerms = (), trim: FloatArray | None = None) -> Setpoint:
     """Position, velocity and acceleration at trajectory time t (clamped to its span).
 
     `accel_lead` k (s², `[setpoints] accel_lead`): the setpoint is the jet of p + k F instead of
@@ -125,22 +144,28 @@ def sample(traj: Trajectory, t: float, yaw: YawPolicy, accel_lead: float = 0.0, 
     plan by about k F beyond its time lag: the acceleration feed-forward is not all used at
     once, and the velocity loop's integrator gives back what it gathered over the following
     second or two (docs/autopilot-limits.md); aiming k F beyond the plan puts it back on it. At
-    rest (past the end) the jet is the end point, plus what F has left."""
-    if accel_lead == 0.0:
+    rest (past the end) the jet is the end point, plus what F has left.
+
+    `aim_horizontal` ((k, tc), ...; `[setpoints] aim_horizontal`): more such terms, in the
+    horizontal plane only (PX4 SIH trails by a sum of two, docs/autopilot-limits.md).
+    `trim` (m, companion.trim): added to the position only."""
+    if accel_lead == 0.0 and not aim_horizontal:
         jet = sampler(traj).jet3(t)
-        return Setpoint(jet[0], jet[1], jet[2], yaw(jet[1]))
+        return Setpoint(jet[0] if trim is None else jet[0] + trim, jet[1], jet[2], yaw(jet[1]))
     sm = sampler(traj)
     full = sm.jet(t)
     if t >= sm.t_end:
         full[1:] = 0.0
-    p, v, a, j, s = full
-    if accel_lead_tc <= 0.0:
-        f, df, ddf = a, j, s
-    else:
-        f = filtered_accel(traj, t, accel_lead_tc)
-        df = (a - f) / accel_lead_tc
-        ddf = (j - df) / accel_lead_tc
-    return Setpoint(p + accel_lead * f, v + accel_lead * df, a + accel_lead * ddf, yaw(v))
+    p, v, a = full[0].copy(), full[1].copy(), full[2].copy()
+    if accel_lead != 0.0:
+        f, df, ddf = _aim_term(traj, t, full, accel_lead_tc)
+        p, v, a = p + accel_lead * f, v + accel_lead * df, a + accel_lead * ddf
+    for k, tc in aim_horizontal:
+        f, df, ddf = _aim_term(traj, t, full, tc)
+        p[:2] += k * f[:2]
+        v[:2] += k * df[:2]
+        a[:2] += k * ddf[:2]
+    return Setpoint(p if trim is None else p + trim, v, a, yaw(full[1]))
 
 
 # -- the setpoint thread ---------------------------------------------------------------
@@ -293,6 +318,8 @@ class SetpointSender:
         self.lead = 0.0  # s: setpoints are sampled this far ahead on the trajectory (lag compensation)
         self.accel_lead = 0.0  # s²: see `sample`
         self.accel_lead_tc = 0.0  # s: see `sample`
+        self.aim_horizontal: AimTerms = ()  # see `sample`
+        self.trim: FloatArray | None = None  # m: see `sample`
         self.scheduling = "normal"  # as the thread found or set it, for the logs and status
         self.native_id: int | None = None
         self._stop = threading.Event()
@@ -351,7 +378,8 @@ class SetpointSender:
                 feed = None
             gap = error = sp = None
             if feed is not None:
-                sp = sample(feed.trajectory, now - feed.t_base + self.lead, self.yaw, self.accel_lead, self.accel_lead_tc)
+                sp = sample(feed.trajectory, now - feed.t_base + self.lead, self.yaw, self.accel_lead, self.accel_lead_tc,
+                            self.aim_horizontal, self.trim)
                 try:
                     self.send(sp)
                 except OSError as exc:  # reported on the loop; the next tick tries again

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from companion.lag import initial_aim
+from companion.lag import initial_aim, initial_aim_horizontal
 from companion.wire.frames import swap_points
 from demo import report as rep
 from demo.flying import FlightOutcome
@@ -167,6 +167,13 @@ def analyse(name: str, mission: dict[str, Any], outcome: FlightOutcome, r: Rig,
     if len(sp_t) < 10 or len(flown.t) < 10:
         result.ok, result.reason = False, "the flight log has no applied setpoints"
         return result
+    if outcome.trims and any(any(v) for _, v in outcome.trims):
+        # the setpoints were trimmed ([setpoints] trim_tc): take the trim the status said off
+        ts = np.array([mono_to_sim(m) for m, _ in outcome.trims])
+        tv = np.array([v for _, v in outcome.trims])
+        trim_at = np.stack([np.interp(sp_t, ts, tv[:, c]) for c in range(3)], axis=1)
+        result.trim_max = float(np.max(np.linalg.norm(trim_at, axis=1)))
+        sp_p = sp_p - trim_at
     s_stream = mono_to_sim(outcome.t_stream if outcome.t_stream is not None else outcome.t_put)
     s_first_change = mono_to_sim(samples[1].mono) if len(samples) > 1 else (
         mono_to_sim(outcome.t_done) if outcome.t_done is not None else s_stream + first.t_end - first.t0)
@@ -175,8 +182,9 @@ def analyse(name: str, mission: dict[str, Any], outcome: FlightOutcome, r: Rig,
         window = sp_t >= s_stream
     # the setpoints are points of the plan, or with [setpoints] accel_lead k of p + k p''
     k_acc, tc_acc = initial_aim(r.config.setpoints.accel_lead, r.config.setpoints.accel_lead_tc, r.autopilot)
+    aim_h = initial_aim_horizontal(r.config.setpoints.aim_horizontal, r.autopilot)
     offset = rep.align_offset(first, sp_t[window], sp_p[window], s_stream - first.t_end, s_stream - first.t0, k_acc,
-                              tc_acc)
+                              tc_acc, aim_h)
     starts = replan_starts(samples, outcome.events, mono_to_sim, offset)
     tau_end = (mono_to_sim(outcome.t_done) - offset) if outcome.t_done is not None else final.t_end
     flying = (sp_t >= s_stream) & (sp_t <= offset + tau_end)
@@ -186,7 +194,7 @@ def analyse(name: str, mission: dict[str, Any], outcome: FlightOutcome, r: Rig,
     sp_t, sp_p, sp_c = sp_t[flying], sp_p[flying], sp_c[flying]
     # (an auto lead moves the setpoints up to [setpoints] lead_max along the plan in flight)
     sp_raw, sp_off = rep.local_offsets(result.trajectories, starts, sp_t, sp_p, offset, search=0.6,
-                                         accel_lead=k_acc, accel_lead_tc=tc_acc)
+                                         accel_lead=k_acc, accel_lead_tc=tc_acc, aim_horizontal=aim_h)
     # A setpoint sampled `lead` ahead matches the plan `lead` later than its own time: the
     # flown position is compared with the plan at its own time, not with the setpoint, with
     # each setpoint's own lead (the auto lead changes in flight).
@@ -207,7 +215,7 @@ def analyse(name: str, mission: dict[str, Any], outcome: FlightOutcome, r: Rig,
                                                        result.tau_stream, tau_end)
     # every setpoint the mock received must be a point of the planned trajectory (float32 on
     # the wire): checks frames, splicing and sampling end to end
-    dev = np.linalg.norm(sp_p - rep.aimed(result.trajectories, starts, sp_t - sp_raw, k_acc, tc_acc), axis=1)
+    dev = np.linalg.norm(sp_p - rep.aimed(result.trajectories, starts, sp_t - sp_raw, k_acc, tc_acc, aim_h), axis=1)
     result.setpoint_deviation = float(dev.max())
     offset = result.tracking.offset
     result.peaks_flown = rep.flown_peaks(flown, s_stream, offset + tau_end)

@@ -11,13 +11,16 @@ import itertools
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from companion.wire.frames import swap_halfspaces, swap_points
 from planner_core import Trajectory
+
+if TYPE_CHECKING:
+    from companion.setpoints import AimTerms
 
 FloatArray = NDArray[np.float64]
 
@@ -64,6 +67,7 @@ class MissionResult:
     tracking_truth: Tracking | None = None  # an external autopilot's ground truth, where it sends it
     # s, per applied setpoint: how far ahead of its own time it was sampled (the lead)
     leads: FloatArray | None = None
+    trim_max: float | None = None
     peaks_planned: FloatArray | None = None  # (4, 3) max |derivative| per axis
     peaks_flown: FloatArray | None = None  # (2, 3) velocity, acceleration
     bounds: FloatArray | None = None  # (4, 3) symmetric magnitude per axis (NED)
@@ -123,7 +127,7 @@ def region_vertices_enu(region: dict[str, Any], frame: str) -> FloatArray:
 
 
 def align_offset(traj: Trajectory, t: FloatArray, pos: FloatArray, lo: float, hi: float,
-                 accel_lead: float = 0.0, accel_lead_tc: float = 0.0) -> float:
+                 accel_lead: float = 0.0, accel_lead_tc: float = 0.0, aim_horizontal: AimTerms = ()) -> float:
     """Mock-clock time of trajectory time 0 that best matches the commanded positions.
 
     The setpoints the mock logged are samples of the trajectory, so the right offset makes them
@@ -135,7 +139,7 @@ def align_offset(traj: Trajectory, t: FloatArray, pos: FloatArray, lo: float, hi
         t, pos = t[idx], pos[idx]
 
     def cost(off: float) -> float:
-        d = aimed([traj], [-np.inf], t - off, accel_lead, accel_lead_tc) - pos
+        d = aimed([traj], [-np.inf], t - off, accel_lead, accel_lead_tc, aim_horizontal) - pos
         return float(np.mean(np.sum(d * d, axis=1)))
 
     grid = np.linspace(lo, hi, int(min(max((hi - lo) / 0.05, 20), 2000)))
@@ -168,11 +172,14 @@ def stitched(trajs: Sequence[Trajectory], starts: Sequence[float], tau: FloatArr
 
 
 def aimed(trajs: Sequence[Trajectory], starts: Sequence[float], tau: FloatArray, accel_lead: float = 0.0,
-          accel_lead_tc: float = 0.0) -> FloatArray:
+          accel_lead_tc: float = 0.0, aim_horizontal: AimTerms = ()) -> FloatArray:
     """What the setpoints of trajectory times tau aimed at: the plan's position, plus
     `[setpoints] accel_lead` times its acceleration, low-passed with `accel_lead_tc`
-    (companion.setpoints.sample)."""
+    (companion.setpoints.sample), and the horizontal aim's terms `aim_horizontal`."""
     out = stitched(trajs, starts, tau)
+    for k, tc in aim_horizontal:
+        grid, f = _filtered_accel(tuple(trajs), tuple(float(x) for x in starts), tc)
+        out[:, :2] += k * np.stack([np.interp(tau, grid, f[:, c]) for c in range(2)], axis=1)
     if not accel_lead:
         return out
     if accel_lead_tc <= 0.0:
@@ -198,7 +205,8 @@ def _filtered_accel(trajs: tuple[Trajectory, ...], starts: tuple[float, ...], tc
         acc = stitched(trajs, starts, np.clip(times, t0, t_end), 2)
         acc[times >= t_end] = 0.0
         f = np.einsum("j,ijc->ic", w, acc.reshape(len(grid), len(lags), 3))
-        _FILTERED.clear()  # one flight at a time: keep the trajectories alive no longer than that
+        if any(k[:2] != key[:2] for k in _FILTERED):
+            _FILTERED.clear()  # one flight at a time: keep the trajectories alive no longer than that
         _FILTERED[key] = (grid, f, trajs)  # (holding trajs keeps their ids from being reused)
     grid, f, _ = _FILTERED[key]
     return grid, f
@@ -206,7 +214,8 @@ def _filtered_accel(trajs: tuple[Trajectory, ...], starts: tuple[float, ...], tc
 
 def local_offsets(trajs: Sequence[Trajectory], starts: Sequence[float], t: FloatArray, pos: FloatArray,
                   offset: float, search: float = 0.3, step: float = 0.002,
-                  smooth: int = 51, accel_lead: float = 0.0, accel_lead_tc: float = 0.0) -> tuple[FloatArray, FloatArray]:
+                  smooth: int = 51, accel_lead: float = 0.0, accel_lead_tc: float = 0.0,
+                  aim_horizontal: AimTerms = ()) -> tuple[FloatArray, FloatArray]:
     """Mock-clock time of trajectory time 0, per setpoint, smoothed.
 
     The mock's simulated clock slips against wall time when the machine is busy (it catches up
@@ -217,12 +226,12 @@ def local_offsets(trajs: Sequence[Trajectory], starts: Sequence[float], t: Float
     """
     grid = np.arange(-search, search + step / 2, step)
     tau = (t - offset)[:, None] + grid[None, :]
-    pts = aimed(trajs, starts, tau.ravel(), accel_lead, accel_lead_tc).reshape(len(t), len(grid), 3)
+    pts = aimed(trajs, starts, tau.ravel(), accel_lead, accel_lead_tc, aim_horizontal).reshape(len(t), len(grid), 3)
     best = grid[np.argmin(np.sum((pts - pos[:, None, :]) ** 2, axis=2), axis=1)]
     # refine to 0.05 ms around the coarse match: the deviation check wants ~1e-5 m resolution
     fine = np.linspace(-step, step, 81)
     tau = (t - offset + best)[:, None] + fine[None, :]
-    pts = aimed(trajs, starts, tau.ravel(), accel_lead, accel_lead_tc).reshape(len(t), len(fine), 3)
+    pts = aimed(trajs, starts, tau.ravel(), accel_lead, accel_lead_tc, aim_horizontal).reshape(len(t), len(fine), 3)
     best = best + fine[np.argmin(np.sum((pts - pos[:, None, :]) ** 2, axis=2), axis=1)]
     raw = offset - best
     half = smooth // 2
@@ -350,6 +359,8 @@ def summary_rows(result: MissionResult) -> list[tuple[str, str]]:
                      f"{result.tracking_truth.rms:.3f} / {result.tracking_truth.max:.3f} m"))
     if result.leads is not None and len(result.leads):
         # the flight is compared with the plan at its own time: each setpoint's lead taken off
+        if result.trim_max is not None:
+            rows.append(("setpoint trim, max", f"{result.trim_max:.3f} m"))
         rows.append(("setpoint lead, first / last", f"{result.leads[0] * 1000:.0f} / {result.leads[-1] * 1000:.0f} ms"))
     if result.setpoint_deviation is not None:
         rows.append(("setpoints vs trajectory, max", f"{result.setpoint_deviation:.1e} m"))

@@ -127,3 +127,85 @@ def test_the_setpoint_process_aims_as_the_service_set_before_it_ran() -> None:
     finally:
         sender.stop()
         sock.close()
+
+
+H_TERMS = ((-0.95, 1.0), (3.4, 4.0))  # PX4 SIH's (companion.lag PX4_SIH_AIM_HORIZONTAL)
+
+
+def test_the_horizontal_terms_aim_in_the_plane_only_and_coherently() -> None:
+    """Each horizontal term adds k F of its own time constant to x and y only; the target stays
+    coherent, and with the 3-D term as well the two add up."""
+    traj, dt = _curve(), 0.002
+    ts = np.arange(0.0, traj.t_end + 16.0, dt)
+    plain = np.array([sample(traj, float(t), YAW).position for t in ts])
+    sps = [sample(traj, float(t), YAW, 0.0, 0.0, H_TERMS) for t in ts]
+    p = np.array([s.position for s in sps])
+    v = np.array([s.velocity for s in sps])
+    a = np.array([s.acceleration for s in sps])
+    assert np.array_equal(p[:, 2], plain[:, 2])  # z is the plan's
+    want = sum(k * np.array([filtered_accel(traj, float(t), tc) for t in ts[::50]]) for k, tc in H_TERMS)
+    assert np.allclose(p[::50, :2] - plain[::50, :2], np.asarray(want)[:, :2], atol=1e-12)
+    inner = np.abs(ts - traj.t_end) > 2 * dt
+    inner[:2] = inner[-2:] = False
+    assert np.abs(np.gradient(p, dt, axis=0) - v)[inner].max() < 2e-3 * np.abs(v).max()
+    assert np.abs(np.gradient(v, dt, axis=0) - a)[inner].max() < 1e-2 * np.abs(a).max()
+    # long after the end the aim has settled on the plan's end point
+    assert np.allclose(p[-1], plain[-1], atol=0.05)
+    both = sample(traj, 5.0, YAW, 0.09, 1.0, H_TERMS).position
+    one = sample(traj, 5.0, YAW, 0.09, 1.0).position
+    assert np.allclose(both - one, sample(traj, 5.0, YAW, 0.0, 0.0, H_TERMS).position - plain[2500], atol=1e-12)
+
+
+def test_the_analysis_reconstructs_the_horizontal_aim() -> None:
+    traj = _curve()
+    ts = np.linspace(0.0, traj.t_end + 6.0, 400)
+    want = np.array([sample(traj, float(t), YAW, 0.09, 1.0, H_TERMS).position for t in ts])
+    got = aimed([traj], [-np.inf], ts, 0.09, 1.0, H_TERMS)
+    assert np.abs(got - want).max() < 1e-4
+
+
+def test_the_horizontal_aim_option() -> None:
+    from companion.config import ConfigError, config_from_dict
+    from companion.lag import PX4_SIH_AIM_HORIZONTAL, initial_aim_horizontal
+
+    assert config_from_dict({}).setpoints.aim_horizontal == "autopilot"
+    assert initial_aim_horizontal("autopilot", "px4") == initial_aim_horizontal("autopilot", "ardupilot") == ()
+    cfg = config_from_dict({"setpoints": {"aim_horizontal": [list(t) for t in PX4_SIH_AIM_HORIZONTAL]}})
+    assert cfg.setpoints.aim_horizontal == PX4_SIH_AIM_HORIZONTAL
+    assert initial_aim_horizontal(cfg.setpoints.aim_horizontal, "px4") == PX4_SIH_AIM_HORIZONTAL
+    for bad, where in (([[1.0, 0.0]], r"aim_horizontal\[0\]"), ([[11.0, 1.0]], r"aim_horizontal\[0\]"),
+                       ([[1.0, 1.0]] * 5, "aim_horizontal"), ("more", "aim_horizontal"),
+                       ([[1.0, 1.0], [True, 1.0]], r"aim_horizontal\[1\]")):
+        with pytest.raises(ConfigError, match=where):
+            config_from_dict({"setpoints": {"aim_horizontal": bad}})
+
+
+def test_the_setpoint_process_aims_horizontally_as_set() -> None:
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.bind(("127.0.0.1", 0))
+    ticks: list[Tick] = []
+    lock = threading.Lock()
+
+    def on_tick(tick: Tick) -> None:
+        with lock:
+            ticks.append(tick)
+
+    sender = SetpointProcess(50.0, lambda: (sock.fileno(), True, Encoding(255, 191, 1, 1, None, time.monotonic())),
+                             YawPolicy("fixed", 0.0, 0.3), on_tick, lambda exc: None)
+    sender.aim_horizontal = H_TERMS  # before it runs, as the service does at construction
+    sender.start()
+    traj = _curve()
+    try:
+        t_base = time.monotonic()
+        sender.feed = Feed(traj, t_base)
+        time.sleep(0.5)
+        with lock:
+            got = [t for t in ticks if t.setpoint is not None]
+        assert len(got) >= 10
+        for t in got:
+            want = sample(traj, t.now - t_base, YAW, 0.0, 0.0, H_TERMS)
+            assert np.allclose(t.setpoint.position, want.position, atol=1e-9)
+            assert np.allclose(t.setpoint.velocity, want.velocity, atol=1e-9)
+    finally:
+        sender.stop()
+        sock.close()
