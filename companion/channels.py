@@ -310,7 +310,6 @@ OUT_PROPERTIES: dict[str, dict[str, Any]] = {
         "accel_lead": NUM, "accel_lead_tc": NUM,
         "aim_horizontal": {"type": "array", "items": {"type": "array", "items": NUM},
                            "description": "[setpoints] aim_horizontal's terms in use: [k s², tc s]"},
-        "trim": {**VEC, "description": "the setpoints' trim ([setpoints] trim_tc), m, local NED; null: none"},
         "message_to_setpoint_ms": _maybe("number"), "plan_latency_ms": _maybe("number"),
         "replan_latency_ms": _maybe("number"), "setpoints_sent": {"type": "integer"},
         "setpoint_gap_max_ms": NUM, "gc_pause_max_ms": NUM, "setpoints_stalled": {"type": "boolean"},

@@ -146,7 +146,7 @@ _POSITIVE = {
 }
 
 
-_NON_NEGATIVE = {"setpoints.accel_lead_tc", "setpoints.trim_max", "fleet.clock_tolerance", "fleet.separation", "fleet.max_delay", "planner.fallback_delay", "planner.reserve", "autopilot_limits.retries",
+_NON_NEGATIVE = {"setpoints.accel_lead_tc", "fleet.clock_tolerance", "fleet.separation", "fleet.max_delay", "planner.fallback_delay", "planner.reserve", "autopilot_limits.retries",
                  "safety.tracking_brake", "safety.exit_timeout", "safety.hold_confirm",
                  "safety.hold_altitude_tolerance", "safety.hold_speed_tolerance", "safety.hold_settle", "safety.hold_rest_speed"}
 
@@ -158,7 +158,6 @@ _REPLACED = {
                                  "(docs/autopilot-limits.md)",
 }
 
-TRIM_TC_MIN, TRIM_TC_MAX = 1.0, 60.0  # s: [setpoints] trim_tc, when not 0
 LEAD_MAX = 0.5  # s: [setpoints] lead_max's default (PX4 SIH lags ~0.3 s)
 
 
@@ -195,14 +194,6 @@ def _convert(key: str, hint: Any, value: Any, default: Any) -> Any:
                 raise ConfigError(f"{key}[{i}]", f"expected {want}, got {term!r}")
             terms.append((float(term[0]), float(term[1])))
         return tuple(terms)
-    if key == "setpoints.trim_tc":
-        # faster than ~1 s the integral loses its phase margin around PX4's 0.3 s lag and its
-        # position loop (MPC_XY_P 0.95): it would ring instead of taking an offset up
-        if isinstance(value, bool) or not isinstance(value, int | float) or not (
-                value == 0 or TRIM_TC_MIN <= value <= TRIM_TC_MAX):
-            raise ConfigError(key, f"expected 0 (no trim) or seconds in [{TRIM_TC_MIN:g}, {TRIM_TC_MAX:g}], "
-                              f"got {value!r}")
-        return float(value)
     if key == "setpoints.lead":
         if value == "auto":
             return value

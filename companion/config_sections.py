@@ -119,11 +119,6 @@ class SetpointConfig:
     # MEASURED_AIM_HORIZONTAL (none yet: PX4 SIH's, companion.lag PX4_SIH_AIM_HORIZONTAL, is for
     # PX4 SIH with lead 0.08; docs/autopilot-limits.md).
     aim_horizontal: tuple[tuple[float, float], ...] | str = "autopilot"
-    # The trim: each setpoint's position moved by an integral of the measured tracking error
-    # (time constant trim_tc s, 0: none), at most trim_max m (within [planner]
-    # tracking_allowance): takes up a slow offset the autopilot's own loops leave.
-    trim_tc: float = 0.0
-    trim_max: float = 0.5
     # The event loop not running for this long (s) is a stall of the companion: the setpoint
     # thread withholds setpoints from then on (it does so too when it itself wakes 0.5 s late).
     # Awake again, the companion holds (setpoints silent under 0.5 s: the autopilot still flies

@@ -352,7 +352,7 @@ class Control:
         try:
             self.send(sample(self._active, now - self._t_base + getattr(self.target, "lead", 0.0), self.yaw,
                              getattr(self.target, "accel_lead", 0.0), getattr(self.target, "accel_lead_tc", 0.0),
-                             getattr(self.target, "aim_horizontal", ()), getattr(self.target, "trim", None)))
+                             getattr(self.target, "aim_horizontal", ())))
         except OSError as exc:  # the periodic loop reports a dead link; never fail a swap on it
             log.warning("immediate setpoint not sent: %s", exc)
             return

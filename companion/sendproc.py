@@ -53,7 +53,7 @@ from companion.setpoints import (
     realtime_here,
     sample,
 )
-from planner_core import FloatArray, Trajectory
+from planner_core import Trajectory
 
 log = logging.getLogger("companion")
 
@@ -129,7 +129,6 @@ class SetpointProcess:
         self._lead = 0.0
         self._accel_lead = 0.0  # s²: setpoints.sample
         self._accel_lead_tc = 0.0  # s
-        self._trim: FloatArray | None = None  # m
         self._aim_horizontal: AimTerms = ()
         self._feeds: dict[int, Feed] = {}
         self._segments: list[str] = []  # shared memory handed to the child, newest last
@@ -218,15 +217,6 @@ class SetpointProcess:
         if terms != self._aim_horizontal:
             self._aim_horizontal = terms
             self._post(("aim_horizontal", terms))
-
-    @property
-    def trim(self) -> FloatArray | None:
-        return self._trim
-
-    @trim.setter
-    def trim(self, trim: FloatArray | None) -> None:
-        self._trim = trim
-        self._post(("trim", None if trim is None else tuple(float(x) for x in trim)))
 
     def route(self, addresses: tuple[Any, ...]) -> None:
         """Where datagrams go (the autopilot's address), whenever the link learns or changes it."""
@@ -495,12 +485,11 @@ def _child_main(start: _Start, inbox: multiprocessing.connection.Connection, rec
     lead = 0.0
     accel_lead = 0.0
     accel_lead_tc = 0.0
-    trim: FloatArray | None = None
     aim_horizontal: AimTerms = ()
 
     def handle(kind: str, body: Any) -> bool:
         """One item from the parent; False: stop."""
-        nonlocal feed, lead, accel_lead, accel_lead_tc, aim_horizontal, trim
+        nonlocal feed, lead, accel_lead, accel_lead_tc, aim_horizontal
         if kind == "feed":
             if body is None:
                 feed = None
@@ -516,8 +505,6 @@ def _child_main(start: _Start, inbox: multiprocessing.connection.Connection, rec
             accel_lead_tc = body
         elif kind == "aim_horizontal":
             aim_horizontal = body
-        elif kind == "trim":
-            trim = None if body is None else np.array(body, dtype=float)
         elif kind == "route":
             writer.route = body
         elif kind == "fd":
@@ -572,7 +559,7 @@ def _child_main(start: _Start, inbox: multiprocessing.connection.Connection, rec
         following = sched.deadline(sched.k + 1)
         if current is not None:
             fid, f = current
-            sp = sample(f.trajectory, now - f.t_base + lead, yaw, accel_lead, accel_lead_tc, aim_horizontal, trim)
+            sp = sample(f.trajectory, now - f.t_base + lead, yaw, accel_lead, accel_lead_tc, aim_horizontal)
             err = 0
             try:
                 writer.write(writer.setpoint(sp))

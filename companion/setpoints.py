@@ -135,7 +135,7 @@ def _aim_term(traj: Trajectory, t: float, jet: FloatArray, tc: float) -> tuple[F
 
 
 def sample(traj: Trajectory, t: float, yaw: YawPolicy, accel_lead: float = 0.0, accel_lead_tc: float = 0.0,
-           aim_horizontal: AimTerms = (), trim: FloatArray | None = None) -> Setpoint:
+           aim_horizontal: AimTerms = ()) -> Setpoint:
     """Position, velocity and acceleration at trajectory time t (clamped to its span).
 
     `accel_lead` k (s², `[setpoints] accel_lead`): the setpoint is the jet of p + k F instead of
@@ -147,11 +147,10 @@ def sample(traj: Trajectory, t: float, yaw: YawPolicy, accel_lead: float = 0.0, 
     rest (past the end) the jet is the end point, plus what F has left.
 
     `aim_horizontal` ((k, tc), ...; `[setpoints] aim_horizontal`): more such terms, in the
-    horizontal plane only (PX4 SIH trails by a sum of two, docs/autopilot-limits.md).
-    `trim` (m, companion.trim): added to the position only."""
+    horizontal plane only (PX4 SIH trails by a sum of two, docs/autopilot-limits.md)."""
     if accel_lead == 0.0 and not aim_horizontal:
         jet = sampler(traj).jet3(t)
-        return Setpoint(jet[0] if trim is None else jet[0] + trim, jet[1], jet[2], yaw(jet[1]))
+        return Setpoint(jet[0], jet[1], jet[2], yaw(jet[1]))
     sm = sampler(traj)
     full = sm.jet(t)
     if t >= sm.t_end:
@@ -165,7 +164,7 @@ def sample(traj: Trajectory, t: float, yaw: YawPolicy, accel_lead: float = 0.0, 
         p[:2] += k * f[:2]
         v[:2] += k * df[:2]
         a[:2] += k * ddf[:2]
-    return Setpoint(p if trim is None else p + trim, v, a, yaw(full[1]))
+    return Setpoint(p, v, a, yaw(full[1]))
 
 
 # -- the setpoint thread ---------------------------------------------------------------
@@ -319,7 +318,6 @@ class SetpointSender:
         self.accel_lead = 0.0  # s²: see `sample`
         self.accel_lead_tc = 0.0  # s: see `sample`
         self.aim_horizontal: AimTerms = ()  # see `sample`
-        self.trim: FloatArray | None = None  # m: see `sample`
         self.scheduling = "normal"  # as the thread found or set it, for the logs and status
         self.native_id: int | None = None
         self._stop = threading.Event()
@@ -379,7 +377,7 @@ class SetpointSender:
             gap = error = sp = None
             if feed is not None:
                 sp = sample(feed.trajectory, now - feed.t_base + self.lead, self.yaw, self.accel_lead, self.accel_lead_tc,
-                            self.aim_horizontal, self.trim)
+                            self.aim_horizontal)
                 try:
                     self.send(sp)
                 except OSError as exc:  # reported on the loop; the next tick tries again

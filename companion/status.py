@@ -86,8 +86,6 @@ class StatusReport:
             "accel_lead_tc": self.sender.accel_lead_tc,
             # its horizontal terms ([setpoints] aim_horizontal): [[k s², tc s], ...]
             "aim_horizontal": [list(term) for term in getattr(self.sender, "aim_horizontal", ())],
-            # the trim ([setpoints] trim_tc): how far the setpoints' position is moved off the aim, m (NED)
-            "trim": None if getattr(self.sender, "trim", None) is None else enc.vec(self.sender.trim),
             # the allowance in use, and whose: `[planner] tracking_allowance` or the autopilot's default
             "tracking_allowance": self.tracking.allowance()[0],
             "tracking_allowance_from": self.tracking.allowance()[1],

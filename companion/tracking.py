@@ -39,7 +39,6 @@ from companion.tracking_rules import (
     TrackingState,
     tracking_step,
 )
-from companion.trim import Trim, TrimRules, TrimSample, trim_step
 from companion.wire.mavlink import MavlinkLink
 
 S = State
@@ -79,7 +78,6 @@ class Tracking:
         self.lag = LagEstimator(cap=cfg.setpoints.lead_max)
         self._leads: collections.deque[tuple[float, float]] = collections.deque()  # (t, lead) sampled
         self._lead_set_at: float | None = None
-        self.trim = Trim()  # the setpoints' trim (companion.trim): replaced by _update_trim only
         self.lead_target: Any = None  # the setpoint thread (its `lead` is set here only: steer_lead)
 
     @property
@@ -108,11 +106,9 @@ class Tracking:
         if err is None or not ours:
             self._step(self._reading(err, ours), measured_at)
             self.lag.hold()
-            self._update_trim(measured_at)
             return
         self.tracking_error_max = max(self.tracking_error_max, err)
         self._estimate_lag(measured_at)
-        self._update_trim(measured_at)
         self._step(self._reading(err, ours), measured_at)
 
     def _limit(self) -> tuple[float, str, float]:
@@ -196,22 +192,6 @@ class Tracking:
             want = min(est, self.cfg.setpoints.lead_max)
             self._set_lead(lead_now + max(-step, min(step, want - lead_now)))
         self._lead_set_at = measured_at
-
-    def _update_trim(self, measured_at: float) -> None:
-        """The trim (companion.trim) after this sample, written to the setpoint sender when it
-        changed: within `[setpoints] trim_max` and the tracking allowance in use."""
-        sp = self.cfg.setpoints
-        rules = TrimRules(sp.trim_tc, min(sp.trim_max, self._limit()[2]))
-        if not rules.on and self.trim.at is None and not np.any(self.trim.offset):
-            return
-        ctl, fl = self.control, self.flight
-        ref = ctl.reference(measured_at) if fl.flying_ours else None
-        err = np.full(3, np.nan) if ref is None else ref - self.link.state.position
-        before = self.trim
-        self.trim = trim_step(rules, before, TrimSample(measured_at, err, fl.state is S.STREAMING and fl.airborne,
-                                                         ref is not None))
-        if self.lead_target is not None and self.trim.offset is not before.offset:
-            self.lead_target.trim = self.trim.offset if np.any(self.trim.offset) else None
 
     def steer_lead(self, target: Any) -> None:
         """Set the lead of `target` (the setpoint thread or process), from now on only here: the

@@ -167,13 +167,6 @@ def analyse(name: str, mission: dict[str, Any], outcome: FlightOutcome, r: Rig,
     if len(sp_t) < 10 or len(flown.t) < 10:
         result.ok, result.reason = False, "the flight log has no applied setpoints"
         return result
-    if outcome.trims and any(any(v) for _, v in outcome.trims):
-        # the setpoints were trimmed ([setpoints] trim_tc): take the trim the status said off
-        ts = np.array([mono_to_sim(m) for m, _ in outcome.trims])
-        tv = np.array([v for _, v in outcome.trims])
-        trim_at = np.stack([np.interp(sp_t, ts, tv[:, c]) for c in range(3)], axis=1)
-        result.trim_max = float(np.max(np.linalg.norm(trim_at, axis=1)))
-        sp_p = sp_p - trim_at
     s_stream = mono_to_sim(outcome.t_stream if outcome.t_stream is not None else outcome.t_put)
     s_first_change = mono_to_sim(samples[1].mono) if len(samples) > 1 else (
         mono_to_sim(outcome.t_done) if outcome.t_done is not None else s_stream + first.t_end - first.t0)
@@ -206,6 +199,9 @@ def analyse(name: str, mission: dict[str, Any], outcome: FlightOutcome, r: Rig,
     result.tau_stream = s_stream - offset
     result.tracking = rep.tracking_error(result.trajectories, starts, flown, sp_t, sp_off,
                                          result.tau_stream, tau_end)
+    # each flown sample against the plan at its own time, for fitting an aim (docs/autopilot-limits.md)
+    np.savetxt(r.out / f"{name}_tracking.csv", result.tracking.samples, delimiter=",", fmt="%.5f",
+               header="tau_s,err_n,err_e,err_d,plan_vn,plan_ve,plan_vd,plan_an,plan_ae,plan_ad")
     if r.external:
         # the tap's states are what the autopilot believes (LOCAL_POSITION_NED), not the truth
         result.tracked = "the autopilot's estimate"

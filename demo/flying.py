@@ -51,7 +51,6 @@ class FlightOutcome:
     events: list[Sample]
     # (monotonic time, lead s) from the companion's status: what the setpoints were sampled ahead by
     leads: list[tuple[float, float]] = dataclasses.field(default_factory=list)
-    trims: list[tuple[float, tuple[float, float, float]]] = dataclasses.field(default_factory=list)
 
 
 class Progress:
@@ -97,7 +96,6 @@ def fly(r: Rig, mission: dict[str, Any], actions: list[Action], timeout: float, 
     trajectories: list[Sample] = []
     events: list[Sample] = []
     leads: list[tuple[float, float]] = []
-    trims: list[tuple[float, tuple[float, float, float]]] = []
     t_stream: float | None = None
     t_done: float | None = None
     reason = ""
@@ -146,14 +144,11 @@ def fly(r: Rig, mission: dict[str, Any], actions: list[Action], timeout: float, 
         if st is not None and isinstance(st.data, dict) and isinstance(st.data.get("lead_ms"), int | float) and (
                 not leads or leads[-1][0] != st.mono):
             leads.append((st.mono, float(st.data["lead_ms"]) / 1000.0))
-            trim = st.data.get("trim")
-            trims.append((st.mono, (0.0, 0.0, 0.0) if not isinstance(trim, list) else
-                          (float(trim[0]), float(trim[1]), float(trim[2]))))
         progress.show(_status_line(name, st.data if st else None, pos, now - t_put))
     progress.done()
     if not reason and t_done is None:
         reason = f"timeout after {timeout:.0f} s"
-    return FlightOutcome(not reason, reason, t_put, trajectories, t_stream, t_done, actions, events, leads, trims)
+    return FlightOutcome(not reason, reason, t_put, trajectories, t_stream, t_done, actions, events, leads)
 
 
 def _enu_position(telemetry: Any, home: np.ndarray) -> np.ndarray | None:

@@ -44,6 +44,9 @@ class Tracking:
     max: float
     n: int
     span: tuple[float, float] = (float("nan"), float("nan"))  # trajectory times measured over
+    # per flown sample: trajectory time, then the plan minus the flown position, the plan's
+    # velocity and acceleration there (m, m/s, m/s², local NED), shape (n, 10)
+    samples: FloatArray = field(default_factory=lambda: np.zeros((0, 10)))
 
 
 @dataclass
@@ -67,7 +70,6 @@ class MissionResult:
     tracking_truth: Tracking | None = None  # an external autopilot's ground truth, where it sends it
     # s, per applied setpoint: how far ahead of its own time it was sampled (the lead)
     leads: FloatArray | None = None
-    trim_max: float | None = None
     peaks_planned: FloatArray | None = None  # (4, 3) max |derivative| per axis
     peaks_flown: FloatArray | None = None  # (2, 3) velocity, acceleration
     bounds: FloatArray | None = None  # (4, 3) symmetric magnitude per axis (NED)
@@ -260,9 +262,12 @@ def tracking_error(trajs: Sequence[Trajectory], starts: Sequence[float], flown: 
     mask = (tau >= span[0]) & (tau <= span[1])
     if not mask.any():
         return Tracking(float(np.median(sp_offsets)), float("nan"), float("nan"), 0, span)
-    err = np.linalg.norm(flown.pos[mask] - stitched(trajs, starts, tau[mask]), axis=1)
+    diff = stitched(trajs, starts, tau[mask]) - flown.pos[mask]
+    err = np.linalg.norm(diff, axis=1)
+    samples = np.column_stack([tau[mask], diff, stitched(trajs, starts, tau[mask], 1),
+                               stitched(trajs, starts, tau[mask], 2)])
     return Tracking(float(np.median(sp_offsets)), float(np.sqrt(np.mean(err**2))), float(err.max()),
-                    int(mask.sum()), span)
+                    int(mask.sum()), span, samples)
 
 
 def planned_peaks(traj: Trajectory, samples_per_segment: int = 400) -> FloatArray:
@@ -359,8 +364,6 @@ def summary_rows(result: MissionResult) -> list[tuple[str, str]]:
                      f"{result.tracking_truth.rms:.3f} / {result.tracking_truth.max:.3f} m"))
     if result.leads is not None and len(result.leads):
         # the flight is compared with the plan at its own time: each setpoint's lead taken off
-        if result.trim_max is not None:
-            rows.append(("setpoint trim, max", f"{result.trim_max:.3f} m"))
         rows.append(("setpoint lead, first / last", f"{result.leads[0] * 1000:.0f} / {result.leads[-1] * 1000:.0f} ms"))
     if result.setpoint_deviation is not None:
         rows.append(("setpoints vs trajectory, max", f"{result.setpoint_deviation:.1e} m"))

@@ -117,10 +117,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--px4-drift", type=float, default=None, metavar="METRES", dest="px4_drift_m",
                    help="PX4: how far the estimate on the ground drifts horizontally before ready, reset at "
                    "ready (default 30; PX4 SIH measured 23-42 m; 0: none)")
-    p.add_argument("--px4-velocity-bias", type=float, nargs=2, default=(0.0, 0.0), metavar=("NORTH", "EAST"),
-                   dest="px4_velocity_bias",
-                   help="PX4: the velocity estimate's error (m/s) in OFFBOARD in the air, which its velocity loop "
-                   "flies on (PX4 SIH with EKF2's noise set to SIH's: up to 0.1-0.2 m/s; default 0 0)")
     p.add_argument("--px4-statustext", action="store_true",
                    help="PX4: report with STATUSTEXT as PX4 < 1.14 did, instead of EVENT messages")
     p.add_argument("--rc-throttle", type=_rc, default=1000, metavar="PWM|none",
@@ -161,7 +157,7 @@ def main(argv: list[str] | None = None) -> int:
             offboard_warmup_s=args.offboard_warmup, vehicle=RESPONSES[args.response] if args.response else None,
             signing_key=read_signing_key(args.signing_key) if args.signing_key else None,
             ground_z=args.ground_z, px4_statustext=args.px4_statustext, px4_ready_s=args.px4_ready_s,
-            px4_drift_m=args.px4_drift_m, px4_velocity_bias=tuple(args.px4_velocity_bias),
+            px4_drift_m=args.px4_drift_m,
             rc_throttle=args.rc_throttle, ekf_origin_delay_s=args.ekf_origin_delay, spool_up_s=args.spool_up,
             position_after_origin_s=args.position_after_origin, home_shift_at_arming=args.home_shift_at_arming,
             shaping=args.shaping,

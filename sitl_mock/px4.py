@@ -84,13 +84,6 @@ LOITER_WANDER_DIR = np.array([math.cos(math.radians(30.0)), math.sin(math.radian
 OFFBOARD_WANDER_M = 0.42
 OFFBOARD_WANDER_PERIOD_S = 4.0
 OFFBOARD_WANDER_TURN_S = 10.0
-# With EKF2's noise set to what SIH's sensors have (EKF2_ACC_NOISE 1.0, EKF2_GYR_NOISE 0.09),
-# PX4 SIH's position estimate stays within 0.08-0.09 m RMS of the truth, but its velocity
-# estimate keeps a mean error of up to 0.1-0.2 m/s over a mission, which the velocity loop flies
-# on: the vehicle (and the estimate with it) sits bias / MPC_XY_P off the setpoint, a constant
-# offset of 0.15-0.39 m in the flights (session 16, docs/autopilot-limits.md). The mock's
-# MockConfig.px4_velocity_bias is that error, in OFFBOARD in the air: the vehicle's velocity loop
-# sees the velocity plus the bias, and LOCAL_POSITION_NED reports it (its position is the truth).
 # PX4 sends its arming-check report when the checks' results change (Report::report: a
 # difference not yet reported, at most every 2 s), never in answer to an arm (Commander::arm calls
 # update() without forcing a report). Measured on PX4 SIH (9ececfdd, 5 boots): at 2.3-2.5 s and
@@ -303,15 +296,6 @@ class Px4Rules:
                           internal=mav.MAV_SEVERITY_INFO)
         return why
 
-    def velocity_bias(self) -> np.ndarray:
-        """The velocity estimate's error the vehicle's loop flies on (MockConfig.px4_velocity_bias):
-        in OFFBOARD in the air only."""
-        m = self.mock
-        north, east = m.config.px4_velocity_bias
-        if m.mode != "OFFBOARD" or m.landed or not (north or east):
-            return np.zeros(3)
-        return np.array([north, east, 0.0])
-
     def estimate(self, pos: np.ndarray, vel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """LOCAL_POSITION_NED's position and velocity: before ready, on the ground, the estimate
         drifts away horizontally (DRIFT_XY_M over the time to ready) and its z wanders; at ready
@@ -339,7 +323,7 @@ class Px4Rules:
         if m.mode == "OFFBOARD":
             if self.offboard_since is None:
                 self.offboard_since = m.t
-            return self._offboard_wander(pos, vel + self.velocity_bias(), m.t - self.offboard_since)
+            return self._offboard_wander(pos, vel, m.t - self.offboard_since)
         if self.loiter_since is None:
             return pos, vel
         # excursions of 2 r at up to r w: r = M / 2, w = speed / r

@@ -111,10 +111,6 @@ class MockConfig:
     # PX4: how far (m) the estimate on the ground drifts horizontally by the time it is ready
     # (sitl_mock.px4.DRIFT_XY_M: 30, measured 23-42 m); None: that default; 0: no drift.
     px4_drift_m: float | None = None
-    # PX4: the velocity estimate's error (m/s, north and east) in OFFBOARD in the air, which PX4's
-    # own velocity loop flies on (sitl_mock.px4 velocity_bias); (0, 0): none, as stock PX4 SIH,
-    # whose estimate wanders off the vehicle instead (OFFBOARD_WANDER_*).
-    px4_velocity_bias: tuple[float, float] = (0.0, 0.0)
 
     def validate(self) -> None:
         if self.autopilot not in ("px4", "ardupilot"):
@@ -136,10 +132,6 @@ class MockConfig:
             raise ValueError(f"px4_report_every_s: must be a finite number of seconds > 0, got {self.px4_report_every_s}")
         if self.px4_drift_m is not None and not (math.isfinite(self.px4_drift_m) and 0.0 <= self.px4_drift_m <= 1000.0):
             raise ValueError(f"px4_drift_m: must be a finite distance in [0, 1000] m, got {self.px4_drift_m}")
-        if len(self.px4_velocity_bias) != 2 or not all(
-                math.isfinite(v) and abs(v) <= 2.0 for v in self.px4_velocity_bias):
-            raise ValueError(f"px4_velocity_bias: must be 2 finite speeds (north, east) within 2 m/s, "
-                             f"got {self.px4_velocity_bias}")
         if self.ground_z is not None and not (math.isfinite(self.ground_z) and abs(self.ground_z) <= 1000.0):
             raise ValueError(f"ground_z: must be a finite z in [-1000, 1000] m, got {self.ground_z}")
         if self.rc_throttle is not None and not 800 <= self.rc_throttle <= 2200:

@@ -43,8 +43,6 @@ class Simulation(ModeRules):
         if self.px4 is not None:
             self.px4.step()
         target = self._target()
-        if self.px4 is not None:
-            self.vehicle.vel_bias = self.px4.velocity_bias()
         self.vehicle.step(self.dt, target, self.armed, self.wind)
         self._after_physics()
         self._telemetry(target)

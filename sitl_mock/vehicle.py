@@ -129,9 +129,6 @@ class Vehicle:
         self._applied: Target | None = None
         # --- shaping hook: set each step by the server (None: the response's own limits)
         self.limits: Limits | None = None
-        # --- the velocity estimate's error the velocity loop flies on (set each step by the
-        # server: sitl_mock.px4 velocity_bias; zero for ArduPilot)
-        self.vel_bias = np.zeros(3)
 
     def _delayed(self, dt: float, target: Target | None) -> Target | None:
         """The target as the controller sees it, `delay` seconds late."""
@@ -174,7 +171,7 @@ class Vehicle:
         vel_loop = has_pos | has_vel
         acc_ff = np.where(np.isfinite(target.acc), target.acc * p.acc_ff_gain, 0.0)
         damp = np.where(np.isfinite(target.acc), 0.0, -p.kv_vel * s.vel)
-        a_cmd = np.where(vel_loop, p.kv_vel * (v_cmd - (s.vel + self.vel_bias)) + acc_ff, acc_ff + damp)
+        a_cmd = np.where(vel_loop, p.kv_vel * (v_cmd - s.vel) + acc_ff, acc_ff + damp)
         a_cmd = _clip_norm(a_cmd, acc_xy)
         # Thrust cannot pull down: net downward acceleration is at most g.
         a_cmd[2] = min(max(a_cmd[2], -p.max_acc_up), G)

@@ -73,6 +73,8 @@ async def _linked(mock: MockAutopilot) -> tuple[float, float]:
                     "link-up")
         status = svc.status()
         assert (status["accel_lead"], status["accel_lead_tc"]) == (svc.sender.accel_lead, svc.sender.accel_lead_tc)
+        # no horizontal terms by default either (PX4 SIH's are not the mock's response): status says so
+        assert status["aim_horizontal"] == [] and svc.sender.aim_horizontal == ()
         return svc.sender.accel_lead, svc.sender.accel_lead_tc
 
 
@@ -101,3 +103,22 @@ def test_the_autopilot_aim_is_set_at_link_up_and_lowers_the_tracking_error(tmp_p
     assert k0 == 0.0
     assert (k, tc) == MEASURED_AIM["ardupilot"]
     assert rms_aim < 0.8 * rms0
+
+
+async def _linked_with(mock: MockAutopilot, terms: list[list[float]]) -> tuple[Any, Any]:
+    svc = service_for(mock, setpoints={"aim_horizontal": terms})
+    async with serving(svc):
+        await until(lambda: svc.link.state.autopilot == "px4", 10, "link-up")
+        return svc.sender.aim_horizontal, svc.status()["aim_horizontal"]
+
+
+def test_configured_horizontal_terms_are_flown_and_said() -> None:
+    from companion.lag import PX4_SIH_AIM_HORIZONTAL
+
+    mock = MockAutopilot(MockConfig(autopilot="px4", endpoints=["udpin:127.0.0.1:0"], px4_ready_s=0.0)).start()
+    try:
+        terms = [list(t) for t in PX4_SIH_AIM_HORIZONTAL]
+        sent, said = asyncio.run(_linked_with(mock, terms))
+    finally:
+        mock.stop()
+    assert sent == PX4_SIH_AIM_HORIZONTAL and said == terms
