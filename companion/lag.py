@@ -50,7 +50,6 @@ MEASURED_AIM = {"ardupilot": (0.09, 1.0), "px4": (0.0, 0.0)}
 # slow velocity loop), and real PX4 was not measured: none by default.
 MEASURED_AIM_HORIZONTAL: dict[str, tuple[tuple[float, float], ...]] = {"ardupilot": (), "px4": ()}
 PX4_SIH_AIM_HORIZONTAL = ((-0.95, 1.0), (3.4, 4.0))
-PX4_SIH_AIM_LEAD = 0.08
 
 
 def initial_aim(setting: float | str, tc: float, autopilot: str | None) -> tuple[float, float]:

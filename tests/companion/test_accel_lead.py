@@ -17,6 +17,7 @@ import time
 import numpy as np
 import pytest
 
+from companion.lag import PX4_SIH_AIM_HORIZONTAL
 from companion.sendproc import Encoding, SetpointProcess
 from companion.setpoints import Feed, Tick, YawPolicy, filtered_accel, sample
 from demo.report import aimed
@@ -98,7 +99,9 @@ def test_the_analysis_reconstructs_the_aim_from_the_plan(tc: float) -> None:
     assert np.abs(got - want).max() < 1e-4
 
 
-def test_the_setpoint_process_aims_as_the_service_set_before_it_ran() -> None:
+@pytest.mark.parametrize("aim", [(0.09, 1.0, ()), (0.0, 0.0, PX4_SIH_AIM_HORIZONTAL)])
+def test_the_setpoint_process_aims_as_the_service_set_before_it_ran(
+        aim: tuple[float, float, tuple[tuple[float, float], ...]]) -> None:
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sock.bind(("127.0.0.1", 0))
     ticks: list[Tick] = []
@@ -110,7 +113,8 @@ def test_the_setpoint_process_aims_as_the_service_set_before_it_ran() -> None:
 
     sender = SetpointProcess(50.0, lambda: (sock.fileno(), True, Encoding(255, 191, 1, 1, None, time.monotonic())),
                              YawPolicy("fixed", 0.0, 0.3), on_tick, lambda exc: None)
-    sender.accel_lead, sender.accel_lead_tc = 0.09, 1.0  # as the service does at construction
+    # as the service does at construction, before the process runs
+    sender.accel_lead, sender.accel_lead_tc, sender.aim_horizontal = aim
     sender.start()
     traj = _curve()
     try:
@@ -121,7 +125,7 @@ def test_the_setpoint_process_aims_as_the_service_set_before_it_ran() -> None:
             got = [t for t in ticks if t.setpoint is not None]
         assert len(got) >= 10
         for t in got:
-            want = sample(traj, t.now - t_base, YAW, 0.09, 1.0)
+            want = sample(traj, t.now - t_base, YAW, *aim)
             assert np.allclose(t.setpoint.position, want.position, atol=1e-9)
             assert np.allclose(t.setpoint.velocity, want.velocity, atol=1e-9)
     finally:
@@ -129,7 +133,7 @@ def test_the_setpoint_process_aims_as_the_service_set_before_it_ran() -> None:
         sock.close()
 
 
-H_TERMS = ((-0.95, 1.0), (3.4, 4.0))  # PX4 SIH's (companion.lag PX4_SIH_AIM_HORIZONTAL)
+H_TERMS = PX4_SIH_AIM_HORIZONTAL
 
 
 def test_the_horizontal_terms_aim_in_the_plane_only_and_coherently() -> None:
@@ -166,7 +170,7 @@ def test_the_analysis_reconstructs_the_horizontal_aim() -> None:
 
 def test_the_horizontal_aim_option() -> None:
     from companion.config import ConfigError, config_from_dict
-    from companion.lag import PX4_SIH_AIM_HORIZONTAL, initial_aim_horizontal
+    from companion.lag import initial_aim_horizontal
 
     assert config_from_dict({}).setpoints.aim_horizontal == "autopilot"
     assert initial_aim_horizontal("autopilot", "px4") == initial_aim_horizontal("autopilot", "ardupilot") == ()
@@ -178,34 +182,3 @@ def test_the_horizontal_aim_option() -> None:
                        ([[1.0, 1.0], [True, 1.0]], r"aim_horizontal\[1\]")):
         with pytest.raises(ConfigError, match=where):
             config_from_dict({"setpoints": {"aim_horizontal": bad}})
-
-
-def test_the_setpoint_process_aims_horizontally_as_set() -> None:
-    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    sock.bind(("127.0.0.1", 0))
-    ticks: list[Tick] = []
-    lock = threading.Lock()
-
-    def on_tick(tick: Tick) -> None:
-        with lock:
-            ticks.append(tick)
-
-    sender = SetpointProcess(50.0, lambda: (sock.fileno(), True, Encoding(255, 191, 1, 1, None, time.monotonic())),
-                             YawPolicy("fixed", 0.0, 0.3), on_tick, lambda exc: None)
-    sender.aim_horizontal = H_TERMS  # before it runs, as the service does at construction
-    sender.start()
-    traj = _curve()
-    try:
-        t_base = time.monotonic()
-        sender.feed = Feed(traj, t_base)
-        time.sleep(0.5)
-        with lock:
-            got = [t for t in ticks if t.setpoint is not None]
-        assert len(got) >= 10
-        for t in got:
-            want = sample(traj, t.now - t_base, YAW, 0.0, 0.0, H_TERMS)
-            assert np.allclose(t.setpoint.position, want.position, atol=1e-9)
-            assert np.allclose(t.setpoint.velocity, want.velocity, atol=1e-9)
-    finally:
-        sender.stop()
-        sock.close()
