@@ -103,7 +103,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--response", choices=sorted(RESPONSES), default=None,
                    help="vehicle response: px4_sih (PX4's default; ~0.34 s lag as PX4 1.15 SIH), calibrated "
                    "(ArduPilot's default; fitted to ArduCopter SITL, ~60 ms lag) or ideal (follows a full "
-                   "feed-forward at once: fast unit tests)")
+                   "feed-forward at once: fast unit tests) or px4_sih_drag (px4_sih with SIH's drag and PX4's "
+                   "velocity integral: trails a plan for seconds as PX4 SIH does)")
     p.add_argument("--signing-key", metavar="FILE",
                    help="MAVLink 2 signing: a file holding the 32-byte key (raw, or 64 hex digits); unsigned or "
                    "wrongly signed commands and setpoints are then ignored")
