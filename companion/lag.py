@@ -46,8 +46,10 @@ UNKNOWN_AUTOPILOT = "ardupilot"  # whose lag is assumed before an autopilot is f
 MEASURED_AIM = {"ardupilot": (0.09, 1.0), "px4": (0.0, 0.0)}
 # The horizontal aim (`[setpoints] aim_horizontal = "autopilot"`): terms (k s², tc s) measured per
 # autopilot. PX4 SIH (EKF2's noise set to SIH's) trails the plan by -0.95 F(1 s) + 3.4 F(4 s)
-# beyond a lag of 0.08 s (docs/autopilot-limits.md); the mock's PX4 response does not (it has no
-# slow velocity loop), and real PX4 was not measured: none by default.
+# beyond a lag of 0.08 s (docs/autopilot-limits.md): SIH's drag, made up only by PX4's velocity
+# integral. That is SIH's drag, not a vehicle's: on a response without it (the mock's default
+# px4_sih) these terms mis-aim (a demo braked at 1.06 m), and real PX4 was not measured: none by
+# default; PX4_SIH_AIM_HORIZONTAL for PX4 SIH (and the mock's px4_sih_drag).
 MEASURED_AIM_HORIZONTAL: dict[str, tuple[tuple[float, float], ...]] = {"ardupilot": (), "px4": ()}
 PX4_SIH_AIM_HORIZONTAL = ((-0.95, 1.0), (3.4, 4.0))
 
