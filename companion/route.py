@@ -121,12 +121,18 @@ def outside_map_text(mission: MissionSpec, waypoints: FloatArray, labels: FloatA
     if np.all(p >= lo + r - 1e-9) and np.all(p <= hi - r + 1e-9):
         return None
     axis = int(np.argmax(np.maximum(lo + r - p, p - (hi - r))))
-    side = "below the floor of" if axis == 2 and p[2] > hi[2] - r else "outside"
+    high = p[axis] - (hi[axis] - r) > lo[axis] + r - p[axis]
+    room = float(hi[axis] - p[axis] if high else p[axis] - lo[axis])  # to that face; < 0: beyond it
+    floor = axis == 2 and high  # z is down
+    if room < 0.0:
+        where = f"{-room:.2f} m {'below the floor of' if floor else 'outside'}"
+    else:  # inside, but the vehicle would not fit: say so, not "outside" (home 0.35 m above a landed PX4 SIH)
+        where = f"only {room:.2f} m {'above the floor of' if floor else 'inside'}"
     f = mission.frame
-    return (f"{waypoint_name(labels, wp)} {fmt_point(p, f)} is {side} the map box {fmt_box(lo, hi, f)} "
+    return (f"{waypoint_name(labels, wp)} {fmt_point(p, f)} is {where} the map box {fmt_box(lo, hi, f)} "
             f"(the geofence, relative to home once the autopilot reports it, intersected with the mission's map; "
-            f"{f.upper()}, local frame) by more than the vehicle radius {r:g} m on axis "
-            f"{('xyz' if f != 'enu' else 'yxz')[axis]}")
+            f"{f.upper()}, local frame) on axis {('xyz' if f != 'enu' else 'yxz')[axis]}: it must stay the vehicle "
+            f"radius {r:g} m inside")
 
 
 def plan_route(

@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 from dataclasses import replace
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -9,7 +10,7 @@ from companion.braking import brake, corridor_at
 from companion.config import Config, ConfigError, config_from_dict
 from companion.edits import LocalEdit, Refused, resolve
 from companion.mission import local_replan, replan_remainder, start_mission, trim
-from companion.route import KNOT, Route
+from companion.route import KNOT, Route, outside_map_text
 from companion.wire.messages import (
     MessageError,
     change_from_message,
@@ -259,3 +260,21 @@ def test_reserve_leaves_a_share_of_every_bound_unused_for_replans(reserve: float
 def test_reserve_is_a_share_below_one(value: float) -> None:
     with pytest.raises(ConfigError, match=r"planner\.reserve"):
         config_from_dict({"planner": {"reserve": value}})
+
+
+def test_a_position_too_near_the_map_box_says_how_near_not_outside() -> None:
+    """A landed PX4 SIH whose home was reported 0.35 m above it sat inside the box, 0.12 m above
+    its floor: the refusal said "below the floor ... by more than the vehicle radius", which it was
+    not. Inside but too near a face: how far inside; beyond it: how far beyond."""
+    box = SimpleNamespace(map_lo=[-100, -100, -50], map_hi=[100, 100, 0.5], radius=0.45, frame="ned")
+    labels = np.array([-1.0])
+
+    def said(p: list[float]) -> str | None:
+        return outside_map_text(box, np.array([p], dtype=float), labels, 0)  # type: ignore[arg-type]
+
+    assert "is 1.10 m below the floor of the map box" in str(said([0, 0, 1.6]))
+    assert "is only 0.30 m above the floor of the map box" in str(said([0, 0, 0.2]))
+    assert "is 0.20 m outside the map box" in str(said([100.2, 0, 0])) and "on axis x" in str(said([100.2, 0, 0]))
+    assert "is only 0.20 m inside the map box" in str(said([99.8, 0, 0]))
+    assert "radius 0.45 m" in str(said([0, 0, 0.2]))
+    assert said([0, 0, 0]) is None
