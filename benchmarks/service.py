@@ -27,6 +27,7 @@ for its setpoint thread only (companion/rtsched.py); everything else runs normal
                           # (0: no realtime run)
         [--recording]     # also a 50 Hz run with the flight recorder on (its cost: jitter, CPU)
         [--recording-only]  # only the 50 Hz runs without and with the recorder
+        [--aim]           # the companion aims with PX4 SIH's horizontal terms (setpoint sampling's cost)
 """
 
 from __future__ import annotations
@@ -332,7 +333,7 @@ def _run_rate(rate: float, flight: float, out: Path, popups: int, load: bool,
     results: list[Popup] = []
     try:
         with rig(out, "px4", rate_hz=rate, mav_port=mock_port, companion_mav_port=relay_port,
-                 workers=workers, recording=out / "recordings" if record else None) as r:
+                 workers=workers, recording=out / "recordings" if record else None, settings=SETTINGS) as r:
             events = _EventLog(r.peer)
             t_put = r.peer.put("mission", mission)
             events.wait(lambda e: e.get("type") == "accepted" and e.get("key") == "mission", t_put, 20.0)
@@ -437,6 +438,11 @@ def small_mission(i: int, rng: np.random.Generator) -> dict[str, Any]:
     return {"id": f"loaded-{i}", "frame": "enu", "waypoints": wps.round(2).tolist()}
 
 
+# --aim: the companion's config changes ([setpoints] aim_horizontal: PX4 SIH's terms, the most a
+# setpoint tick samples), for every rig this run starts
+SETTINGS: list[str] = []
+
+
 def _hog() -> subprocess.Popen[bytes]:
     """A process spinning on a core, under normal scheduling, as another job on the computer."""
     return subprocess.Popen([sys.executable, "-c", "while True: pass"])
@@ -456,7 +462,8 @@ def relayed_flight(out: Path, hog: bool, laps: int, search_time: float | None = 
                                    str(stamps_path)])
     hog_proc = _hog() if hog else None
     try:
-        with rig(out, "px4", mav_port=mock_port, companion_mav_port=relay_port, search_time=search_time) as r:
+        with rig(out, "px4", mav_port=mock_port, companion_mav_port=relay_port, search_time=search_time,
+                 settings=SETTINGS) as r:
             events = _EventLog(r.peer)
             t_put = r.peer.put("mission", flight_mission(laps=laps))
             events.wait(lambda e: e.get("type") == "accepted" and e.get("key") == "mission", t_put, 30.0)
@@ -477,7 +484,7 @@ def run_loaded(out: Path, every: float, duration: float, soak: int, hog: bool) -
     one flying); then `soak` 1000-waypoint missions (checked, kept pending, each replacing the
     last) and obstacle additions and removals, then one small pending mission: the companion's
     main and tree RSS before and after. Setpoint gaps at the relay over the mission phase."""
-    result: dict[str, Any] = {"hog": hog, "every_s": every, "duration_s": duration}
+    result: dict[str, Any] = {"hog": hog, "every_s": every, "duration_s": duration, "aim": bool(SETTINGS)}
     rng = np.random.default_rng(7)
     with relayed_flight(out, hog, 20) as (r, events, stamps_path):
         pid = r.companion.pid
@@ -643,7 +650,8 @@ def format_loaded(r: dict[str, Any]) -> str:
          f"within {LOADED_TARGETS['rss_regrowth_mb']:.0f}"],
         ["tree RSS idle -> after soak (MB)", f"{r['rss_tree_idle_mb']:.0f} -> {r['rss_tree_after_soak_mb']:.0f}", ""],
     ]
-    text = grid(["loaded computer" + (" (CPU hog beside)" if r["hog"] else ""), "measured", "target"], rows)
+    text = grid(["loaded computer" + (" (CPU hog beside)" if r["hog"] else "") + (", aim" if r.get("aim") else ""),
+                 "measured", "target"], rows)
     if r["rejections"]:
         text += "\nrejections: " + "; ".join(r["rejections"])
     r["missions_flown_percent"], r["rss_regrowth_mb"] = flown, regrowth
@@ -876,6 +884,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--realtime-only", action="store_true", help="only the realtime run")
     p.add_argument("--recording", action="store_true",
                    help="also fly 50 Hz with planning load with the flight recorder on ([recording] path): its cost")
+    p.add_argument("--aim", action="store_true",
+                   help="the companion aims with PX4 SIH's horizontal terms ([setpoints] aim_horizontal; the most "
+                   "a setpoint tick samples): their cost on the stream")
     p.add_argument("--recording-only", action="store_true",
                    help="only the 50 Hz runs with planning load without and with the recorder")
     p.add_argument("--out", type=Path, default=Path("out/bench/service"))
@@ -896,6 +907,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--relay", nargs=3, metavar=("LISTEN", "TARGET", "OUT"), help=argparse.SUPPRESS)
     p.add_argument("--floor", nargs=4, metavar=("RATE", "PRIO", "NICE", "OUT"), help=argparse.SUPPRESS)
     args = p.parse_args(argv)
+    if args.aim:
+        from companion.lag import PX4_SIH_AIM_HORIZONTAL
+
+        SETTINGS.append(f"setpoints.aim_horizontal={[list(t) for t in PX4_SIH_AIM_HORIZONTAL]}")
     if args.relay:
         return relay(int(args.relay[0]), int(args.relay[1]), args.relay[2])
     if args.floor:
